@@ -1,0 +1,83 @@
+"""Baseline controllers: uncorrected, the pseudo-integrator, the leaky integrator, and a dither wrapper."""
+
+from __future__ import annotations
+
+import torch
+
+from eofnn.errors import require
+from eofnn.sim.loop import LoopInput
+from eofnn.sim.turbulence import stream_seed
+
+
+class Uncorrected:
+    """``y(n) = 0``: the open-loop turbulence."""
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
+        self._zeros = torch.zeros(batch, n_actuators, dtype=dtype)
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        return self._zeros
+
+
+class PseudoIntegrator:
+    """``y(n) = -s(n - d)``: perfect correction ``d`` frames late (the study's baseline; an oracle)."""
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
+        pass
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        return -inp.turbulence
+
+
+class Integrator:
+    """Leaky integrator ``y(n) = (1 - leak) y(n-1) - gain * m(n - d)`` on the WFS measurement ``m``.
+
+    For a delay of ``d`` frames and a nominal plant the loop is stable for ``gain < 2 sin(pi / (2 (2d - 1)))``
+    (1 for the two-frame delay) when ``leak = 0``; see :func:`critical_gain`.
+    """
+
+    def __init__(self, gain: float = 0.5, leak: float = 0.0) -> None:
+        require(gain >= 0, f"integrator gain={gain!r} is invalid: it must be >= 0")
+        require(0 <= leak <= 1, f"integrator leak={leak!r} is invalid: it must be in [0, 1]")
+        self.gain, self.leak = gain, leak
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
+        self._y = torch.zeros(batch, n_actuators, dtype=dtype)
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        self._y = (1 - self.leak) * self._y - self.gain * inp.wfs
+        return self._y
+
+
+def critical_gain(delay_frames: int) -> float:
+    """Integrator gain at which a loop with ``delay_frames`` of delay becomes unstable (nominal plant, no leak).
+
+    The characteristic polynomial ``z**d - z**(d-1) + k`` has a root on the unit circle at
+    ``k = 2 sin(pi / (2 (2d - 1)))``.
+    """
+    import math
+
+    return 2 * math.sin(math.pi / (2 * (2 * delay_frames - 1)))
+
+
+class Dithered:
+    """Adds white dither of ``amplitude_nm`` RMS to another controller's commands (persistent excitation).
+
+    The dither is part of ``y`` as the DM receives it, so telemetry records it; it also enters the wrapped
+    controller's own state only through the measured residuals, as on a real system.
+    """
+
+    def __init__(self, controller, amplitude_nm: float, seed: int = 0) -> None:
+        require(amplitude_nm >= 0, f"dither amplitude_nm={amplitude_nm!r} is invalid: it must be >= 0")
+        self.controller, self.amplitude_nm, self.seed = controller, amplitude_nm, seed
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
+        self.controller.reset(batch, n_actuators, delay_frames, dtype)
+        self._gen = torch.Generator().manual_seed(int(stream_seed(self.seed, "dither").generate_state(1)[0]))
+        self._shape, self._dtype = (batch, n_actuators), dtype
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        y = self.controller.step(inp)
+        if self.amplitude_nm == 0:
+            return y
+        return y + self.amplitude_nm * torch.randn(self._shape, generator=self._gen, dtype=self._dtype)

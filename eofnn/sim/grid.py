@@ -1,0 +1,121 @@
+"""The deformable-mirror actuator grid of a circular (optionally obstructed) pupil."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import torch
+
+from eofnn.errors import require
+
+
+@dataclass(frozen=True)
+class ActuatorGrid:
+    """Actuators on a square grid of ``n_across`` x ``n_across`` at pitch ``diameter_m / n_across``.
+
+    Actuator centres lie at ``(i + 0.5) * pitch - diameter_m / 2``; those inside the pupil (radius
+    ``diameter_m / 2``, outside the central obstruction of fractional diameter ``obstruction``) are active.
+
+    Parameters
+    ----------
+    diameter_m : float
+        Telescope diameter in metres.
+    n_across : int
+        Actuators across the pupil diameter.
+    obstruction : float
+        Central obstruction as a fraction of the diameter, in [0, 1).
+    """
+
+    diameter_m: float = 8.0
+    n_across: int = 40
+    obstruction: float = 0.0
+
+    def __post_init__(self) -> None:
+        require(self.diameter_m > 0, f"diameter_m={self.diameter_m!r} is invalid: it must be > 0 (metres)")
+        require(
+            isinstance(self.n_across, int) and self.n_across >= 2,
+            f"n_across={self.n_across!r} is invalid: it must be an integer >= 2 (actuators across the pupil)",
+        )
+        require(
+            0 <= self.obstruction < 1,
+            f"obstruction={self.obstruction!r} is invalid: it must be in [0, 1) (fraction of the diameter)",
+        )
+
+    @property
+    def pitch_m(self) -> float:
+        """Actuator pitch in metres."""
+        return self.diameter_m / self.n_across
+
+    @cached_property
+    def _full_coords(self) -> np.ndarray:
+        centres = (np.arange(self.n_across) + 0.5) * self.pitch_m - self.diameter_m / 2
+        yy, xx = np.meshgrid(centres, centres, indexing="ij")
+        return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+    @cached_property
+    def mask(self) -> np.ndarray:
+        """Boolean ``(n_across, n_across)`` map of active actuators (row = y, column = x)."""
+        r = np.hypot(self._full_coords[:, 0], self._full_coords[:, 1])
+        # A small tolerance keeps actuators that sit exactly on the rim, whatever the rounding.
+        tol = 1e-9 * self.diameter_m
+        inside = (r <= self.diameter_m / 2 + tol) & (r >= self.obstruction * self.diameter_m / 2 - tol)
+        return inside.reshape(self.n_across, self.n_across)
+
+    @property
+    def n_actuators(self) -> int:
+        """Number of active actuators."""
+        return int(self.mask.sum())
+
+    @cached_property
+    def positions_m(self) -> np.ndarray:
+        """``(n_actuators, 2)`` array of active actuator (x, y) positions in metres."""
+        return self._full_coords[self.mask.ravel()]
+
+    @cached_property
+    def indices(self) -> np.ndarray:
+        """``(n_actuators, 2)`` integer (row, column) of each active actuator on the square grid."""
+        rows, cols = np.nonzero(self.mask)
+        return np.stack([rows, cols], axis=1)
+
+    def ptt_basis(self) -> np.ndarray:
+        """Orthonormal ``(n_actuators, 3)`` basis of piston, tip and tilt over the active actuators."""
+        x, y = self.positions_m.T
+        modes = np.stack([np.ones_like(x), x, y], axis=1)
+        q, _ = np.linalg.qr(modes)
+        return q
+
+    def ptt_projector(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """``(n_actuators, n_actuators)`` projector that removes piston, tip and tilt."""
+        q = self.ptt_basis()
+        return torch.as_tensor(np.eye(len(q)) - q @ q.T, dtype=dtype)
+
+    def neighbours(self, radius: float) -> torch.Tensor:
+        """Indices of the active actuators within ``radius`` pitches of each actuator.
+
+        Returns a ``(n_actuators, n_neighbours)`` long tensor; the first column is the actuator itself and
+        slots beyond the pupil edge hold ``n_actuators`` (an index one past the end, for a zero pad).
+        Offsets are in a fixed order, so the same offset has the same column for every actuator.
+        """
+        require(radius >= 0, f"neighbourhood radius={radius!r} is invalid: it must be >= 0 (pitches)")
+        r = int(np.floor(radius))
+        offsets = [
+            (dr, dc)
+            for dr in range(-r, r + 1)
+            for dc in range(-r, r + 1)
+            if dr * dr + dc * dc <= radius * radius + 1e-9
+        ]
+        offsets.sort(key=lambda o: (o[0] ** 2 + o[1] ** 2, o))
+        lookup = np.full((self.n_across, self.n_across), self.n_actuators, dtype=np.int64)
+        lookup[self.mask] = np.arange(self.n_actuators)
+        padded = np.pad(lookup, r, constant_values=self.n_actuators)
+        rows, cols = self.indices.T
+        columns = [padded[rows + r + dr, cols + r + dc] for dr, dc in offsets]
+        return torch.as_tensor(np.stack(columns, axis=1))
+
+    def to_map(self, values: torch.Tensor, fill: float = float("nan")) -> torch.Tensor:
+        """Scatter ``(..., n_actuators)`` values onto ``(..., n_across, n_across)`` maps."""
+        out = torch.full((*values.shape[:-1], self.n_across * self.n_across), fill, dtype=values.dtype)
+        out[..., torch.as_tensor(np.flatnonzero(self.mask.ravel()))] = values
+        return out.reshape(*values.shape[:-1], self.n_across, self.n_across)

@@ -1,0 +1,178 @@
+"""The closed-loop runner: a controller against turbulence through the plant, batched over realisations."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import torch
+from tqdm.auto import tqdm
+
+from eofnn.errors import require
+from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.telemetry import Telemetry
+from eofnn.sim.turbulence import Turbulence, stream_seed
+
+
+@dataclass
+class LoopInput:
+    """What a controller sees when it computes ``y(n)``.
+
+    Attributes
+    ----------
+    frame : int
+        The frame ``n`` the command is for.
+    wfs : Tensor
+        ``(batch, n_actuators)`` WFS measurement of ``eps(n - delay)`` in nm (zeros before the first one).
+    turbulence : Tensor
+        ``(batch, n_actuators)`` true ``s(n - delay)`` in nm: only oracle baselines (the pseudo-integrator) may use it.
+    """
+
+    frame: int
+    wfs: torch.Tensor
+    turbulence: torch.Tensor
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """Anything the runner can close the loop with."""
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
+        """Clear internal state before a run."""
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        """Return the command ``y(n)`` in nm, ``(batch, n_actuators)``."""
+
+
+@dataclass
+class LoopResult:
+    """Outcome of :func:`run_loop`.
+
+    Attributes
+    ----------
+    telemetry : Telemetry
+        Recorded arrays (those asked for), ``(batch, frames, n_actuators)``, up to the last frame run.
+    residual_rms_nm : Tensor
+        ``(batch, frames)`` spatial RMS of the true residual ``eps``.
+    turbulence_rms_nm : Tensor
+        ``(batch, frames)`` spatial RMS of the turbulence ``s``.
+    diverged : bool
+        Whether the loop diverged (non-finite residual or one above ``divergence_factor`` x the turbulence).
+    diverged_frame : int or None
+        First frame at which it diverged.
+    """
+
+    telemetry: Telemetry
+    residual_rms_nm: torch.Tensor
+    turbulence_rms_nm: torch.Tensor
+    diverged: bool = False
+    diverged_frame: int | None = None
+    info: dict = field(default_factory=dict)
+
+
+def run_loop(
+    turbulence: Turbulence,
+    plant: Plant,
+    controller: Controller,
+    n_frames: int,
+    *,
+    noise_seed: int = 0,
+    record: tuple[str, ...] = ("s", "y", "eps", "wfs"),
+    chunk_frames: int = 1024,
+    divergence_factor: float = 10.0,
+    progress: bool | None = None,
+    on_chunk: Callable[[int, dict[str, torch.Tensor]], None] | None = None,
+) -> LoopResult:
+    """Close the loop for ``n_frames`` frames.
+
+    Per frame ``n``: the controller gets the WFS measurement of ``eps(n - d)`` and returns ``y(n)``; the DM applies
+    it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS measures ``eps(n)``.
+
+    Parameters
+    ----------
+    turbulence : Turbulence
+        Source of ``s(n)``; its realisations are the batch.
+    plant : Plant
+        Delay and model errors.
+    controller : Controller
+        Computes the commands.
+    n_frames : int
+        Frames to run.
+    noise_seed : int
+        Seed of the WFS noise.
+    record : tuple of str
+        Which of ``s, y, eps, wfs`` to keep in the returned telemetry (empty for long runs: RMS is always kept).
+    chunk_frames : int
+        Turbulence frames generated at a time.
+    divergence_factor : float
+        A residual RMS above this times the turbulence RMS (or non-finite) stops the run as diverged.
+    progress : bool or None
+        Show a progress bar; ``None`` shows it only when stderr is a terminal.
+    on_chunk : callable, optional
+        Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk.
+    """
+    require(isinstance(n_frames, int) and n_frames >= 1, f"n_frames={n_frames!r} is invalid: it must be an integer >= 1")
+    unknown = set(record) - {"s", "y", "eps", "wfs"}
+    require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
+    grid = turbulence.grid
+    model = PlantModel(plant, grid)
+    batch, n_act, delay = turbulence.n_realisations, grid.n_actuators, plant.delay_frames
+    dtype = torch.float64
+    controller.reset(batch, n_act, delay, dtype)
+    generator = torch.Generator().manual_seed(int(stream_seed(noise_seed, "wfs-noise").generate_state(1)[0]))
+    # Ring buffers of the last `delay` measurements and turbulence frames: slot n % delay holds frame n - delay.
+    wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
+    turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
+    kept: dict[str, list[torch.Tensor]] = {name: [] for name in record}
+    residual_rms, turbulence_rms = [], []
+    diverged_frame = None
+    if progress is None:
+        progress = sys.stderr.isatty()
+    bar = tqdm(total=n_frames, unit="frame", disable=not progress, leave=False)
+    try:
+        for first, s_chunk in turbulence.chunks(n_frames, chunk_frames):
+            t = s_chunk.shape[1]
+            arrays = {name: torch.empty(batch, t, n_act, dtype=dtype) for name in ("y", "eps", "wfs")}
+            arrays["s"] = s_chunk
+            for i in range(t):
+                n = first + i
+                slot = n % delay
+                y = controller.step(LoopInput(n, wfs_ring[slot], turb_ring[slot]))
+                eps = s_chunk[:, i] + model.apply_dm(y)
+                wfs = model.measure(eps, generator)
+                wfs_ring[slot] = wfs
+                turb_ring[slot] = s_chunk[:, i]
+                arrays["y"][:, i], arrays["eps"][:, i], arrays["wfs"][:, i] = y, eps, wfs
+            rms = arrays["eps"].pow(2).mean(-1).sqrt()
+            turb = s_chunk.pow(2).mean(-1).sqrt()
+            bad = ~torch.isfinite(rms) | (rms > divergence_factor * turb)
+            if bad.any():
+                stop = int(bad.any(0).nonzero()[0])
+                diverged_frame = first + stop
+                arrays = {k: v[:, :stop] for k, v in arrays.items()}
+                rms, turb = rms[:, :stop], turb[:, :stop]
+            residual_rms.append(rms)
+            turbulence_rms.append(turb)
+            for name in record:
+                kept[name].append(arrays[name])
+            if on_chunk is not None and arrays["s"].shape[1]:
+                on_chunk(first, arrays)
+            bar.update(t)
+            if diverged_frame is not None:
+                break
+    finally:
+        bar.close()
+    telemetry = Telemetry(
+        **{name: torch.cat(kept[name], 1) for name in record},
+        delay_frames=delay,
+        config={"plant": plant.to_dict()},
+    )
+    return LoopResult(
+        telemetry=telemetry,
+        residual_rms_nm=torch.cat(residual_rms, 1),
+        turbulence_rms_nm=torch.cat(turbulence_rms, 1),
+        diverged=diverged_frame is not None,
+        diverged_frame=diverged_frame,
+    )

@@ -1,0 +1,139 @@
+"""The AO plant: loop delay, the deformable mirror as it really responds, and the wavefront sensor.
+
+The controller believes the DM applies its command ``y`` exactly; the plant may disagree (the *model errors*,
+each off by default): a gain ``dm_gain`` (the DM applies ``g * y``), a misregistration (the applied shape is
+shifted by a fraction of an actuator pitch), a nonlinearity, and a WFS with a gain and white noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import torch
+
+from eofnn.errors import ConfigError, require
+from eofnn.sim.grid import ActuatorGrid
+
+NONLINEARITIES = ("none", "tanh", "quadratic")
+
+
+@dataclass(frozen=True)
+class Plant:
+    """Loop delay and model errors.
+
+    Parameters
+    ----------
+    delay_frames : int
+        Frames between a residual and the first command that may use it: ``y(n)`` uses ``eps`` up to
+        ``eps(n - delay_frames)`` (2 in the reference study).
+    dm_gain : float
+        The DM applies ``dm_gain * y`` (1 is nominal).
+    misregistration_x, misregistration_y : float
+        Shift of the applied DM shape relative to the controller's model, in actuator pitches.
+    nonlinearity : str
+        DM response: ``"none"``, ``"tanh"`` (saturates at ``nonlinearity_scale_nm``) or ``"quadratic"``
+        (``y + y**2 / nonlinearity_scale_nm``).
+    nonlinearity_scale_nm : float
+        Scale of the nonlinearity in nm.
+    wfs_noise_nm : float
+        RMS of white WFS noise per actuator and frame, in nm.
+    wfs_gain : float
+        The WFS reports ``wfs_gain * eps`` (optical gain; 1 is nominal).
+    """
+
+    delay_frames: int = 2
+    dm_gain: float = 1.0
+    misregistration_x: float = 0.0
+    misregistration_y: float = 0.0
+    nonlinearity: str = "none"
+    nonlinearity_scale_nm: float = 1000.0
+    wfs_noise_nm: float = 0.0
+    wfs_gain: float = 1.0
+
+    def __post_init__(self) -> None:
+        require(
+            isinstance(self.delay_frames, int) and self.delay_frames >= 1,
+            f"delay_frames={self.delay_frames!r} is invalid: it must be an integer >= 1",
+        )
+        require(math.isfinite(self.dm_gain), f"dm_gain={self.dm_gain!r} is invalid: it must be finite")
+        require(
+            self.nonlinearity in NONLINEARITIES,
+            f"nonlinearity={self.nonlinearity!r} is invalid: allowed are {', '.join(NONLINEARITIES)}",
+        )
+        require(self.nonlinearity_scale_nm > 0,
+                f"nonlinearity_scale_nm={self.nonlinearity_scale_nm!r} is invalid: it must be > 0 (nm)")
+        require(self.wfs_noise_nm >= 0, f"wfs_noise_nm={self.wfs_noise_nm!r} is invalid: it must be >= 0 (nm)")
+        for name in ("misregistration_x", "misregistration_y", "wfs_gain"):
+            value = getattr(self, name)
+            require(math.isfinite(value), f"{name}={value!r} is invalid: it must be finite")
+
+    @classmethod
+    def model_error_names(cls) -> tuple[str, ...]:
+        """Names accepted in a scenario's ``model_errors``."""
+        return tuple(f.name for f in fields(cls) if f.name != "delay_frames")
+
+    @classmethod
+    def from_model_errors(cls, delay_frames: int = 2, model_errors: dict | None = None) -> Plant:
+        """Build a plant from a delay and a mapping of model-error names to values."""
+        model_errors = dict(model_errors or {})
+        allowed = cls.model_error_names()
+        for name in model_errors:
+            if name not in allowed:
+                raise ConfigError(f"unknown model error {name!r}: allowed are {', '.join(allowed)}")
+        return cls(delay_frames=delay_frames, **model_errors)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class PlantModel:
+    """A :class:`Plant` bound to an actuator grid, applying the DM and the WFS to torch tensors."""
+
+    def __init__(self, plant: Plant, grid: ActuatorGrid, dtype: torch.dtype = torch.float64) -> None:
+        self.plant = plant
+        self.grid = grid
+        self._shift = None
+        if plant.misregistration_x or plant.misregistration_y:
+            self._shift = _shift_operator(grid, plant.misregistration_x, plant.misregistration_y, dtype)
+
+    def apply_dm(self, y: torch.Tensor) -> torch.Tensor:
+        """Correction the DM really applies (nm) for commands ``y`` (nm), ``(..., n_actuators)``."""
+        p = self.plant
+        if self._shift is not None:
+            index, weight = self._shift
+            padded = torch.cat([y, torch.zeros_like(y[..., :1])], dim=-1)
+            y = (padded[..., index] * weight).sum(-1)
+        if p.nonlinearity == "tanh":
+            y = p.nonlinearity_scale_nm * torch.tanh(y / p.nonlinearity_scale_nm)
+        elif p.nonlinearity == "quadratic":
+            y = y + y * y / p.nonlinearity_scale_nm
+        return p.dm_gain * y if p.dm_gain != 1.0 else y
+
+    def measure(self, eps: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+        """WFS measurement of residual ``eps`` (nm): gain plus white noise drawn from ``generator``."""
+        p = self.plant
+        out = p.wfs_gain * eps if p.wfs_gain != 1.0 else eps
+        if p.wfs_noise_nm > 0:
+            out = out + p.wfs_noise_nm * torch.randn(eps.shape, generator=generator, dtype=eps.dtype)
+        return out
+
+
+def _shift_operator(grid: ActuatorGrid, dx: float, dy: float, dtype: torch.dtype):
+    """Bilinear weights that shift an actuator map by ``(dx, dy)`` pitches; actuators off the pupil give zero."""
+    n = grid.n_across
+    lookup = np.full((n, n), grid.n_actuators, dtype=np.int64)
+    lookup[grid.mask] = np.arange(grid.n_actuators)
+    rows, cols = grid.indices.T.astype(float)
+    # The applied shape at actuator k is the commanded shape at (k - shift).
+    src_r, src_c = rows - dy, cols - dx
+    r0, c0 = np.floor(src_r).astype(int), np.floor(src_c).astype(int)
+    fr, fc = src_r - r0, src_c - c0
+    index, weight = [], []
+    for ddr, ddc, w in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+        rr, cc = r0 + ddr, c0 + ddc
+        ok = (rr >= 0) & (rr < n) & (cc >= 0) & (cc < n)
+        index.append(np.where(ok, lookup[np.clip(rr, 0, n - 1), np.clip(cc, 0, n - 1)], grid.n_actuators))
+        weight.append(np.where(ok, w, 0.0))
+    return torch.as_tensor(np.stack(index, 1)), torch.as_tensor(np.stack(weight, 1), dtype=dtype)

@@ -1,0 +1,335 @@
+"""Frozen-flow turbulence sampled on the actuator grid.
+
+Each layer is an HCIPy :class:`~hcipy.InfiniteAtmosphericLayer` used as a *strip generator*: the layer is laid
+along its wind direction at the sampling pitch and moved by exactly one pixel at a time, so every HCIPy step
+extrudes one new, statistically consistent column (Assémat et al. 2006). Frames are then translations of
+that long strip, interpolated in torch with B-splines (order 5 by default, the order HCIPy uses for
+sub-pixel shifts). A frame costs a gather instead of an HCIPy evolve, and frame ``n`` depends only on the
+seed and ``n``: any frame range can be generated, in any chunking, and gives the same numbers.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import zlib
+from dataclasses import dataclass, field
+
+import hcipy
+import numpy as np
+import torch
+from scipy.ndimage import spline_filter1d
+
+from eofnn.errors import require
+from eofnn.sim.grid import ActuatorGrid
+
+#: HCIPy's achromatic screen is phase x wavelength, i.e. 2 pi x OPD in metres; this converts it to OPD in nm.
+_NM_PER_SCREEN_UNIT = 1e9 / (2 * np.pi)
+#: Columns of the strip prefiltered together; prefilter blocks are fixed so results never depend on chunking.
+_BLOCK_COLUMNS = 256
+#: Extra columns each side of a block for the (IIR) spline prefilter; the quintic pole is 0.43, 0.43**48 ~ 1e-18.
+_PREFILTER_MARGIN = 48
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One frozen-flow layer.
+
+    Parameters
+    ----------
+    cn2_fraction : float
+        Fraction of the total Cn² in this layer (fractions are normalised to sum to one).
+    wind_speed_mps : float
+        Wind speed in m/s.
+    wind_direction_deg : float
+        Direction the screen moves towards, in degrees from +x towards +y.
+    """
+
+    cn2_fraction: float = 1.0
+    wind_speed_mps: float = 5.1
+    wind_direction_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        require(self.cn2_fraction > 0, f"cn2_fraction={self.cn2_fraction!r} is invalid: it must be > 0")
+        require(self.wind_speed_mps >= 0, f"wind_speed_mps={self.wind_speed_mps!r} is invalid: it must be >= 0 (m/s)")
+
+
+@dataclass(frozen=True)
+class Atmosphere:
+    """Turbulence profile.
+
+    Parameters
+    ----------
+    r0_m : float
+        Fried parameter in metres, at ``r0_wavelength_m``.
+    r0_wavelength_m : float
+        Wavelength at which ``r0_m`` is given, in metres.
+    outer_scale_m : float
+        Von Kármán outer scale L0 in metres (``inf`` for Kolmogorov; the AR extrusion is poor for large L0).
+    layers : tuple of Layer
+        Frozen-flow layers.
+    oversampling : int
+        Strip samples per actuator pitch; 1 samples the screen at the actuator pitch, as the reference study does.
+    interpolation_order : int
+        B-spline order of the sub-pixel translation: 1 (linear), 3 (cubic) or 5 (quintic, as HCIPy).
+    remove_ptt : bool
+        Project piston, tip and tilt out of every frame.
+    """
+
+    r0_m: float = 0.083
+    r0_wavelength_m: float = 658e-9
+    outer_scale_m: float = 20.0
+    layers: tuple[Layer, ...] = field(default_factory=lambda: (Layer(),))
+    oversampling: int = 1
+    interpolation_order: int = 5
+    remove_ptt: bool = True
+
+    def __post_init__(self) -> None:
+        require(self.r0_m > 0, f"r0_m={self.r0_m!r} is invalid: it must be > 0 (metres)")
+        require(self.r0_wavelength_m > 0, f"r0_wavelength_m={self.r0_wavelength_m!r} is invalid: it must be > 0 (metres)")
+        require(self.outer_scale_m > 0, f"outer_scale_m={self.outer_scale_m!r} is invalid: it must be > 0 (metres)")
+        require(len(self.layers) >= 1, "layers is empty: give at least one layer")
+        require(
+            isinstance(self.oversampling, int) and self.oversampling >= 1,
+            f"oversampling={self.oversampling!r} is invalid: it must be an integer >= 1",
+        )
+        require(
+            self.interpolation_order in (1, 3, 5),
+            f"interpolation_order={self.interpolation_order!r} is invalid: allowed are 1, 3, 5",
+        )
+        layers = tuple(Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers)
+        object.__setattr__(self, "layers", layers)
+
+    def layer_r0_m(self, layer: Layer) -> float:
+        """Fried parameter of one layer at ``r0_wavelength_m`` (r0 scales as Cn² to the -3/5)."""
+        total = sum(lay.cn2_fraction for lay in self.layers)
+        return self.r0_m * (layer.cn2_fraction / total) ** (-3 / 5)
+
+
+def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:
+    """Seed for one named stream (``"train"``, ``"test"``, ...) and sub-key; distinct names never share draws."""
+    require(isinstance(seed, (int, np.integer)) and seed >= 0, f"seed={seed!r} is invalid: it must be an integer >= 0")
+    return np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(stream.encode()), *key))
+
+
+@functools.lru_cache(maxsize=None)
+def _bspline_polynomials(order: int) -> torch.Tensor:
+    """``(order + 1, order + 1)`` matrix ``C`` with weights ``w_j(f) = sum_p f**p C[p, j]`` for ``f`` in [0, 1).
+
+    For odd orders the knots of the centred B-spline are integers, so each weight is one polynomial in ``f``.
+    """
+    f = np.linspace(0.0, 1.0, order + 1, endpoint=False) + 0.5 / (order + 1)
+    offsets = np.arange(order + 1) - (order - 1) // 2
+    t = f[:, None] - offsets[None, :]
+    half = (order + 1) / 2
+    values = sum(
+        (-1) ** k * math.comb(order + 1, k) * np.clip(t + half - k, 0, None) ** order for k in range(order + 2)
+    ) / math.factorial(order)
+    vandermonde = f[:, None] ** np.arange(order + 1)[None, :]
+    return torch.as_tensor(np.linalg.solve(vandermonde, values))
+
+
+def bspline_weights(frac: torch.Tensor, order: int) -> torch.Tensor:
+    """Weights ``(..., order + 1)`` of the B-spline coefficients around a point at fractional offset ``frac``.
+
+    The coefficients are those at nodes ``floor(x) - (order - 1) // 2 + j`` for ``j = 0..order``.
+    """
+    powers = frac.unsqueeze(-1) ** torch.arange(order + 1, dtype=frac.dtype)
+    return powers @ _bspline_polynomials(order).to(frac.dtype)
+
+
+class FrozenFlowStrip:
+    """One realisation of one layer: a long strip along the wind, sampled at the actuator positions.
+
+    Parameters
+    ----------
+    positions_m : ndarray
+        ``(n_actuators, 2)`` actuator positions in metres.
+    pitch_m : float
+        Strip sampling pitch in metres.
+    r0_m, r0_wavelength_m, outer_scale_m : float
+        Layer turbulence strength (Fried parameter at a wavelength) and outer scale.
+    layer : Layer
+        Wind of the layer.
+    frame_period_s : float
+        Time between frames in seconds.
+    order : int
+        B-spline interpolation order.
+    seed : SeedSequence
+        Seed of this realisation.
+    """
+
+    def __init__(
+        self,
+        positions_m: np.ndarray,
+        pitch_m: float,
+        r0_m: float,
+        r0_wavelength_m: float,
+        outer_scale_m: float,
+        layer: Layer,
+        frame_period_s: float,
+        order: int,
+        seed: np.random.SeedSequence,
+    ) -> None:
+        self.order = order
+        self.pitch_m = pitch_m
+        self._seed = seed
+        self._cn2 = hcipy.Cn_squared_from_fried_parameter(r0_m, r0_wavelength_m)
+        self._outer_scale_m = outer_scale_m
+        angle = math.radians(layer.wind_direction_deg)
+        u = positions_m[:, 0] * math.cos(angle) + positions_m[:, 1] * math.sin(angle)
+        w = -positions_m[:, 0] * math.sin(angle) + positions_m[:, 1] * math.cos(angle)
+        margin = order + 2
+        # Across the wind: actuator w positions in strip rows; on nodes when the wind is along a grid axis.
+        w_index = _snap((w - w.min()) / pitch_m) + margin
+        self.n_rows = int(np.ceil(w_index.max())) + margin + 1
+        # Along the wind: strip coordinate of actuator k at frame n is u_index[k] + n * columns_per_frame.
+        self.u_index = torch.as_tensor(_snap((u.max() - u) / pitch_m) + margin + _PREFILTER_MARGIN)
+        self._aligned = bool(torch.all(self.u_index == torch.round(self.u_index)))
+        self.columns_per_frame = layer.wind_speed_mps * frame_period_s / pitch_m
+        self._w_weights = _interpolation_matrix(w_index, self.n_rows, order)  # (n_act, n_rows)
+        self._n_initial_columns = max(self.n_rows, int(np.ceil(self.u_index.max().item())) + margin + 1)
+        self._reset()
+
+    def _reset(self) -> None:
+        grid = hcipy.make_uniform_grid([self._n_initial_columns, self.n_rows],
+                                       [self._n_initial_columns * self.pitch_m, self.n_rows * self.pitch_m])
+        # One pixel per unit "time": every evolve extrudes exactly one new column, with no interpolation.
+        self._layer = hcipy.InfiniteAtmosphericLayer(
+            grid, self._cn2, self._outer_scale_m, velocity=self.pitch_m, use_interpolation=False,
+            seed=np.random.default_rng(self._seed),
+        )
+        self._steps = 0
+        screen = self._screen()
+        self._raw = [screen[:, i] for i in range(screen.shape[1])]  # columns, prefiltered across the wind
+        self._raw_offset = 0  # strip index of self._raw[0]
+        self._blocks: dict[int, torch.Tensor] = {}
+
+    def _screen(self) -> np.ndarray:
+        opd_nm = np.asarray(self._layer.phase_for(1.0)).reshape(self.n_rows, self._n_initial_columns) * _NM_PER_SCREEN_UNIT
+        if self.order > 1:
+            opd_nm = spline_filter1d(opd_nm, self.order, axis=0, mode="mirror")
+        return opd_nm
+
+    def _ensure_columns(self, stop: int) -> None:
+        while self._raw_offset + len(self._raw) < stop:
+            self._steps += 1
+            self._layer.evolve_until(self._steps)
+            column = np.asarray(self._layer.phase_for(1.0)).reshape(self.n_rows, -1)[:, -1] * _NM_PER_SCREEN_UNIT
+            if self.order > 1:
+                column = spline_filter1d(column, self.order, mode="mirror")
+            self._raw.append(column)
+
+    def _block(self, b: int) -> torch.Tensor:
+        """``(n_actuators, _BLOCK_COLUMNS)`` strip coefficients of block ``b``, contracted across the wind."""
+        if b not in self._blocks:
+            start, stop = b * _BLOCK_COLUMNS, (b + 1) * _BLOCK_COLUMNS
+            lo, hi = max(start - _PREFILTER_MARGIN, 0), stop + _PREFILTER_MARGIN
+            if lo < self._raw_offset:
+                self._reset()
+            self._ensure_columns(hi)
+            raw = np.stack(self._raw[lo - self._raw_offset: hi - self._raw_offset], axis=1)
+            if self.order > 1:
+                raw = spline_filter1d(raw, self.order, axis=1, mode="mirror")
+            coeffs = torch.as_tensor(raw[:, start - lo: stop - lo])
+            self._blocks[b] = self._w_weights @ coeffs
+        return self._blocks[b]
+
+    def frames(self, start: int, stop: int) -> torch.Tensor:
+        """Raw OPD (nm) of frames ``start..stop-1`` at the actuators, as a ``(frames, n_actuators)`` tensor."""
+        n = torch.arange(start, stop, dtype=torch.float64)
+        position = self.u_index.unsqueeze(0) + n.unsqueeze(1) * self.columns_per_frame  # (T, K)
+        base = torch.floor(position)
+        if self._aligned:
+            # All actuators share one fractional position per frame (wind along a grid axis): weights per frame.
+            weights = bspline_weights(position[:, :1] - base[:, :1], self.order)  # (T, 1, order+1)
+        else:
+            weights = bspline_weights(position - base, self.order)  # (T, K, order+1)
+        first = base.long() - (self.order - 1) // 2
+        lo_block = int(first.min()) // _BLOCK_COLUMNS
+        hi_block = int(first.max() + self.order) // _BLOCK_COLUMNS
+        for b in [b for b in self._blocks if b < lo_block]:
+            del self._blocks[b]  # streaming: never hold more of the strip than the frames asked for
+        coeffs = torch.cat([self._block(b) for b in range(lo_block, hi_block + 1)], dim=1)
+        index = first - lo_block * _BLOCK_COLUMNS  # (T, K)
+        index = index.unsqueeze(-1) + torch.arange(self.order + 1)  # (T, K, order+1)
+        k = torch.arange(coeffs.shape[0]).view(1, -1, 1)
+        return (coeffs[k, index] * weights).sum(-1)
+
+
+def _snap(x: np.ndarray) -> np.ndarray:
+    """Round values within 1e-9 of an integer, so grid-aligned positions sit exactly on strip nodes."""
+    r = np.round(x)
+    return np.where(np.abs(x - r) < 1e-9, r, x)
+
+
+def _interpolation_matrix(index: np.ndarray, size: int, order: int) -> torch.Tensor:
+    """``(len(index), size)`` B-spline interpolation weights at fractional positions ``index``."""
+    idx = torch.as_tensor(index, dtype=torch.float64)
+    base = torch.floor(idx)
+    weights = bspline_weights(idx - base, order)
+    cols = base.long().unsqueeze(-1) - (order - 1) // 2 + torch.arange(order + 1)
+    out = torch.zeros(len(index), size, dtype=torch.float64)
+    out.scatter_add_(1, cols, weights)
+    return out
+
+
+class Turbulence:
+    """Streams ``s(n)``: frozen-flow turbulence in nm on the active actuators, piston/tip/tilt removed.
+
+    Parameters
+    ----------
+    atmosphere : Atmosphere
+        Turbulence profile.
+    grid : ActuatorGrid
+        Where the turbulence is sampled.
+    frame_rate_hz : float
+        Frames per second.
+    seed : int
+        Master seed.
+    stream : str
+        Name of the stream (``"train"``, ``"validation"``, ``"test"``, ...): streams never share a realisation.
+    n_realisations : int
+        Independent realisations generated side by side (the batch dimension).
+    """
+
+    def __init__(
+        self,
+        atmosphere: Atmosphere,
+        grid: ActuatorGrid,
+        frame_rate_hz: float,
+        seed: int,
+        stream: str = "test",
+        n_realisations: int = 1,
+    ) -> None:
+        require(frame_rate_hz > 0, f"frame_rate_hz={frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
+        require(n_realisations >= 1, f"n_realisations={n_realisations!r} is invalid: it must be >= 1")
+        self.atmosphere = atmosphere
+        self.grid = grid
+        self.n_realisations = n_realisations
+        pitch = grid.pitch_m / atmosphere.oversampling
+        self._strips = [
+            [
+                FrozenFlowStrip(
+                    grid.positions_m, pitch, atmosphere.layer_r0_m(layer), atmosphere.r0_wavelength_m,
+                    atmosphere.outer_scale_m, layer, 1.0 / frame_rate_hz, atmosphere.interpolation_order,
+                    stream_seed(seed, stream, r, i),
+                )
+                for i, layer in enumerate(atmosphere.layers)
+            ]
+            for r in range(n_realisations)
+        ]
+        self._ptt = torch.as_tensor(grid.ptt_basis())
+
+    def frames(self, start: int, stop: int, remove_ptt: bool | None = None) -> torch.Tensor:
+        """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
+        require(0 <= start <= stop, f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop")
+        out = torch.stack([sum(strip.frames(start, stop) for strip in strips) for strips in self._strips])
+        if self.atmosphere.remove_ptt if remove_ptt is None else remove_ptt:
+            out = out - (out @ self._ptt) @ self._ptt.T
+        return out
+
+    def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
+        """Yield ``(first_frame, frames)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
+        for first in range(start, start + n_frames, chunk):
+            yield first, self.frames(first, min(first + chunk, start + n_frames))
