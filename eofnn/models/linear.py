@@ -1,0 +1,102 @@
+"""Linear predictors over history tensors: the EOF filters of the study and their relatives.
+
+A :class:`LinearFilter` maps a history ``(batch, K, taps)`` to commands ``(batch, K)`` with one of three structures:
+
+- ``per_actuator``: one filter per actuator (the study),
+- ``shared``: one filter for all actuators,
+- ``neighbourhood``: each actuator's filter reads the histories of the actuators within ``radius`` pitches
+  (Guyon & Males 2017); slots beyond the pupil edge read zeros.
+
+Linear filters can be fitted in closed form: :meth:`features` and :meth:`group_targets` give the regression
+problem per *group* (an actuator, or everything for ``shared``) and :meth:`load_solution` sets the weights.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from eofnn.errors import require
+from eofnn.sim.grid import ActuatorGrid
+
+STRUCTURES = ("per_actuator", "shared", "neighbourhood")
+
+
+class LinearFilter(nn.Module):
+    """Linear map from a history tensor to commands.
+
+    Parameters
+    ----------
+    n_actuators : int
+        Active actuators ``K``.
+    n_taps : int
+        Taps per actuator in the history.
+    structure : {"per_actuator", "shared", "neighbourhood"}
+        How filters are shared between actuators.
+    radius : float
+        Neighbourhood radius in pitches (``neighbourhood`` only).
+    grid : dict, optional
+        The :class:`ActuatorGrid` fields (``diameter_m``, ``n_across``, ``obstruction``); needed for ``neighbourhood``.
+    """
+
+    def __init__(self, n_actuators: int, n_taps: int, structure: str = "per_actuator", radius: float = 1.0,
+                 grid: dict | None = None) -> None:
+        super().__init__()
+        require(structure in STRUCTURES, f"structure={structure!r} is invalid: allowed are {', '.join(STRUCTURES)}")
+        require(n_actuators >= 1 and n_taps >= 1, f"n_actuators={n_actuators!r}, n_taps={n_taps!r}: both must be >= 1")
+        self.n_actuators, self.n_taps, self.structure, self.radius = n_actuators, n_taps, structure, radius
+        if structure == "neighbourhood":
+            require(grid is not None, "structure='neighbourhood' needs the actuator grid")
+            neighbours = ActuatorGrid(**grid).neighbours(radius)
+            require(neighbours.shape[0] == n_actuators,
+                    f"grid has {neighbours.shape[0]} actuators but n_actuators={n_actuators}")
+            self.register_buffer("neighbours", neighbours)
+            shape = (n_actuators, neighbours.shape[1] * n_taps)
+        elif structure == "shared":
+            shape = (1, n_taps)
+        else:
+            shape = (n_actuators, n_taps)
+        self.weight = nn.Parameter(torch.zeros(shape, dtype=torch.float64))
+
+    def _inputs(self, history: torch.Tensor) -> torch.Tensor:
+        """``(batch, K, features)``: the history itself, or the neighbourhood histories side by side."""
+        if self.structure != "neighbourhood":
+            return history
+        padded = torch.cat([history, torch.zeros_like(history[:, :1])], dim=1)  # zero slot for off-pupil
+        return padded[:, self.neighbours].flatten(-2)  # (batch, K, M * taps)
+
+    def forward(self, history: torch.Tensor) -> torch.Tensor:
+        x = self._inputs(history.to(self.weight.dtype))
+        return (x * self.weight).sum(-1)
+
+    # -- closed-form fitting -------------------------------------------------------------------------------------
+    def features(self, history: torch.Tensor) -> torch.Tensor:
+        """Regressors per group, ``(groups, samples, features)``."""
+        x = self._inputs(history.to(self.weight.dtype))
+        if self.structure == "shared":
+            return x.reshape(1, -1, x.shape[-1])
+        return x.transpose(0, 1)
+
+    def group_targets(self, target: torch.Tensor) -> torch.Tensor:
+        """Targets per group, ``(groups, samples)``, matching :meth:`features`."""
+        target = target.to(self.weight.dtype)
+        return target.reshape(1, -1) if self.structure == "shared" else target.transpose(0, 1)
+
+    @torch.no_grad()
+    def load_solution(self, solution: torch.Tensor) -> None:
+        """Set the weights from a ``(groups, features)`` solution (overwrites any previous fit)."""
+        require(tuple(solution.shape) == tuple(self.weight.shape),
+                f"solution has shape {tuple(solution.shape)}, expected {tuple(self.weight.shape)}")
+        self.weight.copy_(solution)
+
+
+class OpenLoopEOF(LinearFilter):
+    """Open-loop (pseudo-open-loop) EOF: ``y(n) = -F . [s_hat(n-d), ..., s_hat(n-d-p+1)]``."""
+
+    history_kind = "open_loop"
+
+
+class ClosedLoopEOF(LinearFilter):
+    """Closed-loop EOF: ``y(n) = theta . [y(n-1..n-p), eps(n-d..n-d-p+1)]``."""
+
+    history_kind = "closed_loop"

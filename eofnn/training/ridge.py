@@ -1,0 +1,104 @@
+"""Closed-form ridge regression by streamed normal equations (float64, batched over groups)."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from eofnn.errors import require
+
+
+class CollinearityWarning(UserWarning):
+    """The regressors are (near-)collinear: the fitted filter is decided by the regularisation, not the data."""
+
+
+@dataclass
+class RidgeSolution:
+    """Result of :meth:`NormalEquations.solve`.
+
+    Attributes
+    ----------
+    weights : Tensor
+        ``(groups, features)`` solution.
+    alpha : Tensor
+        ``(groups,)`` absolute ridge parameter used per group.
+    condition : float
+        Largest condition number of ``D D^T`` over groups (before regularisation).
+    n_samples : int
+        Samples accumulated per group.
+    """
+
+    weights: torch.Tensor
+    alpha: torch.Tensor
+    condition: float
+    n_samples: int
+
+
+class NormalEquations:
+    """Accumulates ``D D^T`` and ``P D^T`` over streamed batches, then solves ``F = P D^T (D D^T + alpha I)^-1``.
+
+    Data never has to fit in memory: each :meth:`update` adds one batch of ``(groups, samples, features)``
+    regressors and ``(groups, samples)`` targets in float64.
+    """
+
+    def __init__(self) -> None:
+        self.gram: torch.Tensor | None = None
+        self.cross: torch.Tensor | None = None
+        self.target_power: torch.Tensor | None = None
+        self.n_samples = 0
+
+    @torch.no_grad()
+    def update(self, features: torch.Tensor, target: torch.Tensor) -> None:
+        x, t = features.to(torch.float64), target.to(torch.float64)
+        gram = x.transpose(1, 2) @ x
+        cross = (x.transpose(1, 2) @ t.unsqueeze(-1)).squeeze(-1)
+        power = t.pow(2).sum(-1)
+        if self.gram is None:
+            self.gram, self.cross, self.target_power = gram, cross, power
+        else:
+            self.gram += gram
+            self.cross += cross
+            self.target_power += power
+        self.n_samples += x.shape[1]
+
+    def solve(self, alpha: float = 0.0, relative: bool = True, warn_condition: float = 1e16) -> RidgeSolution:
+        """Solve the regularised normal equations.
+
+        Parameters
+        ----------
+        alpha : float
+            Ridge parameter; if ``relative``, in units of the mean diagonal of ``D D^T`` (per group).
+        relative : bool
+            Whether ``alpha`` is relative.
+        warn_condition : float
+            Warn with :class:`CollinearityWarning` when ``cond(D D^T)`` exceeds this. The default flags
+            regressors that are singular to float64 precision, such as closed-loop data recorded without excitation
+            (the controller law ties ``y`` to past ``eps`` exactly); smooth turbulence alone reaches 1e12-1e15.
+        """
+        require(self.gram is not None, "no data accumulated: call update() before solve()")
+        require(alpha >= 0, f"alpha={alpha!r} is invalid: it must be >= 0")
+        n_features = self.gram.shape[-1]
+        scale = self.gram.diagonal(dim1=1, dim2=2).mean(-1) if relative else torch.ones(self.gram.shape[0],
+                                                                                            dtype=torch.float64)
+        absolute = alpha * scale
+        eig = torch.linalg.eigvalsh(self.gram)
+        condition = float((eig[:, -1] / eig[:, 0].clamp(min=torch.finfo(torch.float64).tiny)).max())
+        if condition > warn_condition:
+            warnings.warn(
+                f"regressors are (near-)collinear: cond(D D^T) = {condition:.2e}; the fit is ill-posed "
+                "(for closed-loop data, add dither excitation or raise alpha)", CollinearityWarning, stacklevel=2)
+        regularised = self.gram + absolute.view(-1, 1, 1) * torch.eye(n_features, dtype=torch.float64)
+        chol, info = torch.linalg.cholesky_ex(regularised)
+        if int(info.max()) == 0:
+            weights = torch.cholesky_solve(self.cross.unsqueeze(-1), chol).squeeze(-1)
+        else:  # singular without regularisation: least-norm solution
+            weights = (torch.linalg.pinv(regularised, hermitian=True) @ self.cross.unsqueeze(-1)).squeeze(-1)
+        return RidgeSolution(weights, absolute, condition, self.n_samples)
+
+    def loss(self, weights: torch.Tensor) -> float:
+        """Mean squared error of ``weights`` on the accumulated data, from the sufficient statistics."""
+        w = weights.to(torch.float64)
+        sse = self.target_power - 2 * (w * self.cross).sum(-1) + (w.unsqueeze(1) @ self.gram @ w.unsqueeze(-1)).view(-1)
+        return float(sse.sum() / (self.n_samples * self.gram.shape[0]))
