@@ -35,18 +35,21 @@ def import_class(class_path: str) -> type:
     return cls
 
 
-def build_network(config: dict[str, Any], n_actuators: int, n_taps: int, grid: dict) -> nn.Module:
+def build_network(config: dict[str, Any], n_actuators: int, n_taps: int, grid: dict,
+                  history_kind: str = "open_loop", delay_frames: int = 2) -> nn.Module:
     """Instantiate ``config = {"class_path": ..., "init_args": {...}}``.
 
-    ``n_actuators``, ``n_taps`` and ``grid`` are passed to the constructor when it takes them and the config
-    does not set them, so a user's module only declares what it needs.
+    ``n_actuators``, ``n_taps``, ``grid``, ``history_kind`` and ``delay_frames`` are passed to the constructor when
+    it takes them and the config does not set them, so a user's module only declares what it needs.
     """
     if not isinstance(config, dict) or "class_path" not in config:
         raise ConfigError(f"network config {config!r} is invalid: it needs a class_path")
     cls = import_class(config["class_path"])
     init_args = dict(config.get("init_args") or {})
     params = inspect.signature(cls).parameters
-    for name, value in (("n_actuators", n_actuators), ("n_taps", n_taps), ("grid", grid)):
+    derived = (("n_actuators", n_actuators), ("n_taps", n_taps), ("grid", grid), ("history_kind", history_kind),
+               ("delay_frames", delay_frames))
+    for name, value in derived:
         if name in params and name not in init_args:
             init_args[name] = value
     try:

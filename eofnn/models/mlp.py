@@ -14,11 +14,15 @@ ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "tanh": nn.Tanh, "silu": nn.SiL
 
 
 class MLP(nn.Module):
-    """Per-actuator MLP with a linear skip: ``out = w . x + scale * mlp(x / scale)``.
+    """Per-actuator MLP that predicts the *change* of the wavefront over the loop delay.
 
-    The linear skip lets the network start from (and stay close to) a shared linear filter, so SGD does not have
-    to rediscover linear extrapolation; the MLP learns what is left. Inputs are divided by ``scale_nm`` so the
-    hidden layers see order-one values.
+    ``out = base(x) + w . f + scale * mlp(f / scale)`` where, for an open-loop history, ``base = -s_hat(n-d)``
+    (the pseudo-integrator) and the features ``f`` are the frame-to-frame increments of the history; for a
+    closed-loop history ``base = y(n-d) - eps(n-d)`` (the same pseudo-integrator, written with commands and
+    residuals for a nominal DM) and ``f`` are the taps themselves. Predicting the increment keeps inputs and
+    outputs at the scale of the servo-lag error (tens of nm) rather than the turbulence (µm), so gradient descent
+    converges; the linear skip ``w`` lets it start from a linear predictor, the MLP learns what is left.
+    Zero-initialised output layers make the untrained network the pseudo-integrator.
 
     Parameters
     ----------
@@ -34,18 +38,30 @@ class MLP(nn.Module):
         :class:`ActuatorGrid` fields, needed when ``radius > 0``.
     n_actuators : int, optional
         Active actuators (checked against the grid when a neighbourhood is used).
+    history_kind : {"open_loop", "closed_loop"}
+        Kind of history the network reads (set by eofnn from the history spec).
+    delay_frames : int
+        Loop delay (set by eofnn from the history spec).
     scale_nm : float
-        Typical magnitude of the inputs in nm.
+        Typical magnitude of the features in nm.
     """
 
     def __init__(self, n_taps: int, hidden: Sequence[int] = (64, 64), activation: str = "gelu", radius: float = 0.0,
-                 grid: dict | None = None, n_actuators: int | None = None, scale_nm: float = 100.0) -> None:
+                 grid: dict | None = None, n_actuators: int | None = None, history_kind: str = "open_loop",
+                 delay_frames: int = 2, scale_nm: float = 10.0) -> None:
         super().__init__()
         require(activation in ACTIVATIONS,
                 f"activation={activation!r} is invalid: allowed are {', '.join(ACTIVATIONS)}")
         require(scale_nm > 0, f"scale_nm={scale_nm!r} is invalid: it must be > 0")
+        require(history_kind in ("open_loop", "closed_loop"),
+                f"history_kind={history_kind!r} is invalid: allowed are open_loop, closed_loop")
+        p = n_taps // 2 if history_kind == "closed_loop" else n_taps
+        require(history_kind == "open_loop" or delay_frames <= p,
+                f"a closed-loop MLP needs history_length >= delay_frames, got {p} < {delay_frames}")
+        self.history_kind, self.delay_frames, self.history_length = history_kind, delay_frames, p
         self.scale_nm = scale_nm
-        n_inputs = n_taps
+        per_actuator = n_taps - 1 if history_kind == "open_loop" else n_taps
+        n_inputs = per_actuator
         self.neighbours = None
         if radius > 0:
             require(grid is not None, "an MLP with radius > 0 needs the actuator grid")
@@ -54,11 +70,11 @@ class MLP(nn.Module):
                 require(neighbours.shape[0] == n_actuators,
                         f"grid has {neighbours.shape[0]} actuators but n_actuators={n_actuators}")
             self.register_buffer("neighbours", neighbours)
-            n_inputs = n_taps * neighbours.shape[1]
-        self.skip = nn.Linear(n_inputs, 1, bias=False)
+            n_inputs = per_actuator * neighbours.shape[1]
+        self.skip = nn.Linear(max(n_inputs, 1), 1, bias=False)
         nn.init.zeros_(self.skip.weight)
         layers: list[nn.Module] = []
-        width = n_inputs
+        width = max(n_inputs, 1)
         for h in hidden:
             layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
             width = h
@@ -68,8 +84,19 @@ class MLP(nn.Module):
         self.mlp = nn.Sequential(*layers, last)
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
-        x = history.to(self.skip.weight.dtype)
+        x = history.to(torch.float64)  # the base is exact; only the learned correction runs in float32
+        if self.history_kind == "open_loop":
+            base = -x[..., 0]
+            features = x[..., :-1] - x[..., 1:]
+        else:
+            p, d = self.history_length, self.delay_frames
+            base = x[..., d - 1] - x[..., p]
+            features = x
+        if features.shape[-1] == 0:
+            features = torch.zeros_like(x[..., :1])
         if self.neighbours is not None:
-            padded = torch.cat([x, torch.zeros_like(x[:, :1])], dim=1)
-            x = padded[:, self.neighbours].flatten(-2)
-        return self.skip(x).squeeze(-1) + self.scale_nm * self.mlp(x / self.scale_nm).squeeze(-1)
+            padded = torch.cat([features, torch.zeros_like(features[:, :1])], dim=1)
+            features = padded[:, self.neighbours].flatten(-2)
+        f = features.to(self.skip.weight.dtype)
+        correction = self.skip(f).squeeze(-1) + self.scale_nm * self.mlp(f / self.scale_nm).squeeze(-1)
+        return base + correction.to(torch.float64)

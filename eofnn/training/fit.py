@@ -40,8 +40,8 @@ class TrainedPredictor:
     def controller(self, dm_gain_model: float = 1.0) -> PredictiveController:
         return PredictiveController(self.network, self.spec, dm_gain_model)
 
-    def check_fits(self, scenario: Scenario, where: str = "checkpoint") -> None:
-        """One-line error unless this predictor can run in ``scenario`` (actuators, grid, delay)."""
+    def check_fits(self, scenario: Scenario, where: str = "checkpoint", history_length: int | None = None) -> None:
+        """One-line error unless this predictor can run in ``scenario`` (actuators, delay) with ``history_length``."""
         n = scenario.grid.n_actuators
         if self.n_actuators != n:
             raise CheckpointError(f"{where} was trained for n_actuators={self.n_actuators} but the scenario has "
@@ -49,6 +49,9 @@ class TrainedPredictor:
         if self.spec.delay_frames != scenario.delay_frames:
             raise CheckpointError(f"{where} was trained for delay_frames={self.spec.delay_frames} but the scenario "
                                   f"has delay_frames={scenario.delay_frames}")
+        if history_length is not None and history_length != self.spec.history_length:
+            raise CheckpointError(f"{where} has history_length={self.spec.history_length} but "
+                                  f"history_length={history_length} was asked for")
 
 
 @dataclass
@@ -121,7 +124,7 @@ def fit_predictor(
     network_config = network or {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
     grid = {"diameter_m": scenario.grid.diameter_m, "n_across": scenario.grid.n_across,
             "obstruction": scenario.grid.obstruction}
-    net = build_network(network_config, scenario.grid.n_actuators, spec.n_taps, grid)
+    net = build_network(network_config, scenario.grid.n_actuators, spec.n_taps, grid, spec.kind, spec.delay_frames)
     info = {"n_actuators": scenario.grid.n_actuators, "scenario": scenario.to_dict(), "fit_method": fit_method,
             "train_frames": train_frames, "seed": seed, "refit_rounds": refit_rounds, "dither_nm": dither_nm}
     task = PredictorTask(net, fit_method, alpha, alpha_relative, optimizer, lr, weight_decay,
@@ -151,7 +154,8 @@ def fit_predictor(
 
 
 def _trainer(max_epochs: int, progress: bool, log_dir) -> L.Trainer:
-    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.pytorch.accelerators.cuda"):
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.pytorch.accelerators.cuda",
+                 "lightning.pytorch.trainer.connectors.checkpoint_connector"):
         logging.getLogger(name).setLevel(logging.WARNING)
     logger = L.pytorch.loggers.CSVLogger(str(log_dir), name="fit") if log_dir is not None else False
     return L.Trainer(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=logger, enable_checkpointing=False,
@@ -159,8 +163,12 @@ def _trainer(max_epochs: int, progress: bool, log_dir) -> L.Trainer:
                      deterministic=True)
 
 
-def load_predictor(path: str | Path) -> TrainedPredictor:
-    """Rebuild a predictor from a checkpoint written by :func:`fit_predictor` (``weights_only`` loading)."""
+def load_predictor(path: str | Path, scenario: Scenario | None = None,
+                   history_length: int | None = None) -> TrainedPredictor:
+    """Rebuild a predictor from a checkpoint written by :func:`fit_predictor` (``weights_only`` loading).
+
+    With ``scenario`` (and ``history_length``), also check that it fits them, with a one-line error if not.
+    """
     path = Path(path)
     if not path.exists():
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
@@ -169,7 +177,8 @@ def load_predictor(path: str | Path) -> TrainedPredictor:
         hp = ckpt["hyper_parameters"]
         spec = HistorySpec(**hp["spec"])
         info = dict(hp["info"])
-        network = build_network(hp["network_config"], info["n_actuators"], spec.n_taps, hp["grid"])
+        network = build_network(hp["network_config"], info["n_actuators"], spec.n_taps, hp["grid"], spec.kind,
+                                spec.delay_frames)
         state = {k.removeprefix("network."): v for k, v in ckpt["state_dict"].items() if k.startswith("network.")}
         network.load_state_dict(state)
     except (KeyError, TypeError, RuntimeError, ValueError) as err:
@@ -178,4 +187,7 @@ def load_predictor(path: str | Path) -> TrainedPredictor:
         raise CheckpointError(f"checkpoint {str(path)!r} is not an eofnn predictor checkpoint "
                               f"({type(err).__name__}: {str(err).splitlines()[0]})") from None
     network.eval()
-    return TrainedPredictor(network, spec, hp["network_config"], hp["grid"], info)
+    predictor = TrainedPredictor(network, spec, hp["network_config"], hp["grid"], info)
+    if scenario is not None:
+        predictor.check_fits(scenario, f"checkpoint {str(path)!r}", history_length)
+    return predictor

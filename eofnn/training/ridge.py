@@ -80,16 +80,20 @@ class NormalEquations:
         require(self.gram is not None, "no data accumulated: call update() before solve()")
         require(alpha >= 0, f"alpha={alpha!r} is invalid: it must be >= 0")
         n_features = self.gram.shape[-1]
-        scale = self.gram.diagonal(dim1=1, dim2=2).mean(-1) if relative else torch.ones(self.gram.shape[0],
-                                                                                            dtype=torch.float64)
+        diagonal = self.gram.diagonal(dim1=1, dim2=2)
+        # Features that are zero in every sample (neighbourhood slots beyond the pupil edge) get zero weight:
+        # a unit on their diagonal makes the system regular without touching the other weights.
+        structural = diagonal == 0
+        gram = self.gram + torch.diag_embed(structural.to(torch.float64) * diagonal.mean(-1, keepdim=True))
+        scale = diagonal.mean(-1) if relative else torch.ones(self.gram.shape[0], dtype=torch.float64)
         absolute = alpha * scale
-        eig = torch.linalg.eigvalsh(self.gram)
+        eig = torch.linalg.eigvalsh(gram)
         condition = float((eig[:, -1] / eig[:, 0].clamp(min=torch.finfo(torch.float64).tiny)).max())
         if condition > warn_condition:
             warnings.warn(
                 f"regressors are (near-)collinear: cond(D D^T) = {condition:.2e}; the fit is ill-posed "
                 "(for closed-loop data, add dither excitation or raise alpha)", CollinearityWarning, stacklevel=2)
-        regularised = self.gram + absolute.view(-1, 1, 1) * torch.eye(n_features, dtype=torch.float64)
+        regularised = gram + absolute.view(-1, 1, 1) * torch.eye(n_features, dtype=torch.float64)
         chol, info = torch.linalg.cholesky_ex(regularised)
         if int(info.max()) == 0:
             weights = torch.cholesky_solve(self.cross.unsqueeze(-1), chol).squeeze(-1)

@@ -1,0 +1,66 @@
+"""Benchmark 1: turbulence frames per second on the actuator grid, eofnn against a plain HCIPy loop."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from benchmarks.baselines import HcipyTurbulence
+from benchmarks.common import Row, Timing, time_interleaved, time_once
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.scenario import Scenario
+from eofnn.sim.turbulence import Turbulence
+
+
+def scenario_with_grid(scenario: Scenario, n_across: int, diameter_m: float | None = None) -> Scenario:
+    """``scenario`` on another actuator grid (same atmosphere, frame rate and plant)."""
+    grid = ActuatorGrid(diameter_m or scenario.grid.diameter_m, n_across, scenario.grid.obstruction)
+    return dataclasses.replace(scenario, grid=grid)
+
+
+def bench_turbulence(scenario: Scenario, n_across: tuple[int, ...] = (40, 80), chunk_frames: int = 2000,
+                     hcipy_frames: int = 500, repeat: int = 5, setup_repeat: int = 3, seed: int = 0) -> list[Row]:
+    """Frames per second of :class:`eofnn.sim.Turbulence` and of the HCIPy loop, and their set-up costs.
+
+    Per grid size two rows:
+
+    - ``frame/<n>``: steady-state seconds per frame. eofnn streams consecutive ranges
+      ``frames(k * chunk, (k + 1) * chunk)`` (after one untimed range), so the strip extension HCIPy does for it is
+      included, amortised as in a long run; HCIPy evolves its layer frame by frame.
+    - ``setup/<n>``: seconds from nothing to the first frame (eofnn: ``Turbulence(...)`` plus ``frames(0, 1)``;
+      HCIPy: ``InfiniteAtmosphericLayer(...)`` plus the first frame). Paid once per realisation.
+    """
+    rows = []
+    for n in n_across:
+        sc = scenario_with_grid(scenario, n)
+        eofnn_turbulence = sc.turbulence(seed)
+        hcipy_turbulence = HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed)
+        state = {"next": 0}
+
+        def eofnn_chunk(t=eofnn_turbulence):
+            first = state["next"]
+            state["next"] += chunk_frames
+            return t.frames(first, first + chunk_frames)
+
+        timings = time_interleaved(
+            {"eofnn": (eofnn_chunk, chunk_frames), "hcipy": (lambda h=hcipy_turbulence: h.frames(hcipy_frames),
+                                                             hcipy_frames)},
+            repeat=repeat, warmup=1)
+        rows.append(Row(
+            "turbulence", f"frame/{n}", "s/frame", timings["eofnn"], timings["hcipy"],
+            "HCIPy InfiniteAtmosphericLayer loop", goal_ratio=10.0, goal_label=">= 10 (10x HCIPy's rate)",
+            info={"n_across": n, "n_actuators": sc.grid.n_actuators, "eofnn_frames_per_s": 1 / timings["eofnn"].min,
+                  "hcipy_frames_per_s": 1 / timings["hcipy"].min, "chunk_frames": chunk_frames,
+                  "hcipy_frames": hcipy_frames},
+        ))
+
+        eofnn_setup, hcipy_setup = [], []
+        for r in range(setup_repeat):
+            eofnn_setup.append(time_once(lambda r=r: Turbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed + r + 1)
+                                         .frames(0, 1))[0])
+            hcipy_setup.append(time_once(lambda r=r: HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz,
+                                                                     seed + r + 1).frames(1))[0])
+        rows.append(Row(
+            "turbulence", f"setup/{n}", "s", Timing(eofnn_setup), Timing(hcipy_setup),
+            "HCIPy InfiniteAtmosphericLayer set-up", info={"n_across": n, "n_actuators": sc.grid.n_actuators},
+        ))
+    return rows
