@@ -174,6 +174,10 @@ def load_predictor(path: str | Path, scenario: Scenario | None = None,
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises UnpicklingError, EOFError, RuntimeError... for files that are not checkpoints
+        raise CheckpointError(f"checkpoint {str(path)!r} is not an eofnn predictor checkpoint "
+                              f"({type(err).__name__})") from None
+    try:
         hp = ckpt["hyper_parameters"]
         spec = HistorySpec(**hp["spec"])
         info = dict(hp["info"])
