@@ -13,7 +13,7 @@ FIT_METHODS = ("closed_form", "sgd")
 OPTIMIZERS = ("adam", "sgd", "lbfgs")
 
 
-def supports_closed_form(network: nn.Module) -> bool:
+def supports_closed_form(network: nn.Module | type) -> bool:
     """Whether ``network`` exposes the linear-regression interface (``features``, ``group_targets``, ``load_solution``)."""
     return all(callable(getattr(network, name, None)) for name in ("features", "group_targets", "load_solution"))
 

@@ -1,0 +1,137 @@
+"""Benchmark 5: how turbulence generation, the loop step and the fit grow with actuators, history and frames."""
+
+from __future__ import annotations
+
+import torch
+
+from benchmarks.bench_fit import streamed_fit, synthetic_regression
+from benchmarks.bench_loop import ContinuingTurbulence, integrator_like_filter
+from benchmarks.bench_turbulence import scenario_with_grid
+from benchmarks.common import Series, time_interleaved
+from eofnn.data.history import HistorySpec
+from eofnn.models.predictive import PredictiveController
+from eofnn.sim.loop import LoopInput, run_loop
+from eofnn.sim.scenario import Scenario
+
+#: "Linear" allows some slack for noise and cache effects.
+LINEAR = 1.15
+LINEAR_LABEL = "<= 1.15 (at most linear)"
+
+
+def _turbulence_frame_s(scenario: Scenario, n_frames: int, repeat: int, seed: int) -> float:
+    """Steady-state seconds per frame of ``Turbulence.frames`` over consecutive ranges of ``n_frames``."""
+    turbulence = scenario.turbulence(seed)
+    state = {"next": 0}
+
+    def chunk():
+        first = state["next"]
+        state["next"] += n_frames
+        turbulence.frames(first, first + n_frames)
+
+    return time_interleaved({"t": (chunk, n_frames)}, repeat=repeat, warmup=1)["t"].min
+
+
+def _step_s(n_actuators: int, spec: HistorySpec, steps: int, repeat: int, seed: int) -> float:
+    """Seconds per ``PredictiveController.step`` (closed-loop EOF)."""
+    controller = PredictiveController(integrator_like_filter(n_actuators, spec, seed=seed), spec)
+    wfs = torch.randn(1, n_actuators, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    inp = LoopInput(0, wfs, wfs)
+
+    def run():
+        controller.reset(1, n_actuators, spec.delay_frames, torch.float64)
+        for _ in range(steps):
+            controller.step(inp)
+
+    return time_interleaved({"s": (run, steps)}, repeat=repeat, warmup=1)["s"].min
+
+
+def _run_loop_s(scenario: Scenario, spec: HistorySpec, n_frames: int, repeat: int, seed: int) -> float:
+    """Seconds per frame of ``run_loop`` (turbulence generated as it goes) with a closed-loop EOF."""
+    net = integrator_like_filter(scenario.grid.n_actuators, spec, seed=seed)
+    turbulence = ContinuingTurbulence(scenario.turbulence(seed))
+
+    def run():
+        run_loop(turbulence, scenario.plant, PredictiveController(net, spec), n_frames, record=(), progress=False)
+
+    return time_interleaved({"l": (run, n_frames)}, repeat=repeat, warmup=1)["l"].min
+
+
+def _fit_s(x: torch.Tensor, t: torch.Tensor, batch_frames: int, repeat: int) -> float:
+    """Seconds per streamed closed-form fit."""
+    return time_interleaved({"f": (lambda: streamed_fit(x, t, batch_frames, 1e-9), 1)}, repeat=repeat, warmup=1)["f"].min
+
+
+def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), histories: tuple[int, ...] = (4, 8, 16),
+                  turbulence_frames: tuple[int, ...] = (1000, 2000, 4000, 8000), chunk_frames: int = 2000,
+                  loop_frames: int = 1000, steps: int = 1000, fit_frames: tuple[int, ...] = (10000, 20000, 40000),
+                  fit_actuator_frames: int = 5000, fit_history_frames: int = 10000, fit_taps: int = 12,
+                  batch_frames: int = 256, base_across: int = 40, loop_history: int = 12, repeat: int = 3,
+                  seed: int = 0) -> list[Series]:
+    """Log-log growth exponents (goal: at most linear, ``<= 1.15``).
+
+    Series: turbulence seconds per frame vs actuators, and seconds per ``frames()`` call vs frames in it;
+    controller step and ``run_loop`` per frame vs actuators and vs history length; streamed fit time vs actuators,
+    vs taps (open-loop history length) and vs frames. ``x`` is the number of active actuators (not the number
+    across), the history length, or the number of frames.
+    """
+    out = []
+    grids = {n: scenario_with_grid(scenario, n) for n in n_across}
+    actuators = [grids[n].grid.n_actuators for n in n_across]
+    base = scenario_with_grid(scenario, base_across)
+    k_base = base.grid.n_actuators
+    loop_spec = HistorySpec("closed_loop", loop_history, scenario.delay_frames)
+    info = {"n_across": list(n_across)}
+
+    out.append(Series("scaling", "turbulence_vs_actuators", "n_actuators", actuators,
+                      [_turbulence_frame_s(grids[n], chunk_frames, repeat, seed) for n in n_across], "s/frame",
+                      LINEAR, LINEAR_LABEL, info=dict(info, chunk_frames=chunk_frames)))
+    turbulence = base.turbulence(seed)
+    state = {"next": 0}
+
+    def frames_call(n):
+        first = state["next"]
+        state["next"] += n
+        turbulence.frames(first, first + n)
+
+    timings = time_interleaved({n: (lambda n=n: frames_call(n), 1) for n in turbulence_frames}, repeat=repeat)
+    out.append(Series("scaling", "turbulence_vs_frames", "frames", list(turbulence_frames),
+                      [timings[n].min for n in turbulence_frames], "s/call", LINEAR, LINEAR_LABEL,
+                      info={"n_across": base_across}))
+
+    out.append(Series("scaling", "step_vs_actuators", "n_actuators", actuators,
+                      [_step_s(k, loop_spec, steps, repeat, seed) for k in actuators], "s/step", LINEAR,
+                      LINEAR_LABEL, info=dict(info, history_length=loop_history)))
+    out.append(Series("scaling", "step_vs_history", "history_length", list(histories),
+                      [_step_s(k_base, HistorySpec("closed_loop", p, scenario.delay_frames), steps, repeat, seed)
+                       for p in histories], "s/step", LINEAR, LINEAR_LABEL, info={"n_across": base_across}))
+    out.append(Series("scaling", "run_loop_vs_actuators", "n_actuators", actuators,
+                      [_run_loop_s(grids[n], loop_spec, loop_frames, repeat, seed) for n in n_across], "s/frame",
+                      LINEAR, LINEAR_LABEL, info=dict(info, history_length=loop_history)))
+    out.append(Series("scaling", "run_loop_vs_history", "history_length", list(histories),
+                      [_run_loop_s(base, HistorySpec("closed_loop", p, scenario.delay_frames), loop_frames, repeat,
+                                   seed) for p in histories], "s/frame", LINEAR, LINEAR_LABEL,
+                      info={"n_across": base_across}))
+
+    seconds = []
+    for k in actuators:
+        x, t = synthetic_regression(k, fit_actuator_frames, fit_taps, seed)
+        seconds.append(_fit_s(x, t, batch_frames, repeat))
+        del x, t
+    out.append(Series("scaling", "fit_vs_actuators", "n_actuators", actuators, seconds, "s/fit", LINEAR,
+                      LINEAR_LABEL, info=dict(info, frames=fit_actuator_frames, taps=fit_taps,
+                                              batch_frames=batch_frames)))
+    seconds = []
+    for p in histories:
+        x, t = synthetic_regression(k_base, fit_history_frames, p, seed)
+        seconds.append(_fit_s(x, t, batch_frames, repeat))
+        del x, t
+    out.append(Series("scaling", "fit_vs_history", "taps", list(histories), seconds, "s/fit", LINEAR,
+                      LINEAR_LABEL, info={"n_across": base_across, "frames": fit_history_frames,
+                                          "batch_frames": batch_frames,
+                                          "note": "D D^T costs taps**2 per sample: up to quadratic is expected"}))
+    x, t = synthetic_regression(k_base, max(fit_frames), fit_taps, seed)
+    seconds = [_fit_s(x[:, :n], t[:, :n], batch_frames, repeat) for n in fit_frames]
+    del x, t
+    out.append(Series("scaling", "fit_vs_frames", "frames", list(fit_frames), seconds, "s/fit", LINEAR,
+                      LINEAR_LABEL, info={"n_across": base_across, "taps": fit_taps, "batch_frames": batch_frames}))
+    return out

@@ -1,0 +1,104 @@
+"""Closed-loop evaluation metrics: spatial RMS per frame, its statistics, Maréchal Strehl, residual PSD."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from eofnn.sim.loop import LoopResult
+
+
+class WelchPSD:
+    """Temporal power spectrum of the residual, accumulated chunk by chunk (Hann-windowed, non-overlapping).
+
+    The PSD is one-sided, in nm²/Hz, averaged over actuators, realisations and segments; frames before
+    ``settle_frames`` are skipped. Feed it through :func:`eofnn.sim.run_loop`'s ``on_chunk``.
+    """
+
+    def __init__(self, segment_frames: int, frame_rate_hz: float, settle_frames: int = 0) -> None:
+        self.segment, self.rate, self.settle = segment_frames, frame_rate_hz, settle_frames
+        self._buffer: list[torch.Tensor] = []
+        self._buffered = 0
+        self._sum: torch.Tensor | None = None
+        self._count = 0
+        window = torch.hann_window(segment_frames, periodic=False, dtype=torch.float64)
+        self._window = window.view(1, -1, 1)
+        self._norm = float(frame_rate_hz * window.pow(2).sum())
+
+    def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
+        eps = arrays["eps"]
+        skip = max(0, self.settle - first_frame)
+        if skip >= eps.shape[1]:
+            return
+        self._buffer.append(eps[:, skip:])
+        self._buffered += eps.shape[1] - skip
+        while self._buffered >= self.segment:
+            data = torch.cat(self._buffer, 1)
+            segment, rest = data[:, : self.segment], data[:, self.segment:]
+            spectrum = torch.fft.rfft(segment * self._window, dim=1).abs().pow(2) / self._norm
+            spectrum[:, 1:-1] *= 2  # one-sided
+            power = spectrum.mean(dim=(0, 2))
+            self._sum = power if self._sum is None else self._sum + power
+            self._count += 1
+            self._buffer, self._buffered = [rest], rest.shape[1]
+
+    def result(self) -> tuple[list[float], list[float]]:
+        """Frequencies (Hz) and PSD (nm²/Hz); empty when fewer than ``segment_frames`` settled frames ran."""
+        if self._sum is None:
+            return [], []
+        freqs = torch.fft.rfftfreq(self.segment, d=1 / self.rate)
+        return freqs.tolist(), (self._sum / self._count).tolist()
+
+
+@dataclass
+class LoopMetrics:
+    """Metrics of one closed-loop run (nm unless stated); statistics are ``None`` when the loop diverged."""
+
+    median_rms_nm: float | None
+    mean_rms_nm: float | None
+    p95_rms_nm: float | None
+    strehl: float | None
+    diverged: bool
+    diverged_frame: int | None
+    settle_frames: int
+    n_frames: int
+    rms_nm: list[float] = field(default_factory=list, repr=False)
+    psd_freq_hz: list[float] = field(default_factory=list, repr=False)
+    psd_nm2_per_hz: list[float] = field(default_factory=list, repr=False)
+
+    def summary(self) -> dict:
+        """The JSON-ready scalars."""
+        return {k: getattr(self, k) for k in ("median_rms_nm", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged",
+                                              "diverged_frame", "settle_frames", "n_frames")}
+
+
+def marechal_strehl(rms_nm: torch.Tensor, wavelength_m: float) -> torch.Tensor:
+    """Strehl ratio by the Maréchal approximation, ``exp(-(2 pi sigma / lambda)^2)``."""
+    return torch.exp(-(2 * math.pi * rms_nm * 1e-9 / wavelength_m) ** 2)
+
+
+def loop_metrics(result: LoopResult, settle_frames: int, strehl_wavelength_m: float,
+                 psd: WelchPSD | None = None) -> LoopMetrics:
+    """Summarise a loop run after ``settle_frames`` (per-frame RMS pooled over realisations)."""
+    rms = result.residual_rms_nm[:, settle_frames:]
+    n_frames = result.residual_rms_nm.shape[1]
+    freqs, power = psd.result() if psd is not None else ([], [])
+    if result.diverged or rms.numel() == 0:
+        return LoopMetrics(None, None, None, None, result.diverged, result.diverged_frame, settle_frames, n_frames,
+                           result.residual_rms_nm.mean(0).tolist(), freqs, power)
+    flat = rms.flatten()
+    return LoopMetrics(
+        median_rms_nm=float(torch.quantile(flat, 0.5)),
+        mean_rms_nm=float(flat.mean()),
+        p95_rms_nm=float(torch.quantile(flat, 0.95)),
+        strehl=float(marechal_strehl(flat, strehl_wavelength_m).mean()),
+        diverged=False,
+        diverged_frame=None,
+        settle_frames=settle_frames,
+        n_frames=n_frames,
+        rms_nm=result.residual_rms_nm.mean(0).tolist(),
+        psd_freq_hz=freqs,
+        psd_nm2_per_hz=power,
+    )

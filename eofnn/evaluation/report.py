@@ -1,0 +1,118 @@
+"""Results as people read them: a Markdown table and figures (RMS against time, RMS histograms, residual PSDs)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from eofnn.evaluation.experiment import ExperimentResult  # noqa: E402
+
+
+def _cell(m) -> str:
+    if m.diverged:
+        return f"diverged (frame {m.diverged_frame})"
+    return f"{m.median_rms_nm:.3g}"
+
+
+def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, float]] | None = None) -> str:
+    """Median RMS (nm) per predictor (rows) and scenario (columns); ``reference`` adds the study's numbers."""
+    scenarios = list(result.metrics)
+    predictors = list(next(iter(result.metrics.values())))
+    header = ["predictor"] + [f"{s} median RMS (nm)" for s in scenarios]
+    if reference:
+        header += [f"{s} study (nm)" for s in scenarios]
+    header += [f"{s} p95 (nm)" for s in scenarios] + [f"{s} Strehl" for s in scenarios]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for p in predictors:
+        row = [p] + [_cell(result.metrics[s][p]) for s in scenarios]
+        if reference:
+            row += [str(reference.get(s, {}).get(p, "")) for s in scenarios]
+        for key in ("p95_rms_nm", "strehl"):
+            for s in scenarios:
+                value = getattr(result.metrics[s][p], key)
+                row.append("—" if value is None else f"{value:.3g}")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _panels(n: int, title: str):
+    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.2), squeeze=False, sharey=True)
+    fig.suptitle(title)
+    return fig, axes[0]
+
+
+def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path) -> None:
+    """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
+    fig, axes = _panels(len(result.metrics), "Residual spatial RMS")
+    for ax, (scenario, preds) in zip(axes, result.metrics.items()):
+        for name, m in preds.items():
+            rms = np.asarray(m.rms_nm)
+            if rms.size == 0:
+                continue
+            t = np.arange(rms.size) / frame_rate_hz
+            label = name + (f" (diverged @ {m.diverged_frame})" if m.diverged else "")
+            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label)
+        ax.axvspan(0, next(iter(preds.values())).settle_frames / frame_rate_hz, color="0.9", zorder=0)
+        ax.set_title(scenario)
+        ax.set_xlabel("time (s)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("RMS residual (nm)")
+    axes[-1].legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
+    """Histograms of the settled per-frame RMS (log bins), one panel per scenario."""
+    fig, axes = _panels(len(result.metrics), "Distribution of per-frame RMS residual (after settling)")
+    for ax, (scenario, preds) in zip(axes, result.metrics.items()):
+        settled = {n: np.asarray(m.rms_nm)[m.settle_frames:] for n, m in preds.items() if not m.diverged}
+        values = np.concatenate([v for v in settled.values() if v.size]) if settled else np.array([])
+        if values.size:
+            bins = np.logspace(np.log10(max(values.min(), 1e-6)), np.log10(values.max()) + 1e-9, 60)
+            for name, v in settled.items():
+                ax.hist(v, bins=bins, histtype="step", label=name)
+            ax.set_xscale("log")
+        ax.set_title(scenario)
+        ax.set_xlabel("RMS residual (nm)")
+    axes[0].set_ylabel("frames")
+    axes[-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_psds(result: ExperimentResult, path: Path) -> None:
+    """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
+    fig, axes = _panels(len(result.metrics), "Temporal power spectrum of the residual")
+    for ax, (scenario, preds) in zip(axes, result.metrics.items()):
+        for name, m in preds.items():
+            if m.psd_freq_hz and not m.diverged:
+                f, p = np.asarray(m.psd_freq_hz)[1:], np.asarray(m.psd_nm2_per_hz)[1:]
+                ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name)
+        ax.set_title(scenario)
+        ax.set_xlabel("frequency (Hz)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("PSD (nm²/Hz)")
+    axes[-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
+                 reference: dict[str, dict[str, float]] | None = None) -> list[Path]:
+    """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
+    table = out / "results.md"
+    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference))
+    figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png"]
+    plot_rms_vs_time(result, frame_rate_hz, figures[0])
+    plot_rms_histograms(result, figures[1])
+    plot_psds(result, figures[2])
+    return [table, *figures]
