@@ -58,7 +58,8 @@ def small_reference_scenario(reference: Scenario, diameter_m: float = 4.0, n_acr
 
 
 def bench_end_to_end(scenario: Scenario, history_length: int = 4, train_frames: int = 20000,
-                     val_frames: int = 2000, eval_frames: int = 5000, repeat: int = 2, seed: int = 0) -> list[Row]:
+                     val_frames: int = 2000, eval_frames: int = 5000, repeat: int = 2, warmup: int = 1,
+                     seed: int = 0) -> list[Row]:
     """Seconds of the whole fit + evaluate pipeline, eofnn against the numpy/HCIPy script (goal: faster).
 
     Rows: ``total`` (goal ``>= 1``), and its two parts ``fit`` (training data, fit, validation) and ``evaluate``
@@ -70,13 +71,13 @@ def bench_end_to_end(scenario: Scenario, history_length: int = 4, train_frames: 
     script_out: dict = {}
     args = (scenario, spec, train_frames, val_frames, eval_frames, seed)
     time_interleaved({"eofnn": (lambda: eofnn_pipeline(*args, eofnn_out), 1),
-                      "script": (lambda: script_pipeline(*args, script_out), 1)}, repeat=repeat, warmup=1)
+                      "script": (lambda: script_pipeline(*args, script_out), 1)}, repeat=repeat, warmup=warmup)
     if eofnn_out["diverged"]:
         raise RuntimeError("the fitted eofnn predictor diverged in the end-to-end loop")
-    # Drop the warm-up call (the first entry) as time_interleaved does.
-    parts = {name: (Timing(eofnn_out[name][1:]), Timing(script_out[name][1:])) for name in ("fit", "evaluate")}
-    total = (Timing([a + b for a, b in zip(eofnn_out["fit"][1:], eofnn_out["evaluate"][1:])]),
-             Timing([a + b for a, b in zip(script_out["fit"][1:], script_out["evaluate"][1:])]))
+    # Drop the warm-up calls (the first entries) as time_interleaved does.
+    parts = {name: (Timing(eofnn_out[name][warmup:]), Timing(script_out[name][warmup:])) for name in ("fit", "evaluate")}
+    total = (Timing([a + b for a, b in zip(eofnn_out["fit"][warmup:], eofnn_out["evaluate"][warmup:])]),
+             Timing([a + b for a, b in zip(script_out["fit"][warmup:], script_out["evaluate"][warmup:])]))
     info = {"n_across": scenario.grid.n_across, "diameter_m": scenario.grid.diameter_m,
             "n_actuators": scenario.grid.n_actuators, "history": spec.to_dict(), "train_frames": train_frames,
             "val_frames": val_frames, "eval_frames": eval_frames,

@@ -37,6 +37,12 @@ class ContinuingTurbulence:
         for first, frames in self.turbulence.chunks(n_frames, chunk, offset + start):
             yield first - offset, frames
 
+    def take(self, n_frames: int):
+        """The next ``n_frames`` frames in one ``Turbulence.frames`` call."""
+        first = self.offset
+        self.offset += n_frames
+        return self.turbulence.frames(first, first + n_frames)
+
 
 class PregeneratedTurbulence:
     """Frames generated beforehand, served like a :class:`Turbulence`: ``run_loop`` without generation cost."""

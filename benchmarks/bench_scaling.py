@@ -18,17 +18,9 @@ LINEAR = 1.15
 LINEAR_LABEL = "<= 1.15 (at most linear)"
 
 
-def _turbulence_frame_s(scenario: Scenario, n_frames: int, repeat: int, seed: int) -> float:
+def _turbulence_frame_s(turbulence: ContinuingTurbulence, n_frames: int, repeat: int) -> float:
     """Steady-state seconds per frame of ``Turbulence.frames`` over consecutive ranges of ``n_frames``."""
-    turbulence = scenario.turbulence(seed)
-    state = {"next": 0}
-
-    def chunk():
-        first = state["next"]
-        state["next"] += n_frames
-        turbulence.frames(first, first + n_frames)
-
-    return time_interleaved({"t": (chunk, n_frames)}, repeat=repeat, warmup=1)["t"].min
+    return time_interleaved({"t": (lambda: turbulence.take(n_frames), n_frames)}, repeat=repeat, warmup=1)["t"].min
 
 
 def _step_s(n_actuators: int, spec: HistorySpec, steps: int, repeat: int, seed: int) -> float:
@@ -45,10 +37,10 @@ def _step_s(n_actuators: int, spec: HistorySpec, steps: int, repeat: int, seed: 
     return time_interleaved({"s": (run, steps)}, repeat=repeat, warmup=1)["s"].min
 
 
-def _run_loop_s(scenario: Scenario, spec: HistorySpec, n_frames: int, repeat: int, seed: int) -> float:
+def _run_loop_s(scenario: Scenario, turbulence: ContinuingTurbulence, spec: HistorySpec, n_frames: int,
+                repeat: int, seed: int) -> float:
     """Seconds per frame of ``run_loop`` (turbulence generated as it goes) with a closed-loop EOF."""
     net = integrator_like_filter(scenario.grid.n_actuators, spec, seed=seed)
-    turbulence = ContinuingTurbulence(scenario.turbulence(seed))
 
     def run():
         run_loop(turbulence, scenario.plant, PredictiveController(net, spec), n_frames, record=(), progress=False)
@@ -72,28 +64,23 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
     Series: turbulence seconds per frame vs actuators, and seconds per ``frames()`` call vs frames in it;
     controller step and ``run_loop`` per frame vs actuators and vs history length; streamed fit time vs actuators,
     vs taps (open-loop history length) and vs frames. ``x`` is the number of active actuators (not the number
-    across), the history length, or the number of frames.
+    across), the history length, or the number of frames. One turbulence stream per grid serves every series
+    (each timing continues it), so set-up costs are paid once.
     """
     out = []
-    grids = {n: scenario_with_grid(scenario, n) for n in n_across}
+    grids = {n: scenario_with_grid(scenario, n) for n in (*n_across, base_across)}
+    streams = {n: ContinuingTurbulence(grids[n].turbulence(seed)) for n in grids}
     actuators = [grids[n].grid.n_actuators for n in n_across]
-    base = scenario_with_grid(scenario, base_across)
+    base = grids[base_across]
     k_base = base.grid.n_actuators
     loop_spec = HistorySpec("closed_loop", loop_history, scenario.delay_frames)
     info = {"n_across": list(n_across)}
 
     out.append(Series("scaling", "turbulence_vs_actuators", "n_actuators", actuators,
-                      [_turbulence_frame_s(grids[n], chunk_frames, repeat, seed) for n in n_across], "s/frame",
+                      [_turbulence_frame_s(streams[n], chunk_frames, repeat) for n in n_across], "s/frame",
                       LINEAR, LINEAR_LABEL, info=dict(info, chunk_frames=chunk_frames)))
-    turbulence = base.turbulence(seed)
-    state = {"next": 0}
-
-    def frames_call(n):
-        first = state["next"]
-        state["next"] += n
-        turbulence.frames(first, first + n)
-
-    timings = time_interleaved({n: (lambda n=n: frames_call(n), 1) for n in turbulence_frames}, repeat=repeat)
+    timings = time_interleaved({n: (lambda n=n: streams[base_across].take(n), 1) for n in turbulence_frames},
+                               repeat=repeat)
     out.append(Series("scaling", "turbulence_vs_frames", "frames", list(turbulence_frames),
                       [timings[n].min for n in turbulence_frames], "s/call", LINEAR, LINEAR_LABEL,
                       info={"n_across": base_across}))
@@ -105,11 +92,12 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
                       [_step_s(k_base, HistorySpec("closed_loop", p, scenario.delay_frames), steps, repeat, seed)
                        for p in histories], "s/step", LINEAR, LINEAR_LABEL, info={"n_across": base_across}))
     out.append(Series("scaling", "run_loop_vs_actuators", "n_actuators", actuators,
-                      [_run_loop_s(grids[n], loop_spec, loop_frames, repeat, seed) for n in n_across], "s/frame",
+                      [_run_loop_s(grids[n], streams[n], loop_spec, loop_frames, repeat, seed) for n in n_across],
+                      "s/frame",
                       LINEAR, LINEAR_LABEL, info=dict(info, history_length=loop_history)))
     out.append(Series("scaling", "run_loop_vs_history", "history_length", list(histories),
-                      [_run_loop_s(base, HistorySpec("closed_loop", p, scenario.delay_frames), loop_frames, repeat,
-                                   seed) for p in histories], "s/frame", LINEAR, LINEAR_LABEL,
+                      [_run_loop_s(base, streams[base_across], HistorySpec("closed_loop", p, scenario.delay_frames),
+                                   loop_frames, repeat, seed) for p in histories], "s/frame", LINEAR, LINEAR_LABEL,
                       info={"n_across": base_across}))
 
     seconds = []

@@ -162,7 +162,7 @@ def main(args: list[str] | None = None) -> int:
     try:
         cfg = parser.parse_args(args)
         command = cfg.command
-        dump = parser.dump(cfg, skip_none=False)
+        dump = parser.dump(cfg)
         sub_dump = yaml.safe_dump({k: v for k, v in yaml.safe_load(dump)[command].items() if k != "config"},
                                   sort_keys=False)
         init = parser.instantiate(cfg)[command]

@@ -40,6 +40,11 @@ def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, floa
     return "\n".join(lines) + "\n"
 
 
+def _legend(ax) -> None:
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8, loc="best")
+
+
 def _panels(n: int, title: str):
     fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.2), squeeze=False, sharey=True)
     fig.suptitle(title)
@@ -62,7 +67,7 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
         ax.set_xlabel("time (s)")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("RMS residual (nm)")
-    axes[-1].legend(fontsize=8, loc="best")
+    _legend(axes[-1])
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -82,7 +87,7 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
         ax.set_title(scenario)
         ax.set_xlabel("RMS residual (nm)")
     axes[0].set_ylabel("frames")
-    axes[-1].legend(fontsize=8)
+    _legend(axes[-1])
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -100,7 +105,7 @@ def plot_psds(result: ExperimentResult, path: Path) -> None:
         ax.set_xlabel("frequency (Hz)")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("PSD (nm²/Hz)")
-    axes[-1].legend(fontsize=8)
+    _legend(axes[-1])
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

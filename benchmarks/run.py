@@ -1,0 +1,244 @@
+"""Run every benchmark, print a table of ratios against baselines timed in the same run, and write JSON.
+
+    .venv/bin/python -m benchmarks.run                 # full run (several minutes on 2 cores)
+    .venv/bin/python -m benchmarks.run --quick         # everything at tiny size, in seconds
+    .venv/bin/python -m benchmarks.run --only fit,loop --out /tmp/fit.json
+
+Ratios are ``baseline / eofnn`` (higher is better; ``> 1``: eofnn faster). See ``benchmarks/README.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+import traceback
+import warnings
+from collections.abc import Callable
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.common import Row, Series, Skipped, fmt_seconds
+
+ROOT = Path(__file__).resolve().parent.parent
+REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
+BENCHMARKS = ("turbulence", "loop", "fit", "end_to_end", "scaling")
+#: Benchmarks whose functions take a ``device``; the others are CPU code in eofnn (HCIPy, numpy, the loop).
+DEVICE_BENCHMARKS = ("loop", "fit")
+
+#: Sizes of the full run (the figures in the README) and of ``--quick`` (a smoke run of every code path).
+FULL = {
+    "turbulence": {"n_across": (40, 80), "chunk_frames": 2000, "hcipy_frames": 500, "repeat": 5, "setup_repeat": 3},
+    "loop": {"n_across": 40, "history_length": 12, "n_frames": 2000, "step_count": 2000, "repeat": 5},
+    "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "batch_frames": (256, 4096), "repeat": 3},
+    "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
+                   "val_frames": 2000, "eval_frames": 5000, "repeat": 2},
+    "scaling": {},
+}
+QUICK = {
+    "turbulence": {"n_across": (10, 20), "chunk_frames": 200, "hcipy_frames": 50, "repeat": 2, "setup_repeat": 1},
+    "loop": {"n_across": 10, "history_length": 12, "n_frames": 200, "step_count": 200, "repeat": 2,
+             "bandwidth_bytes": 16 * 2**20},
+    "fit": {"n_frames": 2000, "n_actuators": 80, "n_taps": 12, "batch_frames": (256, 1024), "repeat": 2},
+    "end_to_end": {"diameter_m": 2.0, "n_across": 10, "history_length": 4, "train_frames": 1000, "val_frames": 200,
+                   "eval_frames": 300, "repeat": 1, "warmup": 0},
+    "scaling": {"n_across": (6, 8, 10), "histories": (2, 4, 8), "turbulence_frames": (100, 200, 400),
+                "chunk_frames": 200, "loop_frames": 100, "steps": 100, "fit_frames": (500, 1000, 2000),
+                "fit_actuator_frames": 500, "fit_history_frames": 500, "base_across": 10, "repeat": 1},
+}
+
+
+def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, list]:
+    """``(rows or series, skipped)`` of one benchmark on one device."""
+    if name == "turbulence":
+        from benchmarks.bench_turbulence import bench_turbulence
+
+        return bench_turbulence(scenario, **sizes), []
+    if name == "loop":
+        from benchmarks.bench_loop import bench_loop
+
+        return bench_loop(scenario, device=device, **sizes)
+    if name == "fit":
+        from benchmarks.bench_fit import bench_fit
+
+        return bench_fit(device=device, **sizes)
+    if name == "end_to_end":
+        from benchmarks.bench_end_to_end import bench_end_to_end, small_reference_scenario
+
+        sizes = dict(sizes)
+        small = small_reference_scenario(scenario, sizes.pop("diameter_m"), sizes.pop("n_across"))
+        return bench_end_to_end(small, **sizes), []
+    if name == "scaling":
+        from benchmarks.bench_scaling import bench_scaling
+
+        return bench_scaling(scenario, **sizes), []
+    raise ValueError(f"unknown benchmark {name!r}: allowed are {', '.join(BENCHMARKS)}")
+
+
+def machine_info() -> dict:
+    """What the figures were measured on."""
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    import hcipy
+
+    return {
+        "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "hcipy": hcipy.__version__,
+        "cuda_available": torch.cuda.is_available(),
+        "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "git_commit": commit,
+        "load_average_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+
+
+def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tuple[str, ...] = ("cpu", "cuda"),
+            log: Callable[[str], None] = print) -> dict:
+    """Run the benchmarks and return the JSON-ready results (``meta``, ``rows``, ``scaling``, ``skipped``, ``errors``)."""
+    from eofnn.sim.scenario import Scenario
+
+    sizes = QUICK if quick else FULL
+    scenario = Scenario.from_yaml(REFERENCE_CONFIG)
+    results = {"meta": dict(machine_info(), quick=quick, reference_config=str(REFERENCE_CONFIG.relative_to(ROOT))),
+               "rows": [], "scaling": [], "skipped": [], "errors": [], "seconds": {}}
+    for name in only:
+        for device in devices if name in DEVICE_BENCHMARKS else ("cpu",):
+            if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+                skip = Skipped(name, device, "torch.cuda.is_available() is False")
+                results["skipped"].append(skip.to_dict())
+                log(f"[{name}/{device}] skipped: {skip.reason}")
+                continue
+            log(f"[{name}/{device}] running ...")
+            t0 = time.perf_counter()
+            try:
+                items, skipped = run_benchmark(name, scenario, sizes[name], device)
+            except Exception as err:  # one failing benchmark must not hide the others
+                results["errors"].append({"benchmark": name, "device": device,
+                                          "error": f"{type(err).__name__}: {err}",
+                                          "traceback": traceback.format_exc()})
+                log(f"[{name}/{device}] FAILED: {type(err).__name__}: {err}")
+                continue
+            finally:
+                results["seconds"][f"{name}/{device}"] = time.perf_counter() - t0
+            for item in items:
+                key = "scaling" if isinstance(item, Series) else "rows"
+                results[key].append(item.to_dict())
+            for skip in skipped:
+                results["skipped"].append(skip.to_dict())
+                log(f"[{name}/{device}] partly skipped: {skip.reason}")
+            log(f"[{name}/{device}] done in {results['seconds'][f'{name}/{device}']:.1f} s")
+    results["meta"]["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    return results
+
+
+def _met(value) -> str:
+    return "-" if value is None else ("yes" if value else "NO")
+
+
+def format_table(results: dict) -> str:
+    """The rows and the scaling series as plain-text tables."""
+    lines = ["Ratios are baseline / eofnn from the minimum over repeats (median-based in brackets): higher is better.",
+             ""]
+    header = ("benchmark", "row", "dev", "eofnn", "baseline", "baseline is", "ratio", "(median)", "goal", "met")
+    table = [header]
+    for r in results["rows"]:
+        table.append((r["benchmark"], r["name"], r["device"], f"{fmt_seconds(r['eofnn_s']['min'])}",
+                      f"{fmt_seconds(r['baseline_s']['min'])}", r["baseline"], f"{r['ratio']:.3g}",
+                      f"({r['ratio_median']:.3g})", r["goal"] or "", _met(r["goal_met"])))
+    lines += _columns(table)
+    if results["scaling"]:
+        lines += ["", "Scaling: time at each size (growth against the smallest size), log-log exponent."]
+        table = [("series", "x", "sizes", "times", "growth", "exponent", "goal", "met")]
+        for s in results["scaling"]:
+            table.append((s["name"], s["x_name"], " ".join(f"{x:g}" for x in s["x"]),
+                          " ".join(fmt_seconds(t).replace(" ", "") for t in s["seconds"]),
+                          " ".join(f"{g:.3g}" for g in s["ratios"]), f"{s['exponent']:.2f}", s["goal"] or "",
+                          _met(s["goal_met"])))
+        lines += _columns(table)
+    if results["skipped"]:
+        lines += ["", "Skipped:"] + [f"  {s['benchmark']}/{s['device']}: {s['reason']}" for s in results["skipped"]]
+    if results["errors"]:
+        lines += ["", "ERRORS:"] + [f"  {e['benchmark']}/{e['device']}: {e['error']}" for e in results["errors"]]
+    return "\n".join(lines)
+
+
+def _columns(table: list[tuple]) -> list[str]:
+    widths = [max(len(str(row[i])) for row in table) for i in range(len(table[0]))]
+    out = ["  ".join(str(v).ljust(w) for v, w in zip(row, widths)).rstrip() for row in table]
+    out.insert(1, "  ".join("-" * w for w in widths))
+    return out
+
+
+def check_results(results: dict) -> list[str]:
+    """Problems that make a results file unusable: missing benchmarks, non-finite or non-positive ratios, errors."""
+    problems = [f"error in {e['benchmark']}/{e['device']}: {e['error']}" for e in results["errors"]]
+    for r in results["rows"]:
+        for key in ("ratio", "ratio_median"):
+            if not (isinstance(r[key], float) and math.isfinite(r[key]) and r[key] > 0):
+                problems.append(f"{r['benchmark']}/{r['name']}: {key}={r[key]!r}")
+    for s in results["scaling"]:
+        if not math.isfinite(s["exponent"]) or not all(math.isfinite(g) and g > 0 for g in s["ratios"]):
+            problems.append(f"scaling/{s['name']}: exponent={s['exponent']!r}, ratios={s['ratios']!r}")
+    return problems
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes: every code path in seconds")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON file (default: benchmarks/results.json, or benchmarks/results_quick.json with "
+                             "--quick)")
+    parser.add_argument("--only", default=",".join(BENCHMARKS),
+                        help=f"comma-separated subset of {', '.join(BENCHMARKS)}")
+    parser.add_argument("--devices", default="cpu,cuda",
+                        help="devices for the benchmarks that take one (loop, fit); CUDA is skipped when absent")
+    args = parser.parse_args(argv)
+    only = tuple(name.strip() for name in args.only.split(",") if name.strip())
+    unknown = sorted(set(only) - set(BENCHMARKS))
+    if unknown:
+        parser.error(f"unknown benchmark(s) {', '.join(unknown)}: allowed are {', '.join(BENCHMARKS)}")
+    out = args.out or Path(__file__).resolve().parent / ("results_quick.json" if args.quick else "results.json")
+    devices = tuple(d.strip() for d in args.devices.split(",") if d.strip())
+
+    with warnings.catch_warnings():
+        # Lightning's advice and deprecation chatter inside fit_predictor, not about the figures.
+        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+        warnings.filterwarnings("ignore", message=".*LeafSpec.*")
+        results = run_all(args.quick, only, devices, log=lambda msg: print(msg, file=sys.stderr, flush=True))
+    print(format_table(results))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1) + "\n")
+    print(f"\nwritten to {out}")
+    problems = check_results(results)
+    for problem in problems:
+        print(f"problem: {problem}", file=sys.stderr)
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

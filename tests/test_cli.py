@@ -1,0 +1,155 @@
+"""The eofnn command line end to end, on a tiny configuration."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from eofnn.main import main
+
+TINY = Path(__file__).parent / "conf" / "tiny_compare.yaml"
+TINY_EVAL = Path(__file__).parent / "conf" / "tiny_evaluate.yaml"
+TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
+
+
+def run(capsys, *args) -> tuple[int, str]:
+    code = main([str(a) for a in args])
+    return code, capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def tiny_results(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compare") / "run"
+    assert main(["compare", "--config", str(TINY), "--out", str(out)]) == 0
+    return out
+
+
+def test_compare_writes_metrics_table_config_and_figures(tiny_results):
+    metrics = json.loads((tiny_results / "metrics.json").read_text())
+    scenarios = metrics["scenarios"]
+    assert set(scenarios) == {"nominal", "dm_gain_2"}
+    assert set(scenarios["nominal"]) == {"uncorrected", "pseudo_integrator", "integrator", "ol_eof", "cl_eof"}
+    for preds in scenarios.values():
+        for m in preds.values():
+            assert {"median_rms_nm", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged"} <= set(m)
+    nominal, doubled = scenarios["nominal"], scenarios["dm_gain_2"]
+    assert 200 < nominal["uncorrected"]["median_rms_nm"] < 600
+    assert nominal["ol_eof"]["median_rms_nm"] * 5 < nominal["pseudo_integrator"]["median_rms_nm"]
+    assert nominal["ol_eof"]["median_rms_nm"] <= nominal["ol_eof"]["mean_rms_nm"] * 1.5
+    assert nominal["ol_eof"]["median_rms_nm"] <= nominal["ol_eof"]["p95_rms_nm"]
+    assert 0 < nominal["uncorrected"]["strehl"] < nominal["ol_eof"]["strehl"] <= 1
+    assert doubled["ol_eof"]["diverged"] and doubled["ol_eof"]["median_rms_nm"] is None
+    assert not doubled["cl_eof"]["diverged"]
+    assert doubled["cl_eof"]["median_rms_nm"] < 1.5 * nominal["cl_eof"]["median_rms_nm"]
+    for name in ("rms_vs_time.png", "rms_histogram.png", "residual_psd.png"):
+        data = (tiny_results / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    table = (tiny_results / "results.md").read_text()
+    assert "| ol_eof |" in table and "diverged (frame" in table
+    resolved = yaml.safe_load((tiny_results / "config.yaml").read_text())
+    assert resolved["predictors"]["cl_eof"]["history_length"] == 5
+    assert resolved["evaluation"]["frames"] == 1200  # resolved: defaults filled in
+    assert resolved["predictors"]["ol_eof"]["training"]["batch_frames"] == 256
+    assert sorted(p.name for p in (tiny_results / "checkpoints").iterdir()) == [
+        "cl_eof__dm_gain_2.ckpt", "cl_eof__nominal.ckpt", "ol_eof__nominal.ckpt"]
+
+
+def test_compare_refuses_a_non_empty_folder(tiny_results, capsys):
+    before = (tiny_results / "metrics.json").read_text()
+    code, err = run(capsys, "compare", "--config", TINY, "--out", tiny_results)
+    assert code == 2
+    assert "is not empty" in err and len(err.strip().splitlines()) == 1
+    assert (tiny_results / "metrics.json").read_text() == before
+
+
+def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results, tmp_path, capsys):
+    ckpt = tiny_results / "checkpoints" / "ol_eof__nominal.ckpt"
+    out = tmp_path / "eval"
+    code, err = run(capsys, "evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"ol_eof": str(ckpt)}),
+                    "--baselines", "[pseudo_integrator]", "--out", out)
+    assert code == 0, err
+    reused = json.loads((out / "metrics.json").read_text())["scenarios"]
+    trained = json.loads((tiny_results / "metrics.json").read_text())["scenarios"]
+    assert set(reused["nominal"]) == {"pseudo_integrator", "ol_eof"}
+    for scenario in ("nominal", "dm_gain_2"):
+        assert reused[scenario]["ol_eof"] == trained[scenario]["ol_eof"]
+    assert "training" not in err  # nothing retrained
+
+
+def test_fit_then_evaluate_under_another_plant(tmp_path, capsys):
+    ckpt = tmp_path / "cl.ckpt"
+    code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
+                    "--predictor.history_length", "5", "--predictor.training.frames", "2000",
+                    "--predictor.training.sequence_frames", "1000", "--predictor.training.val_frames", "300",
+                    "--out", ckpt)
+    assert code == 0, err
+    assert ckpt.exists() and ckpt.with_suffix(".yaml").exists()
+    assert json.loads(err.strip().splitlines()[-1])["val_loss_nm2"] < 1.0
+    code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--out", ckpt)
+    assert code == 2 and "exists" in err
+    out = tmp_path / "eval"
+    code, err = run(capsys, "evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"cl": str(ckpt)}),
+                    "--scenarios", json.dumps({"misregistered": {"misregistration_x": 0.1}}), "--out", out,
+                    "--baselines", "[]")
+    assert code == 0, err
+    metrics = json.loads((out / "metrics.json").read_text())["scenarios"]["misregistered"]["cl"]
+    assert metrics["diverged"] or metrics["median_rms_nm"] > 0
+
+
+def test_a_users_own_module_plugs_in_by_class_path(tmp_path, capsys):
+    out = tmp_path / "user"
+    predictors = {"mine": {"history_length": 3, "fit_method": "sgd",
+                           "network": {"class_path": "user_networks.TapMixer"},
+                           "training": {"frames": 1000, "val_frames": 200, "sequence_frames": 500, "epochs": 1,
+                                        "lr": 0.01}}}
+    code, err = run(capsys, "compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors),
+                    "--scenarios", '{"nominal": {}}', "--evaluation.frames", "400", "--evaluation.settle_frames",
+                    "50", "--evaluation.psd_segment_frames", "64", "--out", out)
+    assert code == 0, err
+    m = json.loads((out / "metrics.json").read_text())["scenarios"]["nominal"]["mine"]
+    assert not m["diverged"] and m["median_rms_nm"] < 100
+
+
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["--scenario.atmosphere.r0", "0.1"], "r0"),
+        (["--evaluation.frames", "many"], "many"),
+        (["--predictors.ol_eof.history_length", "0"], "history_length=0"),
+        (["--predictors.ol_eof.checkpoint", "/nonexistent/x.ckpt"], "does not exist"),
+        (["--scenarios", '{"bad": {"dm_gian": 2}}'], "unknown model error 'dm_gian'"),
+        (["--predictors.ol_eof.train_in", "windy"], "train_in='windy' is not a scenario"),
+        (["--predictors.ol_eof.network", '{"class_path": "eofnn.models.mlp.MLP"}'], "closed_form"),
+        (["--scenario.atmosphere.r0_m", "-1"], "r0_m=-1"),
+    ],
+)
+def test_config_errors_are_one_line_and_nothing_runs(tmp_path, capsys, args, expected):
+    out = tmp_path / "never"
+    code, err = run(capsys, "compare", "--config", TINY, *args, "--out", out)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("eofnn: error:"), err
+    assert expected in lines[0]
+    assert not out.exists()
+
+
+def test_a_checkpoint_that_does_not_fit_the_scenario(tiny_results, tmp_path, capsys):
+    ckpt = tiny_results / "checkpoints" / "ol_eof__nominal.ckpt"
+    code, err = run(capsys, "evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"x": str(ckpt)}),
+                    "--scenario.grid.n_across", "12", "--out", tmp_path / "never")
+    assert code == 2
+    assert "n_actuators=80 but the scenario has n_actuators=112" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("command", [[], ["fit"], ["compare"], ["evaluate"]])
+def test_help(command, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([*command, "--help"])
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    assert "usage: eofnn" in text
+    if command == ["compare"]:
+        assert "--predictors" in text and "--scenario.atmosphere.r0_m" in text
