@@ -75,9 +75,10 @@ def bench_end_to_end(scenario: Scenario, history_length: int = 4, train_frames: 
     if eofnn_out["diverged"]:
         raise RuntimeError("the fitted eofnn predictor diverged in the end-to-end loop")
     # Drop the warm-up calls (the first entries) as time_interleaved does.
-    parts = {name: (Timing(eofnn_out[name][warmup:]), Timing(script_out[name][warmup:])) for name in ("fit", "evaluate")}
-    total = (Timing([a + b for a, b in zip(eofnn_out["fit"][warmup:], eofnn_out["evaluate"][warmup:])]),
-             Timing([a + b for a, b in zip(script_out["fit"][warmup:], script_out["evaluate"][warmup:])]))
+    parts = {name: (Timing(eofnn_out[name][warmup:]), Timing(script_out[name][warmup:]))
+             for name in ("fit", "evaluate")}
+    total = tuple(Timing([a + b for a, b in zip(out["fit"][warmup:], out["evaluate"][warmup:], strict=True)])
+                  for out in (eofnn_out, script_out))
     info = {"n_across": scenario.grid.n_across, "diameter_m": scenario.grid.diameter_m,
             "n_actuators": scenario.grid.n_actuators, "history": spec.to_dict(), "train_frames": train_frames,
             "val_frames": val_frames, "eval_frames": eval_frames,

@@ -71,5 +71,4 @@ def bench_fit(n_frames: int = 60000, n_actuators: int = 1264, n_taps: int = 12,
             info={"n_frames": n_frames, "n_actuators": n_actuators, "n_taps": n_taps, "batch_frames": b,
                   "data_GB": x.numel() * 8 / 1e9, "max_relative_weight_difference": agreement},
         ))
-    del x, t
     return rows, []

@@ -50,7 +50,8 @@ def _run_loop_s(scenario: Scenario, turbulence: ContinuingTurbulence, spec: Hist
 
 def _fit_s(x: torch.Tensor, t: torch.Tensor, batch_frames: int, repeat: int) -> float:
     """Seconds per streamed closed-form fit."""
-    return time_interleaved({"f": (lambda: streamed_fit(x, t, batch_frames, 1e-9), 1)}, repeat=repeat, warmup=1)["f"].min
+    fit = (lambda: streamed_fit(x, t, batch_frames, 1e-9), 1)
+    return time_interleaved({"f": fit}, repeat=repeat, warmup=1)["f"].min
 
 
 def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), histories: tuple[int, ...] = (4, 8, 16),

@@ -31,36 +31,42 @@ def bench_turbulence(scenario: Scenario, n_across: tuple[int, ...] = (40, 80), c
     """
     rows = []
     for n in n_across:
-        sc = scenario_with_grid(scenario, n)
-        eofnn_turbulence = sc.turbulence(seed)
-        hcipy_turbulence = HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed)
-        state = {"next": 0}
+        rows += _rows_for_grid(scenario_with_grid(scenario, n), chunk_frames, hcipy_frames, repeat, setup_repeat, seed)
+    return rows
 
-        def eofnn_chunk(t=eofnn_turbulence):
-            first = state["next"]
-            state["next"] += chunk_frames
-            return t.frames(first, first + chunk_frames)
 
-        timings = time_interleaved(
-            {"eofnn": (eofnn_chunk, chunk_frames), "hcipy": (lambda h=hcipy_turbulence: h.frames(hcipy_frames),
-                                                             hcipy_frames)},
-            repeat=repeat, warmup=1)
-        rows.append(Row(
-            "turbulence", f"frame/{n}", "s/frame", timings["eofnn"], timings["hcipy"],
-            "HCIPy InfiniteAtmosphericLayer loop", goal_ratio=10.0, goal_label=">= 10 (10x HCIPy's rate)",
-            info={"n_across": n, "n_actuators": sc.grid.n_actuators, "eofnn_frames_per_s": 1 / timings["eofnn"].min,
-                  "hcipy_frames_per_s": 1 / timings["hcipy"].min, "chunk_frames": chunk_frames,
-                  "hcipy_frames": hcipy_frames},
-        ))
+def _rows_for_grid(sc: Scenario, chunk_frames: int, hcipy_frames: int, repeat: int, setup_repeat: int,
+                   seed: int) -> list[Row]:
+    n = sc.grid.n_across
+    eofnn_turbulence = sc.turbulence(seed)
+    hcipy_turbulence = HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed)
+    state = {"next": 0}
 
-        eofnn_setup, hcipy_setup = [], []
-        for r in range(setup_repeat):
-            eofnn_setup.append(time_once(lambda r=r: Turbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed + r + 1)
-                                         .frames(0, 1))[0])
-            hcipy_setup.append(time_once(lambda r=r: HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz,
-                                                                     seed + r + 1).frames(1))[0])
-        rows.append(Row(
-            "turbulence", f"setup/{n}", "s", Timing(eofnn_setup), Timing(hcipy_setup),
-            "HCIPy InfiniteAtmosphericLayer set-up", info={"n_across": n, "n_actuators": sc.grid.n_actuators},
-        ))
+    def eofnn_chunk():
+        first = state["next"]
+        state["next"] += chunk_frames
+        return eofnn_turbulence.frames(first, first + chunk_frames)
+
+    timings = time_interleaved({"eofnn": (eofnn_chunk, chunk_frames),
+                                "hcipy": (lambda: hcipy_turbulence.frames(hcipy_frames), hcipy_frames)},
+                               repeat=repeat, warmup=1)
+    rows = [Row(
+        "turbulence", f"frame/{n}", "s/frame", timings["eofnn"], timings["hcipy"],
+        "HCIPy InfiniteAtmosphericLayer loop", goal_ratio=10.0, goal_label=">= 10 (10x HCIPy's rate)",
+        info={"n_across": n, "n_actuators": sc.grid.n_actuators, "eofnn_frames_per_s": 1 / timings["eofnn"].min,
+              "hcipy_frames_per_s": 1 / timings["hcipy"].min, "chunk_frames": chunk_frames,
+              "hcipy_frames": hcipy_frames},
+    )]
+
+    eofnn_setup, hcipy_setup = [], []
+    for r in range(setup_repeat):
+        s = seed + r + 1
+        eofnn_setup.append(time_once(
+            lambda s=s: Turbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, s).frames(0, 1))[0])
+        hcipy_setup.append(time_once(
+            lambda s=s: HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, s).frames(1))[0])
+    rows.append(Row(
+        "turbulence", f"setup/{n}", "s", Timing(eofnn_setup), Timing(hcipy_setup),
+        "HCIPy InfiniteAtmosphericLayer set-up", info={"n_across": n, "n_actuators": sc.grid.n_actuators},
+    ))
     return rows

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import Row, Series, Skipped, fmt_seconds
+from benchmarks.common import Series, Skipped, fmt_seconds
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
@@ -44,7 +44,7 @@ FULL = {
     "scaling": {},
 }
 QUICK = {
-    "turbulence": {"n_across": (10, 20), "chunk_frames": 200, "hcipy_frames": 50, "repeat": 2, "setup_repeat": 1},
+    "turbulence": {"n_across": (8, 10), "chunk_frames": 200, "hcipy_frames": 50, "repeat": 2, "setup_repeat": 1},
     "loop": {"n_across": 10, "history_length": 12, "n_frames": 200, "step_count": 200, "repeat": 2,
              "bandwidth_bytes": 16 * 2**20},
     "fit": {"n_frames": 2000, "n_actuators": 80, "n_taps": 12, "batch_frames": (256, 1024), "repeat": 2},
@@ -119,7 +119,7 @@ def machine_info() -> dict:
 
 def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tuple[str, ...] = ("cpu", "cuda"),
             log: Callable[[str], None] = print) -> dict:
-    """Run the benchmarks and return the JSON-ready results (``meta``, ``rows``, ``scaling``, ``skipped``, ``errors``)."""
+    """Run the benchmarks; the JSON-ready results (``meta``, ``rows``, ``scaling``, ``skipped``, ``errors``)."""
     from eofnn.sim.scenario import Scenario
 
     sizes = QUICK if quick else FULL
@@ -189,7 +189,7 @@ def format_table(results: dict) -> str:
 
 def _columns(table: list[tuple]) -> list[str]:
     widths = [max(len(str(row[i])) for row in table) for i in range(len(table[0]))]
-    out = ["  ".join(str(v).ljust(w) for v, w in zip(row, widths)).rstrip() for row in table]
+    out = ["  ".join(str(v).ljust(w) for v, w in zip(row, widths, strict=True)).rstrip() for row in table]
     out.insert(1, "  ".join("-" * w for w in widths))
     return out
 
@@ -217,7 +217,11 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"comma-separated subset of {', '.join(BENCHMARKS)}")
     parser.add_argument("--devices", default="cpu,cuda",
                         help="devices for the benchmarks that take one (loop, fit); CUDA is skipped when absent")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch intra-op threads (default: torch's own choice, recorded in the JSON)")
     args = parser.parse_args(argv)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     only = tuple(name.strip() for name in args.only.split(",") if name.strip())
     unknown = sorted(set(only) - set(BENCHMARKS))
     if unknown:
