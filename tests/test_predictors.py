@@ -32,7 +32,7 @@ def median_rms(scenario, controller, n_frames=1500, seed=9):
 
 
 def all_batches(dataset):
-    xs, ts = zip(*dataset)
+    xs, ts = zip(*dataset, strict=False)
     return torch.cat(xs), torch.cat(ts)
 
 

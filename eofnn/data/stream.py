@@ -150,9 +150,9 @@ class LoopDataModule(L.LightningDataModule):
         self.data_controller, self.num_workers, self.target_dm_gain = data_controller, num_workers, target_dm_gain
 
     def dataset(self, stream: str, n_frames: int) -> SimulatedTelemetry:
-        return SimulatedTelemetry(
-            self.scenario, self.spec, n_frames, self.seed, stream, min(self.sequence_frames, max(n_frames, self.spec.first_frame + 1)),
-            self.batch_frames, self.n_realisations, self.data_controller, self.target_dm_gain)
+        sequence_frames = min(self.sequence_frames, max(n_frames, self.spec.first_frame + 1))
+        return SimulatedTelemetry(self.scenario, self.spec, n_frames, self.seed, stream, sequence_frames,
+                                  self.batch_frames, self.n_realisations, self.data_controller, self.target_dm_gain)
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(self.dataset("train", self.train_frames), batch_size=None, num_workers=self.num_workers)

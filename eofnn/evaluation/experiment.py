@@ -274,7 +274,7 @@ class Experiment:
                                   f"{', '.join(self.scenarios)}")
             if cfg.checkpoint is not None:
                 predictor = load_predictor(cfg.checkpoint)
-                for scenario_name, scenario in self.scenarios.items():
+                for _scenario_name, scenario in self.scenarios.items():
                     predictor.check_fits(scenario, f"predictor {name!r}: checkpoint {cfg.checkpoint!r}")
                 self._loaded[name] = predictor
             elif cfg.fit_method == "closed_form" and cfg.network is not None:
@@ -343,7 +343,7 @@ class Experiment:
                 m = self.evaluate(name, scenario_name)
                 timings[f"{scenario_name}/{name}"] = round(time.perf_counter() - start, 3)
                 metrics[scenario_name][name] = m
-                shown = "diverged at frame %d" % m.diverged_frame if m.diverged else f"{m.median_rms_nm:.4g} nm"
+                shown = f"diverged at frame {m.diverged_frame}" if m.diverged else f"{m.median_rms_nm:.4g} nm"
                 self.log(f"{scenario_name:>12s} {name:>18s}: median RMS {shown}")
         return ExperimentResult(metrics, dict(self.checkpoints), timings)
 

@@ -54,7 +54,7 @@ def _panels(n: int, title: str):
 def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path) -> None:
     """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
     fig, axes = _panels(len(result.metrics), "Residual spatial RMS")
-    for ax, (scenario, preds) in zip(axes, result.metrics.items()):
+    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
         for name, m in preds.items():
             rms = np.asarray(m.rms_nm)
             if rms.size == 0:
@@ -76,7 +76,7 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
 def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
     """Histograms of the settled per-frame RMS (log bins), one panel per scenario."""
     fig, axes = _panels(len(result.metrics), "Distribution of per-frame RMS residual (after settling)")
-    for ax, (scenario, preds) in zip(axes, result.metrics.items()):
+    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
         settled = {n: np.asarray(m.rms_nm)[m.settle_frames:] for n, m in preds.items() if not m.diverged}
         values = np.concatenate([v for v in settled.values() if v.size]) if settled else np.array([])
         if values.size:
@@ -96,7 +96,7 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
 def plot_psds(result: ExperimentResult, path: Path) -> None:
     """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
     fig, axes = _panels(len(result.metrics), "Temporal power spectrum of the residual")
-    for ax, (scenario, preds) in zip(axes, result.metrics.items()):
+    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
         for name, m in preds.items():
             if m.psd_freq_hz and not m.diverged:
                 f, p = np.asarray(m.psd_freq_hz)[1:], np.asarray(m.psd_nm2_per_hz)[1:]

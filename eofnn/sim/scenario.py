@@ -45,7 +45,7 @@ class Scenario:
         if isinstance(self.atmosphere, dict):
             object.__setattr__(self, "atmosphere", _build(Atmosphere, self.atmosphere, "atmosphere"))
         object.__setattr__(self, "model_errors", dict(self.model_errors or {}))
-        self.plant  # validates delay and model errors now, before anything runs
+        _ = self.plant  # validates delay and model errors now, before anything runs
 
     @property
     def plant(self) -> Plant:

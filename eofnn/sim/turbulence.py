@@ -112,7 +112,7 @@ def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(stream.encode()), *key))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _bspline_polynomials(order: int) -> torch.Tensor:
     """``(order + 1, order + 1)`` matrix ``C`` with weights ``w_j(f) = sum_p f**p C[p, j]`` for ``f`` in [0, 1).
 
