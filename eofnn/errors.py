@@ -19,3 +19,7 @@ def require(condition: bool, message: str) -> None:
     """Raise :class:`ConfigError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise ConfigError(message)
+
+
+class DivergedError(RuntimeError):
+    """A loop that had to stay stable (recording training data) diverged; the message names where."""

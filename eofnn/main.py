@@ -18,7 +18,7 @@ import yaml
 from jsonargparse import ActionConfigFile, ArgumentParser, DefaultHelpFormatter
 from jsonargparse import ArgumentError as JsonArgError
 
-from eofnn.errors import CheckpointError, ConfigError, TelemetryError
+from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 from eofnn.evaluation.experiment import (
     EvaluationConfig,
     Experiment,
@@ -35,12 +35,13 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn compare  --config configs/paper.yaml --out results/paper   # scenarios x predictors, one command
   eofnn fit      --config configs/fit_cl_eof.yaml --out runs/cl_eof.ckpt  # train one predictor, save it
   eofnn evaluate --config configs/evaluate.yaml --out results/eval  # saved checkpoints under any plant
+  eofnn simulate --scenario configs/reference.yaml --out run.fits     # one controller -> telemetry + plot
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
 """
 
-USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, FileExistsError, JsonArgError)
+USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, FileExistsError, JsonArgError)
 
 
 class _HelpFormatter(DefaultHelpFormatter, argparse.RawDescriptionHelpFormatter):
@@ -96,6 +97,17 @@ def build_parser() -> ArgumentParser:
     evaluate.add_argument("--baselines", type=list[str], default=["uncorrected", "pseudo_integrator", "integrator"],
                           help="Baseline controllers to run beside the checkpoints.")
     sub.add_subcommand("evaluate", evaluate, help="Run saved checkpoints under any plant.")
+
+    simulate = ArgumentParser(description="Run one controller (a baseline or a checkpoint) in a scenario and save "
+                              "its telemetry (s, y, eps, wfs in nm) as FITS or .npz, with a plot of the RMS residual "
+                              "beside it.", exit_on_error=False)
+    _common(simulate, "Telemetry file to write (.fits or .npz); the plot goes to the same name with .png.")
+    simulate.add_argument("--predictor", type=PredictorConfig, default=PredictorConfig(controller="integrator"),
+                          help="The controller: controller: uncorrected|pseudo_integrator|integrator, or checkpoint.")
+    simulate.add_argument("--frames", type=int, default=2000, help="Frames to simulate.")
+    simulate.add_argument("--realisations", type=int, default=1, help="Independent realisations (batch).")
+    simulate.add_argument("--seed", type=int, default=1, help="Seed of the turbulence and noise.")
+    sub.add_subcommand("simulate", simulate, help="Simulate one controller and save telemetry.")
     return parser
 
 
@@ -120,8 +132,10 @@ def run_fit(cfg, config_dump: str) -> dict:
         raise ConfigError(f"fit trains a predictor: controller={p.controller!r}, checkpoint={p.checkpoint!r} "
                           "cannot be fitted")
     out = Path(cfg.out)
-    if out.exists() and not cfg.overwrite:
-        raise ConfigError(f"out={str(out)!r} exists: choose another path or pass --overwrite true")
+    config_out = out.with_name(out.name + ".yaml")  # beside the checkpoint, never a user's own config file
+    for path in (out, config_out):
+        if path.exists() and not cfg.overwrite:
+            raise ConfigError(f"{str(path)!r} exists: choose another --out or pass --overwrite true")
     t = p.training
     _log(f"fitting {p.history} predictor, history {p.history_length}, {p.fit_method}, {t.frames} frames")
     result = fit_predictor(
@@ -132,11 +146,45 @@ def run_fit(cfg, config_dump: str) -> dict:
         integrator_gain=t.integrator_gain, dither_nm=t.dither_nm, refit_rounds=t.refit_rounds,
         num_workers=t.num_workers, checkpoint_path=out, overwrite=cfg.overwrite, progress=bool(cfg.progress),
     )
-    out.with_suffix(".yaml").write_text(config_dump)
+    config_out.write_text(config_dump)
     summary = {"checkpoint": str(out), "train_loss_nm2": result.train_loss, "val_loss_nm2": result.val_loss,
                "rounds": result.rounds}
     _log(json.dumps(summary))
     return summary
+
+
+def run_simulate(cfg, config_dump: str) -> None:
+    from eofnn.evaluation.experiment import Experiment
+    from eofnn.evaluation.metrics import loop_metrics
+    from eofnn.evaluation.report import plot_rms_vs_time
+    from eofnn.sim.loop import run_loop
+
+    out = Path(cfg.out)
+    if out.suffix.lower() not in (".fits", ".fit", ".npz"):
+        raise ConfigError(f"out={str(out)!r} has suffix {out.suffix!r}: allowed are .fits, .npz")
+    plot = out.with_suffix(".png")
+    for path in (out, plot):
+        if path.exists() and not cfg.overwrite:
+            raise ConfigError(f"{str(path)!r} exists: choose another --out or pass --overwrite true")
+    if cfg.predictor.controller == "predictor" and cfg.predictor.checkpoint is None:
+        raise ConfigError("simulate runs a baseline or a checkpoint: set predictor.controller or predictor.checkpoint")
+    if cfg.frames < 1 or cfg.realisations < 1:
+        raise ConfigError(f"frames={cfg.frames!r}, realisations={cfg.realisations!r}: both must be >= 1")
+    experiment = Experiment(cfg.scenario, {"scenario": {}}, {"controller": cfg.predictor},
+                            EvaluationConfig(frames=cfg.frames, settle_frames=0), log=_log)
+    scenario = experiment.scenarios["scenario"]
+    result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
+                      experiment.controller("controller", "scenario"), cfg.frames, noise_seed=cfg.seed,
+                      progress=cfg.progress)
+    telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)
+    telemetry.config.update({"eofnn": yaml.safe_load(config_dump), "diverged_frame": result.diverged_frame})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    telemetry.save(out, overwrite=cfg.overwrite)
+    metrics = loop_metrics(result, 0, EvaluationConfig().strehl_wavelength_m)
+    from eofnn.evaluation.experiment import ExperimentResult
+
+    plot_rms_vs_time(ExperimentResult({"scenario": {"controller": metrics}}), scenario.frame_rate_hz, plot)
+    _log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary()}))
 
 
 def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str):
@@ -174,6 +222,8 @@ def main(args: list[str] | None = None) -> int:
                 run_fit(init, sub_dump)
             elif command == "compare":
                 run_experiment(init, init.predictors, sub_dump)
+            elif command == "simulate":
+                run_simulate(init, sub_dump)
             else:
                 predictors = {name: PredictorConfig(controller=name) for name in init.baselines}
                 for name, path in init.checkpoints.items():

@@ -86,7 +86,7 @@ def test_fit_then_evaluate_under_another_plant(tmp_path, capsys):
                     "--predictor.training.sequence_frames", "1000", "--predictor.training.val_frames", "300",
                     "--out", ckpt)
     assert code == 0, err
-    assert ckpt.exists() and ckpt.with_suffix(".yaml").exists()
+    assert ckpt.exists() and (tmp_path / "cl.ckpt.yaml").exists()
     assert json.loads(err.strip().splitlines()[-1])["val_loss_nm2"] < 1.0
     code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--out", ckpt)
     assert code == 2 and "exists" in err
@@ -153,3 +153,28 @@ def test_help(command, capsys):
     assert "usage: eofnn" in text
     if command == ["compare"]:
         assert "--predictors" in text and "--scenario.atmosphere.r0_m" in text
+
+
+def test_simulate_writes_loadable_telemetry_and_a_plot(tmp_path, capsys):
+    from eofnn.sim import Telemetry
+
+    out = tmp_path / "run.fits"
+    code, err = run(capsys, "simulate", "--scenario", TINY_SCENARIO, "--predictor.controller", "pseudo_integrator",
+                    "--frames", "200", "--out", out)
+    assert code == 0, err
+    tel = Telemetry.load(out)
+    assert tel.eps.shape == (200, 80)
+    assert (tel.eps[2:] - (tel.s[2:] - tel.s[:-2])).abs().max() < 1e-9
+    assert tel.config["eofnn"]["frames"] == 200
+    assert (tmp_path / "run.png").read_bytes()[:4] == b"\x89PNG"
+    code, err = run(capsys, "simulate", "--scenario", TINY_SCENARIO, "--frames", "200", "--out", out)
+    assert code == 2 and "exists" in err
+
+
+def test_a_diverging_data_controller_is_reported_not_raised(tmp_path, capsys):
+    code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
+                    "--predictor.training.integrator_gain", "1.5", "--predictor.training.frames", "1000",
+                    "--predictor.training.sequence_frames", "1000", "--out", tmp_path / "x.ckpt")
+    assert code == 2
+    errors = [line for line in err.splitlines() if line.startswith("eofnn: error:")]
+    assert len(errors) == 1 and "diverged at frame" in errors[0] and "Traceback" not in err

@@ -11,7 +11,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from eofnn.data.history import HistorySpec, build_history, targets
-from eofnn.errors import require
+from eofnn.errors import DivergedError, require
 from eofnn.models.controllers import Dithered, Integrator
 from eofnn.sim.loop import run_loop
 from eofnn.sim.scenario import Scenario
@@ -95,8 +95,9 @@ class SimulatedTelemetry(IterableDataset):
             result = run_loop(turbulence, plant, controller, self.sequence_frames, record=("s", "y", "wfs"),
                               noise_seed=int(stream_seed(self.seed, name, 3).generate_state(1)[0]), progress=False)
             if result.diverged:
-                raise RuntimeError(f"the data controller diverged at frame {result.diverged_frame} while recording "
-                                   f"sequence {name!r}: lower its gain or the dither")
+                raise DivergedError(f"the data controller diverged at frame {result.diverged_frame} while recording "
+                                    f"training sequence {name!r}: lower integrator_gain or dither_nm, or use fewer "
+                                    "refit_rounds")
             tel = result.telemetry
             s = tel.s
             history = build_history(self.spec, y=tel.y, wfs=tel.wfs)
