@@ -235,26 +235,51 @@ class FrozenFlowStrip:
             self._blocks[b] = self._w_weights @ coeffs
         return self._blocks[b]
 
-    def frames(self, start: int, stop: int) -> torch.Tensor:
-        """Raw OPD (nm) of frames ``start..stop-1`` at the actuators, as a ``(frames, n_actuators)`` tensor."""
-        n = torch.arange(start, stop, dtype=torch.float64)
-        position = self.u_index.unsqueeze(0) + n.unsqueeze(1) * self.columns_per_frame  # (T, K)
-        base = torch.floor(position)
+    def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
+        """OPD (nm) of frames ``start..stop-1`` at the actuators, as a ``(frames, n_actuators)`` tensor.
+
+        With an orthonormal ``(n_actuators, m)`` ``basis``, those modes are projected out of every frame.
+        """
+        half = (self.order - 1) // 2
+        taps = torch.arange(self.order + 1)
+        shift = torch.arange(start, stop, dtype=torch.float64) * self.columns_per_frame  # (T,) strip columns moved
         if self._aligned:
-            # All actuators share one fractional position per frame (wind along a grid axis): weights per frame.
-            weights = bspline_weights(position[:, :1] - base[:, :1], self.order)  # (T, 1, order+1)
+            # Every actuator sits on a strip node, so all share the fractional position of a frame: the first
+            # coefficient of actuator k at frame n is u_index[k] + floor(shift[n]) - half.
+            whole = torch.floor(shift)
+            weights = bspline_weights(shift - whole, self.order)  # (T, order+1)
+            u_index = self.u_index.long()
+            lo = int(u_index.min() + whole[0]) - half
+            hi = int(u_index.max() + whole[-1]) - half + self.order
         else:
+            position = self.u_index.unsqueeze(0) + shift.unsqueeze(1)  # (T, K)
+            base = torch.floor(position)
             weights = bspline_weights(position - base, self.order)  # (T, K, order+1)
-        first = base.long() - (self.order - 1) // 2
-        lo_block = int(first.min()) // _BLOCK_COLUMNS
-        hi_block = int(first.max() + self.order) // _BLOCK_COLUMNS
+            first = base.long() - half
+            lo, hi = int(first.min()), int(first.max()) + self.order
+        lo_block, hi_block = lo // _BLOCK_COLUMNS, hi // _BLOCK_COLUMNS
         for b in [b for b in self._blocks if b < lo_block]:
             del self._blocks[b]  # streaming: never hold more of the strip than the frames asked for
         coeffs = torch.cat([self._block(b) for b in range(lo_block, hi_block + 1)], dim=1)
-        index = first - lo_block * _BLOCK_COLUMNS  # (T, K)
-        index = index.unsqueeze(-1) + torch.arange(self.order + 1)  # (T, K, order+1)
-        k = torch.arange(coeffs.shape[0]).view(1, -1, 1)
-        return (coeffs[k, index] * weights).sum(-1)
+        offset = lo_block * _BLOCK_COLUMNS
+        if self._aligned:
+            # Shift each actuator's row once so that a frame reads the same columns for every actuator; then the
+            # frames are a banded (order + 1 per row) sparse matrix times those columns.
+            c = (whole - whole[0]).long()
+            width = int(c[-1]) + self.order + 1
+            rows = (u_index + int(whole[0]) - half - offset).unsqueeze(1) + torch.arange(width)
+            shifted = torch.gather(coeffs, 1, rows)  # (K, width)
+            if basis is not None:  # projecting the few columns is cheaper than projecting every frame
+                shifted = shifted - basis @ (basis.T @ shifted)
+            t = len(c)
+            index = torch.stack([torch.arange(t).repeat_interleave(self.order + 1), (c.unsqueeze(1) + taps).flatten()])
+            banded = torch.sparse_coo_tensor(index, weights.flatten(), (t, width), check_invariants=False,
+                                             is_coalesced=True)
+            return torch.sparse.mm(banded, shifted.T.contiguous())
+        index = (first - offset).T.unsqueeze(-1) + taps  # (K, T, order+1)
+        values = torch.gather(coeffs, 1, index.reshape(coeffs.shape[0], -1)).view(index.shape)
+        out = torch.einsum("ktj,tkj->tk", values, weights)
+        return out if basis is None else out - (out @ basis) @ basis.T
 
 
 def _snap(x: np.ndarray) -> np.ndarray:
@@ -324,10 +349,8 @@ class Turbulence:
     def frames(self, start: int, stop: int, remove_ptt: bool | None = None) -> torch.Tensor:
         """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
         require(0 <= start <= stop, f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop")
-        out = torch.stack([sum(strip.frames(start, stop) for strip in strips) for strips in self._strips])
-        if self.atmosphere.remove_ptt if remove_ptt is None else remove_ptt:
-            out = out - (out @ self._ptt) @ self._ptt.T
-        return out
+        basis = self._ptt if (self.atmosphere.remove_ptt if remove_ptt is None else remove_ptt) else None
+        return torch.stack([sum(strip.frames(start, stop, basis) for strip in strips) for strips in self._strips])
 
     def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
         """Yield ``(first_frame, frames)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
