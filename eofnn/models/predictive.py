@@ -10,13 +10,45 @@ from eofnn.errors import ConfigError
 from eofnn.sim.loop import LoopInput
 
 
+class HistoryRing:
+    """The last ``length`` frames of a signal, most recent first, pushed without shifting the history.
+
+    Frames are written at decreasing positions of a buffer ``spare`` slots longer than the history; the history
+    is a view of ``length`` consecutive slots. Only when the buffer's start is reached are the newest frames
+    copied back to its end, once every ``spare`` pushes.
+    """
+
+    def __init__(self, shape: tuple[int, ...], length: int, dtype: torch.dtype, spare: int = 256) -> None:
+        self.length, self.spare = length, max(spare, length)
+        self.buffer = torch.zeros(*shape, length + self.spare, dtype=dtype)
+        self.pos = self.spare
+
+    def push(self, frame: torch.Tensor) -> None:
+        if self.pos == 0:
+            keep = self.length - 1
+            if keep:
+                self.buffer[..., self.spare + 1: self.spare + 1 + keep] = self.buffer[..., :keep]
+            self.pos = self.spare + 1
+        self.pos -= 1
+        self.buffer[..., self.pos] = frame
+
+    @property
+    def view(self) -> torch.Tensor:
+        """``(..., length)`` history, most recent first."""
+        return self.buffer[..., self.pos: self.pos + self.length]
+
+    def __getitem__(self, lag: int) -> torch.Tensor:
+        """The frame pushed ``lag`` pushes ago (0 is the newest)."""
+        return self.buffer[..., self.pos + lag]
+
+
 class PredictiveController:
     """Closed-loop controller around a predictor ``network`` that reads ``spec`` histories.
 
-    Per frame it pushes the newest measurement into a ring of histories (no recomputation of whole histories)
-    and asks the network for ``y(n)``. Until the history is full (``spec.first_frame`` frames after a reset) the
-    command is zero, so that every history the network sees is a true one (``eps = s + DM(y)`` with the commands
-    really applied) rather than one padded with zeros.
+    Per frame it pushes the newest measurement into ring buffers (no recomputation or shifting of whole
+    histories) and asks the network for ``y(n)``. Until the history is full (``spec.first_frame`` frames after a
+    reset) the command is zero, so that every history the network sees is a true one (``eps = s + DM(y)`` with
+    the commands really applied) rather than one padded with zeros.
 
     Parameters
     ----------
@@ -38,30 +70,28 @@ class PredictiveController:
             raise ConfigError(f"predictor was trained for delay_frames={self.spec.delay_frames} but the plant has "
                               f"delay_frames={delay_frames}")
         p, d = self.spec.history_length, self.spec.delay_frames
+        shape = (batch, n_actuators)
         self._out_dtype = dtype
-        self._history = torch.zeros(batch, n_actuators, self.spec.n_taps, dtype=dtype)
-        # Commands y(n-1), ..., y(n-max(p, d)): the closed-loop taps and the POL reconstruction both need them.
-        self._y = torch.zeros(batch, n_actuators, max(p, d), dtype=dtype)
+        # Commands y(n-1), y(n-2), ...: the closed-loop taps and the POL reconstruction both read them.
+        self._y = HistoryRing(shape, max(p, d), dtype)
+        # Residuals (closed loop) or POL values (open loop) from frame n - d back.
+        self._signal = HistoryRing(shape, p, dtype)
         self._frames_seen = 0
         self.network.eval()
 
     @torch.no_grad()
     def step(self, inp: LoopInput) -> torch.Tensor:
         p, d = self.spec.history_length, self.spec.delay_frames
-        h = self._history
         if self.spec.kind == "open_loop":
-            s_hat = inp.wfs - self.dm_gain_model * self._y[..., d - 1]  # POL value of frame n - d
-            h[..., 1:] = h[..., :-1].clone()
-            h[..., 0] = s_hat
+            self._signal.push(inp.wfs - self.dm_gain_model * self._y[d - 1])  # POL value of frame n - d
+            history = self._signal.view
         else:
-            h[..., p + 1:] = h[..., p:-1].clone()
-            h[..., p] = inp.wfs
-            h[..., :p] = self._y[..., :p]
+            self._signal.push(inp.wfs)
+            history = torch.cat([self._y.view[..., :p], self._signal.view], dim=-1)
         if self._frames_seen < self.spec.first_frame:
             y = torch.zeros_like(inp.wfs)
         else:
-            y = self.network(h.to(self._dtype)).to(self._out_dtype)
+            y = self.network(history.to(self._dtype)).to(self._out_dtype)
         self._frames_seen += 1
-        self._y[..., 1:] = self._y[..., :-1].clone()
-        self._y[..., 0] = y
+        self._y.push(y)
         return y
