@@ -162,6 +162,17 @@ def test_mlp_trains_through_the_same_loop_and_runs_closed_loop(small_scenario):
         fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), {"class_path": "MLP"}, **FAST)
 
 
+def test_sgd_fits_are_reproducible_bit_for_bit(small_scenario):
+    def fit(seed):
+        return fit_predictor(small_scenario, HistorySpec("open_loop", 3, 2), {"class_path": "MLP",
+                             "init_args": {"hidden": [8]}}, fit_method="sgd", max_epochs=1, seed=seed,
+                             train_frames=600, val_frames=200, sequence_frames=300).predictor.network.state_dict()
+
+    first, again, other = fit(5), fit(5), fit(6)
+    assert all(torch.equal(first[k], again[k]) for k in first)
+    assert not all(torch.equal(first[k], other[k]) for k in first)
+
+
 def test_checkpoint_round_trip_in_another_process(small_scenario, tmp_path):
     path = tmp_path / "ol.ckpt"
     result = fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), checkpoint_path=path, **FAST)

@@ -124,6 +124,8 @@ def fit_predictor(
     network_config = network or {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
     grid = {"diameter_m": scenario.grid.diameter_m, "n_across": scenario.grid.n_across,
             "obstruction": scenario.grid.obstruction}
+    # Network initialisation and SGD draw from torch's global generator: seed it, so a fit is reproducible.
+    L.seed_everything(seed, workers=True, verbose=False)
     net = build_network(network_config, scenario.grid.n_actuators, spec.n_taps, grid, spec.kind, spec.delay_frames)
     info = {"n_actuators": scenario.grid.n_actuators, "scenario": scenario.to_dict(), "fit_method": fit_method,
             "train_frames": train_frames, "seed": seed, "refit_rounds": refit_rounds, "dither_nm": dither_nm}
