@@ -117,6 +117,19 @@ def machine_info() -> dict:
     }
 
 
+def _cpu_seconds() -> tuple[float, float] | None:
+    """``(busy CPU seconds of the whole machine, CPU seconds of this process)``, or None off Linux."""
+    try:
+        import resource
+
+        fields = [float(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+        busy = (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
+        own = resource.getrusage(resource.RUSAGE_SELF)
+        return busy, own.ru_utime + own.ru_stime
+    except (OSError, ValueError, ImportError, IndexError):
+        return None
+
+
 def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tuple[str, ...] = ("cpu", "cuda"),
             log: Callable[[str], None] = print) -> dict:
     """Run the benchmarks; the JSON-ready results (``meta``, ``rows``, ``scaling``, ``skipped``, ``errors``)."""
@@ -125,7 +138,7 @@ def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tu
     sizes = QUICK if quick else FULL
     scenario = Scenario.from_yaml(REFERENCE_CONFIG)
     results = {"meta": dict(machine_info(), quick=quick, reference_config=str(REFERENCE_CONFIG.relative_to(ROOT))),
-               "rows": [], "scaling": [], "skipped": [], "errors": [], "seconds": {}}
+               "rows": [], "scaling": [], "skipped": [], "errors": [], "seconds": {}, "other_load": {}}
     for name in only:
         for device in devices if name in DEVICE_BENCHMARKS else ("cpu",):
             if torch.device(device).type == "cuda" and not torch.cuda.is_available():
@@ -134,7 +147,7 @@ def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tu
                 log(f"[{name}/{device}] skipped: {skip.reason}")
                 continue
             log(f"[{name}/{device}] running ...")
-            t0 = time.perf_counter()
+            t0, cpu0 = time.perf_counter(), _cpu_seconds()
             try:
                 items, skipped = run_benchmark(name, scenario, sizes[name], device)
             except Exception as err:  # one failing benchmark must not hide the others
@@ -144,14 +157,22 @@ def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tu
                 log(f"[{name}/{device}] FAILED: {type(err).__name__}: {err}")
                 continue
             finally:
-                results["seconds"][f"{name}/{device}"] = time.perf_counter() - t0
+                wall, cpu1 = time.perf_counter() - t0, _cpu_seconds()
+                results["seconds"][f"{name}/{device}"] = wall
+                if cpu0 is not None and cpu1 is not None:
+                    # CPU used by other processes while this benchmark ran, as a fraction of all cores: the
+                    # figures of a benchmark that shared the machine (> ~0.1) are less trustworthy.
+                    other = (cpu1[0] - cpu0[0]) - (cpu1[1] - cpu0[1])
+                    results["other_load"][f"{name}/{device}"] = max(other, 0.0) / (wall * (os.cpu_count() or 1))
             for item in items:
                 key = "scaling" if isinstance(item, Series) else "rows"
                 results[key].append(item.to_dict())
             for skip in skipped:
                 results["skipped"].append(skip.to_dict())
                 log(f"[{name}/{device}] partly skipped: {skip.reason}")
-            log(f"[{name}/{device}] done in {results['seconds'][f'{name}/{device}']:.1f} s")
+            load = results["other_load"].get(f"{name}/{device}")
+            log(f"[{name}/{device}] done in {results['seconds'][f'{name}/{device}']:.1f} s"
+                + (f" (other processes used {load:.0%} of the CPUs meanwhile)" if load is not None else ""))
     results["meta"]["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     return results
 
@@ -180,6 +201,10 @@ def format_table(results: dict) -> str:
                           " ".join(f"{g:.3g}" for g in s["ratios"]), f"{s['exponent']:.2f}", s["goal"] or "",
                           _met(s["goal_met"])))
         lines += _columns(table)
+    if results.get("other_load"):
+        lines += ["", "CPU used by other processes during each benchmark (fraction of all cores; > 0.1 means the "
+                      "machine was shared and the figures are less trustworthy):",
+                  "  " + ", ".join(f"{k}: {v:.2f}" for k, v in results["other_load"].items())]
     if results["skipped"]:
         lines += ["", "Skipped:"] + [f"  {s['benchmark']}/{s['device']}: {s['reason']}" for s in results["skipped"]]
     if results["errors"]:

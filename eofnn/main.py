@@ -24,6 +24,7 @@ from eofnn.evaluation.experiment import (
     Experiment,
     PredictorConfig,
     check_output_dir,
+    fit_from_config,
     save_timeseries,
     write_metrics,
 )
@@ -123,9 +124,6 @@ def _log(message: str) -> None:
 
 
 def run_fit(cfg, config_dump: str) -> dict:
-    from eofnn.data.history import HistorySpec
-    from eofnn.training.fit import fit_predictor
-
     p: PredictorConfig = cfg.predictor
     scenario: Scenario = cfg.scenario
     if p.controller != "predictor" or p.checkpoint is not None:
@@ -136,16 +134,8 @@ def run_fit(cfg, config_dump: str) -> dict:
     for path in (out, config_out):
         if path.exists() and not cfg.overwrite:
             raise ConfigError(f"{str(path)!r} exists: choose another --out or pass --overwrite true")
-    t = p.training
-    _log(f"fitting {p.history} predictor, history {p.history_length}, {p.fit_method}, {t.frames} frames")
-    result = fit_predictor(
-        scenario, HistorySpec(p.history, p.history_length, scenario.delay_frames), p.network,
-        fit_method=p.fit_method, alpha=p.alpha, alpha_relative=p.alpha_relative, optimizer=t.optimizer, lr=t.lr,
-        weight_decay=t.weight_decay, max_epochs=t.epochs, train_frames=t.frames, val_frames=t.val_frames,
-        sequence_frames=t.sequence_frames, batch_frames=t.batch_frames, n_realisations=t.realisations, seed=t.seed,
-        integrator_gain=t.integrator_gain, dither_nm=t.dither_nm, refit_rounds=t.refit_rounds,
-        num_workers=t.num_workers, checkpoint_path=out, overwrite=cfg.overwrite, progress=bool(cfg.progress),
-    )
+    _log(f"fitting {p.history} predictor, history {p.history_length}, {p.fit_method}, {p.training.frames} frames")
+    result = fit_from_config(scenario, p, out, overwrite=cfg.overwrite, progress=bool(cfg.progress))
     config_out.write_text(config_dump)
     summary = {"checkpoint": str(out), "train_loss_nm2": result.train_loss, "val_loss_nm2": result.val_loss,
                "rounds": result.rounds}

@@ -17,7 +17,7 @@ from eofnn.models.build import import_class
 from eofnn.models.controllers import Integrator, PseudoIntegrator, Uncorrected
 from eofnn.sim.loop import run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.training.fit import TrainedPredictor, fit_predictor, load_predictor
+from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor, load_predictor
 from eofnn.training.task import FIT_METHODS, OPTIMIZERS
 
 CONTROLLERS = ("uncorrected", "pseudo_integrator", "integrator", "predictor")
@@ -207,6 +207,20 @@ class ExperimentResult:
         }
 
 
+def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: str | Path | None = None,
+                    overwrite: bool = False, progress: bool = False) -> FitResult:
+    """Train the predictor described by ``cfg`` on telemetry simulated in ``scenario``."""
+    t = cfg.training
+    return fit_predictor(
+        scenario, HistorySpec(cfg.history, cfg.history_length, scenario.delay_frames), cfg.network,
+        fit_method=cfg.fit_method, alpha=cfg.alpha, alpha_relative=cfg.alpha_relative, optimizer=t.optimizer,
+        lr=t.lr, weight_decay=t.weight_decay, max_epochs=t.epochs, train_frames=t.frames, val_frames=t.val_frames,
+        sequence_frames=t.sequence_frames, batch_frames=t.batch_frames, n_realisations=t.realisations, seed=t.seed,
+        integrator_gain=t.integrator_gain, dither_nm=t.dither_nm, refit_rounds=t.refit_rounds,
+        num_workers=t.num_workers, checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress,
+    )
+
+
 def check_output_dir(out: str | Path | None, overwrite: bool) -> Path | None:
     """Refuse a non-empty output folder unless ``overwrite`` (nothing a user wrote is lost unasked)."""
     if out is None:
@@ -294,20 +308,11 @@ class Experiment:
         key = (name, train_in)
         if key not in self._trained:
             scenario = self.scenarios[train_in]
-            t = cfg.training
             path = None
             if self.checkpoint_dir is not None:
                 path = self.checkpoint_dir / f"{name}__{train_in}.ckpt"
             self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, {cfg.fit_method})")
-            result = fit_predictor(
-                scenario, HistorySpec(cfg.history, cfg.history_length, scenario.delay_frames), cfg.network,
-                fit_method=cfg.fit_method, alpha=cfg.alpha, alpha_relative=cfg.alpha_relative,
-                optimizer=t.optimizer, lr=t.lr, weight_decay=t.weight_decay, max_epochs=t.epochs,
-                train_frames=t.frames, val_frames=t.val_frames, sequence_frames=t.sequence_frames,
-                batch_frames=t.batch_frames, n_realisations=t.realisations, seed=t.seed,
-                integrator_gain=t.integrator_gain, dither_nm=t.dither_nm, refit_rounds=t.refit_rounds,
-                num_workers=t.num_workers, checkpoint_path=path, overwrite=True, progress=bool(self.progress),
-            )
+            result = fit_from_config(scenario, cfg, path, overwrite=True, progress=bool(self.progress))
             self._trained[key] = result.predictor
             if path is not None:
                 self.checkpoints[f"{name}/{train_in}"] = str(path)
