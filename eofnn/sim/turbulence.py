@@ -220,6 +220,16 @@ class FrozenFlowStrip:
                 column = spline_filter1d(column, self.order, mode="mirror")
             self._raw.append(column)
 
+    def _forget_before(self, block: int) -> None:
+        """Streaming: drop strip blocks and raw columns that frames from ``block`` on never read again."""
+        for b in [b for b in self._blocks if b < block]:
+            del self._blocks[b]
+        first_needed = max(block * _BLOCK_COLUMNS - _PREFILTER_MARGIN, 0)
+        drop = min(first_needed - self._raw_offset, len(self._raw))
+        if drop > 0:
+            del self._raw[:drop]
+            self._raw_offset += drop
+
     def _block(self, b: int) -> torch.Tensor:
         """``(n_actuators, _BLOCK_COLUMNS)`` strip coefficients of block ``b``, contracted across the wind."""
         if b not in self._blocks:
@@ -258,8 +268,7 @@ class FrozenFlowStrip:
             first = base.long() - half
             lo, hi = int(first.min()), int(first.max()) + self.order
         lo_block, hi_block = lo // _BLOCK_COLUMNS, hi // _BLOCK_COLUMNS
-        for b in [b for b in self._blocks if b < lo_block]:
-            del self._blocks[b]  # streaming: never hold more of the strip than the frames asked for
+        self._forget_before(lo_block)
         coeffs = torch.cat([self._block(b) for b in range(lo_block, hi_block + 1)], dim=1)
         offset = lo_block * _BLOCK_COLUMNS
         if self._aligned:
