@@ -36,7 +36,8 @@ DEVICE_BENCHMARKS = ("loop", "fit")
 
 #: Sizes of the full run (the figures in the README) and of ``--quick`` (a smoke run of every code path).
 FULL = {
-    "turbulence": {"n_across": (40, 80), "chunk_frames": 2000, "hcipy_frames": 500, "repeat": 5, "setup_repeat": 3},
+    "turbulence": {"n_across": (40, 80), "chunk_frames": 10000, "hcipy_frames": 500, "repeat": 5,
+                   "setup_repeat": 3},
     "loop": {"n_across": 40, "history_length": 12, "n_frames": 2000, "step_count": 2000, "repeat": 5},
     "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "batch_frames": (256, 4096), "repeat": 3},
     "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
@@ -130,15 +131,35 @@ def _cpu_seconds() -> tuple[float, float] | None:
         return None
 
 
+def wait_until_quiet(max_wait_s: float, threshold: float = 0.1, window_s: float = 3.0) -> float:
+    """Wait (at most ``max_wait_s``) until other processes use under ``threshold`` of the CPUs for ``window_s``.
+
+    Returns the seconds waited. On a shared machine this keeps a benchmark from starting in the middle of
+    someone else's test run; it cannot stop one from starting later (``other_load`` in the JSON tells).
+    """
+    t0 = time.perf_counter()
+    while True:
+        a = _cpu_seconds()
+        time.sleep(window_s)
+        b = _cpu_seconds()
+        if a is None or b is None:
+            return 0.0
+        other = ((b[0] - a[0]) - (b[1] - a[1])) / (window_s * (os.cpu_count() or 1))
+        waited = time.perf_counter() - t0
+        if other < threshold or waited >= max_wait_s:
+            return waited
+
+
 def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tuple[str, ...] = ("cpu", "cuda"),
-            log: Callable[[str], None] = print) -> dict:
+            log: Callable[[str], None] = print, wait_quiet_s: float = 0.0) -> dict:
     """Run the benchmarks; the JSON-ready results (``meta``, ``rows``, ``scaling``, ``skipped``, ``errors``)."""
     from eofnn.sim.scenario import Scenario
 
     sizes = QUICK if quick else FULL
     scenario = Scenario.from_yaml(REFERENCE_CONFIG)
     results = {"meta": dict(machine_info(), quick=quick, reference_config=str(REFERENCE_CONFIG.relative_to(ROOT))),
-               "rows": [], "scaling": [], "skipped": [], "errors": [], "seconds": {}, "other_load": {}}
+               "rows": [], "scaling": [], "skipped": [], "errors": [], "seconds": {}, "other_load": {},
+               "waited_for_quiet_s": {}}
     for name in only:
         for device in devices if name in DEVICE_BENCHMARKS else ("cpu",):
             if torch.device(device).type == "cuda" and not torch.cuda.is_available():
@@ -146,6 +167,11 @@ def run_all(quick: bool = False, only: tuple[str, ...] = BENCHMARKS, devices: tu
                 results["skipped"].append(skip.to_dict())
                 log(f"[{name}/{device}] skipped: {skip.reason}")
                 continue
+            if wait_quiet_s > 0:
+                waited = wait_until_quiet(wait_quiet_s)
+                results["waited_for_quiet_s"][f"{name}/{device}"] = waited
+                if waited > 5:
+                    log(f"[{name}/{device}] waited {waited:.0f} s for other processes to quieten")
             log(f"[{name}/{device}] running ...")
             t0, cpu0 = time.perf_counter(), _cpu_seconds()
             try:
@@ -242,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"comma-separated subset of {', '.join(BENCHMARKS)}")
     parser.add_argument("--devices", default="cpu,cuda",
                         help="devices for the benchmarks that take one (loop, fit); CUDA is skipped when absent")
+    parser.add_argument("--wait-quiet", type=float, default=0.0, metavar="SECONDS",
+                        help="before each benchmark, wait up to SECONDS until other processes leave the CPUs idle "
+                             "(for shared machines; default: do not wait)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch intra-op threads (default: torch's own choice, recorded in the JSON)")
     args = parser.parse_args(argv)
@@ -258,7 +287,8 @@ def main(argv: list[str] | None = None) -> int:
         # Lightning's advice and deprecation chatter inside fit_predictor, not about the figures.
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*LeafSpec.*")
-        results = run_all(args.quick, only, devices, log=lambda msg: print(msg, file=sys.stderr, flush=True))
+        results = run_all(args.quick, only, devices, log=lambda msg: print(msg, file=sys.stderr, flush=True),
+                          wait_quiet_s=args.wait_quiet)
     print(format_table(results))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1) + "\n")
