@@ -55,18 +55,27 @@ def _fit_s(x: torch.Tensor, t: torch.Tensor, batch_frames: int, repeat: int) -> 
 
 
 def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), histories: tuple[int, ...] = (4, 8, 16),
-                  turbulence_frames: tuple[int, ...] = (1000, 2000, 4000, 8000), chunk_frames: int = 2000,
+                  turbulence_frames: tuple[int, ...] = (10000, 20000, 40000), stream_chunk: int = 1000,
+                  call_frames: tuple[int, ...] = (1000, 2000, 4000, 8000, 16000), chunk_frames: int = 20000,
                   loop_frames: int = 1000, steps: int = 1000, fit_frames: tuple[int, ...] = (10000, 20000, 40000),
                   fit_actuator_frames: int = 5000, fit_history_frames: int = 10000, fit_taps: int = 12,
                   batch_frames: int = 256, base_across: int = 40, loop_history: int = 12, repeat: int = 3,
                   seed: int = 0) -> list[Series]:
     """Log-log growth exponents (goal: at most linear, ``<= 1.15``).
 
-    Series: turbulence seconds per frame vs actuators, and seconds per ``frames()`` call vs frames in it;
-    controller step and ``run_loop`` per frame vs actuators and vs history length; streamed fit time vs actuators,
-    vs taps (open-loop history length) and vs frames. ``x`` is the number of active actuators (not the number
-    across), the history length, or the number of frames. One turbulence stream per grid serves every series
-    (each timing continues it), so set-up costs are paid once.
+    Series:
+
+    - ``turbulence_vs_actuators``: seconds per frame streaming ``chunk_frames`` at a time (long enough that every
+      timing extends the strip by whole blocks, as a long run does);
+    - ``turbulence_vs_frames``: seconds to stream ``turbulence_frames`` frames in ``stream_chunk``-frame calls (as
+      ``run_loop`` does);
+    - ``turbulence_vs_call_frames``: seconds of one ``frames(a, a + T)`` call on strip blocks already built (the
+      same range every repeat), i.e. the interpolation alone, against ``T``;
+    - ``step_vs_*`` / ``run_loop_vs_*``: controller step and ``run_loop`` per frame vs actuators and history length;
+    - ``fit_vs_*``: streamed closed-form fit vs actuators, taps (open-loop history length) and frames.
+
+    ``x`` is the number of active actuators (not the number across), the history length, or the number of frames.
+    One turbulence stream per grid serves every series (each timing continues it), so set-up costs are paid once.
     """
     out = []
     grids = {n: scenario_with_grid(scenario, n) for n in (*n_across, base_across)}
@@ -80,11 +89,23 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
     out.append(Series("scaling", "turbulence_vs_actuators", "n_actuators", actuators,
                       [_turbulence_frame_s(streams[n], chunk_frames, repeat) for n in n_across], "s/frame",
                       LINEAR, LINEAR_LABEL, info=dict(info, chunk_frames=chunk_frames)))
-    timings = time_interleaved({n: (lambda n=n: streams[base_across].take(n), 1) for n in turbulence_frames},
-                               repeat=repeat)
+    stream = streams[base_across]
+
+    def stream_frames(n):
+        for _ in range(0, n, stream_chunk):
+            stream.take(stream_chunk)
+
+    timings = time_interleaved({n: (lambda n=n: stream_frames(n), 1) for n in turbulence_frames}, repeat=repeat)
     out.append(Series("scaling", "turbulence_vs_frames", "frames", list(turbulence_frames),
-                      [timings[n].min for n in turbulence_frames], "s/call", LINEAR, LINEAR_LABEL,
-                      info={"n_across": base_across}))
+                      [timings[n].min for n in turbulence_frames], "s/run", LINEAR, LINEAR_LABEL,
+                      info={"n_across": base_across, "frames_per_call": stream_chunk}))
+    first = stream.offset
+    timings = time_interleaved({n: (lambda n=n: stream.turbulence.frames(first, first + n), 1) for n in call_frames},
+                               repeat=repeat, warmup=1)
+    stream.offset = first + max(call_frames)
+    out.append(Series("scaling", "turbulence_vs_call_frames", "frames", list(call_frames),
+                      [timings[n].min for n in call_frames], "s/call", LINEAR, LINEAR_LABEL,
+                      info={"n_across": base_across, "note": "strip blocks already built: interpolation only"}))
 
     out.append(Series("scaling", "step_vs_actuators", "n_actuators", actuators,
                       [_step_s(k, loop_spec, steps, repeat, seed) for k in actuators], "s/step", LINEAR,

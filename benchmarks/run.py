@@ -51,8 +51,9 @@ QUICK = {
     "fit": {"n_frames": 2000, "n_actuators": 80, "n_taps": 12, "batch_frames": (256, 1024), "repeat": 2},
     "end_to_end": {"diameter_m": 2.0, "n_across": 10, "history_length": 4, "train_frames": 1000, "val_frames": 200,
                    "eval_frames": 300, "repeat": 1, "warmup": 0},
-    "scaling": {"n_across": (6, 8, 10), "histories": (2, 4, 8), "turbulence_frames": (100, 200, 400),
-                "chunk_frames": 200, "loop_frames": 100, "steps": 100, "fit_frames": (500, 1000, 2000),
+    "scaling": {"n_across": (6, 8, 10), "histories": (2, 4, 8), "turbulence_frames": (400, 800, 1600),
+                "stream_chunk": 200, "call_frames": (100, 200, 400), "chunk_frames": 200, "loop_frames": 100,
+                "steps": 100, "fit_frames": (500, 1000, 2000),
                 "fit_actuator_frames": 500, "fit_history_frames": 500, "base_across": 10, "repeat": 1},
 }
 
