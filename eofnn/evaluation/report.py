@@ -40,13 +40,20 @@ def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, floa
     return "\n".join(lines) + "\n"
 
 
+def _colours(result: ExperimentResult) -> dict[str, str]:
+    """One colour per predictor, the same in every panel and figure."""
+    names = list(dict.fromkeys(p for preds in result.metrics.values() for p in preds))
+    return {name: f"C{i % 10}" for i, name in enumerate(names)}
+
+
 def _legend(ax) -> None:
+    """Each panel's legend below it, so that it never hides a curve."""
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=8, loc="best")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
 
 
 def _panels(n: int, title: str):
-    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.2), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.8), squeeze=False, sharey=True)
     fig.suptitle(title)
     return fig, axes[0]
 
@@ -54,6 +61,7 @@ def _panels(n: int, title: str):
 def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path) -> None:
     """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
     fig, axes = _panels(len(result.metrics), "Residual spatial RMS")
+    colours = _colours(result)
     for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
         for name, m in preds.items():
             rms = np.asarray(m.rms_nm)
@@ -61,13 +69,14 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
                 continue
             t = np.arange(rms.size) / frame_rate_hz
             label = name + (f" (diverged @ {m.diverged_frame})" if m.diverged else "")
-            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label)
+            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label, color=colours[name])
         ax.axvspan(0, next(iter(preds.values())).settle_frames / frame_rate_hz, color="0.9", zorder=0)
         ax.set_title(scenario)
         ax.set_xlabel("time (s)")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("RMS residual (nm)")
-    _legend(axes[-1])
+    for ax in axes:
+        _legend(ax)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -76,18 +85,20 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
 def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
     """Histograms of the settled per-frame RMS (log bins), one panel per scenario."""
     fig, axes = _panels(len(result.metrics), "Distribution of per-frame RMS residual (after settling)")
+    colours = _colours(result)
     for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
         settled = {n: np.asarray(m.rms_nm)[m.settle_frames:] for n, m in preds.items() if not m.diverged}
         values = np.concatenate([v for v in settled.values() if v.size]) if settled else np.array([])
         if values.size:
             bins = np.logspace(np.log10(max(values.min(), 1e-6)), np.log10(values.max()) + 1e-9, 60)
             for name, v in settled.items():
-                ax.hist(v, bins=bins, histtype="step", label=name)
+                ax.hist(v, bins=bins, histtype="step", label=name, color=colours[name])
             ax.set_xscale("log")
         ax.set_title(scenario)
         ax.set_xlabel("RMS residual (nm)")
     axes[0].set_ylabel("frames")
-    _legend(axes[-1])
+    for ax in axes:
+        _legend(ax)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -96,16 +107,18 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
 def plot_psds(result: ExperimentResult, path: Path) -> None:
     """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
     fig, axes = _panels(len(result.metrics), "Temporal power spectrum of the residual")
+    colours = _colours(result)
     for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
         for name, m in preds.items():
             if m.psd_freq_hz and not m.diverged:
                 f, p = np.asarray(m.psd_freq_hz)[1:], np.asarray(m.psd_nm2_per_hz)[1:]
-                ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name)
+                ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name, color=colours[name])
         ax.set_title(scenario)
         ax.set_xlabel("frequency (Hz)")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("PSD (nm²/Hz)")
-    _legend(axes[-1])
+    for ax in axes:
+        _legend(ax)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
