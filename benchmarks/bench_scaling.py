@@ -18,9 +18,14 @@ LINEAR = 1.15
 LINEAR_LABEL = "<= 1.15 (at most linear)"
 
 
-def _turbulence_frame_s(turbulence: ContinuingTurbulence, n_frames: int, repeat: int) -> float:
-    """Steady-state seconds per frame of ``Turbulence.frames`` over consecutive ranges of ``n_frames``."""
-    return time_interleaved({"t": (lambda: turbulence.take(n_frames), n_frames)}, repeat=repeat, warmup=1)["t"].min
+def _turbulence_frame_s(turbulence: ContinuingTurbulence, n_frames: int, chunk: int, repeat: int) -> float:
+    """Steady-state seconds per frame of streaming ``n_frames`` frames in ``Turbulence.frames`` calls of ``chunk``."""
+    def stream():
+        for _ in range(0, n_frames, chunk):
+            turbulence.take(chunk)
+
+    n = -(-n_frames // chunk) * chunk
+    return time_interleaved({"t": (stream, n)}, repeat=repeat, warmup=1)["t"].min
 
 
 def _step_s(n_actuators: int, spec: HistorySpec, steps: int, repeat: int, seed: int) -> float:
@@ -55,8 +60,8 @@ def _fit_s(x: torch.Tensor, t: torch.Tensor, batch_frames: int, repeat: int) -> 
 
 
 def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), histories: tuple[int, ...] = (4, 8, 16),
-                  turbulence_frames: tuple[int, ...] = (10000, 20000, 40000), stream_chunk: int = 1000,
-                  call_frames: tuple[int, ...] = (1000, 2000, 4000, 8000, 16000), chunk_frames: int = 20000,
+                  turbulence_frames: tuple[int, ...] = (10240, 20480, 40960), stream_chunk: int = 1024,
+                  call_frames: tuple[int, ...] = (1000, 2000, 4000, 8000, 16000), chunk_frames: int = 20480,
                   loop_frames: int = 1000, steps: int = 1000, fit_frames: tuple[int, ...] = (10000, 20000, 40000),
                   fit_actuator_frames: int = 5000, fit_history_frames: int = 10000, fit_taps: int = 12,
                   batch_frames: int = 256, base_across: int = 40, loop_history: int = 12, repeat: int = 3,
@@ -65,8 +70,8 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
 
     Series:
 
-    - ``turbulence_vs_actuators``: seconds per frame streaming ``chunk_frames`` at a time (long enough that every
-      timing extends the strip by whole blocks, as a long run does);
+    - ``turbulence_vs_actuators``: seconds per frame streaming ``chunk_frames`` frames per timing in calls of
+      ``stream_chunk`` (enough frames that every timing extends the strip by whole blocks, as a long run does);
     - ``turbulence_vs_frames``: seconds to stream ``turbulence_frames`` frames in ``stream_chunk``-frame calls (as
       ``run_loop`` does);
     - ``turbulence_vs_call_frames``: seconds of one ``frames(a, a + T)`` call on strip blocks already built (the
@@ -87,8 +92,9 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
     info = {"n_across": list(n_across)}
 
     out.append(Series("scaling", "turbulence_vs_actuators", "n_actuators", actuators,
-                      [_turbulence_frame_s(streams[n], chunk_frames, repeat) for n in n_across], "s/frame",
-                      LINEAR, LINEAR_LABEL, info=dict(info, chunk_frames=chunk_frames)))
+                      [_turbulence_frame_s(streams[n], chunk_frames, stream_chunk, repeat) for n in n_across],
+                      "s/frame", LINEAR, LINEAR_LABEL,
+                      info=dict(info, frames=chunk_frames, frames_per_call=stream_chunk)))
     stream = streams[base_across]
 
     def stream_frames(n):

@@ -36,8 +36,8 @@ DEVICE_BENCHMARKS = ("loop", "fit")
 
 #: Sizes of the full run (the figures in the README) and of ``--quick`` (a smoke run of every code path).
 FULL = {
-    "turbulence": {"n_across": (40, 80), "chunk_frames": 10000, "hcipy_frames": 500, "repeat": 5,
-                   "setup_repeat": 3},
+    "turbulence": {"n_across": (40, 80), "chunk_frames": 1024, "chunks_per_repeat": 10, "hcipy_frames": 500,
+                   "repeat": 5, "setup_repeat": 3},
     "loop": {"n_across": 40, "history_length": 12, "n_frames": 2000, "step_count": 2000, "repeat": 5},
     "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "batch_frames": (256, 4096), "repeat": 3},
     "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
@@ -45,7 +45,8 @@ FULL = {
     "scaling": {},
 }
 QUICK = {
-    "turbulence": {"n_across": (8, 10), "chunk_frames": 200, "hcipy_frames": 50, "repeat": 2, "setup_repeat": 1},
+    "turbulence": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
+                   "setup_repeat": 1},
     "loop": {"n_across": 10, "history_length": 12, "n_frames": 200, "step_count": 200, "repeat": 2,
              "bandwidth_bytes": 16 * 2**20},
     "fit": {"n_frames": 2000, "n_actuators": 80, "n_taps": 12, "batch_frames": (256, 1024), "repeat": 2},
