@@ -31,7 +31,7 @@ def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, floa
     for p in predictors:
         row = [p] + [_cell(result.metrics[s][p]) for s in scenarios]
         if reference:
-            row += [str(reference.get(s, {}).get(p, "")) for s in scenarios]
+            row += [f"{reference[s][p]:g}" if p in reference.get(s, {}) else "" for s in scenarios]
         for key in ("p95_rms_nm", "strehl"):
             for s in scenarios:
                 value = getattr(result.metrics[s][p], key)
