@@ -99,8 +99,12 @@ def machine_info() -> dict:
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 timeout=10).stdout.strip() or None
+        # Uncommitted changes to the code under test: the commit alone does not say what was measured then.
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "eofnn"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10).stdout.split("\n")
+        dirty = [line[3:] for line in dirty if line.strip()]
     except (OSError, subprocess.SubprocessError):
-        commit = None
+        commit, dirty = None, None
     import hcipy
 
     return {
@@ -116,6 +120,7 @@ def machine_info() -> dict:
         "cuda_available": torch.cuda.is_available(),
         "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
         "git_commit": commit,
+        "eofnn_uncommitted_changes": dirty,
         "load_average_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }
 
