@@ -64,6 +64,8 @@ class PredictiveController:
         self.network, self.spec, self.dm_gain_model = network, spec, dm_gain_model
         params = list(network.parameters())
         self._dtype = params[0].dtype if params else torch.float64
+        # The loop runs where the turbulence is (CPU); a network on another device gets its input moved there.
+        self._device = params[0].device if params else torch.device("cpu")
 
     def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
         if delay_frames != self.spec.delay_frames:
@@ -91,7 +93,7 @@ class PredictiveController:
         if self._frames_seen < self.spec.first_frame:
             y = torch.zeros_like(inp.wfs)
         else:
-            y = self.network(history.to(self._dtype)).to(self._out_dtype)
+            y = self.network(history.to(self._device, self._dtype)).to(inp.wfs.device, self._out_dtype)
         self._frames_seen += 1
         self._y.push(y)
         return y

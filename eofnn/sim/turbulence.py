@@ -272,19 +272,27 @@ class FrozenFlowStrip:
         coeffs = torch.cat([self._block(b) for b in range(lo_block, hi_block + 1)], dim=1)
         offset = lo_block * _BLOCK_COLUMNS
         if self._aligned:
-            # Shift each actuator's row once so that a frame reads the same columns for every actuator; then the
-            # frames are a banded (order + 1 per row) sparse matrix times those columns.
+            # Shift each actuator's row once so that a frame reads the same columns for every actuator; each frame
+            # is then a weighted sum of order + 1 of those columns.
             c = (whole - whole[0]).long()
             width = int(c[-1]) + self.order + 1
             rows = (u_index + int(whole[0]) - half - offset).unsqueeze(1) + torch.arange(width)
             shifted = torch.gather(coeffs, 1, rows)  # (K, width)
             if basis is not None:  # projecting the few columns is cheaper than projecting every frame
                 shifted = shifted - basis @ (basis.T @ shifted)
+            columns = shifted.T.contiguous()  # (width, K)
+            change = torch.nonzero(c[1:] != c[:-1]).flatten() + 1
+            edges = [0, *change.tolist(), len(c)]
+            if len(c) >= 4 * (len(edges) - 1):
+                # Slow wind: long runs of frames share their columns; one small dense product per run.
+                return torch.cat([weights[a:b] @ columns[int(c[a]): int(c[a]) + self.order + 1]
+                                  for a, b in zip(edges[:-1], edges[1:], strict=True)])
+            # Fast wind: a banded sparse matrix (order + 1 weights per frame) times the columns.
             t = len(c)
             index = torch.stack([torch.arange(t).repeat_interleave(self.order + 1), (c.unsqueeze(1) + taps).flatten()])
             banded = torch.sparse_coo_tensor(index, weights.flatten(), (t, width), check_invariants=False,
                                              is_coalesced=True)
-            return torch.sparse.mm(banded, shifted.T.contiguous())
+            return torch.sparse.mm(banded, columns)
         index = (first - offset).T.unsqueeze(-1) + taps  # (K, T, order+1)
         values = torch.gather(coeffs, 1, index.reshape(coeffs.shape[0], -1)).view(index.shape)
         out = torch.einsum("ktj,tkj->tk", values, weights)

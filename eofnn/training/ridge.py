@@ -85,7 +85,7 @@ class NormalEquations:
         # a unit on their diagonal makes the system regular without touching the other weights.
         structural = diagonal == 0
         gram = self.gram + torch.diag_embed(structural.to(torch.float64) * diagonal.mean(-1, keepdim=True))
-        scale = diagonal.mean(-1) if relative else torch.ones(self.gram.shape[0], dtype=torch.float64)
+        scale = diagonal.mean(-1) if relative else torch.ones_like(diagonal[:, 0])
         absolute = alpha * scale
         eig = torch.linalg.eigvalsh(gram)
         condition = float((eig[:, -1] / eig[:, 0].clamp(min=torch.finfo(torch.float64).tiny)).max())
@@ -93,7 +93,7 @@ class NormalEquations:
             warnings.warn(
                 f"regressors are (near-)collinear: cond(D D^T) = {condition:.2e}; the fit is ill-posed "
                 "(for closed-loop data, add dither excitation or raise alpha)", CollinearityWarning, stacklevel=2)
-        regularised = gram + absolute.view(-1, 1, 1) * torch.eye(n_features, dtype=torch.float64)
+        regularised = gram + absolute.view(-1, 1, 1) * torch.eye(n_features, dtype=torch.float64, device=gram.device)
         chol, info = torch.linalg.cholesky_ex(regularised)
         if int(info.max()) == 0:
             weights = torch.cholesky_solve(self.cross.unsqueeze(-1), chol).squeeze(-1)
