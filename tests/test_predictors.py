@@ -225,3 +225,12 @@ def test_workers_never_share_frames_and_seeds_reproduce(small_scenario):
     assert len(set(firsts)) == 4
     val = all_batches(dm.val_dataloader())[1]
     assert not torch.isin(val[:, 0], one_worker[:, 0]).any()
+
+
+@pytest.mark.parametrize("kind", ["open_loop", "closed_loop"])
+def test_batches_are_windows_of_the_whole_sequence(small_scenario, kind):
+    dataset = SimulatedTelemetry(small_scenario, HistorySpec(kind, 3, 2), 500, seed=2, sequence_frames=500,
+                                 batch_frames=37, data_controller=default_data_controller(0.4, 0.0, 5.0))
+    history, target = dataset.sequence(0)
+    x, t = all_batches(dataset)
+    assert torch.equal(x, history[0]) and torch.equal(t, target[0])

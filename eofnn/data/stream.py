@@ -55,7 +55,7 @@ class SimulatedTelemetry(IterableDataset):
     """
 
     def __init__(self, scenario: Scenario, spec: HistorySpec, n_frames: int, seed: int = 0, stream: str = "train",
-                 sequence_frames: int = 2000, batch_frames: int = 256, n_realisations: int = 1,
+                 sequence_frames: int = 10000, batch_frames: int = 256, n_realisations: int = 1,
                  data_controller=None, target_dm_gain: float | None = None) -> None:
         super().__init__()
         require(n_frames >= 1, f"n_frames={n_frames!r} is invalid: it must be >= 1")
@@ -76,8 +76,8 @@ class SimulatedTelemetry(IterableDataset):
             target_dm_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
         self.target_dm_gain = target_dm_gain
 
-    def sequence(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """History and target tensors of sequence ``index``: ``(R, samples, K, taps)`` and ``(R, samples, K)``."""
+    def telemetry(self, index: int) -> dict[str, torch.Tensor]:
+        """Arrays ``(R, frames, K)`` of sequence ``index``: ``s`` and ``s_hat`` (open loop) or ``s, y, wfs``."""
         name = f"{self.stream}:{index}"
         turbulence = self.scenario.turbulence(self.seed, name, self.n_realisations)
         plant = self.scenario.plant
@@ -87,30 +87,42 @@ class SimulatedTelemetry(IterableDataset):
             if plant.wfs_noise_nm > 0:
                 gen = torch.Generator().manual_seed(int(stream_seed(self.seed, name, 1).generate_state(1)[0]))
                 s_hat = s + plant.wfs_noise_nm / plant.wfs_gain * torch.randn(s.shape, generator=gen, dtype=s.dtype)
-            history = build_history(self.spec, s=s_hat)
+            return {"s": s, "s_hat": s_hat}
+        controller = copy.deepcopy(self.data_controller)
+        if isinstance(controller, Dithered):
+            controller.seed = int(stream_seed(self.seed, name, 2).generate_state(1)[0])
+        result = run_loop(turbulence, plant, controller, self.sequence_frames, record=("s", "y", "wfs"),
+                          noise_seed=int(stream_seed(self.seed, name, 3).generate_state(1)[0]), progress=False)
+        if result.diverged:
+            raise DivergedError(f"the data controller diverged at frame {result.diverged_frame} while recording "
+                                f"training sequence {name!r}: lower integrator_gain or dither_nm, or use fewer "
+                                "refit_rounds")
+        return {"s": result.telemetry.s, "y": result.telemetry.y, "wfs": result.telemetry.wfs}
+
+    def _history(self, arrays: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.spec.kind == "open_loop":
+            history = build_history(self.spec, s=arrays["s_hat"])
         else:
-            controller = copy.deepcopy(self.data_controller)
-            if isinstance(controller, Dithered):
-                controller.seed = int(stream_seed(self.seed, name, 2).generate_state(1)[0])
-            result = run_loop(turbulence, plant, controller, self.sequence_frames, record=("s", "y", "wfs"),
-                              noise_seed=int(stream_seed(self.seed, name, 3).generate_state(1)[0]), progress=False)
-            if result.diverged:
-                raise DivergedError(f"the data controller diverged at frame {result.diverged_frame} while recording "
-                                    f"training sequence {name!r}: lower integrator_gain or dither_nm, or use fewer "
-                                    "refit_rounds")
-            tel = result.telemetry
-            s = tel.s
-            history = build_history(self.spec, y=tel.y, wfs=tel.wfs)
-        return history, targets(s, self.spec, self.target_dm_gain)
+            history = build_history(self.spec, y=arrays["y"], wfs=arrays["wfs"])
+        return history, targets(arrays["s"], self.spec, self.target_dm_gain)
+
+    def sequence(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """History and target tensors of sequence ``index``: ``(R, samples, K, taps)`` and ``(R, samples, K)``."""
+        return self._history(self.telemetry(index))
 
     def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         info = get_worker_info()
         worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        span = self.spec.first_frame
         for index in range(worker, self.n_sequences, n_workers):
-            history, target = self.sequence(index)
-            for b in range(0, history.shape[1], self.batch_frames):
-                x = history[:, b: b + self.batch_frames]
-                yield x.reshape(-1, *x.shape[2:]), target[:, b: b + self.batch_frames].reshape(-1, x.shape[-2])
+            arrays = self.telemetry(index)
+            n_frames = arrays["s"].shape[1]
+            # Histories are built one batch of frames at a time: a long sequence never needs its whole
+            # (frames x K x taps) history tensor in memory.
+            for first in range(span, n_frames, self.batch_frames):
+                window = {k: v[:, first - span: first + self.batch_frames] for k, v in arrays.items()}
+                x, t = self._history(window)
+                yield x.reshape(-1, *x.shape[2:]), t.reshape(-1, x.shape[-2])
 
 
 def default_data_controller(gain: float = 0.5, leak: float = 0.0, dither_nm: float = 10.0, seed: int = 0):
@@ -140,7 +152,7 @@ class LoopDataModule(L.LightningDataModule):
     """
 
     def __init__(self, scenario: Scenario, spec: HistorySpec, train_frames: int = 20000, val_frames: int = 2000,
-                 sequence_frames: int = 2000, batch_frames: int = 256, n_realisations: int = 1, seed: int = 0,
+                 sequence_frames: int = 10000, batch_frames: int = 256, n_realisations: int = 1, seed: int = 0,
                  data_controller=None, num_workers: int = 0, target_dm_gain: float | None = None) -> None:
         super().__init__()
         if data_controller is None and spec.kind == "closed_loop":

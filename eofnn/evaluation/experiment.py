@@ -61,7 +61,7 @@ class TrainingConfig:
 
     frames: int = 20000
     val_frames: int = 2000
-    sequence_frames: int = 2000
+    sequence_frames: int = 10000
     batch_frames: int = 256
     realisations: int = 1
     epochs: int = 1

@@ -79,7 +79,7 @@ def fit_predictor(
     max_epochs: int = 1,
     train_frames: int = 20000,
     val_frames: int = 2000,
-    sequence_frames: int = 2000,
+    sequence_frames: int = 10000,
     batch_frames: int = 256,
     n_realisations: int = 1,
     seed: int = 0,
