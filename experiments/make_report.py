@@ -58,7 +58,7 @@ def main() -> None:
     ol, cl, cl2, pi = (nominal["ol_eof"], nominal["cl_eof"], doubled["cl_eof"], nominal["pseudo_integrator"])
     text = f"""# Reproducing "Closed-Loop Until Further Notice" (Fowler, van Kooten & Jensen-Clem, AO4ELT 2023)
 
-Regenerate everything on this page with one command (about 6 minutes on 2 cores):
+Regenerate everything on this page with one command (about 4 minutes on 2 cores):
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 
