@@ -178,3 +178,14 @@ def test_a_diverging_data_controller_is_reported_not_raised(tmp_path, capsys):
     assert code == 2
     errors = [line for line in err.splitlines() if line.startswith("eofnn: error:")]
     assert len(errors) == 1 and "diverged at frame" in errors[0] and "Traceback" not in err
+
+
+@pytest.mark.parametrize("command, config", [("compare", "paper.yaml"), ("compare", "paper_small.yaml"),
+                                             ("evaluate", "evaluate.yaml")])
+def test_shipped_configs_parse(command, config, capsys):
+    path = Path(__file__).parent.parent / "configs" / config
+    with pytest.raises(SystemExit) as info:
+        main([command, "--config", str(path), "--out", "unused", "--print_config"])
+    assert info.value.code == 0
+    resolved = yaml.safe_load(capsys.readouterr().out)
+    assert resolved["scenario"]["grid"]["n_across"] == 40
