@@ -52,17 +52,28 @@ def _legend(ax) -> None:
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
 
 
-def _panels(n: int, title: str):
-    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4.8), squeeze=False, sharey=True)
+def _figure(result: ExperimentResult, path: Path, title: str, xlabel: str, ylabel: str, draw) -> None:
+    """One panel per scenario: ``draw(ax, predictors, colours)`` fills it; titles, legends and saving are shared."""
+    fig, axes = plt.subplots(1, len(result.metrics), figsize=(5.5 * len(result.metrics), 4.8), squeeze=False,
+                             sharey=True)
+    axes = axes[0]
     fig.suptitle(title)
-    return fig, axes[0]
+    colours = _colours(result)
+    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
+        draw(ax, preds, colours)
+        ax.set_title(scenario)
+        ax.set_xlabel(xlabel)
+        _legend(ax)
+    axes[0].set_ylabel(ylabel)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path) -> None:
     """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
-    fig, axes = _panels(len(result.metrics), "Residual spatial RMS")
-    colours = _colours(result)
-    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
+
+    def draw(ax, preds, colours):
         for name, m in preds.items():
             rms = np.asarray(m.rms_nm)
             if rms.size == 0:
@@ -71,22 +82,15 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
             label = name + (f" (diverged @ {m.diverged_frame})" if m.diverged else "")
             ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label, color=colours[name])
         ax.axvspan(0, next(iter(preds.values())).settle_frames / frame_rate_hz, color="0.9", zorder=0)
-        ax.set_title(scenario)
-        ax.set_xlabel("time (s)")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("RMS residual (nm)")
-    for ax in axes:
-        _legend(ax)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+
+    _figure(result, path, "Residual spatial RMS", "time (s)", "RMS residual (nm)", draw)
 
 
 def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
     """Histograms of the settled per-frame RMS (log bins), one panel per scenario."""
-    fig, axes = _panels(len(result.metrics), "Distribution of per-frame RMS residual (after settling)")
-    colours = _colours(result)
-    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
+
+    def draw(ax, preds, colours):
         settled = {n: np.asarray(m.rms_nm)[m.settle_frames:] for n, m in preds.items() if not m.diverged}
         values = np.concatenate([v for v in settled.values() if v.size]) if settled else np.array([])
         if values.size:
@@ -94,34 +98,22 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
             for name, v in settled.items():
                 ax.hist(v, bins=bins, histtype="step", label=name, color=colours[name])
             ax.set_xscale("log")
-        ax.set_title(scenario)
-        ax.set_xlabel("RMS residual (nm)")
-    axes[0].set_ylabel("frames")
-    for ax in axes:
-        _legend(ax)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+
+    _figure(result, path, "Distribution of per-frame RMS residual (after settling)", "RMS residual (nm)", "frames",
+            draw)
 
 
 def plot_psds(result: ExperimentResult, path: Path) -> None:
     """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
-    fig, axes = _panels(len(result.metrics), "Temporal power spectrum of the residual")
-    colours = _colours(result)
-    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
+
+    def draw(ax, preds, colours):
         for name, m in preds.items():
             if m.psd_freq_hz and not m.diverged:
                 f, p = np.asarray(m.psd_freq_hz)[1:], np.asarray(m.psd_nm2_per_hz)[1:]
                 ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name, color=colours[name])
-        ax.set_title(scenario)
-        ax.set_xlabel("frequency (Hz)")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("PSD (nm²/Hz)")
-    for ax in axes:
-        _legend(ax)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+
+    _figure(result, path, "Temporal power spectrum of the residual", "frequency (Hz)", "PSD (nm²/Hz)", draw)
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
