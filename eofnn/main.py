@@ -22,6 +22,7 @@ from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryE
 from eofnn.evaluation.experiment import (
     EvaluationConfig,
     Experiment,
+    ExperimentResult,
     PredictorConfig,
     check_output_dir,
     fit_from_config,
@@ -144,7 +145,6 @@ def run_fit(cfg, config_dump: str) -> dict:
 
 
 def run_simulate(cfg, config_dump: str) -> None:
-    from eofnn.evaluation.experiment import Experiment
     from eofnn.evaluation.metrics import loop_metrics
     from eofnn.evaluation.report import plot_rms_vs_time
     from eofnn.sim.loop import run_loop
@@ -171,8 +171,6 @@ def run_simulate(cfg, config_dump: str) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     telemetry.save(out, overwrite=cfg.overwrite)
     metrics = loop_metrics(result, 0, EvaluationConfig().strehl_wavelength_m)
-    from eofnn.evaluation.experiment import ExperimentResult
-
     plot_rms_vs_time(ExperimentResult({"scenario": {"controller": metrics}}), scenario.frame_rate_hz, plot)
     _log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary()}))
 

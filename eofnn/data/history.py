@@ -58,13 +58,6 @@ class HistorySpec:
     def to_dict(self) -> dict:
         return asdict(self)
 
-    def check_compatible(self, other: HistorySpec, what: str = "checkpoint") -> None:
-        """Raise a one-line error if ``other`` differs (history kind, length or delay)."""
-        for name in ("kind", "history_length", "delay_frames"):
-            a, b = getattr(self, name), getattr(other, name)
-            if a != b:
-                raise ConfigError(f"{what} has {name}={a!r} but the scenario needs {name}={b!r}")
-
 
 def _lagged(x: torch.Tensor, lags: range, first: int) -> torch.Tensor:
     """Stack ``x[..., n - lag, :]`` for ``n >= first`` and each lag into ``(..., samples, K, len(lags))``."""

@@ -18,7 +18,7 @@ from eofnn.models.controllers import Integrator, PseudoIntegrator, Uncorrected
 from eofnn.sim.loop import run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor, load_predictor
-from eofnn.training.task import FIT_METHODS, OPTIMIZERS
+from eofnn.training.task import FIT_METHODS, OPTIMIZERS, supports_closed_form
 
 CONTROLLERS = ("uncorrected", "pseudo_integrator", "integrator", "predictor")
 
@@ -292,8 +292,6 @@ class Experiment:
                     predictor.check_fits(scenario, f"predictor {name!r}: checkpoint {cfg.checkpoint!r}")
                 self._loaded[name] = predictor
             elif cfg.fit_method == "closed_form" and cfg.network is not None:
-                from eofnn.training.task import supports_closed_form
-
                 cls = import_class(cfg.network["class_path"])
                 if not supports_closed_form(cls):
                     raise ConfigError(f"predictor {name!r}: fit_method='closed_form' needs a linear network; "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from eofnn.errors import require
@@ -55,8 +57,6 @@ def critical_gain(delay_frames: int) -> float:
     The characteristic polynomial ``z**d - z**(d-1) + k`` has a root on the unit circle at
     ``k = 2 sin(pi / (2 (2d - 1)))``.
     """
-    import math
-
     return 2 * math.sin(math.pi / (2 * (2 * delay_frames - 1)))
 
 
