@@ -30,6 +30,7 @@ from eofnn.evaluation.experiment import (
     write_metrics,
 )
 from eofnn.sim.scenario import Scenario
+from eofnn.sweep import build_sweep_parser, run_sweep
 
 DESCRIPTION = """\
 eofnn: predictive wavefront control for adaptive optics, in simulated closed loop.
@@ -38,6 +39,7 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn fit      --config configs/fit_cl_eof.yaml --out runs/cl_eof.ckpt  # train one predictor, save it
   eofnn evaluate --config configs/evaluate.yaml --out results/eval  # saved checkpoints under any plant
   eofnn simulate --scenario configs/reference.yaml --out run.fits     # one controller -> telemetry + plot
+  eofnn sweep    --config configs/paper_small.yaml --grid GRID.yaml --out results/sweep  # a grid of compares
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -110,6 +112,7 @@ def build_parser() -> ArgumentParser:
     simulate.add_argument("--realisations", type=int, default=1, help="Independent realisations (batch).")
     simulate.add_argument("--seed", type=int, default=1, help="Seed of the turbulence and noise.")
     sub.add_subcommand("simulate", simulate, help="Simulate one controller and save telemetry.")
+    sub.add_subcommand("sweep", build_sweep_parser(), help="A grid of compare runs: resumable, local or on Ray.")
     return parser
 
 
@@ -212,6 +215,8 @@ def main(args: list[str] | None = None) -> int:
                 run_experiment(init, init.predictors, sub_dump)
             elif command == "simulate":
                 run_simulate(init, sub_dump)
+            elif command == "sweep":
+                return run_sweep(init)
             else:
                 predictors = {name: PredictorConfig(controller=name) for name in init.baselines}
                 for name, path in init.checkpoints.items():
