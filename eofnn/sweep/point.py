@@ -12,6 +12,8 @@ import contextlib
 import json
 import os
 import shutil
+import signal
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -67,6 +69,8 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
     config.write_text(config_yaml)
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous_sigint = signal.getsignal(signal.SIGINT) if in_main_thread else None
     start = time.perf_counter()
     error = None
     try:
@@ -74,6 +78,10 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
             try:
                 code = main(["compare", "--config", str(config), "--out", str(out), "--overwrite", "true",
                              "--progress", "false"])
+            except SystemExit:
+                # Lightning answers Ctrl-C during training with sys.exit(1) (and ignores SIGINT from then on):
+                # for the sweep it is the interruption it is.
+                raise KeyboardInterrupt from None
             except Exception as err:  # a bug, not a bad value: keep the traceback in the log, one line in the status
                 traceback.print_exc(file=log)
                 code, error = 1, f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}".rstrip(": ")
@@ -81,6 +89,8 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
             error = _last_error(out / LOG_FILE)
     finally:
         torch.set_num_threads(previous_threads)
+        if in_main_thread:
+            signal.signal(signal.SIGINT, previous_sigint)
     status = {"status": "failed" if error else "done", "error": error, "seconds": round(time.perf_counter() - start, 3)}
     write_atomic(out / STATUS_FILE, json.dumps(status, indent=1))
     if not error:
