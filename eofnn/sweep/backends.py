@@ -129,10 +129,13 @@ def run_on_ray(tasks: list[Task], workers: int, address: str | None = None) -> I
 def run_tasks(tasks: list[Task], backend: str = "local", workers: int = 1,
               address: str | None = None) -> Iterator[tuple[int, dict]]:
     """Run ``tasks`` on ``backend`` (``local``: in process for one worker, else worker processes; ``ray``)."""
+    if not tasks:
+        return iter(())
     if backend == "ray":
         return run_on_ray(tasks, workers, address)
     if address is not None:
         raise ConfigError(f"address={address!r} is only for backend='ray'")
+    workers = min(workers, len(tasks))
     return run_in_process(tasks) if workers == 1 else run_in_processes(tasks, workers)
 
 

@@ -37,8 +37,9 @@ def _numeric(values: list[Any]) -> bool:
     return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
 
 
-def _label(value: Any) -> str:
-    return f"{value:g}" if isinstance(value, float) else str(value)
+def _label(value: Any, max_chars: int = 24) -> str:
+    text = f"{value:g}" if isinstance(value, float) else str(value)
+    return text if len(text) <= max_chars else text[: max_chars - 3] + "..."
 
 
 def _file_name(key: str) -> str:
