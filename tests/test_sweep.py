@@ -16,6 +16,7 @@ import yaml
 
 import eofnn.main
 from eofnn.errors import ConfigError
+from eofnn.sweep import load_grid, plan
 from eofnn.sweep.grid import expand, log_range, parse_grid
 
 BASE = Path(__file__).parent / "conf" / "tiny_sweep.yaml"
@@ -174,3 +175,12 @@ def test_grid_expansion_log_range_and_stable_ids():
     assert {p.id: p.values for p in reordered} == {p.id: p.values for p in points}
     with pytest.raises(ConfigError, match="overlap"):
         parse_grid({"predictors.ol_eof": [{"history_length": 2}], "predictors.ol_eof.alpha": [1e-9]})
+
+
+@pytest.mark.parametrize("grid, n_points", [("grid_alpha.yaml", 4), ("grid_history.yaml", 4), ("grid_frames.yaml", 3)])
+def test_shipped_grids_plan(grid, n_points):
+    sweeps = ROOT / "experiments" / "sweeps"
+    points = plan(sweeps / "base_ol_eof.yaml", load_grid(sweeps / grid))
+    assert len(points) == n_points
+    resolved = yaml.safe_load(points[0].config_yaml)
+    assert set(resolved["predictors"]) == {"uncorrected", "ol_eof"} and resolved["scenario"]["grid"]["n_across"] == 40

@@ -17,15 +17,10 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from eofnn.errors import ConfigError
-from eofnn.sweep.point import record_failure, run_point
+from eofnn.sweep.point import first_line, record_failure, run_point
 
 BACKENDS = ("local", "ray")
 Task = tuple[str, str, int]
-
-
-def _first_line(err: BaseException) -> str:
-    text = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
 
 
 def run_in_process(tasks: list[Task]) -> Iterator[tuple[int, dict]]:
@@ -106,7 +101,7 @@ def run_on_ray(tasks: list[Task], workers: int, address: str | None = None) -> I
             else:
                 ray.init(num_cpus=workers, include_dashboard=False, object_store_memory=256 * 2**20, **options)
         except (ConnectionError, ValueError, RuntimeError) as err:
-            raise ConfigError(f"address={address!r}: Ray did not start: {_first_line(err)}") from None
+            raise ConfigError(f"address={address!r}: Ray did not start: {first_line(err)}") from None
     remote = ray.remote(num_cpus=1)(run_point)
     pending = {remote.remote(*task): index for index, task in enumerate(tasks)}
     try:
@@ -117,7 +112,7 @@ def run_on_ray(tasks: list[Task], workers: int, address: str | None = None) -> I
                 try:
                     result = ray.get(ref)
                 except ray.exceptions.RayError as err:
-                    result = record_failure(tasks[index][1], f"ray: {_first_line(err)}")
+                    result = record_failure(tasks[index][1], f"ray: {first_line(err)}")
                 yield index, result
     finally:
         for ref in pending:

@@ -36,6 +36,12 @@ def write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def first_line(err: BaseException) -> str:
+    """``Type: first line of the message`` of an unexpected error."""
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
+
+
 def _last_error(log_path: Path) -> str:
     lines = [line for line in log_path.read_text().splitlines() if line.startswith(ERROR_PREFIX)]
     return lines[-1][len(ERROR_PREFIX):] if lines else "compare failed (see log.txt)"
@@ -84,12 +90,12 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
                 raise KeyboardInterrupt from None
             except Exception as err:  # a bug, not a bad value: keep the traceback in the log, one line in the status
                 traceback.print_exc(file=log)
-                code, error = 1, f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}".rstrip(": ")
+                code, error = 1, first_line(err)
         if code != 0 and error is None:
             error = _last_error(out / LOG_FILE)
     finally:
         torch.set_num_threads(previous_threads)
-        if in_main_thread:
+        if previous_sigint is not None:
             signal.signal(signal.SIGINT, previous_sigint)
     status = {"status": "failed" if error else "done", "error": error, "seconds": round(time.perf_counter() - start, 3)}
     write_atomic(out / STATUS_FILE, json.dumps(status, indent=1))
