@@ -15,9 +15,9 @@ import pytest
 import yaml
 
 import eofnn.main
+from eofnn.cli.sweep import load_grid, plan
+from eofnn.cli.sweep.grid import expand, log_range, parse_grid
 from eofnn.errors import ConfigError
-from eofnn.sweep import load_grid, plan
-from eofnn.sweep.grid import expand, log_range, parse_grid
 
 BASE = Path(__file__).parent / "conf" / "tiny_sweep.yaml"
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,7 +60,7 @@ def test_sweep_writes_a_csv_row_per_point_and_predictor_and_figures(in_process):
     assert rms[("2", "uncorrected")] == rms[("4", "uncorrected")]  # baselines do not depend on the filter
     assert rms[("4", "ol_eof")] < rms[("2", "ol_eof")] < rms[("2", "integrator")] < rms[("2", "uncorrected")]
     for row in table:  # the csv holds what each point's metrics.json holds
-        metrics = json.loads((in_process / "points" / row["point"] / "metrics.json").read_text())
+        metrics = json.loads((in_process / "points" / row["point"] / "run" / "metrics.json").read_text())
         m = metrics["scenarios"][row["scenario"]][row["predictor"]]
         assert float(row["median_rms_nm"]) == m["median_rms_nm"] and float(row["strehl"]) == m["strehl"]
     point = in_process / "points" / table[0]["point"]
@@ -85,7 +85,7 @@ def test_ray_gives_the_same_csv(in_process, tmp_path):
 
 def test_a_failed_point_is_recorded_and_resuming_reruns_only_unfinished_points(tmp_path, monkeypatch, capsys):
     # integrator_gain 3 makes the loop that records the closed-loop training data diverge: compare fails.
-    grid = {"predictors.ol_eof.history": ["closed_loop"], "predictors.ol_eof.training.integrator_gain": [0.4, 3.0]}
+    grid = {"predictors.ol_eof.history": ["closed_loop"], "predictors.ol_eof.data.integrator_gain": [0.4, 3.0]}
     runs = []
 
     def counting_main(args):
@@ -96,16 +96,16 @@ def test_a_failed_point_is_recorded_and_resuming_reruns_only_unfinished_points(t
     assert sweep(tmp_path, grid, "s") == 1
     err = capsys.readouterr().err
     assert "failed: the data controller diverged" in err
-    table = {r["predictors.ol_eof.training.integrator_gain"]: r for r in read_csv(tmp_path / "s" / "sweep.csv")}
+    table = {r["predictors.ol_eof.data.integrator_gain"]: r for r in read_csv(tmp_path / "s" / "sweep.csv")}
     assert table["0.4"]["status"] == "done" and table["3.0"]["status"] == "failed"
     assert "diverged" in table["3.0"]["error"] and table["3.0"]["median_rms_nm"] == ""
     good, bad = (tmp_path / "s" / "points" / table[g]["point"] for g in ("0.4", "3.0"))
     assert json.loads((bad / "status.json").read_text())["status"] == "failed"
     assert len(runs) == 2
-    stamp = (good / "metrics.json").stat().st_mtime_ns
+    stamp = (good / "run" / "metrics.json").stat().st_mtime_ns
     assert sweep(tmp_path, grid, "s") == 1  # the same command again: only the failed point reruns
-    assert [Path(r) for r in runs[2:]] == [bad.resolve()]
-    assert (good / "metrics.json").stat().st_mtime_ns == stamp
+    assert [Path(r) for r in runs[2:]] == [bad.resolve() / "run"]
+    assert (good / "run" / "metrics.json").stat().st_mtime_ns == stamp
 
 
 def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp_path, capsys):
@@ -124,10 +124,10 @@ def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp
     table = read_csv(out / "sweep.csv")
     done = {r["point"] for r in table if r["status"] == "done"}
     assert 1 <= len(done) < 3 and {r["status"] for r in table} == {"done", "pending"}
-    stamps = {p: (out / "points" / p / "metrics.json").stat().st_mtime_ns for p in done}
+    stamps = {p: (out / "points" / p / "run" / "metrics.json").stat().st_mtime_ns for p in done}
     assert real_main(["sweep", "--config", str(BASE), "--grid", str(grid), "--out", str(out)]) == 0
     assert f"{len(done)} already done, {3 - len(done)} to run" in capsys.readouterr().err
-    assert {p: (out / "points" / p / "metrics.json").stat().st_mtime_ns for p in done} == stamps
+    assert {p: (out / "points" / p / "run" / "metrics.json").stat().st_mtime_ns for p in done} == stamps
     assert {r["status"] for r in read_csv(out / "sweep.csv")} == {"done"}
 
 
@@ -137,11 +137,12 @@ def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp
     ({"predictors.ol_eof.history_length": []}, "predictors.ol_eof.history_length=[] is invalid"),
     ({"predictors.ol_eof.history_length": [2, "four"]}, "Expected a <class 'int'>. Got value: four"),
     ({"predictors.ol_eof.history_length": 4}, "give a list of values or {log_range"),
-    ({"predictors.ol_eof.alpha": [1e-9, -1.0]}, "alpha=-1.0 is invalid: it must be >= 0"),
-    ({"predictors.ol_eof.alpha": {"log_range": [1e-9, 0, 3]}}, "start and stop must be > 0"),
-    ({"predictors.ol_eof.alpha": {"log_range": [1e-9, 1e-3, 2.5]}}, "count must be an integer >= 2"),
+    ({"predictors.ol_eof.optimization.alpha": [1e-9, -1.0]}, "alpha=-1.0 is invalid"),
+    ({"predictors.ol_eof.optimization.alpha": {"log_range": [1e-9, 0, 3]}}, "start and stop must be > 0"),
+    ({"predictors.ol_eof.optimization.alpha": {"log_range": [1e-9, 1e-3, 2.5]}}, "count must be an integer >= 2"),
     ({"predictors.ol_eof.train_in": ["elsewhere"]}, "train_in='elsewhere' is not a scenario"),
-    ({"scenario.model_errors.dm_gian": [2.0]}, "unknown model error 'dm_gian'"),
+    ({"scenario.plant.dm_gian": [2.0]}, "dm_gian"),
+    ({"scenarios.nominal.dm_gian": [2.0]}, "dm_gian"),
     ({"predictors.ol_eof.history_length": [2, 2]}, "lists the value 2 twice"),
 ])
 def test_bad_grids_stop_with_one_line_before_anything_runs(tmp_path, capsys, grid, message):

@@ -21,24 +21,25 @@ import yaml
 from jsonargparse import ArgumentParser
 from tqdm import tqdm
 
+from eofnn.cli.sweep.backends import BACKENDS, run_tasks, task
+from eofnn.cli.sweep.grid import load_grid
+from eofnn.cli.sweep.plan import Point, plan
+from eofnn.cli.sweep.point import INTERRUPTED, read_point, write_atomic
+from eofnn.cli.sweep.results import CSV_FILE, write_csv
 from eofnn.errors import ConfigError, require
-from eofnn.sweep.backends import BACKENDS, run_tasks, task
-from eofnn.sweep.grid import load_grid
-from eofnn.sweep.plan import Point, plan
-from eofnn.sweep.point import read_point, write_atomic
-from eofnn.sweep.results import CSV_FILE, write_csv
 
 SWEEP_FILE = "sweep.yaml"
 POINTS_DIR = "points"
-#: Exit status of an interrupted sweep (128 + SIGINT), as a shell reports Ctrl-C.
-INTERRUPTED = 130
 
 
-def build_sweep_parser() -> ArgumentParser:
-    """The ``sweep`` subcommand's parser."""
-    parser = ArgumentParser(description="Run one compare per point of a grid of config values (the Cartesian product "
-                            "of the grid's lists), each in its own folder; write sweep.csv and figures. Resumable: the "
-                            "same command again reruns only what did not finish.", exit_on_error=False)
+DESCRIPTION = ("Run one compare per point of a grid of config values (the Cartesian product of the grid's lists), "
+               "each in its own folder; write sweep.csv and figures. Resumable: the same command again reruns only "
+               "what did not finish. Exit status 0: all points done; 1: some failed (recorded); 2: bad input; "
+               "130: interrupted.")
+
+
+def add_arguments(parser: ArgumentParser) -> None:
+    """The ``sweep`` subcommand's arguments."""
     parser.add_argument("--config", type=str, required=True,
                         help="Base compare config (YAML) that every point starts from.")
     parser.add_argument("--grid", type=str, required=True,
@@ -59,7 +60,6 @@ def build_sweep_parser() -> ArgumentParser:
                         help="Discard the points and results of a previous sweep in --out and start again.")
     parser.add_argument("--progress", type=bool | None, default=None,
                         help="Progress bar over points (default: only when stderr is a terminal).")
-    return parser
 
 
 def _log(message: str) -> None:
@@ -88,7 +88,7 @@ def _check_options(cfg) -> None:
         require(cfg.backend == "ray", f"address={cfg.address!r} is only for --backend ray")
 
 
-def run_sweep(cfg) -> int:
+def run(cfg, config_dump: str = "") -> int:
     """Run (or resume) the sweep described by the parsed ``sweep`` options; returns the exit status.
 
     0: every point done; 1: some points failed (recorded in ``sweep.csv`` and their ``status.json``);
@@ -136,7 +136,7 @@ def _run(cfg) -> int:
         print(f"eofnn: interrupted: {done} of {len(points)} points done, kept in {out}: rerun the same command to "
               "resume", file=sys.stderr)
         return INTERRUPTED
-    from eofnn.sweep.figures import plot_sweep  # matplotlib only when there is something to plot
+    from eofnn.cli.sweep.figures import plot_sweep  # matplotlib only when there is something to plot
 
     figures = plot_sweep(points, results, grid, out)
     _log(f"sweep: {len(points) - failed} of {len(points)} points done, {failed} failed; results in {out / CSV_FILE}"

@@ -21,8 +21,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from eofnn.sweep.plan import Point  # noqa: E402
-from eofnn.sweep.results import metric, runs  # noqa: E402
+from eofnn.cli.sweep.plan import Point  # noqa: E402
+from eofnn.cli.sweep.results import metric, runs  # noqa: E402
 
 METRIC = "median_rms_nm"
 METRIC_LABEL = "median RMS residual (nm)"

@@ -23,8 +23,8 @@ from typing import Any
 
 import yaml
 
+from eofnn.cli.sweep.grid import GridPoint, expand
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError, require
-from eofnn.sweep.grid import GridPoint, expand
 
 #: Entries of a compare config that the sweep sets for each point itself.
 RUN_KEYS = ("config", "out", "overwrite", "progress")
@@ -55,8 +55,11 @@ def one_line(err: BaseException) -> str:
 
 def resolve_base(config_path: str | Path) -> dict:
     """The base config as ``eofnn compare --config config_path`` resolves it, defaults filled in."""
+    from eofnn.main import _prepare_config_files
+
     path = Path(config_path)
     require(path.is_file(), f"config={str(path)!r} is not a file")
+    _prepare_config_files(["--config", str(path)])  # checked as compare checks it; its folder on the path
     parser = _compare_parser()
     cfg = parser.parse_args(["compare", "--config", str(path), "--out", "unused"])
     resolved = yaml.safe_load(parser.dump(cfg))["compare"]
@@ -104,7 +107,8 @@ class _Checker:
         try:
             cfg = self.parser.parse_args(["compare", "--config", str(path), "--out", str(self.workdir / "out")])
             init = self.parser.instantiate(cfg)["compare"]
-            Experiment(init.scenario, init.scenarios, init.predictors, init.evaluation, log=lambda message: None)
+            Experiment(init.scenario, init.scenarios, init.predictors, init.evaluation, log=lambda message: None,
+                       trusted_networks=init.trusted_networks)
         except (ArgumentError, ConfigError, CheckpointError, TelemetryError, TypeError, ValueError) as err:
             # TypeError/ValueError: a value of the wrong type that reached a constructor unchecked.
             raise ConfigError(f"{label}: {one_line(err)}") from None

@@ -1,9 +1,10 @@
 """One point of a sweep on disk: run it as ``eofnn compare`` in its folder, mark it done or failed, read it back.
 
-A point's folder holds ``point.yaml`` (its full resolved config), everything ``compare`` writes
-(``metrics.json``, ``results.md``, figures, checkpoints), ``log.txt`` (compare's messages) and, written
-atomically once compare has returned, ``status.json``: ``{"status": "done" | "failed", "error": ..., "seconds": ...}``.
-A point is finished only when ``status.json`` says done; anything else is rerun from scratch.
+A point's folder holds ``point.yaml`` (its full resolved config), ``log.txt`` (compare's messages), ``run/``
+(compare's output folder: ``metrics.json``, ``results.md``, ``config.yaml``, figures, checkpoints; compare moves it
+into place only when complete) and, written atomically once compare has returned, ``status.json``:
+``{"status": "done" | "failed", "error": ..., "seconds": ...}``. A point is finished only when ``status.json``
+says done; anything else is rerun from scratch.
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ import torch
 STATUS_FILE = "status.json"
 CONFIG_FILE = "point.yaml"
 LOG_FILE = "log.txt"
+RUN_DIR = "run"
+#: Exit status of an interrupted command (128 + SIGINT), as a shell reports Ctrl-C.
+INTERRUPTED = 130
 ERROR_PREFIX = "eofnn: error: "
 
 
@@ -48,7 +52,7 @@ def _last_error(log_path: Path) -> str:
 
 
 def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
-    """Run one point: ``eofnn compare --config <folder>/point.yaml --out <folder>`` from an empty folder.
+    """Run one point: ``eofnn compare --config <folder>/point.yaml --out <folder>/run`` from an empty folder.
 
     Parameters
     ----------
@@ -82,8 +86,7 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
     try:
         with open(out / LOG_FILE, "w") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
             try:
-                code = main(["compare", "--config", str(config), "--out", str(out), "--overwrite", "true",
-                             "--progress", "false"])
+                code = main(["compare", "--config", str(config), "--out", str(out / RUN_DIR), "--progress", "false"])
             except SystemExit:
                 # Lightning answers Ctrl-C during training with sys.exit(1) (and ignores SIGINT from then on):
                 # for the sweep it is the interruption it is.
@@ -91,6 +94,8 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
             except Exception as err:  # a bug, not a bad value: keep the traceback in the log, one line in the status
                 traceback.print_exc(file=log)
                 code, error = 1, first_line(err)
+        if code == INTERRUPTED:  # compare caught Ctrl-C itself: the sweep stops too
+            raise KeyboardInterrupt
         if code != 0 and error is None:
             error = _last_error(out / LOG_FILE)
     finally:
@@ -100,7 +105,7 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
     status = {"status": "failed" if error else "done", "error": error, "seconds": round(time.perf_counter() - start, 3)}
     write_atomic(out / STATUS_FILE, json.dumps(status, indent=1))
     if not error:
-        status["scenarios"] = json.loads((out / "metrics.json").read_text())["scenarios"]
+        status["scenarios"] = json.loads((out / RUN_DIR / "metrics.json").read_text())["scenarios"]
     return status
 
 
@@ -134,7 +139,7 @@ def read_point(folder: Path, config_yaml: str) -> dict | None:
         raise ConfigError(f"point {folder.name!r} in {str(folder.parent)!r} was run with another configuration (the "
                           "base config changed): choose another --out or pass --overwrite true")
     try:
-        status["scenarios"] = json.loads((folder / "metrics.json").read_text())["scenarios"]
+        status["scenarios"] = json.loads((folder / RUN_DIR / "metrics.json").read_text())["scenarios"]
     except (OSError, json.JSONDecodeError, KeyError):
         return None
     return status

@@ -14,8 +14,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from eofnn.sweep.plan import Point
-from eofnn.sweep.point import write_atomic
+from eofnn.cli.sweep.plan import Point
+from eofnn.cli.sweep.point import write_atomic
 
 CSV_FILE = "sweep.csv"
 #: Columns before the swept keys and between them and the metrics.

@@ -1,6 +1,6 @@
 """Where the points of a sweep run: in this process, in local worker processes, or as Ray tasks.
 
-Every backend takes the same tasks ``(config_yaml, folder, threads)`` for :func:`~eofnn.sweep.point.run_point` and
+Every backend takes the same tasks ``(config_yaml, folder, threads)`` for :func:`~eofnn.cli.sweep.point.run_point` and
 yields ``(index, result)`` as points finish, in whatever order they finish. A point's numbers depend only on its
 config (seeds included) and the fixed torch thread count, never on the backend or the order.
 """
@@ -16,8 +16,8 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from eofnn.cli.sweep.point import first_line, record_failure, run_point
 from eofnn.errors import ConfigError
-from eofnn.sweep.point import first_line, record_failure, run_point
 
 BACKENDS = ("local", "ray")
 Task = tuple[str, str, int]
