@@ -55,11 +55,8 @@ def one_line(err: BaseException) -> str:
 
 def resolve_base(config_path: str | Path) -> dict:
     """The base config as ``eofnn compare --config config_path`` resolves it, defaults filled in."""
-    from eofnn.main import _prepare_config_files
-
     path = Path(config_path)
     require(path.is_file(), f"config={str(path)!r} is not a file")
-    _prepare_config_files(["--config", str(path)])  # checked as compare checks it; its folder on the path
     parser = _compare_parser()
     cfg = parser.parse_args(["compare", "--config", str(path), "--out", "unused"])
     resolved = yaml.safe_load(parser.dump(cfg))["compare"]
