@@ -4,9 +4,9 @@
     eofnn sweep ... --workers 4                       # 4 local worker processes
     eofnn sweep ... --backend ray --address auto      # points as Ray tasks on a running cluster
 
-The output folder holds ``sweep.yaml`` (what was swept), ``points/<id>/`` (one compare run each, with its
-``point.yaml`` and ``status.json``), ``sweep.csv`` and the figures. Rerunning the same command resumes: finished
-points are kept, unfinished and failed ones rerun from scratch.
+The output folder holds ``sweep.yaml`` (what was swept), ``points/<id>/`` (per point: ``point.yaml``, its
+resolved config; ``run/``, compare's output; ``log.txt``; ``status.json``), ``sweep.csv`` and the figures.
+Rerunning the same command resumes: finished points are kept, unfinished and failed ones rerun from scratch.
 """
 
 from __future__ import annotations
