@@ -58,6 +58,9 @@ def _set_x(ax, key: str, values: list[Any]) -> list[Any]:
     if _numeric(values):
         if min(values) > 0 and max(values) / min(values) >= 50:
             ax.set_xscale("log")
+        if len(values) <= 10:  # ticks at the swept values themselves, not at 2.25, 2.5, ...
+            ax.set_xticks(values, [_label(v) for v in values])
+            ax.minorticks_off()
         return list(values)
     ax.set_xticks(range(len(values)), [_label(v) for v in values])
     return list(range(len(values)))
