@@ -20,7 +20,7 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate
+from eofnn.cli import compare, fit, simulate, sweep
 from eofnn.cli.configfile import check_config_file
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
@@ -31,6 +31,7 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn fit      --scenario configs/reference.yaml --predictor.history closed_loop --out runs/cl.ckpt
   eofnn evaluate --config configs/evaluate.yaml --out results/eval          # saved checkpoints under any plant
   eofnn simulate --scenario configs/reference.yaml --out runs/integrator.fits  # one controller -> telemetry
+  eofnn sweep    --config configs/paper_small.yaml --grid GRID.yaml --out results/sweep  # a grid of compares
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -57,6 +58,8 @@ COMMANDS: dict[str, Command] = {
                         compare.run_evaluate),
     "simulate": Command("Simulate one controller and save telemetry.", simulate.DESCRIPTION, simulate.add_arguments,
                         simulate.run),
+    "sweep": Command("A grid of compare runs: resumable, local or on Ray.", sweep.DESCRIPTION, sweep.add_arguments,
+                     sweep.run),
 }
 
 
@@ -118,14 +121,15 @@ def main(args: list[str] | None = None) -> int:
             command = cfg.command
             dump = yaml.safe_load(parser.dump(cfg))[command]
             sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
-            COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
+            status = COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
     except USER_ERRORS as err:
         print(f"eofnn: error: {_one_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)
         return 130
-    return 0
+    # A command may return its own exit status (sweep: 1 when some points failed); results are not statuses.
+    return status if isinstance(status, int) and not isinstance(status, bool) else 0
 
 
 def console() -> None:
