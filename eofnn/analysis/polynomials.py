@@ -90,8 +90,7 @@ def real_crossings(a: torch.Tensor, b: torch.Tensor, n_grid: int = 1024,
     ``h(w) = Im(a(e^{iw}) conj(b(e^{iw})))`` on ``[0, pi]`` (real coefficients: ``-w`` mirrors ``w``), with
     ``t = -a / b``. ``w = 0`` and ``pi`` always qualify; interior zeros are bracketed by sign changes of ``h`` on a
     grid of ``n_grid`` frequencies and refined to machine precision (Illinois false position). Zeros that touch
-    without a sign change
-    (tangencies) or two zeros within one grid step are missed.
+    without a sign change (tangencies) or two zeros within one grid step are missed.
 
     Parameters
     ----------

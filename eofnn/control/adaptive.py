@@ -68,7 +68,12 @@ class AdaptiveController:
     integrator_gain : float
         Gain of the integrator used to start from (if no weights) and to fall back to.
     fallback_factor : float
-        Residual RMS above this times its running median triggers the fallback.
+        Residual RMS above this times its running median for ``fallback_patience`` frames in a row triggers the
+        fallback.
+    fallback_patience : int, optional
+        Consecutive frames above ``fallback_factor`` times the median that trigger the fallback; by default
+        ``2 (history_length + delay_frames)``, so that a jump of the turbulence (which leaves the history after
+        ``history_length + delay_frames`` frames) does not.
     median_frames : int
         Frames of measured residual RMS in the running median (armed after :data:`ARM_FRAMES` controlled frames).
     seed : int
@@ -77,7 +82,7 @@ class AdaptiveController:
 
     def __init__(self, spec: HistorySpec, initial_weights: torch.Tensor | None = None, *, dm_gain_model: float = 1.0,
                  dither_nm: float = 0.0, integrator_gain: float = 0.5, fallback_factor: float = 10.0,
-                 median_frames: int = 200, seed: int = 0) -> None:
+                 fallback_patience: int | None = None, median_frames: int = 200, seed: int = 0) -> None:
         require(isinstance(spec, HistorySpec), f"spec must be a HistorySpec, got {type(spec).__name__}")
         require(math.isfinite(dm_gain_model) and dm_gain_model != 0,
                 f"dm_gain_model={dm_gain_model!r} is invalid: it must be finite and non-zero")
@@ -85,6 +90,10 @@ class AdaptiveController:
         require(math.isfinite(integrator_gain) and integrator_gain >= 0,
                 f"integrator_gain={integrator_gain!r} is invalid: it must be >= 0")
         require(fallback_factor > 1, f"fallback_factor={fallback_factor!r} is invalid: it must be > 1")
+        if fallback_patience is None:
+            fallback_patience = 2 * (spec.history_length + spec.delay_frames)
+        require(isinstance(fallback_patience, int) and fallback_patience >= 1,
+                f"fallback_patience={fallback_patience!r} is invalid: it must be an integer >= 1")
         require(isinstance(median_frames, int) and median_frames >= 1,
                 f"median_frames={median_frames!r} is invalid: it must be an integer >= 1")
         if initial_weights is not None:
@@ -95,7 +104,7 @@ class AdaptiveController:
             require(bool(torch.isfinite(initial_weights).all()), "initial_weights hold non-finite values")
         self.spec, self.initial_weights, self.dm_gain_model = spec, initial_weights, dm_gain_model
         self.dither_nm, self.integrator_gain, self.seed = dither_nm, integrator_gain, seed
-        self.fallback_factor, self.median_frames = fallback_factor, median_frames
+        self.fallback_factor, self.fallback_patience, self.median_frames = fallback_factor, fallback_patience, median_frames
 
     # -- the protocol of eofnn.sim.loop ------------------------------------------------------------------------
     def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
@@ -115,6 +124,7 @@ class AdaptiveController:
         self._rms = torch.zeros(self.median_frames, batch, dtype=torch.float64)
         self.fallback_frames = torch.full((batch,), -1, dtype=torch.int64)
         self._fallback_y = torch.zeros(shape, dtype=torch.float64)
+        self._high_frames = torch.zeros(batch, dtype=torch.int64)
         self._open_loop_sum = torch.zeros(batch, dtype=torch.float64)
         self._open_loop_rms = torch.full((batch,), math.inf, dtype=torch.float64)
         self._frames_seen, self._out_dtype = 0, dtype
@@ -165,7 +175,10 @@ class AdaptiveController:
         bad |= rms > OPEN_LOOP_FACTOR * self._open_loop_rms
         filled = min(controlled, self.median_frames)
         if filled >= ARM_FRAMES:  # the median covers controlled frames only: not the uncorrected start
-            bad |= rms > self.fallback_factor * self._rms[:filled].median(0).values
+            high = rms > self.fallback_factor * self._rms[:filled].median(0).values
+            # Persistently high, not a transient (a jump in the turbulence passes once the history has renewed).
+            self._high_frames = torch.where(high, self._high_frames + 1, 0)
+            bad |= self._high_frames >= self.fallback_patience
         self._rms[controlled % self.median_frames] = torch.where(torch.isfinite(rms), rms, 0.0)
         newly = bad & (self.fallback_frames < 0)
         self.fallback_frames[newly] = frame
@@ -218,8 +231,16 @@ class RLSController(AdaptiveController):
         self.forgetting, self.prior_frames = float(forgetting), float(prior_frames)
 
     def _reset_learning(self, batch: int, n_actuators: int, taps: int) -> None:
-        self.covariance: torch.Tensor | None = None  # (B * K, taps, taps), set from the first regressor
+        # P = scale * Q: the division by lambda every frame only touches the scalar (one pass less over Q).
+        # Q is stored (taps, taps, B * K), actuators last, so that every operation runs along contiguous memory.
+        self._q: torch.Tensor | None = None  # set from the first regressor
+        self._scale = 1.0
         self._trace_cap: torch.Tensor | None = None
+
+    @property
+    def covariance(self) -> torch.Tensor | None:
+        """The inverse covariance matrices ``P``, ``(B * K, taps, taps)`` (``None`` before the first update)."""
+        return None if self._q is None else (self._scale * self._q).permute(2, 0, 1)
 
     def _learn(self, regressor: torch.Tensor, target: torch.Tensor, frame: int) -> None:
         self.update(regressor, target)
@@ -228,24 +249,28 @@ class RLSController(AdaptiveController):
         """One RLS step for all actuators: ``regressor (B, K, taps)``, ``target (B, K)``."""
         taps = regressor.shape[-1]
         x = regressor.reshape(-1, taps)
-        if self.covariance is None:
+        x_t = x.T.contiguous()  # (taps, B * K)
+        if self._q is None:
             power = x.pow(2).mean(-1).clamp(min=torch.finfo(torch.float64).tiny)
-            scale = 1.0 / (self.prior_frames * power)
-            self.covariance = scale.view(-1, 1, 1) * torch.eye(taps, dtype=torch.float64)
-            self._trace_cap = taps * scale
-        px = torch.bmm(self.covariance, x.unsqueeze(-1)).squeeze(-1)  # P x
-        gain = px / (self.forgetting + (x * px).sum(-1, keepdim=True))
+            start = 1.0 / (self.prior_frames * power)
+            self._q = torch.eye(taps, dtype=torch.float64, device=x.device).unsqueeze(-1) * start
+            self._scale, self._trace_cap = 1.0, taps * start
+        px = (self._q * x_t).sum(1).mul_(self._scale)  # (P x)_i = sum_j P_ij x_j
+        gain = px / (self.forgetting + (x_t * px).sum(0))
         w = self.weights.view(-1, taps)
         error = target.reshape(-1) - (w * x).sum(-1)
-        w.addcmul_(gain, error.unsqueeze(-1))
-        # P <- (P - k (P x)') / lambda in one fused batched rank-1 update.
-        self.covariance.baddbmm_(gain.unsqueeze(-1), px.unsqueeze(1), beta=1 / self.forgetting,
-                                 alpha=-1 / self.forgetting)
+        w.addcmul_(gain.T, error.unsqueeze(-1))
+        # P <- (P - k (P x)') / lambda, as Q <- Q - k (P x)' / scale and scale <- scale / lambda: one pass over Q.
+        self._q.addcmul_(gain.unsqueeze(1), px.unsqueeze(0), value=-1.0 / self._scale)
+        self._scale /= self.forgetting
         if self.forgetting < 1:
-            trace = self.covariance.diagonal(dim1=1, dim2=2).sum(-1)
+            trace = self._scale * self._q.diagonal(dim1=0, dim2=1).sum(-1)
             over = trace > self._trace_cap
             if bool(over.any()):
-                self.covariance[over] *= (self._trace_cap[over] / trace[over]).view(-1, 1, 1)
+                self._q[..., over] *= self._trace_cap[over] / trace[over]
+            if self._scale > 1e100:  # fold the scalar back long before it could overflow
+                self._q.mul_(self._scale)
+                self._scale = 1.0
 
 
 class BlendController(AdaptiveController):
