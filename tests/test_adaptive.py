@@ -63,6 +63,33 @@ def test_fallback_engages_when_the_loop_is_unstable(noisy, make):
     assert nominal.fallback_frame is None
 
 
+class SteppedTurbulence:
+    """A turbulence stream with a static shape added from ``step_frame`` on (a sudden, then frozen, change)."""
+
+    def __init__(self, turbulence, step_frame: int, shape_nm: torch.Tensor) -> None:
+        self.turbulence, self.step_frame, self.shape_nm = turbulence, step_frame, shape_nm
+        self.grid, self.n_realisations = turbulence.grid, turbulence.n_realisations
+
+    def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
+        for first, frames in self.turbulence.chunks(n_frames, chunk, start):
+            after = torch.arange(first, first + frames.shape[1]) >= self.step_frame
+            yield first, frames + after.view(1, -1, 1) * self.shape_nm
+
+
+def test_a_transient_does_not_trigger_the_fallback_unless_patience_is_one(noisy):
+    spec = HistorySpec("open_loop", 4, 2)
+    fitted = fit_predictor(noisy, spec, **FAST).predictor
+    shape = 150.0 * torch.randn(noisy.grid.n_actuators, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    outcomes = {}
+    for patience in (None, 1):
+        controller = RLSController(spec, fitted.network.weight, forgetting=0.999, fallback_patience=patience)
+        result = run_loop(SteppedTurbulence(noisy.turbulence(9), 600, shape), noisy.plant, controller, 1000, record=())
+        assert not result.diverged
+        outcomes[patience] = controller.fallback_frame
+    assert outcomes[None] is None  # the step leaves the history after p + d frames: no fallback
+    assert outcomes[1] is not None and 600 <= outcomes[1] < 610  # an impatient guard takes the spike for divergence
+
+
 def random_regression(n_frames, n_actuators, taps, seed=0):
     gen = torch.Generator().manual_seed(seed)
     x = torch.randn(n_frames, 1, n_actuators, taps, generator=gen, dtype=torch.float64)

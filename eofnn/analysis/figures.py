@@ -27,10 +27,12 @@ def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -
         for group, label, style in ((worst, f"worst (group {worst})", "-"), (median, f"median (group {median})", "--")):
             axes[0].loglog(freqs, result.rejection[group].abs().numpy(), style, label=label)
             axes[1].loglog(freqs, result.noise_transfer[group].abs().numpy(), style, label=label)
-        for crossing in result.gain_crossing_hz[worst].tolist():
+        bounds = result.gain_interval[worst].tolist()
+        for bound, crossing, style in zip(bounds, result.gain_crossing_hz[worst].tolist(), (":", "-."), strict=True):
             if crossing == crossing and crossing > 0:  # not NaN; 0 Hz cannot be drawn on a log axis
                 for ax in axes:
-                    ax.axvline(crossing, color="grey", linestyle=":", label=f"pole leaves at {crossing:.3g} Hz")
+                    ax.axvline(crossing, color="grey", linestyle=style,
+                               label=f"at DM gain {bound:.3g} a pole leaves at {crossing:.3g} Hz")
     else:
         for ax in axes:
             ax.text(0.5, 0.5, "transfer functions not computed\n(coupled system too large)", ha="center",

@@ -209,8 +209,9 @@ class RLSController(AdaptiveController):
 
     Per frame, with regressor ``x`` and target ``t`` of each actuator: ``k = P x / (lambda + x' P x)``,
     ``w += k (t - w' x)``, ``P = (P - k x' P) / lambda``. The starting filter counts as ``prior_frames`` frames of
-    data (``P_0 = I / (prior_frames * mean x^2)`` from the first regressor), and ``trace(P)`` is capped at its
-    starting value so that directions the data does not excite do not wind up under forgetting.
+    data (``P_0 = I / (prior_frames * mean x^2)`` from the first regressor), and ``trace(P)`` is capped at
+    ``trace_cap`` times its starting value so that directions the data does not excite cannot wind up without bound
+    under forgetting.
 
     Parameters
     ----------
@@ -218,17 +219,22 @@ class RLSController(AdaptiveController):
         Forgetting factor ``lambda`` in (0, 1]: the memory is about ``1 / (1 - lambda)`` frames.
     prior_frames : float
         Weight of the starting filter, in frames of data.
+    trace_cap : float
+        Cap of ``trace(P)`` relative to ``trace(P_0)``. Turbulence histories are smooth, so their covariance has
+        eigenvalues 1e-6 of its mean and below: a cap near 1 would act as a strong ridge on exactly the directions
+        that fine prediction needs.
     **kwargs
         See :class:`AdaptiveController`.
     """
 
     def __init__(self, spec: HistorySpec, initial_weights: torch.Tensor | None = None, *, forgetting: float = 0.999,
-                 prior_frames: float = 1.0, **kwargs) -> None:
+                 prior_frames: float = 1.0, trace_cap: float = 1e8, **kwargs) -> None:
         require(isinstance(forgetting, (int, float)) and 0 < forgetting <= 1,
                 f"forgetting={forgetting!r} is invalid: it must be in (0, 1]")
         require(prior_frames > 0, f"prior_frames={prior_frames!r} is invalid: it must be > 0")
+        require(trace_cap >= 1, f"trace_cap={trace_cap!r} is invalid: it must be >= 1")
         super().__init__(spec, initial_weights, **kwargs)
-        self.forgetting, self.prior_frames = float(forgetting), float(prior_frames)
+        self.forgetting, self.prior_frames, self.trace_cap = float(forgetting), float(prior_frames), float(trace_cap)
 
     def _reset_learning(self, batch: int, n_actuators: int, taps: int) -> None:
         # P = scale * Q: the division by lambda every frame only touches the scalar (one pass less over Q).
@@ -254,7 +260,7 @@ class RLSController(AdaptiveController):
             power = x.pow(2).mean(-1).clamp(min=torch.finfo(torch.float64).tiny)
             start = 1.0 / (self.prior_frames * power)
             self._q = torch.eye(taps, dtype=torch.float64, device=x.device).unsqueeze(-1) * start
-            self._scale, self._trace_cap = 1.0, taps * start
+            self._scale, self._trace_cap = 1.0, self.trace_cap * taps * start
         px = (self._q * x_t).sum(1).mul_(self._scale)  # (P x)_i = sum_j P_ij x_j
         gain = px / (self.forgetting + (x_t * px).sum(0))
         w = self.weights.view(-1, taps)
