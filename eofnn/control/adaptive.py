@@ -34,6 +34,8 @@ from eofnn.sim.turbulence import stream_seed
 ARM_FRAMES = 10
 #: A measured residual RMS above this times the uncorrected one triggers the fallback at once.
 OPEN_LOOP_FACTOR = 2.0
+#: RLS updates between checks of the covariance trace cap (growth under forgetting is lambda^-n: slow).
+TRACE_CHECK_FRAMES = 16
 
 
 def integrator_filter(spec: HistorySpec, gain: float) -> torch.Tensor:
@@ -242,6 +244,7 @@ class RLSController(AdaptiveController):
         self._q: torch.Tensor | None = None  # set from the first regressor
         self._scale = 1.0
         self._trace_cap: torch.Tensor | None = None
+        self._updates = 0
 
     @property
     def covariance(self) -> torch.Tensor | None:
@@ -269,7 +272,8 @@ class RLSController(AdaptiveController):
         # P <- (P - k (P x)') / lambda, as Q <- Q - k (P x)' / scale and scale <- scale / lambda: one pass over Q.
         self._q.addcmul_(gain.unsqueeze(1), px.unsqueeze(0), value=-1.0 / self._scale)
         self._scale /= self.forgetting
-        if self.forgetting < 1:
+        self._updates += 1
+        if self.forgetting < 1 and self._updates % TRACE_CHECK_FRAMES == 0:
             trace = self._scale * self._q.diagonal(dim1=0, dim2=1).sum(-1)
             over = trace > self._trace_cap
             if bool(over.any()):
