@@ -34,8 +34,9 @@ from eofnn.sim.turbulence import stream_seed
 ARM_FRAMES = 10
 #: A measured residual RMS above this times the uncorrected one triggers the fallback at once.
 OPEN_LOOP_FACTOR = 2.0
-#: RLS updates between checks of the covariance trace cap (growth under forgetting is lambda^-n: slow).
-TRACE_CHECK_FRAMES = 16
+#: Frames between refreshes of slow checks: the RLS covariance trace cap (growth under forgetting is lambda^-n),
+#: the running median of the residual RMS once its window is full, the finiteness of the filter weights.
+CHECK_FRAMES = 16
 
 
 def integrator_filter(spec: HistorySpec, gain: float) -> torch.Tensor:
@@ -172,12 +173,17 @@ class AdaptiveController:
         """Replace the command by the integrator's for realisations that fell back (now or before)."""
         controlled = self._frames_seen - self.spec.first_frame  # frames with a command from the filter before
         rms = wfs.pow(2).mean(-1).sqrt()
-        bad = ~torch.isfinite(y).all(-1) | ~torch.isfinite(self.weights).all(-1).all(-1) | ~torch.isfinite(rms)
+        # A sum is finite only if every term is: one reduction instead of an elementwise test.
+        bad = ~torch.isfinite(y.sum(-1)) | ~torch.isfinite(rms)
+        if self._frames_seen % CHECK_FRAMES == 0:
+            bad |= ~torch.isfinite(self.weights.sum((-1, -2)))
         # Worse than no correction at all (twice the RMS measured while the commands were zero): diverging.
         bad |= rms > OPEN_LOOP_FACTOR * self._open_loop_rms
         filled = min(controlled, self.median_frames)
         if filled >= ARM_FRAMES:  # the median covers controlled frames only: not the uncorrected start
-            high = rms > self.fallback_factor * self._rms[:filled].median(0).values
+            if filled < self.median_frames or controlled % CHECK_FRAMES == 0:  # a slow statistic: refresh it now and then
+                self._median = self._rms[:filled].median(0).values
+            high = rms > self.fallback_factor * self._median
             # Persistently high, not a transient (a jump in the turbulence passes once the history has renewed).
             self._high_frames = torch.where(high, self._high_frames + 1, 0)
             bad |= self._high_frames >= self.fallback_patience
@@ -273,7 +279,7 @@ class RLSController(AdaptiveController):
         self._q.addcmul_(gain.unsqueeze(1), px.unsqueeze(0), value=-1.0 / self._scale)
         self._scale /= self.forgetting
         self._updates += 1
-        if self.forgetting < 1 and self._updates % TRACE_CHECK_FRAMES == 0:
+        if self.forgetting < 1 and self._updates % CHECK_FRAMES == 0:
             trace = self._scale * self._q.diagonal(dim1=0, dim2=1).sum(-1)
             over = trace > self._trace_cap
             if bool(over.any()):
