@@ -36,6 +36,7 @@ import torch
 
 from eofnn.analysis import polynomials as poly
 from eofnn.analysis.block import block_analysis
+from eofnn.control.adaptive import integrator_filter
 from eofnn.data.history import HISTORY_KINDS, HistorySpec
 from eofnn.errors import require
 from eofnn.models.linear import LinearFilter
@@ -216,9 +217,7 @@ def controller_polynomials(weights: torch.Tensor, kind: str, history_length: int
 
 def integrator_weights(gain: float, leak: float = 0.0) -> torch.Tensor:
     """The leaky integrator ``y(n) = (1 - leak) y(n-1) - gain u(n)`` as closed-loop EOF weights ``(1, 2)``."""
-    require(gain >= 0, f"integrator gain={gain!r} is invalid: it must be >= 0")
-    require(0 <= leak <= 1, f"integrator leak={leak!r} is invalid: it must be in [0, 1]")
-    return torch.tensor([[1.0 - leak, -gain]], dtype=poly.DTYPE)
+    return integrator_filter(HistorySpec("closed_loop", 1), gain, leak)
 
 
 def _check_weights(weights: torch.Tensor, kind: str, history_length: int, structure: str,

@@ -39,15 +39,18 @@ OPEN_LOOP_FACTOR = 2.0
 CHECK_FRAMES = 16
 
 
-def integrator_filter(spec: HistorySpec, gain: float) -> torch.Tensor:
+def integrator_filter(spec: HistorySpec, gain: float, leak: float = 0.0) -> torch.Tensor:
     """``(1, taps)`` weights equivalent to the simplest controller of a history kind.
 
-    Closed loop: the integrator ``y(n) = y(n-1) - gain wfs(n-d)``. Open loop: ``y(n) = -gain s_hat(n-d)`` (the
-    pseudo-open-loop integrator: with ``gain = 1``, perfect correction ``d`` frames late).
+    Closed loop: the leaky integrator ``y(n) = (1 - leak) y(n-1) - gain wfs(n-d)``. Open loop:
+    ``y(n) = -gain s_hat(n-d)`` (the pseudo-open-loop integrator: with ``gain = 1``, perfect correction ``d`` frames
+    late; ``leak`` does not apply).
     """
+    require(gain >= 0, f"integrator gain={gain!r} is invalid: it must be >= 0")
+    require(0 <= leak <= 1, f"integrator leak={leak!r} is invalid: it must be in [0, 1]")
     weights = torch.zeros(1, spec.n_taps, dtype=torch.float64)
     if spec.kind == "closed_loop":
-        weights[0, 0], weights[0, spec.history_length] = 1.0, -gain
+        weights[0, 0], weights[0, spec.history_length] = 1.0 - leak, -gain
     else:
         weights[0, 0] = -gain
     return weights
