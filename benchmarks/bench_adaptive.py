@@ -17,9 +17,9 @@ from benchmarks.common import Row, Skipped, Timing, synchronizer, time_interleav
 from eofnn.analysis import polynomials as poly
 from eofnn.analysis.stability import LoopSetup, analyse, controller_polynomials
 from eofnn.control.adaptive import RLSController, integrator_filter
+from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.models.linear import LinearFilter
-from eofnn.models.predictive import PredictiveController
 from eofnn.sim.loop import LoopInput
 
 #: One frame of a 2 kHz loop leaves 0.5 ms for the controller.

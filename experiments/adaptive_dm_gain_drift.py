@@ -24,7 +24,8 @@ import torch  # noqa: E402
 from eofnn.analysis.stability import LoopSetup, analyse, analyse_filter  # noqa: E402
 from eofnn.control.adaptive import BlendController, RLSController  # noqa: E402
 from eofnn.data.history import HistorySpec  # noqa: E402
-from eofnn.sim import ActuatorGrid, Atmosphere, Layer, run_loop  # noqa: E402
+from eofnn.data.stream import DataConfig  # noqa: E402
+from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop  # noqa: E402
 from eofnn.sim.scenario import Scenario  # noqa: E402
 from eofnn.training.fit import fit_predictor  # noqa: E402
 
@@ -57,10 +58,10 @@ def main() -> None:
     rate, ramp_s, hold_s, end_gain = 1000.0, 10.0, 2.0, args.end_gain
     ramp, n_frames = int(ramp_s * rate), int((ramp_s + hold_s) * rate)
     atmosphere = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=(Layer(1.0, 10.0, 0.0),))
-    scenario = Scenario(ActuatorGrid(2.0, args.n_across), atmosphere, rate, 2, {"wfs_noise_nm": 5.0})
+    scenario = Scenario(ActuatorGrid(2.0, args.n_across), atmosphere, rate, Plant(delay_frames=2, wfs_noise_nm=5.0))
     spec = HistorySpec("closed_loop", 5, 2)
-    static = fit_predictor(scenario, spec, dither_nm=10.0, train_frames=5000, val_frames=500,
-                           sequence_frames=2500).predictor
+    data = DataConfig(frames=5000, val_frames=500, sequence_frames=2500, dither_nm=10.0)
+    static = fit_predictor(scenario, spec.kind, spec.history_length, data=data).predictor
     weights = static.network.weight.detach()
     analysis = analyse_filter(static.network, spec, LoopSetup.from_plant(scenario.plant))
     upper = analysis.gain_margin[1]

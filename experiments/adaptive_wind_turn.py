@@ -30,7 +30,8 @@ import torch  # noqa: E402
 
 from eofnn.control.adaptive import BlendController, RLSController  # noqa: E402
 from eofnn.data.history import HistorySpec  # noqa: E402
-from eofnn.sim import ActuatorGrid, Atmosphere, Layer, run_loop  # noqa: E402
+from eofnn.data.stream import DataConfig  # noqa: E402
+from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop  # noqa: E402
 from eofnn.sim.scenario import Scenario  # noqa: E402
 from eofnn.training.fit import fit_predictor  # noqa: E402
 
@@ -100,7 +101,7 @@ def main() -> None:
     def scenario(speed_mps: float, direction_deg: float) -> Scenario:
         atmosphere = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0,
                                 layers=(Layer(1.0, speed_mps, direction_deg),))
-        return Scenario(grid, atmosphere, rate, 2, {"wfs_noise_nm": 1.0})
+        return Scenario(grid, atmosphere, rate, Plant(delay_frames=2, wfs_noise_nm=1.0))
 
     if args.change == "direction":
         along_x, along_y, offset, label = scenario(10.0, 0.0), scenario(10.0, 90.0), 0, "wind turns by 90°"
@@ -110,9 +111,9 @@ def main() -> None:
         along_x, along_y, offset, label = scenario(10.0, 0.0), scenario(20.0, 0.0), switch // 2, "wind 10 -> 20 m/s"
         crossfade = 0
     spec = HistorySpec("open_loop", 6, 2)
-    fit = dict(train_frames=5000, val_frames=500, sequence_frames=2500)
-    static = fit_predictor(along_x, spec, **fit).predictor
-    retrained = fit_predictor(along_y, spec, **fit).predictor
+    data = DataConfig(frames=5000, val_frames=500, sequence_frames=2500)
+    static = fit_predictor(along_x, spec.kind, spec.history_length, data=data).predictor
+    retrained = fit_predictor(along_y, spec.kind, spec.history_length, data=data).predictor
     weights = static.network.weight.detach()
     turbulence = SplicedTurbulence(along_x.turbulence(9), along_y.turbulence(9), switch, offset, crossfade)
     controllers = {

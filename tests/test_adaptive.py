@@ -7,16 +7,17 @@ import torch
 
 from eofnn.control.adaptive import BlendController, RLSController, integrator_filter
 from eofnn.data.history import HistorySpec
+from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.sim import run_loop
 from eofnn.training.fit import fit_predictor
 
-FAST = dict(train_frames=3000, val_frames=500, sequence_frames=1000)
+FAST = DataConfig(frames=3000, val_frames=500, sequence_frames=1000, dither_nm=10.0)
 
 
 @pytest.fixture
 def noisy(small_scenario):
-    return small_scenario.with_model_errors(wfs_noise_nm=5.0)
+    return small_scenario.with_plant(wfs_noise_nm=5.0)
 
 
 def tail_rms(scenario, controller, n_frames=4000, plant=None):
@@ -27,7 +28,7 @@ def tail_rms(scenario, controller, n_frames=4000, plant=None):
 @pytest.mark.parametrize("kind, history_length", [("open_loop", 4), ("closed_loop", 5)])
 def test_rls_and_blend_converge_to_the_fitted_filter(noisy, kind, history_length):
     spec = HistorySpec(kind, history_length, 2)
-    fitted = fit_predictor(noisy, spec, dither_nm=10.0, **FAST).predictor
+    fitted = fit_predictor(noisy, kind, history_length, data=FAST).predictor
     _, static = tail_rms(noisy, fitted.controller())
     # Closed-loop blend needs excitation: unexcited closed-loop normal equations are (near-)singular.
     blend_dither = 2.0 if kind == "closed_loop" else 0.0
@@ -49,9 +50,9 @@ def test_rls_and_blend_converge_to_the_fitted_filter(noisy, kind, history_length
 def test_fallback_engages_when_the_loop_is_unstable(noisy, make):
     """Open-loop EOF with a DM applying 3x the command (margin ~1.4x): the fallback integrator takes over."""
     spec = HistorySpec("open_loop", 4, 2)
-    fitted = fit_predictor(noisy, spec, **FAST).predictor
+    fitted = fit_predictor(noisy, "open_loop", 4, data=FAST).predictor
     controller = make(spec, fitted.network.weight)
-    plant = noisy.with_model_errors(wfs_noise_nm=5.0, dm_gain=3.0).plant
+    plant = noisy.with_plant(dm_gain=3.0).plant
     result = run_loop(noisy.turbulence(9), plant, controller, 1500, record=())
     assert not result.diverged
     assert controller.fallback_frame is not None and controller.fallback_frame < 50
@@ -78,7 +79,7 @@ class SteppedTurbulence:
 
 def test_a_transient_does_not_trigger_the_fallback_unless_patience_is_one(noisy):
     spec = HistorySpec("open_loop", 4, 2)
-    fitted = fit_predictor(noisy, spec, **FAST).predictor
+    fitted = fit_predictor(noisy, "open_loop", 4, data=FAST).predictor
     shape = 150.0 * torch.randn(noisy.grid.n_actuators, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     outcomes = {}
     for patience in (None, 1):

@@ -11,13 +11,14 @@ import torch
 
 from eofnn.analysis.figures import plot_stability
 from eofnn.analysis.stability import LoopSetup, analyse, analyse_filter, analyse_integrator
+from eofnn.control.baselines import critical_gain
 from eofnn.data.history import HistorySpec
+from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
-from eofnn.models.controllers import critical_gain
 from eofnn.sim import ActuatorGrid, run_loop
 from eofnn.training.fit import fit_predictor
 
-FAST = dict(train_frames=3000, val_frames=500, sequence_frames=1000)
+FAST = DataConfig(frames=3000, val_frames=500, sequence_frames=1000, dither_nm=10.0)
 
 
 def fractional_integrator_peak(gain: float, delay_frames: float, n_frames: int = 6000, seed: int = 0) -> float:
@@ -77,15 +78,15 @@ def test_delay_margin_lands_on_the_critical_delay():
 def simulated_divergence(scenario, controller, dm_gain: float, predicted_modulus: float) -> bool:
     """Whether ``run_loop`` diverges at ``dm_gain``; long enough for a pole of ``predicted_modulus`` to grow 1e10x."""
     n_frames = 3000 if predicted_modulus < 1 else int(min(20000, max(1500, 25 / math.log(predicted_modulus))))
-    plant = scenario.with_model_errors(**{**scenario.model_errors, "dm_gain": dm_gain}).plant
+    plant = scenario.with_plant(dm_gain=dm_gain).plant
     return run_loop(scenario.turbulence(9), plant, controller, n_frames, record=()).diverged
 
 
 @pytest.mark.parametrize("kind, history_length", [("open_loop", 4), ("closed_loop", 5)])
 def test_fitted_eof_gain_margin_matches_simulation(small_scenario, kind, history_length):
-    scenario = small_scenario.with_model_errors(wfs_noise_nm=5.0)
+    scenario = small_scenario.with_plant(wfs_noise_nm=5.0)
     spec = HistorySpec(kind, history_length, 2)
-    predictor = fit_predictor(scenario, spec, dither_nm=10.0, **FAST).predictor
+    predictor = fit_predictor(scenario, kind, history_length, data=FAST).predictor
     result = analyse_filter(predictor.network, spec, LoopSetup.from_plant(scenario.plant))
     lower, upper = result.gain_margin
     assert result.stable and 0 < lower < 1 < upper < 3

@@ -24,11 +24,11 @@ from collections import deque
 
 import torch
 
+from eofnn.control.predictive import HistoryRing
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError, require
-from eofnn.models.predictive import HistoryRing
+from eofnn.seeding import torch_generator
 from eofnn.sim.loop import LoopInput
-from eofnn.sim.turbulence import stream_seed
 
 #: Controlled frames before the fallback's running median is trusted.
 ARM_FRAMES = 10
@@ -134,7 +134,7 @@ class AdaptiveController:
         self._open_loop_sum = torch.zeros(batch, dtype=torch.float64)
         self._open_loop_rms = torch.full((batch,), math.inf, dtype=torch.float64)
         self._frames_seen, self._out_dtype = 0, dtype
-        self._gen = torch.Generator().manual_seed(int(stream_seed(self.seed, "adaptive-dither").generate_state(1)[0]))
+        self._gen = torch_generator(self.seed, "adaptive-dither")
         self._reset_learning(batch, n_actuators, taps)
 
     @torch.no_grad()
