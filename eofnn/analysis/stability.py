@@ -31,6 +31,7 @@ import json
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
+from typing import ClassVar
 
 import torch
 
@@ -40,11 +41,13 @@ from eofnn.control.adaptive import integrator_filter
 from eofnn.data.history import HISTORY_KINDS, HistorySpec
 from eofnn.errors import require
 from eofnn.models.linear import LinearFilter
+from eofnn.validation import FINITE, Constraint, Interval, OrNone, validated
 
 STRUCTURES = ("per_actuator", "shared", "neighbourhood")
 
 
 @dataclass(frozen=True)
+@validated
 class LoopSetup:
     """The plant and the controller's own assumptions for a stability analysis.
 
@@ -76,18 +79,15 @@ class LoopSetup:
     frame_rate_hz: float = 1000.0
     max_extra_delay_frames: int = 10
 
-    def __post_init__(self) -> None:
-        require(isinstance(self.delay_frames, (int, float)) and math.isfinite(self.delay_frames)
-                and self.delay_frames >= 1, f"delay_frames={self.delay_frames!r} is invalid: it must be >= 1 (frames)")
-        for name in ("dm_gain", "wfs_gain", "dm_gain_model"):
-            value = getattr(self, name)
-            require(isinstance(value, (int, float)) and math.isfinite(value), f"{name}={value!r} is invalid: it must be finite")
-        c = self.controller_delay_frames
-        require(c is None or (isinstance(c, int) and c >= 1),
-                f"controller_delay_frames={c!r} is invalid: it must be an integer >= 1")
-        require(self.frame_rate_hz > 0, f"frame_rate_hz={self.frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
-        m = self.max_extra_delay_frames
-        require(isinstance(m, int) and m >= 1, f"max_extra_delay_frames={m!r} is invalid: it must be an integer >= 1")
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "delay_frames": Interval(1, 100, unit="frames"),
+        "dm_gain": FINITE,
+        "wfs_gain": FINITE,
+        "dm_gain_model": FINITE,
+        "controller_delay_frames": OrNone(Interval(1, 100, integer=True, unit="frames")),
+        "frame_rate_hz": Interval(0, None, closed="neither", unit="Hz"),
+        "max_extra_delay_frames": Interval(1, 100, integer=True, unit="frames"),
+    }
 
     @classmethod
     def from_plant(cls, plant, frame_rate_hz: float = 1000.0, dm_gain_model: float = 1.0,

@@ -29,6 +29,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError, require
 from eofnn.seeding import torch_generator
 from eofnn.sim.loop import LoopInput
+from eofnn.validation import COUNT, FINITE, FRACTION, NON_NEGATIVE, POSITIVE, Interval, check_value
 
 #: Controlled frames before the fallback's running median is trusted.
 ARM_FRAMES = 10
@@ -46,8 +47,8 @@ def integrator_filter(spec: HistorySpec, gain: float, leak: float = 0.0) -> torc
     ``y(n) = -gain s_hat(n-d)`` (the pseudo-open-loop integrator: with ``gain = 1``, perfect correction ``d`` frames
     late; ``leak`` does not apply).
     """
-    require(gain >= 0, f"integrator gain={gain!r} is invalid: it must be >= 0")
-    require(0 <= leak <= 1, f"integrator leak={leak!r} is invalid: it must be in [0, 1]")
+    check_value("gain", gain, NON_NEGATIVE, where="integrator ")
+    check_value("leak", leak, Interval(0, 1), where="integrator ")
     weights = torch.zeros(1, spec.n_taps, dtype=torch.float64)
     if spec.kind == "closed_loop":
         weights[0, 0], weights[0, spec.history_length] = 1.0 - leak, -gain
@@ -90,18 +91,16 @@ class AdaptiveController:
                  dither_nm: float = 0.0, integrator_gain: float = 0.5, fallback_factor: float = 10.0,
                  fallback_patience: int | None = None, median_frames: int = 200, seed: int = 0) -> None:
         require(isinstance(spec, HistorySpec), f"spec must be a HistorySpec, got {type(spec).__name__}")
-        require(math.isfinite(dm_gain_model) and dm_gain_model != 0,
-                f"dm_gain_model={dm_gain_model!r} is invalid: it must be finite and non-zero")
-        require(math.isfinite(dither_nm) and dither_nm >= 0, f"dither_nm={dither_nm!r} is invalid: it must be >= 0 (nm)")
-        require(math.isfinite(integrator_gain) and integrator_gain >= 0,
-                f"integrator_gain={integrator_gain!r} is invalid: it must be >= 0")
-        require(fallback_factor > 1, f"fallback_factor={fallback_factor!r} is invalid: it must be > 1")
+        check_value("dm_gain_model", dm_gain_model, FINITE)
+        require(dm_gain_model != 0, "dm_gain_model=0 is invalid: it must be non-zero")
+        check_value("dither_nm", dither_nm, Interval(0, None, unit="nm"))
+        check_value("integrator_gain", integrator_gain, NON_NEGATIVE)
+        check_value("fallback_factor", fallback_factor, Interval(1, None, closed="neither"))
         if fallback_patience is None:
             fallback_patience = 2 * (spec.history_length + spec.delay_frames)
-        require(isinstance(fallback_patience, int) and fallback_patience >= 1,
-                f"fallback_patience={fallback_patience!r} is invalid: it must be an integer >= 1")
-        require(isinstance(median_frames, int) and median_frames >= 1,
-                f"median_frames={median_frames!r} is invalid: it must be an integer >= 1")
+        check_value("fallback_patience", fallback_patience, COUNT)
+        check_value("median_frames", median_frames, COUNT)
+        check_value("seed", seed, Interval(0, 2**63 - 1, integer=True))
         if initial_weights is not None:
             initial_weights = initial_weights.detach().to(torch.float64).cpu()
             require(initial_weights.dim() == 2 and initial_weights.shape[1] == spec.n_taps,
@@ -240,10 +239,9 @@ class RLSController(AdaptiveController):
 
     def __init__(self, spec: HistorySpec, initial_weights: torch.Tensor | None = None, *, forgetting: float = 0.999,
                  prior_frames: float = 1.0, trace_cap: float = 1e8, **kwargs) -> None:
-        require(isinstance(forgetting, (int, float)) and 0 < forgetting <= 1,
-                f"forgetting={forgetting!r} is invalid: it must be in (0, 1]")
-        require(prior_frames > 0, f"prior_frames={prior_frames!r} is invalid: it must be > 0")
-        require(trace_cap >= 1, f"trace_cap={trace_cap!r} is invalid: it must be >= 1")
+        check_value("forgetting", forgetting, FRACTION)
+        check_value("prior_frames", prior_frames, POSITIVE)
+        check_value("trace_cap", trace_cap, Interval(1, None))
         super().__init__(spec, initial_weights, **kwargs)
         self.forgetting, self.prior_frames, self.trace_cap = float(forgetting), float(prior_frames), float(trace_cap)
 
@@ -316,12 +314,10 @@ class BlendController(AdaptiveController):
 
     def __init__(self, spec: HistorySpec, initial_weights: torch.Tensor | None = None, *, every_frames: int = 500,
                  window_frames: int = 2000, gain: float = 0.2, alpha: float = 1e-6, **kwargs) -> None:
-        require(isinstance(every_frames, int) and every_frames >= 1,
-                f"every_frames={every_frames!r} is invalid: it must be an integer >= 1")
-        require(isinstance(window_frames, int) and window_frames >= every_frames,
-                f"window_frames={window_frames!r} is invalid: it must be an integer >= every_frames={every_frames}")
-        require(isinstance(gain, (int, float)) and 0 < gain <= 1, f"blend gain={gain!r} is invalid: it must be in (0, 1]")
-        require(alpha >= 0, f"alpha={alpha!r} is invalid: it must be >= 0")
+        check_value("every_frames", every_frames, COUNT)
+        check_value("window_frames", window_frames, Interval(every_frames, None, integer=True, unit="frames"))
+        check_value("gain", gain, FRACTION, where="blend ")
+        check_value("alpha", alpha, NON_NEGATIVE)
         super().__init__(spec, initial_weights, **kwargs)
         self.every_frames, self.gain, self.alpha = every_frames, float(gain), float(alpha)
         self.window_blocks = -(-window_frames // every_frames)
