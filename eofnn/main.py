@@ -20,7 +20,7 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate, sweep
+from eofnn.cli import compare, fit, simulate, stability, sweep
 from eofnn.cli.configfile import check_config_file
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
@@ -31,6 +31,7 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn fit      --scenario configs/reference.yaml --predictor.history closed_loop --out runs/cl.ckpt
   eofnn evaluate --config configs/evaluate.yaml --out results/eval          # saved checkpoints under any plant
   eofnn simulate --scenario configs/reference.yaml --out runs/integrator.fits  # one controller -> telemetry
+  eofnn stability --checkpoint runs/cl.ckpt --scenario configs/reference.yaml --out results/stab  # margins
   eofnn sweep    --config configs/paper_small.yaml --grid GRID.yaml --out results/sweep  # a grid of compares
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
@@ -58,6 +59,8 @@ COMMANDS: dict[str, Command] = {
                         compare.run_evaluate),
     "simulate": Command("Simulate one controller and save telemetry.", simulate.DESCRIPTION, simulate.add_arguments,
                         simulate.run),
+    "stability": Command("Stability margins of a linear predictor in a plant.", stability.DESCRIPTION,
+                         stability.add_arguments, stability.run),
     "sweep": Command("A grid of compare runs: resumable, local or on Ray.", sweep.DESCRIPTION, sweep.add_arguments,
                      sweep.run),
 }

@@ -7,6 +7,8 @@ from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
+from eofnn.analysis.linear import controller_stability
+from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
@@ -152,16 +154,38 @@ class Experiment:
                           progress=self.progress, on_chunk=psd)
         return loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
 
+    def stability(self, name: str, scenario_name: str) -> dict | None:
+        """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
+        cfg = self.predictors[name]
+        predictor = self.predictor(name, scenario_name) if cfg.controller in NEEDS_PREDICTOR else None
+        result = controller_stability(cfg, predictor, self.scenarios[scenario_name])
+        return None if result is None else stability_summary(result)
+
     def run(self) -> ExperimentResult:
         metrics: dict[str, dict[str, LoopMetrics]] = {}
+        stability: dict[str, dict[str, dict]] = {}
         timings = {}
         for scenario_name in self.scenarios:
-            metrics[scenario_name] = {}
+            metrics[scenario_name], stability[scenario_name] = {}, {}
             for name in self.predictors:
                 start = time.perf_counter()
                 m = self.evaluate(name, scenario_name)
                 timings[f"{scenario_name}/{name}"] = round(time.perf_counter() - start, 3)
                 metrics[scenario_name][name] = m
-                shown = f"diverged at frame {m.diverged_frame}" if m.diverged else f"{m.median_rms_nm:.4g} nm"
-                self.log(f"{scenario_name:>12s} {name:>18s}: median RMS {shown}")
-        return ExperimentResult(metrics, dict(self.checkpoints), timings)
+                margins = self.stability(name, scenario_name)
+                if margins is not None:
+                    stability[scenario_name][name] = margins
+                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins)}")
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability)
+
+
+def _describe(m: LoopMetrics, margins: dict | None) -> str:
+    """One progress line: the median RMS (or where it diverged) and, for a linear controller, its DM gain margin."""
+    text = f"median RMS {'diverged at frame ' + str(m.diverged_frame) if m.diverged else f'{m.median_rms_nm:.4g} nm'}"
+    if margins is None:
+        return text
+    low, high = margins["dm_gain_interval"]
+    text += "; analytic: " + ("stable" if margins["stable"] else "unstable")
+    if margins["stable"] and low is not None and high is not None:
+        text += f" for DM gain {max(low, 0.0):.3g} to {high:.3g}"
+    return text
