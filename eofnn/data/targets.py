@@ -133,7 +133,8 @@ def grid_from_positions(positions_m: torch.Tensor | np.ndarray, tolerance: float
     n_across = int(round(float((pos.max(0) - pos.min(0)).max()) / pitch)) + 1
     radius = np.hypot(*(pos - centre).T)
     obstruction = float(radius.min() / (n_across * pitch / 2)) if radius.min() > pitch else 0.0
-    grid = ActuatorGrid(n_across * pitch, n_across, max(0.0, obstruction - 1e-9))
+    # Rounded to 12 digits: positions written in metres give back the diameter they were made from.
+    grid = ActuatorGrid(float(f"{n_across * pitch:.12g}"), n_across, max(0.0, float(f"{obstruction:.12g}") - 1e-9))
     ok = grid.n_actuators == len(pos) and np.abs(grid.positions_m - (pos - centre)).max() <= tolerance * pitch
     if not ok:
         raise TelemetryError(f"actuator positions ({len(pos)} actuators, pitch {pitch:.4g} m) are not the active "
