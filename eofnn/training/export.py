@@ -76,9 +76,9 @@ def export_filter(network: LinearFilter, spec: HistorySpec, path: str | Path, *,
              ("STRUCT", network.structure, "per_actuator, shared or neighbourhood"),
              ("DMGAIN", float(dm_gain_model), "DM gain of the POL reconstruction wfs - g y"),
              ("FIRST", spec.first_frame, "zero commands for the first FIRST steps"),
-             ("BUNIT", "nm/nm", "coefficients: nm of command per nm of input"),
-             ("INUNIT", "nm", "inputs: commands and WFS residuals, optical path"),
-             ("OUTUNIT", "nm", "output: DM command, optical path")]
+             ("BUNIT", "nm/nm", "coefficients: command nm per input nm"),
+             ("INUNIT", "nm", "inputs: commands, WFS residuals (OPD)"),
+             ("OUTUNIT", "nm", "output: DM command (OPD)")]
     if network.structure == "neighbourhood":
         cards.append(("RADIUS", float(network.radius), "neighbourhood radius in actuator pitches"))
     for key, value, comment in cards:
