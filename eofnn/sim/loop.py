@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import torch
 from tqdm.auto import tqdm
 
 from eofnn.errors import require
+from eofnn.seeding import torch_generator
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
-from eofnn.sim.turbulence import Turbulence, stream_seed
+from eofnn.sim.turbulence import Turbulence
 
 
 @dataclass
@@ -69,7 +70,6 @@ class LoopResult:
     turbulence_rms_nm: torch.Tensor
     diverged: bool = False
     diverged_frame: int | None = None
-    info: dict = field(default_factory=dict)
 
 
 def run_loop(
@@ -121,7 +121,7 @@ def run_loop(
     batch, n_act, delay = turbulence.n_realisations, grid.n_actuators, plant.delay_frames
     dtype = torch.float64
     controller.reset(batch, n_act, delay, dtype)
-    generator = torch.Generator().manual_seed(int(stream_seed(noise_seed, "wfs-noise").generate_state(1)[0]))
+    generator = torch_generator(noise_seed, "wfs-noise")
     # Ring buffers of the last `delay` measurements and turbulence frames: slot n % delay holds frame n - delay.
     wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
     turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype)

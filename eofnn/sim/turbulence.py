@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import functools
 import math
-import zlib
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import hcipy
 import numpy as np
@@ -21,7 +21,9 @@ import torch
 from scipy.ndimage import spline_filter1d
 
 from eofnn.errors import require
+from eofnn.seeding import stream_seed
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, check_value, validated
 
 #: HCIPy's achromatic screen is phase x wavelength, i.e. 2 pi x OPD in metres; this converts it to OPD in nm.
 _NM_PER_SCREEN_UNIT = 1e9 / (2 * np.pi)
@@ -32,6 +34,7 @@ _PREFILTER_MARGIN = 48
 
 
 @dataclass(frozen=True)
+@validated
 class Layer:
     """One frozen-flow layer.
 
@@ -49,12 +52,15 @@ class Layer:
     wind_speed_mps: float = 5.1
     wind_direction_deg: float = 0.0
 
-    def __post_init__(self) -> None:
-        require(self.cn2_fraction > 0, f"cn2_fraction={self.cn2_fraction!r} is invalid: it must be > 0")
-        require(self.wind_speed_mps >= 0, f"wind_speed_mps={self.wind_speed_mps!r} is invalid: it must be >= 0 (m/s)")
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "cn2_fraction": POSITIVE,
+        "wind_speed_mps": Interval(0, 1000, unit="m/s"),
+        "wind_direction_deg": Interval(-360, 360, unit="degrees"),
+    }
 
 
 @dataclass(frozen=True)
+@validated
 class Atmosphere:
     """Turbulence profile.
 
@@ -84,32 +90,26 @@ class Atmosphere:
     interpolation_order: int = 5
     remove_ptt: bool = True
 
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "r0_m": Interval(0, 100, closed="right", unit="m"),
+        "r0_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
+        "outer_scale_m": Interval(0, 1e4, closed="right", unit="m"),
+        "oversampling": Interval(1, 16, integer=True),
+        "interpolation_order": OneOf((1, 3, 5)),
+        "remove_ptt": IsBool(),
+    }
+
     def __post_init__(self) -> None:
-        require(self.r0_m > 0, f"r0_m={self.r0_m!r} is invalid: it must be > 0 (metres)")
-        require(self.r0_wavelength_m > 0, f"r0_wavelength_m={self.r0_wavelength_m!r} is invalid: it must be > 0 (metres)")
-        require(self.outer_scale_m > 0, f"outer_scale_m={self.outer_scale_m!r} is invalid: it must be > 0 (metres)")
-        require(len(self.layers) >= 1, "layers is empty: give at least one layer")
-        require(
-            isinstance(self.oversampling, int) and self.oversampling >= 1,
-            f"oversampling={self.oversampling!r} is invalid: it must be an integer >= 1",
-        )
-        require(
-            self.interpolation_order in (1, 3, 5),
-            f"interpolation_order={self.interpolation_order!r} is invalid: allowed are 1, 3, 5",
-        )
+        require(isinstance(self.layers, (tuple, list)) and len(self.layers) >= 1,
+                f"layers={self.layers!r} is invalid: give a list of at least one layer")
         layers = tuple(Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers)
+        require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
         object.__setattr__(self, "layers", layers)
 
     def layer_r0_m(self, layer: Layer) -> float:
         """Fried parameter of one layer at ``r0_wavelength_m`` (r0 scales as Cn² to the -3/5)."""
         total = sum(lay.cn2_fraction for lay in self.layers)
         return self.r0_m * (layer.cn2_fraction / total) ** (-3 / 5)
-
-
-def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:
-    """Seed for one named stream (``"train"``, ``"test"``, ...) and sub-key; distinct names never share draws."""
-    require(isinstance(seed, (int, np.integer)) and seed >= 0, f"seed={seed!r} is invalid: it must be an integer >= 0")
-    return np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(stream.encode()), *key))
 
 
 @functools.cache
@@ -344,8 +344,8 @@ class Turbulence:
         stream: str = "test",
         n_realisations: int = 1,
     ) -> None:
-        require(frame_rate_hz > 0, f"frame_rate_hz={frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
-        require(n_realisations >= 1, f"n_realisations={n_realisations!r} is invalid: it must be >= 1")
+        check_value("frame_rate_hz", frame_rate_hz, POSITIVE)
+        check_value("n_realisations", n_realisations, COUNT)
         self.atmosphere = atmosphere
         self.grid = grid
         self.n_realisations = n_realisations
@@ -363,10 +363,10 @@ class Turbulence:
         ]
         self._ptt = torch.as_tensor(grid.ptt_basis())
 
-    def frames(self, start: int, stop: int, remove_ptt: bool | None = None) -> torch.Tensor:
+    def frames(self, start: int, stop: int) -> torch.Tensor:
         """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
         require(0 <= start <= stop, f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop")
-        basis = self._ptt if (self.atmosphere.remove_ptt if remove_ptt is None else remove_ptt) else None
+        basis = self._ptt if self.atmosphere.remove_ptt else None
         return torch.stack([sum(strip.frames(start, stop, basis) for strip in strips) for strips in self._strips])
 
     def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
