@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from eofnn.analysis.replay import replay, replay_figure
+from eofnn.control import Dithered, Integrator, PredictiveController
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.data.targets import TelemetryBatches, grid_from_positions
 from eofnn.errors import TelemetryError
-from eofnn.models.controllers import Dithered, Integrator
 from eofnn.models.linear import LinearFilter
-from eofnn.models.predictive import PredictiveController
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
+from eofnn.sim.plant import Plant
 from eofnn.sim.scenario import Scenario
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
@@ -26,7 +26,7 @@ SPEC = {"open_loop": HistorySpec("open_loop", 4, 2), "closed_loop": HistorySpec(
 def scenario(**model_errors) -> Scenario:
     """10 actuators across a 2 m pupil (76 active), one 10 m/s layer, 1 kHz, two-frame delay."""
     atmosphere = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=(Layer(1.0, 10.0, 0.0),))
-    return Scenario(ActuatorGrid(2.0, 10), atmosphere, 1000.0, 2, model_errors)
+    return Scenario(ActuatorGrid(2.0, 10), atmosphere, 1000.0, Plant(delay_frames=2, **model_errors))
 
 
 def record(sc: Scenario, stream: str, frames: int, controller=None, seed: int = 1) -> Telemetry:

@@ -7,10 +7,10 @@ import warnings
 import pytest
 import torch
 
-from eofnn.errors import TelemetryError
-from eofnn.models.controllers import Dithered, Integrator
+from eofnn.control import Dithered, Integrator
+from eofnn.errors import OutputExistsError, TelemetryError
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
-from eofnn.sim.plant import PlantModel
+from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.training.identify import IdentifiedPlant, PlantNotIdentifiedWarning, identify_plant
 
@@ -24,7 +24,7 @@ PLANTS = {
 def scenario(**model_errors) -> Scenario:
     """12 actuators across a 2 m pupil (112 active), one 10 m/s layer, 1 kHz, two-frame delay."""
     atmosphere = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=(Layer(1.0, 10.0, 0.0),))
-    return Scenario(ActuatorGrid(2.0, 12), atmosphere, 1000.0, 2, model_errors)
+    return Scenario(ActuatorGrid(2.0, 12), atmosphere, 1000.0, Plant(delay_frames=2, **model_errors))
 
 
 def record(model_errors: dict, dither_nm: float = 10.0, frames: int = 3000) -> Telemetry:
@@ -82,7 +82,7 @@ def test_json_round_trip(telemetry, tmp_path):
     plant.to_json(path)
     back = IdentifiedPlant.from_json(path)
     assert back == plant
-    with pytest.raises(FileExistsError):
+    with pytest.raises(OutputExistsError):
         plant.to_json(path)
 
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 from astropy.io import fits
 
+from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
-from eofnn.errors import ConfigError
+from eofnn.errors import ConfigError, OutputExistsError
 from eofnn.models.linear import LinearFilter
-from eofnn.models.predictive import PredictiveController
 from eofnn.runtime import FilterFileError, PredictiveFilter
 from eofnn.sim import LoopInput, run_loop
 from eofnn.training.export import export_filter, filter_taps
@@ -114,7 +114,7 @@ def test_bad_filters(small_scenario, tmp_path):
     with pytest.raises(ConfigError, match="taps"):
         export_filter(net, HistorySpec("open_loop", 3, 2), tmp_path / "x.fits")
     path = export_filter(net, spec, tmp_path / "x.fits")
-    with pytest.raises(FileExistsError):
+    with pytest.raises(OutputExistsError):
         export_filter(net, spec, path)
     with pytest.raises(FilterFileError, match="does not exist"):
         PredictiveFilter.from_file(tmp_path / "none.fits")

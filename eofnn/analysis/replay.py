@@ -30,6 +30,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.data.targets import check_sequences, pol_reconstruction, telemetry_grid, telemetry_history
 from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
+from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.from_telemetry import resolve_plant
@@ -71,10 +72,7 @@ class ReplayResult:
     def to_json(self, path: str | Path | None = None, overwrite: bool = False) -> str:
         text = json.dumps(asdict(self), indent=1)
         if path is not None:
-            path = Path(path)
-            if path.exists() and not overwrite:
-                raise FileExistsError(f"{path} exists: pass overwrite=True to replace it")
-            path.write_text(text)
+            write_text_atomic(check_output_file(path, overwrite), text)
         return text
 
 

@@ -10,6 +10,7 @@ import torch
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.models.linear import LinearFilter
+from eofnn.outputs import check_output_file, staged_file
 from eofnn.runtime import FORMAT_VERSION
 
 
@@ -64,8 +65,7 @@ def export_filter(network: LinearFilter, spec: HistorySpec, path: str | Path, *,
     path = Path(path)
     if path.suffix.lower() not in (".fits", ".fit"):
         raise ConfigError(f"filter file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits")
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists: pass overwrite=True to replace it")
+    check_output_file(path, overwrite)  # before any work
     coefficients, neighbours = filter_coefficients(network)
     primary = fits.PrimaryHDU(coefficients)
     cards = [("EOFNNFLT", FORMAT_VERSION, "eofnn linear filter format version"),
@@ -94,5 +94,6 @@ def export_filter(network: LinearFilter, spec: HistorySpec, path: str | Path, *,
         hdus.append(fits.ImageHDU(neighbours.astype(np.int32), name="NEIGHBOURS"))
     if positions_m is not None:
         hdus.append(fits.ImageHDU(np.asarray(positions_m, dtype=np.float64), name="POSITIONS"))
-    fits.HDUList(hdus).writeto(path, overwrite=overwrite)
+    with staged_file(path, overwrite) as partial:
+        fits.HDUList(hdus).writeto(partial)
     return path

@@ -11,20 +11,18 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import torch
 from torch import nn
 
+from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import TelemetryBatches, check_sequences, telemetry_grid
 from eofnn.errors import ConfigError, TelemetryError
 from eofnn.models.linear import LinearFilter
-from eofnn.models.predictive import PredictiveController
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.identify import IdentifiedPlant
-from eofnn.training.ridge import NormalEquations
-from eofnn.training.task import supports_closed_form
+from eofnn.training.ridge import fit_closed_form, supports_closed_form
 
 
 @dataclass
@@ -37,7 +35,6 @@ class TelemetryFit:
     model_errors: dict
     plant_source: str
     train_loss: float
-    n_samples: int
     info: dict = field(default_factory=dict)
 
     def controller(self) -> PredictiveController:
@@ -50,7 +47,7 @@ def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int, grid:
     if isinstance(plant, IdentifiedPlant):
         return plant.dm_response("model"), float(plant.dm_gain or 0.0), plant.model_errors(), "identified"
     errors = dict(plant or {})
-    model = Plant.from_model_errors(delay_frames, errors)
+    model = Plant(delay_frames=delay_frames).with_errors(**errors)
     if model.misregistration_x or model.misregistration_y:
         if grid is None:
             raise TelemetryError("a misregistered DM model needs the actuator grid: put positions_m in the telemetry")
@@ -95,11 +92,6 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
         raise ConfigError(f"{type(network).__name__} has no closed-form interface (features, group_targets, "
                           "load_solution): train it with the Lightning task on TelemetryBatches")
     batches = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=stop)
-    normal_equations = NormalEquations()
-    with torch.no_grad():
-        for history, target in batches:
-            normal_equations.update(network.features(history), network.group_targets(target))
-    solution = normal_equations.solve(alpha, alpha_relative)
-    network.load_solution(solution.weights)
-    return TelemetryFit(network, spec, dm_gain, errors, source, normal_equations.loss(solution.weights),
-                        normal_equations.n_samples, {"condition": solution.condition, "n_sequences": len(sequences)})
+    fitted = fit_closed_form(network, batches, alpha, alpha_relative)
+    return TelemetryFit(network, spec, dm_gain, errors, source, fitted.train_loss,
+                        {"condition": fitted.condition, "n_sequences": len(sequences)})

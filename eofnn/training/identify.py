@@ -60,11 +60,12 @@ from pathlib import Path
 import torch
 
 from eofnn.data.targets import check_sequences, telemetry_grid
-from eofnn.errors import ConfigError, TelemetryError, require
+from eofnn.errors import CollinearityWarning, ConfigError, TelemetryError, require
+from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
-from eofnn.training.ridge import CollinearityWarning, NormalEquations
+from eofnn.training.ridge import NormalEquations
 
 
 class PlantNotIdentifiedWarning(UserWarning):
@@ -112,13 +113,10 @@ class IdentifiedPlant:
         return asdict(self)
 
     def to_json(self, path: str | Path | None = None, overwrite: bool = False) -> str:
-        """The result as JSON (``plant.json``); written to ``path`` if given (never over a file unless asked)."""
+        """The result as JSON (``plant.json``); written to ``path`` if given (an existing file only if ``overwrite``)."""
         text = json.dumps(self.to_dict(), indent=1)
         if path is not None:
-            path = Path(path)
-            if path.exists() and not overwrite:
-                raise FileExistsError(f"{path} exists: pass overwrite=True to replace it")
-            path.write_text(text)
+            write_text_atomic(check_output_file(path, overwrite), text)
         return text
 
     @classmethod
@@ -136,14 +134,14 @@ class IdentifiedPlant:
             raise TelemetryError("the plant was not identified (the telemetry holds no dither): give a plant instead")
 
     def model_errors(self) -> dict[str, float]:
-        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.from_model_errors`."""
+        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`."""
         self._require()
         return {"dm_gain": self.dm_gain, "misregistration_x": self.misregistration_x,
                 "misregistration_y": self.misregistration_y}
 
     def plant(self) -> Plant:
         """The identified plant as an eofnn :class:`~eofnn.sim.plant.Plant` (linear DM, no noise)."""
-        return Plant.from_model_errors(self.delay_frames, self.model_errors())
+        return Plant(delay_frames=self.delay_frames).with_errors(**self.model_errors())
 
     def dm_response(self, kind: str = "model"):
         """``y -> DM(y)`` (nm): the fitted gain + misregistration (``"model"``) or the raw coupling (``"sparse"``)."""
