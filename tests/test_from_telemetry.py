@@ -16,9 +16,11 @@ from eofnn.models.linear import LinearFilter
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
 from eofnn.sim.plant import Plant
 from eofnn.sim.scenario import Scenario
+from eofnn.training.checkpoint import load_predictor
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.ridge import NormalEquations
+from eofnn.training.task import OptimizationConfig
 
 SPEC = {"open_loop": HistorySpec("open_loop", 4, 2), "closed_loop": HistorySpec("closed_loop", 4, 2)}
 
@@ -130,3 +132,21 @@ def test_batches_and_bad_telemetry(unknown_plant):
     with pytest.raises(TelemetryError, match="misregistered DM model needs the actuator grid"):
         fit_from_telemetry(Telemetry(y=tel.y, wfs=tel.wfs, delay_frames=2), spec, plant={"misregistration_x": 0.2})
     assert torch.isfinite(fit_from_telemetry(tel, spec, plant={"dm_gain": 2.0}).network.weight).all()
+
+
+def test_mlp_by_sgd_and_checkpoints(unknown_plant, tmp_path):
+    """Any network trains on telemetry through the one Lightning task; the checkpoint says it learnt from telemetry."""
+    sc, tel, plant = unknown_plant
+    spec = SPEC["open_loop"]
+    mlp = {"class_path": "MLP", "init_args": {"hidden": [16], "scale_nm": 50.0}}
+    fitted = fit_from_telemetry(tel, spec, mlp, plant=plant, val_frames=500, checkpoint_path=tmp_path / "mlp.ckpt",
+                                optimization=OptimizationConfig(fit_method="sgd", lr=3e-3, epochs=2, accelerator="cpu"))
+    assert fitted.val_loss is not None and fitted.train_loss is not None
+    loaded = load_predictor(tmp_path / "mlp.ckpt", sc)
+    assert loaded.info["targets"] == "telemetry" and loaded.info["dm_gain_model"] == pytest.approx(2.0, rel=0.02)
+    history = torch.randn(7, sc.grid.n_actuators, spec.n_taps, generator=torch.Generator().manual_seed(0),
+                          dtype=torch.float64)
+    assert torch.allclose(loaded.network(history), fitted.network(history))
+    linear = fit_from_telemetry(tel, spec, plant=plant, val_frames=500, checkpoint_path=tmp_path / "eof.ckpt")
+    assert linear.val_loss < fitted.val_loss  # a linear EOF in closed form beats a 2-epoch MLP here
+    assert torch.equal(load_predictor(tmp_path / "eof.ckpt").network.weight, linear.network.weight)

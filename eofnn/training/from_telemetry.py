@@ -9,37 +9,52 @@ which is what the study's open-loop EOF does and why it fails under a DM gain er
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
+import lightning as L
 from torch import nn
+from torch.utils.data import DataLoader
 
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import TelemetryBatches, check_sequences, telemetry_grid
-from eofnn.errors import ConfigError, TelemetryError
-from eofnn.models.linear import LinearFilter
+from eofnn.errors import TelemetryError
+from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
+from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, _trainer
 from eofnn.training.identify import IdentifiedPlant
-from eofnn.training.ridge import fit_closed_form, supports_closed_form
+from eofnn.training.ridge import fit_closed_form
+from eofnn.training.task import OptimizationConfig, PredictorTask
 
 
 @dataclass
 class TelemetryFit:
-    """A predictor fitted from telemetry, the plant it was fitted through, and its training loss (nm², commands)."""
+    """A predictor fitted from telemetry, the DM model it was fitted through, its losses (nm² of command) and
+    checkpoint."""
 
-    network: nn.Module
-    spec: HistorySpec
+    predictor: TrainedPredictor
     dm_gain: float
     model_errors: dict
     plant_source: str
-    train_loss: float
+    train_loss: float | None
+    val_loss: float | None
+    checkpoint: Path | None = None
     info: dict = field(default_factory=dict)
+
+    @property
+    def network(self) -> nn.Module:
+        return self.predictor.network
+
+    @property
+    def spec(self) -> HistorySpec:
+        return self.predictor.spec
 
     def controller(self) -> PredictiveController:
         """Loop-side controller; open loop reconstructs POL values with the DM gain the fit assumed."""
-        return PredictiveController(self.network, self.spec, self.dm_gain if self.spec.kind == "open_loop" else 1.0)
+        return self.predictor.controller(self.dm_gain if self.spec.kind == "open_loop" else 1.0)
 
 
 def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int, grid: ActuatorGrid | None):
@@ -55,11 +70,12 @@ def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int, grid:
     return (lambda y: model.dm_gain * y), model.dm_gain, errors, "given" if errors else "nominal"
 
 
-def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec, network: nn.Module | None = None,
+def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec, network: dict | None = None,
                        *, plant: IdentifiedPlant | dict | None = None, grid: ActuatorGrid | None = None,
-                       alpha: float = 1e-9, alpha_relative: bool = True, batch_frames: int = 1024,
-                       stop: int | None = None) -> TelemetryFit:
-    """Fit a linear predictor in closed form (streamed ridge normal equations) on telemetry alone.
+                       optimization: OptimizationConfig | None = None, batch_frames: int = 1024, stop: int | None = None,
+                       val_frames: int = 0, seed: int = 0, checkpoint_path: str | Path | None = None,
+                       overwrite: bool = False, progress: bool = False, info: dict | None = None) -> TelemetryFit:
+    """Train a predictor on telemetry alone (the telemetry twin of :func:`eofnn.training.fit.fit_predictor`).
 
     Parameters
     ----------
@@ -67,31 +83,66 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
         Recorded ``y`` and ``wfs`` (nm): one or several files, batched or not.
     spec : HistorySpec
         History kind, length and delay (the delay must be the telemetry's).
-    network : nn.Module, optional
-        A network with the closed-form interface (:class:`~eofnn.models.linear.LinearFilter`); by default a
-        per-actuator linear filter (the study's EOF). Its previous weights are overwritten.
+    network : dict, optional
+        ``{"class_path": ..., "init_args": {...}}``; a per-actuator linear filter (the study's EOF) by default.
     plant : IdentifiedPlant, dict or None
         The DM model for POL values and targets: an identification result, a dict of model errors
         (``dm_gain``, ``misregistration_x``, ``misregistration_y``), or None for the nominal ``DM(y) = y``.
     grid : ActuatorGrid, optional
-        Needed for a misregistered DM model given as a dict, when the telemetry holds no positions.
-    alpha, alpha_relative : float, bool
-        Ridge parameter (see :meth:`~eofnn.training.ridge.NormalEquations.solve`).
+        The actuator grid, when the telemetry holds no positions (neighbourhood filters and misregistered DM models
+        need it).
+    optimization : OptimizationConfig
+        Closed form (linear networks, one streamed pass) or SGD (any network, e.g. the MLP).
     batch_frames : int
         Frames per streamed batch.
     stop : int, optional
-        Use frames before ``stop`` only (keep the rest for :func:`eofnn.analysis.replay.replay`).
+        Train on frames before ``stop`` only (keep the rest for :func:`eofnn.analysis.replay.replay`).
+    val_frames : int
+        The last ``val_frames`` frames (before ``stop``) of each sequence are held out as validation.
+    seed : int
+        Seed of network initialisation and SGD.
+    checkpoint_path : path, optional
+        Where to write a checkpoint that :func:`eofnn.training.checkpoint.load_predictor` reads.
+    info : dict, optional
+        Provenance recorded in the checkpoint (e.g. the telemetry files).
     """
     sequences = check_sequences(telemetry, spec)
-    n_act = sequences[0].y.shape[-1]
+    optimization = optimization or OptimizationConfig()
+    if checkpoint_path is not None:
+        checkpoint_path = check_output_file(checkpoint_path, overwrite, "checkpoint")
+    n_act, n_frames = sequences[0].y.shape[-1], min(seq.y.shape[0] for seq in sequences)
     first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
-    dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, telemetry_grid(first_item, grid))
-    if network is None:
-        network = LinearFilter(n_act, spec.n_taps)
-    if not supports_closed_form(network):
-        raise ConfigError(f"{type(network).__name__} has no closed-form interface (features, group_targets, "
-                          "load_solution): train it with the Lightning task on TelemetryBatches")
-    batches = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=stop)
-    fitted = fit_closed_form(network, batches, alpha, alpha_relative)
-    return TelemetryFit(network, spec, dm_gain, errors, source, fitted.train_loss,
-                        {"condition": fitted.condition, "n_sequences": len(sequences)})
+    grid = telemetry_grid(first_item, grid)
+    dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, grid)
+    train_stop = (stop if stop is not None else n_frames) - val_frames
+    if train_stop <= spec.first_frame or (val_frames and val_frames <= spec.first_frame):
+        raise TelemetryError(f"stop={stop}, val_frames={val_frames}: {n_frames} frames leave no training or "
+                             f"validation history (each needs more than {spec.first_frame} frames)")
+    grid_dict = None if grid is None else {"diameter_m": grid.diameter_m, "n_across": grid.n_across,
+                                           "obstruction": grid.obstruction}
+    info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
+            "n_sequences": len(sequences), **(info or {})}
+    L.seed_everything(seed, workers=True, verbose=False)
+    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict, asdict(optimization), info)
+    train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
+    val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
+                           stop=train_stop + val_frames) if val_frames else None
+    trainer = _trainer(optimization, progress)
+    train_loss = val_loss = None
+    if optimization.fit_method == "closed_form":
+        train_loss = fit_closed_form(task.network, train, optimization.alpha, optimization.alpha_relative).train_loss
+        if val is not None or checkpoint_path is not None:  # validating also attaches the trainer that saves
+            metrics = trainer.validate(task, dataloaders=DataLoader(val or train, batch_size=None), verbose=False)[0]
+            val_loss = metrics["val_loss"] if val is not None else None
+    else:
+        trainer.fit(task, train_dataloaders=DataLoader(train, batch_size=None),
+                    val_dataloaders=DataLoader(val, batch_size=None) if val is not None else None)
+        metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+        train_loss, val_loss = metrics.get("train_loss"), metrics.get("val_loss")
+    network_config = task.hparams.network
+    predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info)
+    if checkpoint_path is not None:
+        with staged_file(checkpoint_path, overwrite) as partial:
+            trainer.save_checkpoint(partial)
+    return TelemetryFit(predictor, dm_gain, errors, source, train_loss, None if val_loss is None else float(val_loss),
+                        checkpoint_path, info)
