@@ -20,7 +20,7 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate
+from eofnn.cli import compare, fit, simulate, telemetry
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
 DESCRIPTION = """\
@@ -30,6 +30,10 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn fit      --scenario configs/reference.yaml --predictor.history closed_loop --out runs/cl.ckpt
   eofnn evaluate --config configs/evaluate.yaml --out results/eval          # saved checkpoints under any plant
   eofnn simulate --scenario configs/reference.yaml --out runs/integrator.fits  # one controller -> telemetry
+  eofnn identify --telemetry run.fits --out plant.json                     # plant from dithered telemetry
+  eofnn fit      --telemetry run.fits --plant plant.json --out runs/ol.ckpt  # train on telemetry alone
+  eofnn replay   --checkpoint runs/ol.ckpt --telemetry held_out.fits --out results/replay
+  eofnn export   --checkpoint runs/ol.ckpt --out filter.fits                # for eofnn.runtime / any RTC
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -56,6 +60,12 @@ COMMANDS: dict[str, Command] = {
                         compare.run_evaluate),
     "simulate": Command("Simulate one controller and save telemetry.", simulate.DESCRIPTION, simulate.add_arguments,
                         simulate.run),
+    "identify": Command("Identify the plant from dithered telemetry.", telemetry.IDENTIFY,
+                        telemetry.add_identify_arguments, telemetry.run_identify),
+    "replay": Command("Replay a checkpoint on held-out telemetry.", telemetry.REPLAY, telemetry.add_replay_arguments,
+                      telemetry.run_replay),
+    "export": Command("Export a linear predictor as filter FITS.", telemetry.EXPORT, telemetry.add_export_arguments,
+                      telemetry.run_export),
 }
 
 

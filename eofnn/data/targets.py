@@ -16,6 +16,7 @@ The noise in ``s_hat(n)`` is independent of every history that predicts frame ``
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -24,7 +25,7 @@ from torch.utils.data import IterableDataset
 from eofnn.data.history import HistorySpec, build_history, open_loop_history
 from eofnn.errors import TelemetryError
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.telemetry import Telemetry
+from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 
 #: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
 DMResponse = Callable[[torch.Tensor], torch.Tensor]
@@ -115,6 +116,14 @@ class TelemetryBatches(IterableDataset):
                 y, wfs = seq.y[window], seq.wfs[window]
                 yield (telemetry_history(wfs, y, self.spec, self.dm_response),
                        telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))
+
+
+def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
+    """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs``."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    if not paths:
+        raise TelemetryError("no telemetry file given")
+    return [Telemetry.load(path, required=TELEMETRY_REQUIRED) for path in paths]
 
 
 def grid_from_positions(positions_m: torch.Tensor | np.ndarray, tolerance: float = 1e-3) -> ActuatorGrid:

@@ -129,13 +129,14 @@ class IdentifiedPlant:
         except (json.JSONDecodeError, TypeError) as err:
             raise ConfigError(f"plant file {str(path)!r} is not an eofnn plant.json ({type(err).__name__})") from None
 
-    def _require(self) -> None:
+    def require_identified(self) -> None:
+        """One-line :class:`TelemetryError` unless the plant was identified."""
         if not self.identified:
             raise TelemetryError("the plant was not identified (the telemetry holds no dither): give a plant instead")
 
     def model_errors(self) -> dict[str, float]:
         """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`."""
-        self._require()
+        self.require_identified()
         return {"dm_gain": self.dm_gain, "misregistration_x": self.misregistration_x,
                 "misregistration_y": self.misregistration_y}
 
@@ -145,7 +146,7 @@ class IdentifiedPlant:
 
     def dm_response(self, kind: str = "model"):
         """``y -> DM(y)`` (nm): the fitted gain + misregistration (``"model"``) or the raw coupling (``"sparse"``)."""
-        self._require()
+        self.require_identified()
         require(kind in ("model", "sparse"), f"dm_response kind={kind!r} is invalid: allowed are model, sparse")
         if kind == "model":
             return PlantModel(self.plant(), ActuatorGrid(**self.grid)).apply_dm
