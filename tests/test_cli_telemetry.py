@@ -28,7 +28,7 @@ def test_identify_fit_replay_export(tmp_path, capsys):
     recorded, held_out = tmp_path / "run.fits", tmp_path / "held_out.npz"
     simulate(capsys, recorded, 1)
     simulate(capsys, held_out, 2)
-    code, err = run(capsys, "identify", "--telemetry", f"[{recorded}]", "--out", tmp_path / "plant.json")
+    code, err = run(capsys, "identify", "--telemetry", recorded, "--out", tmp_path / "plant.json")
     assert code == 0, err
     plant = json.loads((tmp_path / "plant.json").read_text())
     assert plant["identified"] and abs(plant["dm_gain"] - 2.0) < 0.04 and plant["lag_frames"] == 0

@@ -35,8 +35,9 @@ PLANT_HELP = ("DM model for POL values and targets: 'identify' (from this teleme
 
 def _base(parser: ArgumentParser, out_help: str) -> None:
     parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
-    parser.add_argument("--telemetry", type=list[str], required=True,
-                        help="Telemetry file(s), .fits or .npz, with y and wfs in nm (several: one plant).")
+    parser.add_argument("--telemetry", type=str | list[str], required=True,
+                        help="Telemetry file, .fits or .npz, with y and wfs in nm, or a list [a.fits, b.fits] of files "
+                             "of one plant.")
     parser.add_argument("--out", type=str, required=True, help=out_help)
     parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
 
@@ -59,11 +60,15 @@ def add_identify_arguments(parser: ArgumentParser) -> None:
     parser.add_argument("--max_lag", type=int | None, default=None, help="Largest WFS lag searched (frames).")
 
 
+def _files(value: str | list[str]) -> list[str]:
+    return [value] if isinstance(value, str) else list(value)
+
+
 def run_identify(cfg, config_dump: str) -> dict:
     out = check_output_file(cfg.out, cfg.overwrite)
     telemetry = load_telemetry(cfg.telemetry)
     plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag)
-    plant.settings["telemetry"] = list(cfg.telemetry)
+    plant.settings["telemetry"] = _files(cfg.telemetry)
     plant.to_json(out, overwrite=cfg.overwrite)
     keys = ("identified", "dm_gain", "dm_gain_se", "misregistration_x", "misregistration_x_se", "misregistration_y",
             "misregistration_y_se", "lag_frames", "wfs_noise_nm", "wfs_noise_nm_se")
@@ -74,7 +79,7 @@ def run_identify(cfg, config_dump: str) -> dict:
 
 def add_fit_telemetry_arguments(parser: ArgumentParser) -> None:
     """What ``eofnn fit`` adds for training from telemetry alone."""
-    parser.add_argument("--telemetry", type=list[str] | None, default=None,
+    parser.add_argument("--telemetry", type=str | list[str] | None, default=None,
                         help="Train from these telemetry files alone (y, wfs) instead of simulating the scenario; the "
                              "last predictor.data.val_frames frames (at most a fifth) are held out for validation.")
     parser.add_argument("--plant", type=str, default="identify", help=f"With --telemetry: {PLANT_HELP}")
@@ -87,11 +92,11 @@ def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
     plant = resolve_plant_option(cfg.plant, telemetry)
     frames = min(seq.y.shape[0] for t in telemetry for seq in t.sequences())
     log(f"fitting {p.history} predictor, history {p.history_length}, {p.optimization.fit_method}, from telemetry "
-        f"{', '.join(cfg.telemetry)} ({frames} frames), plant {cfg.plant}")
+        f"{', '.join(_files(cfg.telemetry))} ({frames} frames), plant {cfg.plant}")
     return fit_from_telemetry(telemetry, spec, p.network, plant=plant, optimization=p.optimization,
                               batch_frames=p.data.batch_frames, val_frames=min(p.data.val_frames, frames // 5),
                               seed=p.data.seed, checkpoint_path=out, overwrite=cfg.overwrite,
-                              progress=bool(cfg.progress), info={"telemetry": list(cfg.telemetry)})
+                              progress=bool(cfg.progress), info={"telemetry": _files(cfg.telemetry)})
 
 
 def add_replay_arguments(parser: ArgumentParser) -> None:
