@@ -127,7 +127,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
                            stop=train_stop + val_frames) if val_frames else None
-    trainer = _trainer(optimization, progress)
+    needs_trainer = optimization.fit_method != "closed_form" or val is not None or checkpoint_path is not None
+    trainer = _trainer(optimization, progress) if needs_trainer else None
     train_loss = val_loss = None
     if optimization.fit_method == "closed_form":
         train_loss = fit_closed_form(task.network, train, optimization.alpha, optimization.alpha_relative).train_loss

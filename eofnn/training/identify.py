@@ -159,8 +159,12 @@ class IdentifiedPlant:
 
 
 def _lagged(x: torch.Tensor, lags: range, start: int, stop: int) -> torch.Tensor:
-    """``(K, stop - start, len(lags))`` of ``x[:, n - lag]`` for a ``(K, frames)`` signal."""
-    return torch.stack([x[:, start - lag: stop - lag] for lag in lags], dim=-1)
+    """``(K, len(lags), stop - start)`` of ``x[:, n - lag]`` for a ``(K, frames)`` signal.
+
+    Regressors are laid out ``(groups, features, samples)``, samples contiguous: the normal equations get them as
+    a transposed view, so the Gram products run on contiguous rows without a copy.
+    """
+    return torch.stack([x[:, start - lag: stop - lag] for lag in lags], dim=1)
 
 
 def _chunks(start: int, stop: int, size: int):
@@ -240,10 +244,11 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     response, norm = torch.zeros(max_lag + 1, dtype=torch.float64), 0.0
     for (y, wfs), u in zip(signals, innovations, strict=True):
         stop = y.shape[1] - max_lag
-        norm += float(((y[:, first:stop] - y[:, first - 1:stop - 1]) * u[:, first:stop]).sum())
+        u_used = u[:, first:stop]
+        norm += float(((y[:, first:stop] - y[:, first - 1:stop - 1]) * u_used).sum())
+        increments = wfs[:, first - 1:].diff(dim=1)  # increments[:, i] = wfs(first + i) - wfs(first + i - 1)
         for lag in range(max_lag + 1):
-            increment = wfs[:, first + lag: stop + lag] - wfs[:, first + lag - 1: stop + lag - 1]
-            response[lag] += float((increment * u[:, first:stop]).sum())
+            response[lag] += float((increments[:, lag: lag + stop - first] * u_used).sum())
     response /= norm
     lag = int(response.abs().argmax())
     if lag > 0:  # wfs recorded `lag` frames late: realign to the documented convention and identify again
@@ -263,7 +268,7 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
 
 def _nuisance(y: torch.Tensor, wfs: torch.Tensor, p: int, a: int, b: int) -> torch.Tensor:
     """``z(n) = [y(n-2..n-p-1), wfs(n-2..n-p-1)]``: the past that holds neither ``w(n)`` nor ``w(n-1)``."""
-    return torch.cat([_lagged(y, range(2, p + 2), a, b), _lagged(wfs, range(2, p + 2), a, b)], -1)
+    return torch.cat([_lagged(y, range(2, p + 2), a, b), _lagged(wfs, range(2, p + 2), a, b)], 1)
 
 
 def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor]:
@@ -271,13 +276,14 @@ def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor
     whitening = NormalEquations()
     for y, wfs in signals:
         for a, b in _chunks(first, y.shape[1], batch_frames):
-            whitening.update(_nuisance(y, wfs, p, a, b), y[:, a:b] - y[:, a - 1:b - 1])
+            whitening.update(_nuisance(y, wfs, p, a, b).transpose(1, 2), y[:, a:b] - y[:, a - 1:b - 1])
     beta = _solve(whitening)
     innovations = []
     for y, wfs in signals:
         u = torch.zeros_like(y)
         for a, b in _chunks(first, y.shape[1], batch_frames):
-            u[:, a:b] = y[:, a:b] - y[:, a - 1:b - 1] - (_nuisance(y, wfs, p, a, b) * beta[:, None, :]).sum(-1)
+            fit = torch.bmm(beta.unsqueeze(1), _nuisance(y, wfs, p, a, b)).squeeze(1)
+            u[:, a:b] = y[:, a:b] - y[:, a - 1:b - 1] - fit
         innovations.append(u)
     return innovations
 
@@ -292,8 +298,8 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid,
     for (y, wfs), u in zip(signals, innovations, strict=True):
         u_pad = torch.cat([u, torch.zeros_like(u[:1])], 0)  # a zero row for neighbour slots beyond the pupil edge
         for a, b in _chunks(first, y.shape[1], batch_frames):
-            features = torch.cat([u_pad[neighbours, a:b].transpose(1, 2), _nuisance(y, wfs, p, a, b)], -1)
-            regression.update(features, wfs[:, a:b] - wfs[:, a - 1:b - 1])
+            features = torch.cat([u_pad[neighbours, a:b], _nuisance(y, wfs, p, a, b)], 1)
+            regression.update(features.transpose(1, 2), wfs[:, a:b] - wfs[:, a - 1:b - 1])
     weights = _solve(regression)
     gram = regression.gram
     sse = regression.target_power - 2 * (weights * regression.cross).sum(-1) + (
@@ -334,9 +340,17 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid,
 
 def _noise(signals, dm_response, first: int) -> tuple[float, float]:
     """White WFS noise RMS (nm) and its standard error from the structure function of the POL reconstruction."""
-    sums, count = torch.zeros(2, signals[0][0].shape[0], dtype=torch.float64), 0
+    n_act = signals[0][0].shape[0]
+    # The model DM as at most 4 sources per actuator (a bilinear shift), found from its response to each actuator:
+    # rows of (K, frames) signals are then gathered whole.
+    response = dm_response(torch.eye(n_act, dtype=torch.float64))  # row j: what a unit command on j applies
+    weight, index = response.T.abs().topk(min(4, n_act), dim=1)
+    weight = response.T.gather(1, index)
+    sums, count = torch.zeros(2, n_act, dtype=torch.float64), 0
     for y, wfs in signals:
-        s_hat = wfs[:, first:] - dm_response(y[:, first:].T).T
+        s_hat = wfs[:, first:].clone()
+        for m in range(index.shape[1]):
+            s_hat -= weight[:, m, None] * y[index[:, m], first:]
         stop = s_hat.shape[1] - 2
         for lag in (1, 2):
             sums[lag - 1] += (s_hat[:, lag: stop + lag] - s_hat[:, :stop]).pow(2).sum(-1)
