@@ -10,7 +10,7 @@ import torch
 from eofnn.analysis.replay import replay, replay_figure
 from eofnn.control import Dithered, Integrator, PredictiveController
 from eofnn.data.history import HistorySpec, build_history, targets
-from eofnn.data.targets import TelemetryBatches, grid_from_positions
+from eofnn.data.targets import TelemetryBatches
 from eofnn.errors import TelemetryError
 from eofnn.models.linear import LinearFilter
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
@@ -126,9 +126,9 @@ def test_batches_and_bad_telemetry(unknown_plant):
         fit_from_telemetry(short, spec, plant=plant)
     with pytest.raises(TelemetryError, match="delay_frames=2 but the history asks for delay_frames=3"):
         fit_from_telemetry(tel, HistorySpec("open_loop", 4, 3), plant=plant)
-    assert grid_from_positions(tel.positions_m) == sc.grid
+    assert ActuatorGrid.from_positions(tel.positions_m) == sc.grid
     with pytest.raises(TelemetryError, match="row-major"):
-        grid_from_positions(tel.positions_m.flip(0))
+        ActuatorGrid.from_positions(tel.positions_m.flip(0))
     with pytest.raises(TelemetryError, match="misregistered DM model needs the actuator grid"):
         fit_from_telemetry(Telemetry(y=tel.y, wfs=tel.wfs, delay_frames=2), spec, plant={"misregistration_x": 0.2})
     assert torch.isfinite(fit_from_telemetry(tel, spec, plant={"dm_gain": 2.0}).network.weight).all()

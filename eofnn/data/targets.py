@@ -15,10 +15,10 @@ The noise in ``s_hat(n)`` is independent of every history that predicts frame ``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch.utils.data import IterableDataset
 
@@ -102,7 +102,7 @@ class TelemetryBatches(IterableDataset):
                  dm_gain: float, batch_frames: int = 1024, first: int = 0, stop: int | None = None) -> None:
         super().__init__()
         self.sequences = check_sequences(telemetry, spec)
-        if not (np.isfinite(dm_gain) and dm_gain != 0):
+        if not (math.isfinite(dm_gain) and dm_gain != 0):
             raise TelemetryError(f"dm_gain={dm_gain!r} is invalid: it must be finite and non-zero")
         self.spec, self.dm_response, self.dm_gain = spec, dm_response, float(dm_gain)
         self.batch_frames, self.first, self.stop = batch_frames, first, stop
@@ -126,38 +126,12 @@ def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
     return [Telemetry.load(path, required=TELEMETRY_REQUIRED) for path in paths]
 
 
-def grid_from_positions(positions_m: torch.Tensor | np.ndarray, tolerance: float = 1e-3) -> ActuatorGrid:
-    """The :class:`ActuatorGrid` whose active actuators are ``positions_m`` ``(K, 2)`` (metres), in eofnn's order.
-
-    The pitch is the smallest spacing, the grid is centred on the positions' bounding box, and the central
-    obstruction (if any) is the innermost radius; a layout that is not such a grid, or that lists the actuators in
-    another order, raises :class:`TelemetryError` (``tolerance`` in pitches).
-    """
-    pos = np.asarray(positions_m, dtype=np.float64)
-    if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) < 4:
-        raise TelemetryError(f"actuator positions have shape {pos.shape}: expected (actuators >= 4, 2) in metres")
-    gaps = np.abs(pos[:, None, :] - pos[None, :, :]).max(-1)
-    pitch = float(gaps[gaps > 0].min())
-    centre = (pos.max(0) + pos.min(0)) / 2
-    n_across = int(round(float((pos.max(0) - pos.min(0)).max()) / pitch)) + 1
-    radius = np.hypot(*(pos - centre).T)
-    obstruction = float(radius.min() / (n_across * pitch / 2)) if radius.min() > pitch else 0.0
-    # Rounded to 12 digits: positions written in metres give back the diameter they were made from.
-    grid = ActuatorGrid(float(f"{n_across * pitch:.12g}"), n_across, max(0.0, float(f"{obstruction:.12g}") - 1e-9))
-    ok = grid.n_actuators == len(pos) and np.abs(grid.positions_m - (pos - centre)).max() <= tolerance * pitch
-    if not ok:
-        raise TelemetryError(f"actuator positions ({len(pos)} actuators, pitch {pitch:.4g} m) are not the active "
-                             "actuators of a square grid on a circular pupil in row-major order (y then x): "
-                             "neighbourhoods cannot be built from them")
-    return grid
-
-
 def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | None = None) -> ActuatorGrid | None:
     """The actuator grid of ``telemetry``: ``grid`` if given, else its positions, else its eofnn scenario, else None."""
     if grid is not None:
         return grid
     if telemetry.positions_m is not None:
-        return grid_from_positions(telemetry.positions_m)
+        return ActuatorGrid.from_positions(telemetry.positions_m)
     scenario = telemetry.config.get("scenario") or telemetry.config.get("eofnn", {}).get("scenario")
     if isinstance(scenario, dict) and isinstance(scenario.get("grid"), dict):
         return ActuatorGrid(**scenario["grid"])
