@@ -169,3 +169,13 @@ def test_bad_hand_written_files(tmp_path):
             Telemetry.load(path, required=TELEMETRY_REQUIRED)
         assert "\n" not in str(caught.value), name
     assert Telemetry.load(tmp_path / "whole.npz", required=TELEMETRY_REQUIRED).delay_frames == 2
+
+
+@pytest.mark.parametrize("suffix", [".fits", ".npz"])
+def test_eofnn_files_carry_positions_and_frame_rate(tmp_path, suffix):
+    ao = NumpyAO()
+    y = np.random.default_rng(0).standard_normal((20, len(ao.positions_m)))
+    tel = Telemetry(y=y, wfs=2 * y, delay_frames=3, frame_rate_hz=500.0, positions_m=ao.positions_m)
+    back = Telemetry.load(tel.save(tmp_path / f"t{suffix}"), required=TELEMETRY_REQUIRED)
+    assert back.delay_frames == 3 and back.frame_rate_hz == 500.0
+    assert np.array_equal(back.positions_m.numpy(), ao.positions_m) and np.array_equal(back.wfs.numpy(), 2 * y)
