@@ -11,13 +11,12 @@ import zlib
 import numpy as np
 import torch
 
-from eofnn.errors import require
+from eofnn.validation import Interval, check_value
 
 
 def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:
     """Seed sequence of stream ``stream`` (``"train"``, ``"test"``, ``"wfs-noise"``, ...) and sub-keys ``key``."""
-    require(isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0,
-            f"seed={seed!r} is invalid: it must be an integer >= 0")
+    check_value("seed", seed, Interval(0, 2**63 - 1, integer=True))
     return np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(stream.encode()), *key))
 
 

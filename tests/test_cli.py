@@ -188,3 +188,10 @@ def test_shipped_configs_parse(command, config, capsys):
     assert info.value.code == 0
     resolved = yaml.safe_load(capsys.readouterr().out)
     assert resolved["scenario"]["grid"]["n_across"] == 40
+
+
+def test_tiny_compare_numbers_are_pinned(tiny_results):
+    """Refactors must not move a number: the tiny experiment's metrics, recorded before the 'House in order'
+    restructuring, are reproduced bit for bit (update the file only for a deliberate change of the physics)."""
+    pinned = json.loads((Path(__file__).parent / "conf" / "tiny_compare_pinned.json").read_text())
+    assert json.loads((tiny_results / "metrics.json").read_text())["scenarios"] == pinned

@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from eofnn.errors import ConfigError
 from eofnn.control import Dithered, Integrator, PseudoIntegrator, Uncorrected, critical_gain
+from eofnn.errors import ConfigError
 from eofnn.sim import Plant, run_loop
 from eofnn.sim.plant import PlantModel
 

@@ -5,12 +5,11 @@ from __future__ import annotations
 import subprocess
 import sys
 import warnings
+from dataclasses import fields
 
 import pytest
 import torch
 from torch import nn
-
-from dataclasses import fields
 
 from eofnn.control import Dithered, Integrator, PredictiveController, PseudoIntegrator
 from eofnn.data.history import HistorySpec, build_history, targets
@@ -148,7 +147,6 @@ def test_study_orderings_in_a_frozen_flow_loop(small_scenario):
 
 
 def test_unexcited_closed_loop_data_is_flagged(small_scenario):
-    spec = HistorySpec("closed_loop", 4, 2)
     with pytest.warns(CollinearityWarning):
         result = fit(small_scenario, "closed_loop", 4, dither_nm=0.0, **FAST)
     # Honest either way: if it is used regardless, the loop result is reported, diverged or not.

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from eofnn.errors import OutputExistsError, TelemetryError
 from eofnn.control import Integrator
+from eofnn.errors import OutputExistsError, TelemetryError
 from eofnn.sim import Telemetry, run_loop
 
 

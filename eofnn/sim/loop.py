@@ -15,6 +15,7 @@ from eofnn.seeding import torch_generator
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
 from eofnn.sim.turbulence import Turbulence
+from eofnn.validation import COUNT, check_value
 
 
 @dataclass
@@ -113,7 +114,7 @@ def run_loop(
     on_chunk : callable, optional
         Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk.
     """
-    require(isinstance(n_frames, int) and n_frames >= 1, f"n_frames={n_frames!r} is invalid: it must be an integer >= 1")
+    check_value("n_frames", n_frames, COUNT)
     unknown = set(record) - {"s", "y", "eps", "wfs"}
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
     grid = turbulence.grid

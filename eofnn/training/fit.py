@@ -24,11 +24,11 @@ from eofnn.control.baselines import Dithered, Integrator
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
-from eofnn.errors import CheckpointError, CollinearityWarning
+from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
-from eofnn.training.ridge import fit_closed_form
+from eofnn.training.ridge import fit_closed_form, supports_closed_form
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
 DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
@@ -136,6 +136,9 @@ def fit_predictor(
     info = {"scenario": scenario.to_dict(), "data": asdict(data)}
     task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid, asdict(optimization), info)
     net = task.network
+    if optimization.fit_method == "closed_form" and not supports_closed_form(net):
+        raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {type(net).__name__} has no "
+                          "features()/load_solution(): use optimization.fit_method: sgd")
     data_controller = recording_controller(spec, data)
     rounds = []
     trainer = None
@@ -148,9 +151,10 @@ def fit_predictor(
         if optimization.fit_method == "closed_form":
             solved = fit_closed_form(net, datamodule.train_dataloader(), optimization.alpha, optimization.alpha_relative)
             metrics = {"train_loss": solved.train_loss, "condition": solved.condition}
-            metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False)[0])
+            metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
+                                            weights_only=True)[0])
         else:
-            trainer.fit(task, datamodule=datamodule)
+            trainer.fit(task, datamodule=datamodule, weights_only=True)
             metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
         rounds.append({"round": round_index, **metrics})
     net.eval()

@@ -14,9 +14,7 @@ import lightning as L
 import torch
 
 from eofnn.data.history import HistorySpec
-from eofnn.errors import ConfigError
 from eofnn.models.build import build_network
-from eofnn.training.ridge import supports_closed_form
 from eofnn.validation import NON_NEGATIVE, Constraint, Interval, IsBool, OneOf, validated
 
 FIT_METHODS = ("closed_form", "sgd")
@@ -103,9 +101,6 @@ class PredictorTask(L.LightningModule):
         hp = self.hparams
         self.network = build_network(hp.network, hp.n_actuators, self.spec.n_taps, hp.grid, self.spec.kind,
                                      self.spec.delay_frames)
-        if self.optimization.fit_method == "closed_form" and not supports_closed_form(self.network):
-            raise ConfigError(f"fit_method='closed_form' needs a linear network; {type(self.network).__name__} has no "
-                              "features()/load_solution(): use fit_method: sgd")
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
         return self.network(history)
