@@ -10,14 +10,15 @@ import torch
 from eofnn.analysis.replay import replay, replay_figure
 from eofnn.control import Dithered, Integrator, PredictiveController
 from eofnn.data.history import HistorySpec, build_history, targets
+from eofnn.data.stream import DataConfig
 from eofnn.data.targets import TelemetryBatches
-from eofnn.errors import TelemetryError
+from eofnn.errors import ConfigError, TelemetryError
 from eofnn.models.linear import LinearFilter
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
 from eofnn.sim.plant import Plant
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
-from eofnn.training.from_telemetry import fit_from_telemetry
+from eofnn.training.from_telemetry import fit_from_scenario_telemetry, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.ridge import NormalEquations
 from eofnn.training.task import OptimizationConfig
@@ -150,3 +151,14 @@ def test_mlp_by_sgd_and_checkpoints(unknown_plant, tmp_path):
     linear = fit_from_telemetry(tel, spec, plant=plant, val_frames=500, checkpoint_path=tmp_path / "eof.ckpt")
     assert linear.val_loss < fitted.val_loss  # a linear EOF in closed form beats a 2-epoch MLP here
     assert torch.equal(load_predictor(tmp_path / "eof.ckpt").network.weight, linear.network.weight)
+
+
+def test_fit_from_the_telemetry_a_scenario_produces():
+    """compare's predictor that does not learn from simulator truth: record, identify, fit, all inside eofnn."""
+    sc = scenario(dm_gain=2.0, wfs_noise_nm=2.0)
+    data = DataConfig(frames=3000, val_frames=500, integrator_gain=0.3, seed=4)
+    fitted = fit_from_scenario_telemetry(sc, "open_loop", 4, data=data)
+    assert fitted.info["targets"] == "telemetry" and abs(fitted.info["identified_plant"]["dm_gain"] - 2.0) < 0.04
+    assert closed_loop_rms(sc, fitted.controller()) < 0.5 * closed_loop_rms(sc, Integrator(0.3))
+    with pytest.raises(ConfigError, match="dither_nm=0.0 is invalid"):
+        fit_from_scenario_telemetry(sc, "open_loop", 4, data=DataConfig(dither_nm=0.0))

@@ -16,16 +16,21 @@ import lightning as L
 from torch import nn
 from torch.utils.data import DataLoader
 
+from eofnn.control.baselines import Dithered, Integrator
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
+from eofnn.data.stream import DataConfig
 from eofnn.data.targets import TelemetryBatches, check_sequences, telemetry_grid
-from eofnn.errors import TelemetryError
+from eofnn.errors import ConfigError, DivergedError, TelemetryError
 from eofnn.outputs import check_output_file, staged_file
+from eofnn.seeding import int_seed
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, _trainer
-from eofnn.training.identify import IdentifiedPlant
+from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.training.ridge import fit_closed_form
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
@@ -147,3 +152,38 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
             trainer.save_checkpoint(partial)
     return TelemetryFit(predictor, dm_gain, errors, source, train_loss, None if val_loss is None else float(val_loss),
                         checkpoint_path, info)
+
+
+def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", history_length: int = 4,
+                                network: dict | None = None, *, data: DataConfig | None = None,
+                                optimization: OptimizationConfig | None = None,
+                                checkpoint_path: str | Path | None = None, overwrite: bool = False,
+                                progress: bool = False) -> TelemetryFit:
+    """What an observatory would do in ``scenario``: record telemetry, identify the plant, fit from telemetry alone.
+
+    The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
+    does not learn from simulator truth): ``data.frames + data.val_frames`` frames per realisation are recorded
+    with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white dither in the scenario's plant;
+    the plant is identified from that dither, and the predictor is fitted from ``y`` and ``wfs`` alone, the last
+    ``data.val_frames`` frames held out for validation. The learner never sees ``s`` or the plant.
+    """
+    data = data or DataConfig()
+    spec = HistorySpec.from_scenario(history, history_length, scenario)
+    if data.dither_nm <= 0:
+        raise ConfigError(f"data.dither_nm={data.dither_nm!r} is invalid for telemetry training: the plant is "
+                          "identified from the dither, so it must be > 0 (nm)")
+    recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
+    n_frames = data.frames + data.val_frames
+    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", data.realisations), scenario.plant, recorder,
+                      n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"), record=("y", "wfs"),
+                      progress=progress)
+    if result.diverged:
+        raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame} in the scenario's "
+                            "plant: lower data.integrator_gain or data.dither_nm")
+    plant = identify_plant(result.telemetry)
+    plant.require_identified()
+    return fit_from_telemetry(result.telemetry, spec, network, plant=plant, optimization=optimization,
+                              batch_frames=data.batch_frames, val_frames=data.val_frames, seed=data.seed,
+                              checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress,
+                              info={"scenario": scenario.to_dict(), "data": asdict(data),
+                                    "identified_plant": plant.model_errors()})
