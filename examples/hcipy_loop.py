@@ -13,7 +13,10 @@ reaches the controller ``delay`` frames late. eofnn never simulates anything her
     python examples/hcipy_loop.py                          # 10 actuators across a 2 m pupil, DM gain 1.5
     python examples/hcipy_loop.py --filter filter.fits     # step 3 only, with a filter exported before
 
-It prints the median residual RMS of the integrator and of the exported filter.
+It prints the median residual RMS of the integrator and of the exported filter (measured: 28.2 nm and 9.2 nm at
+the defaults). The identified "WFS noise" (about 7 nm against the 2 nm simulated) also holds the part of HCIPy's
+layer on an actuator-pitch grid that is not smooth from frame to frame (new columns extruded at the rim): white
+noise and such turbulence cannot be told apart from telemetry (``eofnn/training/identify.py``).
 """
 
 from __future__ import annotations
