@@ -116,3 +116,14 @@ def test_bad_input(telemetry):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a dithered recording identifies without any warning
         identify_plant(tel)
+
+
+def test_batches_and_several_files_pool(telemetry):
+    """Realisations of a batch and separate files are independent sequences of one plant: errors shrink."""
+    sc = scenario(**PLANTS["gain"])
+    batch = run_loop(sc.turbulence(0, "identify-batch", 2), sc.plant, Dithered(Integrator(0.3), 10.0, seed=3), 3000,
+                     noise_seed=4).telemetry
+    single = identify_plant(telemetry["gain"])
+    pooled = identify_plant([telemetry["gain"], batch])
+    assert pooled.n_sequences == 3 and abs(pooled.dm_gain / 2.0 - 1) < 0.01
+    assert pooled.dm_gain_se < 0.75 * single.dm_gain_se
