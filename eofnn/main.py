@@ -21,6 +21,7 @@ from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
 from eofnn.cli import compare, fit, simulate, telemetry
+from eofnn.cli.configfile import check_config_file
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
 DESCRIPTION = """\
@@ -95,19 +96,23 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"eofnn: warning: {message}", file=sys.stderr)
 
 
-def _config_folders_on_path(args: list[str]) -> None:
-    """A user's module beside their config (``class_path: my_net.Net``) imports without PYTHONPATH tricks."""
-    for flag, value in zip(args, args[1:], strict=False):
-        if flag == "--config":
-            folder = str(Path(value).resolve().parent)
-            if folder not in sys.path:
-                sys.path.insert(0, folder)
+def _config_files(args: list[str]) -> list[str]:
+    return [value for flag, value in zip(args, args[1:], strict=False) if flag == "--config"]
+
+
+def _prepare_config_files(args: list[str]) -> None:
+    """Check every ``--config`` file before jsonargparse reads it, and put its folder on the Python path, so a
+    user's module beside their config (``class_path: my_net.Net``) imports without PYTHONPATH tricks."""
+    for value in _config_files(args):
+        check_config_file(value)
+        folder = str(Path(value).resolve().parent)
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
 
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted)."""
     args = list(sys.argv[1:] if args is None else args)
-    _config_folders_on_path(args)
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     parser = build_parser()
@@ -118,6 +123,7 @@ def main(args: list[str] | None = None) -> int:
             warnings.filterwarnings("ignore", message=".*does not have many workers.*")
             # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
             warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
+            _prepare_config_files(args)
             cfg = parser.parse_args(args)
             command = cfg.command
             dump = yaml.safe_load(parser.dump(cfg))[command]

@@ -13,6 +13,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.errors import DivergedError, require
+from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
@@ -82,6 +83,17 @@ class DataConfig:
                 f"{MAX_FRAMES} frames to simulate")
 
 
+def require_training_memory(scenario: Scenario, spec: HistorySpec, data: DataConfig) -> None:
+    """Refuse, up front, training data that would not fit in memory.
+
+    A sequence holds ``s, y, eps, wfs`` (float64); a batch its history tensor and the targets.
+    """
+    n_act = scenario.grid.n_actuators
+    require_memory(8 * data.realisations * n_act * (4 * data.sequence_frames + data.batch_frames * (spec.n_taps + 1)),
+                   f"training data with data.sequence_frames={data.sequence_frames}, data.realisations="
+                   f"{data.realisations}, data.batch_frames={data.batch_frames} and {n_act} actuators")
+
+
 class SimulatedTelemetry(IterableDataset):
     """Yields ``(history, target)`` batches of simulated telemetry, ``(samples, K, taps)`` and ``(samples, K)``.
 
@@ -123,6 +135,7 @@ class SimulatedTelemetry(IterableDataset):
                 f"{spec.first_frame}")
         if spec.kind == "closed_loop":
             require(data_controller is not None, "closed-loop data needs a data_controller")
+        require_training_memory(scenario, spec, data)
         self.scenario, self.spec, self.stream, self.data = scenario, spec, stream, data
         self.n_sequences = -(-frames // data.sequence_frames)
         self.data_controller = data_controller

@@ -8,10 +8,13 @@ from pathlib import Path
 from typing import Any
 
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
-from eofnn.errors import ConfigError, require
+from eofnn.data.history import HistorySpec
+from eofnn.data.stream import require_training_memory
+from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.results import ExperimentResult
+from eofnn.resources import require_memory
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
@@ -48,6 +51,19 @@ def trusted_class_paths(predictors: dict[str, PredictorConfig], extra: Collectio
     return named | set(extra)
 
 
+def load_configured_checkpoint(name: str, cfg: PredictorConfig, scenarios: dict[str, Scenario],
+                               trusted: Collection[str]) -> TrainedPredictor:
+    """The checkpoint of controller ``name``, checked against its config (history) and every scenario it runs in."""
+    predictor = load_predictor(cfg.checkpoint, trusted_networks=trusted)
+    where = f"predictor {name!r}: checkpoint {cfg.checkpoint!r}"
+    if cfg.history is not None and cfg.history != predictor.spec.kind:
+        raise CheckpointError(f"{where} holds a {predictor.spec.kind} predictor but history={cfg.history!r} was "
+                              "asked for")
+    for scenario_name, scenario in scenarios.items():
+        predictor.check_fits(scenario, f"{where} in scenario {scenario_name!r}", cfg.history_length)
+    return predictor
+
+
 class Experiment:
     """Validates everything up front, then trains, evaluates and collects metrics.
 
@@ -80,6 +96,12 @@ class Experiment:
         self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
                            for name, cfg in predictors.items()}
         self.evaluation = evaluation
+        n_act = max(s.grid.n_actuators for s in self.scenarios.values())
+        # Per frame and realisation two RMS values are kept; per realisation a turbulence chunk of 1024 frames
+        # and the arrays of that chunk (s, y, eps, wfs) are in flight.
+        require_memory(8 * evaluation.realisations * (2 * evaluation.frames + 5 * 1024 * n_act),
+                       f"evaluation with evaluation.frames={evaluation.frames}, evaluation.realisations="
+                       f"{evaluation.realisations} and {n_act} actuators")
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.progress, self.log = progress, log
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
@@ -87,15 +109,15 @@ class Experiment:
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
+            if cfg.trains:
+                for scenario_value in self.scenarios.values():
+                    spec = HistorySpec.from_scenario(cfg.history, cfg.history_length, scenario_value)
+                    require_training_memory(scenario_value, spec, cfg.data)
             if cfg.train_in is not None and cfg.train_in not in self.scenarios:
                 raise ConfigError(f"predictor {name!r}: train_in={cfg.train_in!r} is not a scenario: allowed are "
                                   f"{', '.join(self.scenarios)}")
             if cfg.checkpoint is not None:
-                predictor = load_predictor(cfg.checkpoint, trusted_networks=trusted)
-                for scenario_name, scenario_value in self.scenarios.items():
-                    predictor.check_fits(scenario_value, f"predictor {name!r} in scenario {scenario_name!r}: "
-                                         f"checkpoint {cfg.checkpoint!r}")
-                self._loaded[name] = predictor
+                self._loaded[name] = load_configured_checkpoint(name, cfg, self.scenarios, trusted)
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""

@@ -31,7 +31,7 @@ class ActuatorGrid:
     n_across : int
         Actuators across the pupil diameter.
     obstruction : float
-        Central obstruction as a fraction of the diameter, in [0, 1).
+        Central obstruction as a fraction of the diameter, in [0, 0.9].
     """
 
     diameter_m: float = 8.0
@@ -41,7 +41,7 @@ class ActuatorGrid:
     _constraints: ClassVar[dict[str, Constraint]] = {
         "diameter_m": Interval(0, 100, closed="right", unit="m"),
         "n_across": Interval(2, MAX_N_ACROSS, integer=True, unit="actuators across the pupil"),
-        "obstruction": Interval(0, 1, closed="left", unit="fraction of the diameter"),
+        "obstruction": Interval(0, 0.9, unit="fraction of the diameter"),
     }
 
     def __post_init__(self) -> None:
