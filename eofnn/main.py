@@ -20,7 +20,7 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate, stability, sweep
+from eofnn.cli import compare, fit, simulate, stability, sweep, telemetry
 from eofnn.cli.configfile import check_config_file
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
@@ -33,6 +33,10 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn simulate --scenario configs/reference.yaml --out runs/integrator.fits  # one controller -> telemetry
   eofnn stability --checkpoint runs/cl.ckpt --scenario configs/reference.yaml --out results/stab  # margins
   eofnn sweep    --config configs/paper_small.yaml --grid GRID.yaml --out results/sweep  # a grid of compares
+  eofnn identify --telemetry run.fits --out plant.json                     # plant from dithered telemetry
+  eofnn fit      --telemetry run.fits --plant plant.json --out runs/ol.ckpt  # train on telemetry alone
+  eofnn replay   --checkpoint runs/ol.ckpt --telemetry held_out.fits --out results/replay
+  eofnn export   --checkpoint runs/ol.ckpt --out filter.fits                # for eofnn.runtime / any RTC
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -63,6 +67,12 @@ COMMANDS: dict[str, Command] = {
                          stability.add_arguments, stability.run),
     "sweep": Command("A grid of compare runs: resumable, local or on Ray.", sweep.DESCRIPTION, sweep.add_arguments,
                      sweep.run),
+    "identify": Command("Identify the plant from dithered telemetry.", telemetry.IDENTIFY,
+                        telemetry.add_identify_arguments, telemetry.run_identify),
+    "replay": Command("Replay a checkpoint on held-out telemetry.", telemetry.REPLAY, telemetry.add_replay_arguments,
+                      telemetry.run_replay),
+    "export": Command("Export a linear predictor as filter FITS.", telemetry.EXPORT, telemetry.add_export_arguments,
+                      telemetry.run_export),
 }
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from eofnn.control.baselines import Integrator, PseudoIntegrator, Uncorrected
+from eofnn.control.baselines import Dithered, Integrator, PseudoIntegrator, Uncorrected
 from eofnn.control.predictive import PredictiveController
 from eofnn.errors import ConfigError
 from eofnn.sim.loop import Controller
@@ -59,6 +59,12 @@ def _pseudo_integrator(config: Any, predictor: Any) -> Controller:
 @register_controller("integrator")
 def _integrator(config: Any, predictor: Any) -> Controller:
     return Integrator(config.gain, config.leak)
+
+
+@register_controller("dithered_integrator")
+def _dithered_integrator(config: Any, predictor: Any) -> Controller:
+    """The integrator plus ``data.dither_nm`` of white dither: telemetry from which the plant can be identified."""
+    return Dithered(Integrator(config.gain, config.leak), config.data.dither_nm, config.data.seed)
 
 
 @register_controller("predictor", needs_predictor=True)
