@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from eofnn.analysis.stability import LoopSetup, StabilityResult, analyse_filter, analyse_integrator
+from eofnn.control.registry import dm_gain_model_of
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.scenario import Scenario
 
@@ -17,7 +18,7 @@ SUMMARY_KEYS = ("kind", "structure", "history_length", "stable", "max_root_modul
 def controller_stability(config: Any, predictor: Any, scenario: Scenario) -> StabilityResult | None:
     """The analysis of a controller in ``scenario``: an integrator, or a predictor whose network is a
     :class:`~eofnn.models.linear.LinearFilter`; ``None`` for anything else (no linear model to analyse)."""
-    setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, getattr(config, "dm_gain_model", 1.0))
+    setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
     if config.controller == "integrator":
         return analyse_integrator(config.gain, config.leak, setup)
     if predictor is not None and isinstance(predictor.network, LinearFilter):

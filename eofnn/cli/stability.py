@@ -13,7 +13,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.outputs import check_output_folder, staged_folder
 from eofnn.training.checkpoint import load_predictor
-from eofnn.validation import Interval, check_value
+from eofnn.validation import Interval, OrNone, check_value
 
 DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator, shared or neighbourhood) in the "
                "scenario's plant: stable or not, the interval of DM gain that keeps it stable, the delay margin, and "
@@ -23,12 +23,13 @@ DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator
 def add_arguments(parser: ArgumentParser) -> None:
     add_common(parser, "Output folder (must be empty unless --overwrite true).")
     parser.add_argument("--checkpoint", type=str, required=True, help="Checkpoint of a linear predictor (.ckpt).")
-    parser.add_argument("--dm_gain_model", type=float, default=1.0,
-                        help="DM gain the controller believes (its pseudo-open-loop reconstruction).")
+    parser.add_argument("--dm_gain_model", type=float | None, default=None,
+                        help="DM gain the controller believes (its pseudo-open-loop reconstruction); unset, the "
+                             "checkpoint's own (identified from telemetry, or 1).")
 
 
 def run(cfg, config_dump: str) -> dict:
-    check_value("dm_gain_model", cfg.dm_gain_model, Interval(0, 100, closed="right"))
+    check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
     out = check_output_folder(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint, cfg.scenario, trusted_networks=cfg.trusted_networks)
     config = PredictorConfig(checkpoint=cfg.checkpoint, dm_gain_model=cfg.dm_gain_model)

@@ -67,6 +67,14 @@ def _dithered_integrator(config: Any, predictor: Any) -> Controller:
     return Dithered(Integrator(config.gain, config.leak), config.data.dither_nm, config.data.seed)
 
 
+def dm_gain_model_of(config: Any, predictor: Any) -> float:
+    """The DM gain a predictive controller believes: the config's if set, else the predictor's own model."""
+    chosen = getattr(config, "dm_gain_model", None)
+    if chosen is None:
+        chosen = getattr(predictor, "dm_gain_model", 1.0) if predictor is not None else 1.0
+    return float(chosen)
+
+
 @register_controller("predictor", needs_predictor=True)
 def _predictor(config: Any, predictor: Any) -> Controller:
-    return PredictiveController(predictor.network, predictor.spec, config.dm_gain_model)
+    return PredictiveController(predictor.network, predictor.spec, dm_gain_model_of(config, predictor))

@@ -17,7 +17,7 @@ from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value, validated
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, check_value, validated
 
 #: Most frames one fit may simulate (training plus validation): about three hours of CPU at 1264 actuators.
 MAX_FRAMES = 10_000_000
@@ -50,6 +50,10 @@ class DataConfig:
         RMS white dither added to the commands while recording closed-loop data (persistent excitation).
     refit_rounds : int
         Rounds in which the just-fitted predictor (plus the same dither) records the data of the next fit.
+    truth : bool
+        ``true``: targets from the simulator's turbulence ``s`` (a study's labelled shortcut). ``false``: learn as
+        an observatory would, from telemetry alone: record ``frames + val_frames`` frames with the dithered
+        integrator, identify the plant from the dither, fit from ``y`` and ``wfs`` (the learner never sees ``s``).
     """
 
     frames: int = 20000
@@ -62,6 +66,7 @@ class DataConfig:
     integrator_gain: float = 0.5
     dither_nm: float = 10.0
     refit_rounds: int = 0
+    truth: bool = True
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(1, MAX_FRAMES, integer=True),
@@ -74,6 +79,7 @@ class DataConfig:
         "integrator_gain": Interval(0, 10),
         "dither_nm": Interval(0, 1e5, unit="nm"),
         "refit_rounds": Interval(0, 100, integer=True),
+        "truth": IsBool(),
     }
     _where: ClassVar[str] = "data."
 

@@ -50,8 +50,9 @@ class PredictorConfig:
         Integrator gain (``controller: integrator``).
     leak : float
         Integrator leak (``controller: integrator``).
-    dm_gain_model : float
-        DM gain the controller believes, for the pseudo-open-loop reconstruction.
+    dm_gain_model : float, optional
+        DM gain the controller believes, for the pseudo-open-loop reconstruction; unset, the predictor's own: the
+        gain identified from telemetry for a predictor trained on telemetry, 1 (the nominal DM) otherwise.
     """
 
     controller: str = "predictor"
@@ -64,7 +65,7 @@ class PredictorConfig:
     checkpoint: str | None = None
     gain: float = 0.5
     leak: float = 0.0
-    dm_gain_model: float = 1.0
+    dm_gain_model: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -72,7 +73,7 @@ class PredictorConfig:
         "history_length": OrNone(Interval(1, MAX_HISTORY_LENGTH, integer=True, unit="frames")),
         "train_in": OrNone(IsString()),
         "checkpoint": OrNone(IsString()),
-        "dm_gain_model": Interval(0, 100, closed="right"),
+        "dm_gain_model": OrNone(Interval(0, 100, closed="right")),
     }
 
     def __post_init__(self) -> None:

@@ -21,11 +21,17 @@ from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor
+from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry
 
 
 def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: str | Path | None = None,
-                    overwrite: bool = False, progress: bool = False) -> FitResult:
-    """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``."""
+                    overwrite: bool = False, progress: bool = False) -> FitResult | TelemetryFit:
+    """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``: against the simulator's truth,
+    or (``data.truth: false``) from the telemetry alone, through the plant identified from its dither."""
+    if not cfg.data.truth:
+        return fit_from_scenario_telemetry(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
+                                           optimization=cfg.optimization, checkpoint_path=checkpoint_path,
+                                           overwrite=overwrite, progress=progress)
     return fit_predictor(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
                          optimization=cfg.optimization, checkpoint_path=checkpoint_path, overwrite=overwrite,
                          progress=progress)
@@ -131,7 +137,7 @@ class Experiment:
         if key not in self._trained:
             path = None if self.checkpoint_dir is None else self.checkpoint_dir / f"{name}__{train_in}.ckpt"
             self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
-                     f"{cfg.optimization.fit_method})")
+                     f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
             result = fit_from_config(self.scenarios[train_in], cfg, path, overwrite=True, progress=bool(self.progress))
             self._trained[key] = result.predictor
             if path is not None:

@@ -44,6 +44,12 @@ class TrainedPredictor:
     n_actuators: int
     info: dict = field(default_factory=dict)
 
+    @property
+    def dm_gain_model(self) -> float:
+        """The DM gain this predictor's pseudo-open-loop reconstruction assumes by default: identified from telemetry
+        when it learnt from telemetry, 1 (the nominal DM) otherwise."""
+        return float(self.info.get("dm_gain_model", 1.0))
+
     def controller(self, dm_gain_model: float = 1.0) -> PredictiveController:
         """The loop-side controller that runs this predictor (``dm_gain_model``: the DM gain it believes)."""
         return PredictiveController(self.network, self.spec, dm_gain_model)
