@@ -19,7 +19,7 @@ from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.resources import require_memory
 from eofnn.sim.loop import run_loop
-from eofnn.validation import Interval, check_value
+from eofnn.validation import Interval, OneOf, check_value
 
 DESCRIPTION = ("Run one controller (a baseline or a checkpoint) in a scenario and save its telemetry (s, y, eps, wfs "
                "in nm) as FITS or .npz, with a plot of the RMS residual beside it.")
@@ -34,6 +34,8 @@ def add_arguments(parser: ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=2000, help="Frames to simulate.")
     parser.add_argument("--realisations", type=int, default=1, help="Independent realisations (batch).")
     parser.add_argument("--seed", type=int, default=1, help="Seed of the turbulence and noise.")
+    parser.add_argument("--dtype", type=str, default="float64",
+                        help="Precision of the saved arrays: float64, or float32 (half the size; nm to 7 digits).")
 
 
 def run(cfg, config_dump: str) -> None:
@@ -46,6 +48,7 @@ def run(cfg, config_dump: str) -> None:
     check_value("frames", cfg.frames, Interval(1, 10_000_000, integer=True))
     check_value("realisations", cfg.realisations, Interval(1, 1024, integer=True))
     check_value("seed", cfg.seed, Interval(0, 2**63 - 1, integer=True))
+    check_value("dtype", cfg.dtype, OneOf(("float64", "float32")))
     p: PredictorConfig = cfg.predictor
     predictor = None
     if p.controller in NEEDS_PREDICTOR and p.checkpoint is None:
@@ -66,7 +69,7 @@ def run(cfg, config_dump: str) -> None:
     settle = min(EvaluationConfig().settle_frames, cfg.frames // 2)
     metrics = loop_metrics(result, settle, EvaluationConfig().strehl_wavelength_m)
     with staged_file(out, cfg.overwrite) as partial:
-        telemetry.save(partial, overwrite=True)
+        telemetry.save(partial, overwrite=True, dtype=cfg.dtype)
     with staged_file(plot, cfg.overwrite) as partial:
         plot_rms_vs_time(ExperimentResult({"scenario": {p.controller: metrics}}), scenario.frame_rate_hz, partial)
     log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary()}))

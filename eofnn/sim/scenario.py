@@ -92,8 +92,8 @@ def _build(cls, config: dict, where: str):
     if unknown:
         raise ConfigError(f"unknown key(s) {', '.join(unknown)} in {where}: allowed are {', '.join(sorted(allowed))}")
     if cls is Atmosphere and isinstance(config.get("layers"), (list, tuple)):
-        config = dict(config, layers=tuple(_build(Layer, lay, "layer") if isinstance(lay, dict) else lay
-                                           for lay in config["layers"]))
+        config = dict(config, layers=[_build(Layer, lay, "layer") if isinstance(lay, dict) else lay
+                                      for lay in config["layers"]])
     try:
         return cls(**config)
     except TypeError as err:  # a wrong type deep inside a comparison

@@ -110,8 +110,12 @@ class Telemetry:
             return [self]
         return [self.realisation(i) for i in range(next(iter(self.arrays().values())).shape[0])]
 
-    def save(self, path: str | Path, overwrite: bool = False) -> Path:
-        """Write to ``.fits`` or ``.npz`` (by suffix); refuses to overwrite an existing file unless asked."""
+    def save(self, path: str | Path, overwrite: bool = False, dtype: str = "float64") -> Path:
+        """Write to ``.fits`` or ``.npz`` (by suffix); refuses to overwrite an existing file unless asked.
+
+        ``dtype="float32"`` halves the file (telemetry values are nm: float32 keeps 7 significant digits, far below
+        any WFS noise); arrays are read back as float64 either way.
+        """
         path = check_output_file(path, overwrite)
         meta = json.dumps({"delay_frames": self.delay_frames, "config": self.config})
         if path.suffix.lower() in (".fits", ".fit"):
@@ -125,7 +129,7 @@ class Telemetry:
             primary.header["BUNIT"] = "nm"
             hdus = [primary]
             for name, value in self.arrays().items():
-                hdus.append(fits.ImageHDU(value.numpy(), name=name.upper()))
+                hdus.append(fits.ImageHDU(value.numpy().astype(dtype), name=name.upper()))
             if self.positions_m is not None:
                 hdus.append(fits.ImageHDU(self.positions_m.numpy(), name="POSITIONS"))
             hdus.append(fits.BinTableHDU.from_columns(
@@ -137,7 +141,7 @@ class Telemetry:
                 extra["frame_rate_hz"] = np.array(self.frame_rate_hz)
             if self.positions_m is not None:
                 extra["positions_m"] = self.positions_m.numpy()
-            np.savez(path, meta=np.array(meta), **extra, **{k: v.numpy() for k, v in self.arrays().items()})
+            np.savez(path, meta=np.array(meta), **extra, **{k: v.numpy().astype(dtype) for k, v in self.arrays().items()})
         else:
             raise TelemetryError(f"telemetry file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits, .npz")
         return path

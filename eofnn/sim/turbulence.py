@@ -72,7 +72,7 @@ class Atmosphere:
         Wavelength at which ``r0_m`` is given, in metres.
     outer_scale_m : float
         Von Kármán outer scale L0 in metres (``inf`` for Kolmogorov; the AR extrusion is poor for large L0).
-    layers : tuple of Layer
+    layers : list of Layer
         Frozen-flow layers.
     oversampling : int
         Strip samples per actuator pitch; 1 samples the screen at the actuator pitch, as the reference study does.
@@ -85,7 +85,7 @@ class Atmosphere:
     r0_m: float = 0.083
     r0_wavelength_m: float = 658e-9
     outer_scale_m: float = 20.0
-    layers: tuple[Layer, ...] = field(default_factory=lambda: (Layer(),))
+    layers: list[Layer] = field(default_factory=lambda: [Layer()])
     oversampling: int = 1
     interpolation_order: int = 5
     remove_ptt: bool = True
@@ -102,7 +102,8 @@ class Atmosphere:
     def __post_init__(self) -> None:
         require(isinstance(self.layers, (tuple, list)) and len(self.layers) >= 1,
                 f"layers={self.layers!r} is invalid: give a list of at least one layer")
-        layers = tuple(Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers)
+        # A list, not a tuple: jsonargparse serialises a list of dataclasses in a resolved config, not a tuple.
+        layers = [Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers]
         require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
         object.__setattr__(self, "layers", layers)
 
