@@ -21,6 +21,9 @@ def controller_stability(config: Any, predictor: Any, scenario: Scenario) -> Sta
     setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
     if config.controller == "integrator":
         return analyse_integrator(config.gain, config.leak, setup)
+    adaptation = getattr(config, "adaptation", None)
+    if adaptation is not None and adaptation.method != "none":
+        return None  # a filter that changes every frame has no fixed characteristic polynomial
     if predictor is not None and isinstance(predictor.network, LinearFilter):
         return analyse_filter(predictor.network, predictor.spec, setup)
     return None

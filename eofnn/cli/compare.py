@@ -11,6 +11,7 @@ from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import Experiment
 from eofnn.evaluation.report import write_report
 from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
+from eofnn.evaluation.robustness import check_grid, plot_robustness, robustness_map
 from eofnn.outputs import check_output_folder, staged_folder
 
 COMPARE = ("Run an experiment: every controller in every scenario (plant), predictors trained once where asked, "
@@ -25,6 +26,10 @@ def add_compare_arguments(parser: ArgumentParser) -> None:
     add_evaluation(parser)
     parser.add_argument("--predictors", type=dict[str, PredictorConfig], required=True,
                         help="Controller name -> configuration.")
+    parser.add_argument("--robustness", type=dict[str, list[float]] | None, default=None,
+                        help="Plant field -> values, e.g. {dm_gain: [0.5, 1, 1.5, 2, 3]} (one or two fields): every "
+                             "controller, as made for the first scenario, runs in each plant; writes robustness.json "
+                             "and robustness.png with the analytic stability bounds.")
 
 
 def add_evaluate_arguments(parser: ArgumentParser) -> None:
@@ -38,6 +43,7 @@ def add_evaluate_arguments(parser: ArgumentParser) -> None:
 def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str) -> ExperimentResult:
     """Validate everything and check the output folder, then run and write the results in one move."""
     out = check_output_folder(cfg.out, cfg.overwrite)
+    grid = check_grid(getattr(cfg, "robustness", None))
     experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
                             trusted_networks=cfg.trusted_networks)
     with staged_folder(out, cfg.overwrite) as staging:
@@ -45,6 +51,10 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
         (staging / "config.yaml").write_text(config_dump)
         result = experiment.run()
         write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference)
+        if grid:
+            robustness = robustness_map(experiment, grid)
+            (staging / "robustness.json").write_text(robustness.to_json())
+            plot_robustness(robustness, staging / "robustness.png")
         save_timeseries(result, staging / "timeseries.npz")
         write_metrics(result, staging / "metrics.json")
     log(f"results in {Path(out)}/ (metrics.json, results.md, figures)")

@@ -77,4 +77,7 @@ def dm_gain_model_of(config: Any, predictor: Any) -> float:
 
 @register_controller("predictor", needs_predictor=True)
 def _predictor(config: Any, predictor: Any) -> Controller:
+    adaptation = getattr(config, "adaptation", None)
+    if adaptation is not None and adaptation.method != "none":
+        return adaptation.build(predictor, dm_gain_model_of(config, predictor))
     return PredictiveController(predictor.network, predictor.spec, dm_gain_model_of(config, predictor))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
 from eofnn.control.registry import NEEDS_PREDICTOR, controller_names
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
@@ -50,6 +51,8 @@ class PredictorConfig:
         Integrator gain (``controller: integrator``).
     leak : float
         Integrator leak (``controller: integrator``).
+    adaptation : AdaptationConfig
+        Online adaptation of the fitted filter while the loop runs (``method: rls | blend``), off by default.
     dm_gain_model : float, optional
         DM gain the controller believes, for the pseudo-open-loop reconstruction; unset, the predictor's own: the
         gain identified from telemetry for a predictor trained on telemetry, 1 (the nominal DM) otherwise.
@@ -65,6 +68,7 @@ class PredictorConfig:
     checkpoint: str | None = None
     gain: float = 0.5
     leak: float = 0.0
+    adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     dm_gain_model: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
@@ -81,6 +85,8 @@ class PredictorConfig:
             self.data = DataConfig(**self.data)
         if isinstance(self.optimization, dict):
             self.optimization = OptimizationConfig(**self.optimization)
+        if isinstance(self.adaptation, dict):
+            self.adaptation = AdaptationConfig(**self.adaptation)
         if self.checkpoint is None:
             self.history = self.history or "open_loop"
             self.history_length = self.history_length or 4

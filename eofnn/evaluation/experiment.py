@@ -150,15 +150,22 @@ class Experiment:
         predictor = self.predictor(name, scenario_name) if cfg.controller in NEEDS_PREDICTOR else None
         return build_controller(cfg, predictor)
 
-    def evaluate(self, name: str, scenario_name: str) -> LoopMetrics:
-        """Closed-loop metrics of controller ``name`` in scenario ``scenario_name`` on the test stream."""
-        ev, scenario = self.evaluation, self.scenarios[scenario_name]
+    def evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
+        """Closed-loop metrics of controller ``name`` as made for ``scenario_name``, on the test stream.
+
+        ``plant_scenario`` runs that same controller in another plant (a robustness map); by default it runs in
+        the scenario it was made for.
+        """
+        ev = self.evaluation
+        scenario = plant_scenario if plant_scenario is not None else self.scenarios[scenario_name]
         controller = self.controller(name, scenario_name)
         psd = WelchPSD(ev.psd_segment_frames, scenario.frame_rate_hz, ev.settle_frames)
         result = run_loop(scenario.turbulence(ev.seed, "test", ev.realisations), scenario.plant, controller,
                           ev.frames, noise_seed=ev.seed, record=(), divergence_factor=ev.divergence_factor,
                           progress=self.progress, on_chunk=psd)
-        return loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
+        metrics = loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
+        metrics.fallback_frame = getattr(controller, "fallback_frame", None)
+        return metrics
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
@@ -193,5 +200,5 @@ def _describe(m: LoopMetrics, margins: dict | None) -> str:
     low, high = margins["dm_gain_interval"]
     text += "; analytic: " + ("stable" if margins["stable"] else "unstable")
     if margins["stable"] and low is not None and high is not None:
-        text += f" for DM gain {max(low, 0.0):.3g} to {high:.3g}"
+        text += f" for DM gain {max(low, 0.0) + 0.0:.3g} to {high:.3g}"
     return text

@@ -67,11 +67,16 @@ class LoopMetrics:
     rms_nm: list[float] = field(default_factory=list, repr=False)
     psd_freq_hz: list[float] = field(default_factory=list, repr=False)
     psd_nm2_per_hz: list[float] = field(default_factory=list, repr=False)
+    #: First frame at which an adaptive controller fell back to its integrator (``None``: it never did, or n/a).
+    fallback_frame: int | None = None
 
     def summary(self) -> dict:
-        """The JSON-ready scalars."""
-        return {k: getattr(self, k) for k in ("median_rms_nm", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged",
-                                              "diverged_frame", "settle_frames", "n_frames")}
+        """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back)."""
+        out = {k: getattr(self, k) for k in ("median_rms_nm", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged",
+                                             "diverged_frame", "settle_frames", "n_frames")}
+        if self.fallback_frame is not None:
+            out["fallback_frame"] = self.fallback_frame
+        return out
 
 
 def marechal_strehl(rms_nm: torch.Tensor, wavelength_m: float) -> torch.Tensor:
