@@ -1,0 +1,258 @@
+"""Exact frozen flow: a von Kármán screen synthesised in the Fourier domain, evaluated where each actuator looks.
+
+One layer moving along a grid axis is a Fourier series, periodic over ``P`` along the wind and over ``N_w`` actuator
+pitches across it. Frame ``n`` at actuator ``k`` is that series at ``(u_k - n v dt, w_k)``: no frame is ever
+interpolated from another, so frozen flow holds to rounding and a frame depends only on the seed and ``n``.
+
+*Across the wind* actuators lie on ``n_across`` lines one pitch apart. A field read only on those lines cannot
+tell an across-wind frequency ``f_w`` from ``f_w + a / pitch``, so each lattice frequency carries the variance of
+all its aliases (summed over ``|a| <= _ALIASES``): the lines then have the cross-covariance of the continuous
+screen, periodised over ``N_w`` pitches (Poisson summation) — exact once ``N_w`` pitches hold several outer scales,
+where the von Kármán covariance has decayed as ``exp(-2 pi r / L0)``.
+
+*Along the wind* the field on each line is a trigonometric polynomial (frequencies up to ``f_max``: twice the
+frame rate's Nyquist ``1 / (2 v dt)`` and at least ``_SPATIAL_BAND / pitch``). It is evaluated at every
+actuator's exact, non-grid position with a type-2 non-uniform FFT (Gaussian kernel, Greengard & Lee 2004):
+the line's coefficients, divided by the kernel's Fourier transform, are transformed to a grid ``_OVERSAMPLING``
+times finer than the band needs, and a value is the sum of ``2 * _SPREAD`` grid points weighted by the kernel —
+exact to about 1e-12 of the RMS (``tests/test_exact_turbulence.py`` checks it against the direct Fourier sum).
+The frame step is a whole number of fine-grid samples, so each actuator's weights are fixed and a frame is one
+small matrix product.
+
+*Sensing kernel*: ``subaperture`` multiplies the spectrum by ``sinc(d f_x) sinc(d f_y)`` (the mean over the
+actuator's ``d x d`` subaperture, ``d`` = pitch); ``point`` reads the field at the actuator.
+
+Memory per layer and realisation: the fine series, ``8 * N_f * n_across`` bytes with
+``N_f ~ 2 _OVERSAMPLING f_max (screen_frames v dt + D)`` samples: at 1 kHz, 5.1 m/s and 40 across about
+``32 * (screen_frames + 1570) * 40`` bytes, 23 MB for 16384 frames and 130 MB for 1e5 frames.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import torch
+
+from eofnn.errors import require
+from eofnn.sim.grid import ActuatorGrid
+
+#: Exact von Kármán coefficient (24/5 Γ(6/5))^(5/6) Γ(11/6)² / (2 π^(11/3)) of 0.023 r0^(-5/3) (f² + L0^-2)^(-11/6).
+VON_KARMAN_COEFFICIENT = 0.022896
+#: Along-wind band in units of the frame rate's Nyquist frequency 1 / (2 v dt) (aliasing of the frames included).
+_TEMPORAL_BAND = 2.0
+#: Smallest along-wind band in cycles per actuator pitch, for slow frame rates.
+_SPATIAL_BAND = 16.0
+#: Fine-grid oversampling of the non-uniform FFT and the half-width of its Gaussian kernel in fine samples.
+_OVERSAMPLING = 2
+_SPREAD = 12
+#: Across-wind aliases folded onto the lattice; beyond them the variance left out is < 1e-4 of the highest
+#: lattice frequency's (the spectrum falls as a^(-11/3) for points, a^(-17/3) through a subaperture).
+_ALIASES = {"subaperture": 3, "point": 8}
+#: Periods (along and across the wind) in outer scales; the periodic images then add < 1e-7 of the covariance.
+_PERIOD_OUTER_SCALES = 3.0
+#: Frames computed together; fixed so that results never depend on how frames are asked for.
+_BLOCK_FRAMES = 4096
+#: Spectrum samples (frequencies x lattice x aliases) evaluated together: bounds the set-up's memory (32 MB).
+_FREQUENCY_CHUNK_ELEMENTS = 2**22
+#: Refuse a screen whose fine series would exceed this many bytes per layer and realisation.
+_MAX_SERIES_BYTES = 2 * 2**30
+KERNELS = ("subaperture", "point")
+
+
+def von_karman_psd(f_per_m: np.ndarray, r0_m: float, outer_scale_m: float) -> np.ndarray:
+    """Von Kármán phase power spectral density in rad² m² at spatial frequency ``f_per_m`` (cycles/m)."""
+    return VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * (f_per_m**2 + outer_scale_m**-2) ** (-11 / 6)
+
+
+def nice_fft_size(n: int) -> int:
+    """Smallest even integer ``>= n`` with no prime factor above 5."""
+    best = None
+    p2 = 2
+    while best is None or p2 < best:
+        p3 = p2
+        while best is None or p3 < best:
+            p5 = p3
+            while p5 < n:
+                p5 *= 5
+            best = p5 if best is None else min(best, p5)
+            p3 *= 3
+        p2 *= 2
+    return best
+
+
+def grid_axis_quarter(direction_deg: float) -> int:
+    """``k`` in 0..3 for a wind along a grid axis (``direction_deg = 90 k``); a one-line error otherwise."""
+    quarter = direction_deg / 90.0
+    require(abs(quarter - round(quarter)) < 1e-9,
+            f"wind_direction_deg={direction_deg!r} is invalid for model 'exact': it must be a multiple of 90 "
+            "(along a grid axis); use model 'strip' for other directions")
+    return round(quarter) % 4
+
+
+def wind_axes(grid: ActuatorGrid, direction_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(u_m, line)``: along-wind coordinate (m) and across-wind line index of each active actuator.
+
+    The exact model needs the wind along a grid axis (0, 90, 180 or 270 degrees), so that actuators lie on lines
+    parallel to it.
+    """
+    k = grid_axis_quarter(direction_deg)
+    x, y = grid.positions_m.T
+    rows, cols = grid.indices.T
+    return (x, y, -x, -y)[k], (rows, cols, rows, cols)[k]
+
+
+@functools.lru_cache(maxsize=8)
+def lattice_variance_nm2(r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str, pitch_m: float,
+                         period_m: float, n_modes: int, n_lattice: int) -> np.ndarray:
+    """``(n_modes + 1, n_lattice)`` variance (nm²) of each Fourier coefficient ``(q >= 0, across-wind l)``.
+
+    Along-wind frequency ``q / period_m``, across-wind lattice frequency ``fftfreq(n_lattice, pitch_m)[l]`` plus
+    its aliases ``a / pitch_m``: the spectrum (times the kernel's squared transform) integrated over one frequency
+    cell. It depends on the layer and the geometry, not on the seed, so realisations share it (float32: the
+    weights of a random field need no more).
+    """
+    d = pitch_m
+    f_w = np.fft.fftfreq(n_lattice, d)[:, None] + np.arange(-_ALIASES[kernel], _ALIASES[kernel] + 1)[None, :] / d
+    across = (np.sinc(d * f_w) ** 2 if kernel == "subaperture" else np.ones_like(f_w)).astype(np.float32)
+    f_w2 = (f_w**2 + outer_scale_m**-2).astype(np.float32)
+    cell = (r0_wavelength_m / (2 * np.pi) * 1e9) ** 2 / (period_m * n_lattice * d)  # rad² per cell -> nm²
+    out = np.empty((n_modes + 1, n_lattice), dtype=np.float32)
+    chunk = max(1, _FREQUENCY_CHUNK_ELEMENTS // f_w.size)
+    for first in range(0, n_modes + 1, chunk):
+        f_u = np.arange(first, min(first + chunk, n_modes + 1)) / period_m
+        psd = (f_u.astype(np.float32)[:, None, None] ** 2 + f_w2[None]) ** np.float32(-11 / 6)
+        row = np.einsum("qla,la->ql", psd, across) * np.float32(VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * cell)
+        if kernel == "subaperture":
+            row *= (np.sinc(d * f_u) ** 2).astype(np.float32)[:, None]
+        out[first: first + len(f_u)] = row
+    out.flags.writeable = False
+    return out
+
+
+class ExactFrozenFlow:
+    """One realisation of one layer moving along a grid axis, seen through a sensing kernel, on the actuators.
+
+    Parameters
+    ----------
+    grid : ActuatorGrid
+        Actuators (positions, lines and pitch).
+    r0_m, r0_wavelength_m, outer_scale_m : float
+        Layer's Fried parameter (m) at a wavelength (m), and the outer scale (m, finite).
+    wind_speed_mps, wind_direction_deg : float
+        Wind speed (m/s, > 0) and direction (degrees from +x towards +y, a multiple of 90).
+    frame_period_s : float
+        Time between frames in seconds.
+    kernel : {"subaperture", "point"}
+        Sensing kernel.
+    screen_frames : int
+        Frames the screen holds: frames ``0 .. screen_frames - 1`` can be asked for, in any order.
+    seed : SeedSequence
+        Seed of this realisation.
+    """
+
+    def __init__(self, grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, outer_scale_m: float,
+                 wind_speed_mps: float, wind_direction_deg: float, frame_period_s: float, kernel: str,
+                 screen_frames: int, seed: np.random.SeedSequence) -> None:
+        require(wind_speed_mps > 0, f"wind_speed_mps={wind_speed_mps!r} is invalid for model 'exact': it must be > 0")
+        require(math.isfinite(outer_scale_m),
+                f"outer_scale_m={outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
+        require(kernel in KERNELS, f"kernel={kernel!r} is invalid: allowed are {', '.join(KERNELS)}")
+        self.screen_frames = screen_frames
+        self._rng = np.random.default_rng(seed)
+        self._plan(grid, outer_scale_m, wind_speed_mps * frame_period_s, wind_direction_deg)
+        self._series = self._synthesise(r0_m, r0_wavelength_m, outer_scale_m, kernel)
+        self._block_frames = min(_BLOCK_FRAMES, screen_frames)
+        self._blocks: dict[int, torch.Tensor] = {}
+
+    def _plan(self, grid: ActuatorGrid, outer_scale_m: float, step_m: float, direction_deg: float) -> None:
+        """Sizes: fine grid along the wind, lattice across it, and each actuator's kernel weights."""
+        self.pitch_m = grid.pitch_m
+        u, line = wind_axes(grid, direction_deg)
+        f_max = max(_TEMPORAL_BAND / (2 * step_m), _SPATIAL_BAND / grid.pitch_m)
+        self.fine_per_frame = math.ceil(2 * _OVERSAMPLING * f_max * step_m - 1e-9)  # integer fine samples per frame
+        self.fine_m = step_m / self.fine_per_frame
+        # Position (fine samples) at frame n: n * fine_per_frame + offset; the most downwind actuator starts first.
+        offset = (u.max() - u) / self.fine_m + _SPREAD
+        needed = int(np.ceil(offset.max())) + self.fine_per_frame * self.screen_frames + _SPREAD + 2
+        self.n_fine = nice_fft_size(max(needed, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m / self.fine_m)))
+        self.n_modes = self.n_fine // (2 * _OVERSAMPLING)  # along-wind frequencies q in [-n_modes, n_modes]
+        self.n_lines = int(line.max()) + 1
+        self.n_lattice = nice_fft_size(max(2 * self.n_lines, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m
+                                                                       / grid.pitch_m)))
+        require(8 * self.n_fine * self.n_lines <= _MAX_SERIES_BYTES,
+                f"the exact screen needs {8 * self.n_fine * self.n_lines / 2**30:.1f} GiB per layer "
+                f"(screen_frames={self.screen_frames}, {step_m * 1e3:.3g} mm per frame): lower screen_frames")
+        # Gaussian kernel exp(-x² / (4 tau)) in fine samples (Greengard & Lee 2004, oversampling 2).
+        self._tau = _SPREAD * _OVERSAMPLING / (4 * np.pi * (_OVERSAMPLING - 0.5))
+        base = np.floor(offset).astype(np.int64) - _SPREAD + 1
+        distance = offset[:, None] - (base[:, None] + np.arange(2 * _SPREAD))
+        weights = np.exp(-distance**2 / (4 * self._tau))
+        # Every actuator of a line reads windows of _WINDOW fine samples starting on multiples of fine_per_frame;
+        # its 2 * _SPREAD weights sit at its residue inside the window, so a line is one matrix product per block.
+        residue = base % self.fine_per_frame
+        self._window = 2 * _SPREAD + self.fine_per_frame - 1
+        padded = np.zeros((len(u), self._window))
+        for r in np.unique(residue):
+            padded[residue == r, r: r + 2 * _SPREAD] = weights[residue == r]
+        self._lines = []
+        for j in np.unique(line):
+            members = np.flatnonzero(line == j)
+            self._lines.append((int(j), torch.as_tensor(members),
+                                torch.as_tensor((base[members] - residue[members]) // self.fine_per_frame),
+                                torch.as_tensor(padded[members])))
+        self.n_actuators = len(u)
+
+    def _synthesise(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str) -> torch.Tensor:
+        """``(n_lines, n_fine)`` fine series: OPD (nm) of each line, deconvolved by the kernel's transform."""
+        variance = lattice_variance_nm2(r0_m, r0_wavelength_m, outer_scale_m, kernel, self.pitch_m,
+                                        self.n_fine * self.fine_m, self.n_modes, self.n_lattice)
+        # Field = sqrt(2) Re sum_q A(q) exp(-i 2 pi q p / n_fine) over q in [-n_modes, n_modes], p in fine samples.
+        q_all = np.arange(-self.n_modes, self.n_modes + 1)
+        spectrum = np.empty((self.n_lines, len(q_all)), dtype=np.complex128)
+        chunk = max(1, _FREQUENCY_CHUNK_ELEMENTS // self.n_lattice)
+        for first in range(0, len(q_all), chunk):
+            q = q_all[first: first + chunk]
+            # Single precision draws: the field is exactly the Fourier series of whatever coefficients are drawn.
+            draws = self._rng.standard_normal((len(q), self.n_lattice, 2), dtype=np.float32).view(np.complex64)[..., 0]
+            coefficients = np.sqrt(variance[np.abs(q)] / 2) * draws  # E|c|² = variance
+            lines = np.fft.ifft(coefficients, axis=1)[:, : self.n_lines].astype(np.complex128) * self.n_lattice
+            deconvolve = np.exp(self._tau * (2 * np.pi * q / self.n_fine) ** 2) / np.sqrt(4 * np.pi * self._tau)
+            spectrum[:, first: first + len(q)] = (lines * deconvolve[:, None]).T
+        series = np.empty((self.n_lines, self.n_fine))
+        padded = np.zeros(self.n_fine, dtype=np.complex128)
+        for j in range(self.n_lines):  # one line at a time: the zero-padded spectrum is as large as the series
+            padded[q_all % self.n_fine] = spectrum[j]
+            series[j] = np.sqrt(2) * np.fft.fft(padded).real
+        return torch.as_tensor(series)
+
+    def _block(self, b: int) -> torch.Tensor:
+        """``(n_actuators, block_frames)`` OPD (nm) of frames ``b * block_frames ...``."""
+        size = self._block_frames
+        if b not in self._blocks:
+            n0 = b * size
+            out = torch.empty(self.n_actuators, size, dtype=torch.float64)  # actuator-major: rows written whole
+            frames = torch.arange(size)
+            step = self.fine_per_frame
+            for line, members, window0, weights in self._lines:
+                lo, hi = int(window0.min()) + n0, int(window0.max()) + n0 + size
+                hi = min(hi, (self.n_fine - self._window) // step + 1)  # frames past the screen are never returned
+                windows = self._series[line, step * lo: step * (hi - 1) + self._window].unfold(0, self._window, step)
+                values = weights @ windows.T  # (members, windows)
+                columns = (window0 + n0 - lo).unsqueeze(1) + frames.unsqueeze(0)
+                out[members] = values.gather(1, columns.clamp(max=values.shape[1] - 1))
+            self._blocks = {b: out}  # streaming: only the latest block is kept
+        return self._blocks[b]
+
+    def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
+        """OPD (nm) of frames ``start..stop-1`` at the actuators, ``(frames, n_actuators)``; ``basis`` projected out."""
+        require(stop <= self.screen_frames,
+                f"frame {stop - 1} is beyond the exact screen (screen_frames={self.screen_frames}): raise "
+                "atmosphere.screen_frames")
+        size, parts = self._block_frames, []
+        for b in range(start // size, -(-stop // size)):
+            lo, hi = max(start - b * size, 0), min(stop - b * size, size)
+            parts.append(self._block(b)[:, lo:hi])
+        out = torch.cat(parts, 1).T.contiguous() if parts else torch.empty(0, self.n_actuators, dtype=torch.float64)
+        return out if basis is None else out - (out @ basis) @ basis.T
