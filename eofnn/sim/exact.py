@@ -175,6 +175,7 @@ class ExactFrozenFlow:
         self.fine_m = step_m / self.fine_per_frame
         # Position (fine samples) at frame n: n * fine_per_frame + offset; the most downwind actuator starts first.
         offset = (u.max() - u) / self.fine_m + _SPREAD
+        offset = np.where(np.abs(offset - np.round(offset)) < 1e-9, np.round(offset), offset)  # on-grid stays on
         needed = int(np.ceil(offset.max())) + self.fine_per_frame * self.screen_frames + _SPREAD + 2
         self.n_fine = nice_fft_size(max(needed, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m / self.fine_m)))
         self.n_modes = self.n_fine // (2 * _OVERSAMPLING)  # along-wind frequencies q in [-n_modes, n_modes]
