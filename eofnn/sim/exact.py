@@ -54,8 +54,10 @@ _ALIASES = {"subaperture": 3, "point": 8}
 _PERIOD_OUTER_SCALES = 3.0
 #: Frames computed together; fixed so that results never depend on how frames are asked for.
 _BLOCK_FRAMES = 4096
-#: Spectrum samples (frequencies x lattice x aliases) evaluated together: bounds the set-up's memory (32 MB).
-_FREQUENCY_CHUNK_ELEMENTS = 2**22
+#: Spectrum samples (frequencies x lattice x aliases) evaluated together: bounds the set-up's memory (8 MB).
+_FREQUENCY_CHUNK_ELEMENTS = 2**20
+#: Variance tables up to this size are kept and shared by the realisations of a layer (they need no seed).
+_MAX_SHARED_VARIANCE_BYTES = 64 * 2**20
 #: Refuse a screen whose fine series would exceed this many bytes per layer and realisation.
 _MAX_SERIES_BYTES = 2 * 2**30
 KERNELS = ("subaperture", "point")
@@ -103,30 +105,35 @@ def wind_axes(grid: ActuatorGrid, direction_deg: float) -> tuple[np.ndarray, np.
     return (x, y, -x, -y)[k], (rows, cols, rows, cols)[k]
 
 
-@functools.lru_cache(maxsize=8)
 def lattice_variance_nm2(r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str, pitch_m: float,
-                         period_m: float, n_modes: int, n_lattice: int) -> np.ndarray:
-    """``(n_modes + 1, n_lattice)`` variance (nm²) of each Fourier coefficient ``(q >= 0, across-wind l)``.
+                         period_m: float, n_lattice: int, q_first: int, q_stop: int) -> np.ndarray:
+    """``(q_stop - q_first, n_lattice)`` variance (nm²) of the Fourier coefficients ``(q, l)``, ``q`` in a range.
 
     Along-wind frequency ``q / period_m``, across-wind lattice frequency ``fftfreq(n_lattice, pitch_m)[l]`` plus
     its aliases ``a / pitch_m``: the spectrum (times the kernel's squared transform) integrated over one frequency
-    cell. It depends on the layer and the geometry, not on the seed, so realisations share it (float32: the
-    weights of a random field need no more).
+    cell. Single precision: the weights of a random field need no more.
     """
     d = pitch_m
     f_w = np.fft.fftfreq(n_lattice, d)[:, None] + np.arange(-_ALIASES[kernel], _ALIASES[kernel] + 1)[None, :] / d
     across = (np.sinc(d * f_w) ** 2 if kernel == "subaperture" else np.ones_like(f_w)).astype(np.float32)
     f_w2 = (f_w**2 + outer_scale_m**-2).astype(np.float32)
     cell = (r0_wavelength_m / (2 * np.pi) * 1e9) ** 2 / (period_m * n_lattice * d)  # rad² per cell -> nm²
-    out = np.empty((n_modes + 1, n_lattice), dtype=np.float32)
+    out = np.empty((q_stop - q_first, n_lattice), dtype=np.float32)
     chunk = max(1, _FREQUENCY_CHUNK_ELEMENTS // f_w.size)
-    for first in range(0, n_modes + 1, chunk):
-        f_u = np.arange(first, min(first + chunk, n_modes + 1)) / period_m
+    for first in range(q_first, q_stop, chunk):
+        f_u = np.arange(first, min(first + chunk, q_stop)) / period_m
         psd = (f_u.astype(np.float32)[:, None, None] ** 2 + f_w2[None]) ** np.float32(-11 / 6)
         row = np.einsum("qla,la->ql", psd, across) * np.float32(VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * cell)
         if kernel == "subaperture":
             row *= (np.sinc(d * f_u) ** 2).astype(np.float32)[:, None]
-        out[first: first + len(f_u)] = row
+        out[first - q_first: first - q_first + len(f_u)] = row
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def _shared_variance_nm2(*key) -> np.ndarray:
+    """The whole variance table of a small screen, shared by realisations (it does not depend on the seed)."""
+    out = lattice_variance_nm2(*key)
     out.flags.writeable = False
     return out
 
@@ -211,20 +218,26 @@ class ExactFrozenFlow:
 
     def _synthesise(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str) -> torch.Tensor:
         """``(n_lines, n_fine)`` fine series: OPD (nm) of each line, deconvolved by the kernel's transform."""
-        variance = lattice_variance_nm2(r0_m, r0_wavelength_m, outer_scale_m, kernel, self.pitch_m,
-                                        self.n_fine * self.fine_m, self.n_modes, self.n_lattice)
+        key = (r0_m, r0_wavelength_m, outer_scale_m, kernel, self.pitch_m, self.n_fine * self.fine_m, self.n_lattice)
+        shared = (self.n_modes + 1) * self.n_lattice * 4 <= _MAX_SHARED_VARIANCE_BYTES
+        variance = _shared_variance_nm2(*key, 0, self.n_modes + 1) if shared else None
         # Field = sqrt(2) Re sum_q A(q) exp(-i 2 pi q p / n_fine) over q in [-n_modes, n_modes], p in fine samples.
         q_all = np.arange(-self.n_modes, self.n_modes + 1)
-        spectrum = np.empty((self.n_lines, len(q_all)), dtype=np.complex128)
+        spectrum = np.empty((self.n_lines, len(q_all)), dtype=np.complex64)
         chunk = max(1, _FREQUENCY_CHUNK_ELEMENTS // self.n_lattice)
         for first in range(0, len(q_all), chunk):
             q = q_all[first: first + chunk]
+            if shared:
+                rows = variance[np.abs(q)]
+            else:
+                low, high = int(np.abs(q).min()), int(np.abs(q).max()) + 1
+                rows = lattice_variance_nm2(*key, low, high)[np.abs(q) - low]
             # Single precision draws: the field is exactly the Fourier series of whatever coefficients are drawn.
             draws = self._rng.standard_normal((len(q), self.n_lattice, 2), dtype=np.float32).view(np.complex64)[..., 0]
-            coefficients = np.sqrt(variance[np.abs(q)] / 2) * draws  # E|c|² = variance
-            lines = np.fft.ifft(coefficients, axis=1)[:, : self.n_lines].astype(np.complex128) * self.n_lattice
+            coefficients = np.sqrt(rows / 2) * draws  # E|c|² = variance
+            lines = np.fft.ifft(coefficients, axis=1)[:, : self.n_lines] * self.n_lattice  # (q, lines)
             deconvolve = np.exp(self._tau * (2 * np.pi * q / self.n_fine) ** 2) / np.sqrt(4 * np.pi * self._tau)
-            spectrum[:, first: first + len(q)] = (lines * deconvolve[:, None]).T
+            spectrum[:, first: first + len(q)] = (lines * deconvolve[:, None].astype(np.float32)).T
         series = np.empty((self.n_lines, self.n_fine))
         padded = np.zeros(self.n_fine, dtype=np.complex128)
         for j in range(self.n_lines):  # one line at a time: the zero-padded spectrum is as large as the series
