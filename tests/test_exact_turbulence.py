@@ -131,7 +131,7 @@ def test_fractional_positions_are_the_fourier_series_itself():
     s = layer.frames(0, 2000)
     u, line = wind_axes(grid, 0.0)
     q = np.arange(-layer.n_modes, layer.n_modes + 1)
-    deconvolve = np.exp(layer._tau * (2 * np.pi * q / layer.n_fine) ** 2) / np.sqrt(4 * np.pi * layer._tau)
+    deconvolve = 1 / exact.spreading_kernel_transform(q / layer.n_fine)
     errors = []
     for k in (0, 5, 37, 70):
         coefficients = np.fft.ifft(layer._series[line[k]].numpy())[q % layer.n_fine] / deconvolve

@@ -12,7 +12,7 @@ where the von Kármán covariance has decayed as ``exp(-2 pi r / L0)``.
 
 *Along the wind* the field on each line is a trigonometric polynomial (frequencies up to ``f_max``: twice the
 frame rate's Nyquist ``1 / (2 v dt)`` and at least ``_SPATIAL_BAND / pitch``). It is evaluated at every
-actuator's exact, non-grid position with a type-2 non-uniform FFT (Gaussian kernel, Greengard & Lee 2004):
+actuator's exact, non-grid position with a type-2 non-uniform FFT ("exponential of semicircle" kernel, as FINUFFT):
 the line's coefficients, divided by the kernel's Fourier transform, are transformed to a grid ``_OVERSAMPLING``
 times finer than the band needs, and a value is the sum of ``2 * _SPREAD`` grid points weighted by the kernel —
 exact to about 1e-11 of the RMS (``tests/test_exact_turbulence.py`` checks it against the direct Fourier sum).
@@ -44,9 +44,11 @@ VON_KARMAN_COEFFICIENT = 0.022896
 _TEMPORAL_BAND = 2.0
 #: Smallest along-wind band in cycles per actuator pitch, for slow frame rates.
 _SPATIAL_BAND = 16.0
-#: Fine-grid oversampling of the non-uniform FFT and the half-width of its Gaussian kernel in fine samples.
+#: Fine-grid oversampling of the non-uniform FFT, half-width (fine samples) and shape of its "exponential of
+#: semicircle" kernel exp(beta (sqrt(1 - z²) - 1)) (Barnett et al. 2019): 12 taps give ~1e-11 of the RMS.
 _OVERSAMPLING = 2
-_SPREAD = 10
+_SPREAD = 6
+_KERNEL_BETA = 2.30 * 2 * _SPREAD
 #: Across-wind aliases folded onto the lattice; beyond them the variance left out is < 1e-4 of the highest
 #: lattice frequency's (the spectrum falls as a^(-11/3) for points, a^(-17/3) through a subaperture).
 _ALIASES = {"subaperture": 3, "point": 8}
@@ -66,6 +68,19 @@ KERNELS = ("subaperture", "point")
 def von_karman_psd(f_per_m: np.ndarray, r0_m: float, outer_scale_m: float) -> np.ndarray:
     """Von Kármán phase power spectral density in rad² m² at spatial frequency ``f_per_m`` (cycles/m)."""
     return VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * (f_per_m**2 + outer_scale_m**-2) ** (-11 / 6)
+
+
+def spreading_kernel(distance: np.ndarray) -> np.ndarray:
+    """The non-uniform FFT's kernel at ``distance`` fine samples (zero beyond ``_SPREAD``)."""
+    z2 = np.clip(1 - (distance / _SPREAD) ** 2, 0, None)
+    return np.where(np.abs(distance) <= _SPREAD, np.exp(_KERNEL_BETA * (np.sqrt(z2) - 1)), 0.0)
+
+
+def spreading_kernel_transform(frequency: np.ndarray) -> np.ndarray:
+    """Fourier transform of :func:`spreading_kernel` at ``frequency`` (cycles per fine sample), by quadrature."""
+    z, w = np.polynomial.legendre.leggauss(4 * _SPREAD + 40)  # the kernel is smooth: exact to rounding
+    phase = np.cos(2 * np.pi * np.multiply.outer(np.asarray(frequency, dtype=float), z * _SPREAD))
+    return _SPREAD * phase @ (w * np.exp(_KERNEL_BETA * (np.sqrt(1 - z**2) - 1)))
 
 
 def nice_fft_size(n: int) -> int:
@@ -193,11 +208,8 @@ class ExactFrozenFlow:
         require(8 * self.n_fine * self.n_lines <= _MAX_SERIES_BYTES,
                 f"the exact screen needs {8 * self.n_fine * self.n_lines / 2**30:.1f} GiB per layer "
                 f"(screen_frames={self.screen_frames}, {step_m * 1e3:.3g} mm per frame): lower screen_frames")
-        # Gaussian kernel exp(-x² / (4 tau)) in fine samples (Greengard & Lee 2004, oversampling 2).
-        self._tau = _SPREAD * _OVERSAMPLING / (4 * np.pi * (_OVERSAMPLING - 0.5))
         base = np.floor(offset).astype(np.int64) - _SPREAD + 1
-        distance = offset[:, None] - (base[:, None] + np.arange(2 * _SPREAD))
-        weights = np.exp(-distance**2 / (4 * self._tau))
+        weights = spreading_kernel(offset[:, None] - (base[:, None] + np.arange(2 * _SPREAD)))
         # Every actuator of a line reads windows of _WINDOW fine samples starting on multiples of fine_per_frame;
         # its 2 * _SPREAD weights sit at its residue inside the window, so a line is one matrix product per block.
         residue = base % self.fine_per_frame
@@ -205,15 +217,13 @@ class ExactFrozenFlow:
         padded = np.zeros((len(u), self._window))
         for r in np.unique(residue):
             padded[residue == r, r: r + 2 * _SPREAD] = weights[residue == r]
-        # The block buffer holds lines one after another, so that each line's rows are written in place.
-        self._lines, order = [], []
+        self._lines = []
         for j in np.unique(line):
             members = np.flatnonzero(line == j)
-            self._lines.append((int(j), len(order), len(order) + len(members),
+            contiguous = bool(np.all(np.diff(members) == 1))  # rows of the grid: written as one slice
+            self._lines.append((int(j), slice(members[0], members[-1] + 1) if contiguous else torch.as_tensor(members),
                                 torch.as_tensor((base[members] - residue[members]) // self.fine_per_frame),
                                 torch.as_tensor(padded[members])))
-            order.extend(members.tolist())
-        self._to_actuators = torch.as_tensor(np.argsort(order))  # buffer row of each actuator
         self.n_actuators = len(u)
 
     def _synthesise(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str) -> torch.Tensor:
@@ -236,7 +246,7 @@ class ExactFrozenFlow:
             draws = self._rng.standard_normal((len(q), self.n_lattice, 2), dtype=np.float32).view(np.complex64)[..., 0]
             coefficients = np.sqrt(rows / 2) * draws  # E|c|² = variance
             lines = np.fft.ifft(coefficients, axis=1)[:, : self.n_lines] * self.n_lattice  # (q, lines)
-            deconvolve = np.exp(self._tau * (2 * np.pi * q / self.n_fine) ** 2) / np.sqrt(4 * np.pi * self._tau)
+            deconvolve = 1 / spreading_kernel_transform(q / self.n_fine)
             spectrum[:, first: first + len(q)] = (lines * deconvolve[:, None].astype(np.float32)).T
         series = np.empty((self.n_lines, self.n_fine))
         padded = np.zeros(self.n_fine, dtype=np.complex128)
@@ -246,35 +256,48 @@ class ExactFrozenFlow:
         return torch.as_tensor(series)
 
     def _block(self, b: int) -> torch.Tensor:
-        """``(n_actuators, block_frames)`` OPD (nm) of frames ``b * block_frames ...``, rows in line order.
+        """``(block_frames, n_actuators)`` OPD (nm) of frames ``b * block_frames ...``.
 
         Only the latest block is kept, in one buffer reused block after block (fresh large allocations cost page
-        faults that dominate the arithmetic).
+        faults that can cost more than the arithmetic).
         """
         size = self._block_frames
         if self._block_index != b:
             if self._buffer is None:
-                self._buffer = torch.empty(self.n_actuators, size, dtype=torch.float64)
-            n0, step, frames = b * size, self.fine_per_frame, torch.arange(size)
-            for line, row0, row1, window0, weights in self._lines:
+                self._buffer = torch.empty(size, self.n_actuators, dtype=torch.float64)
+            n0, step, frames = b * size, self.fine_per_frame, torch.arange(size).unsqueeze(0)
+            for line, members, window0, weights in self._lines:
                 lo, hi = int(window0.min()) + n0, int(window0.max()) + n0 + size
                 hi = min(hi, (self.n_fine - self._window) // step + 1)  # frames past the screen are never returned
                 windows = self._series[line, step * lo: step * (hi - 1) + self._window].unfold(0, self._window, step)
-                values = weights @ windows.T  # (members, windows)
-                columns = (window0 + n0 - lo).unsqueeze(1) + frames.unsqueeze(0)
-                torch.gather(values, 1, columns.clamp(max=values.shape[1] - 1), out=self._buffer[row0:row1])
+                values = weights @ windows.contiguous().T  # (members, windows): each member's series is a row
+                values = values.gather(1, ((window0 + n0 - lo).unsqueeze(1) + frames).clamp(max=values.shape[1] - 1))
+                if isinstance(members, slice):
+                    self._buffer[:, members] = values.T
+                else:
+                    self._buffer.index_copy_(1, members, values.T)
             self._block_index = b
         return self._buffer
 
-    def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
-        """OPD (nm) of frames ``start..stop-1`` at the actuators, ``(frames, n_actuators)``; ``basis`` projected out."""
+    def write_frames(self, start: int, stop: int, out: torch.Tensor, add: bool = False) -> torch.Tensor:
+        """Write (or, with ``add``, add) the OPD (nm) of frames ``start..stop-1`` into ``out`` ``(frames, n_act)``."""
         require(stop <= self.screen_frames,
                 f"frame {stop - 1} is beyond the exact screen (screen_frames={self.screen_frames}): raise "
                 "atmosphere.screen_frames")
-        size, parts = self._block_frames, []
+        size = self._block_frames
         for b in range(start // size, -(-stop // size)):
             lo, hi = max(start - b * size, 0), min(stop - b * size, size)
-            parts.append(self._block(b)[:, lo:hi].index_select(0, self._to_actuators))  # a copy, in actuator order
-        out = (parts[0] if len(parts) == 1 else torch.cat(parts, 1)).T if parts else torch.empty(0, self.n_actuators,
-                                                                                               dtype=torch.float64)
-        return out if basis is None else out - (out @ basis) @ basis.T
+            rows = out[b * size + lo - start: b * size + hi - start]
+            block = self._block(b)[lo:hi]
+            rows.add_(block) if add else rows.copy_(block)
+        return out
+
+    def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
+        """OPD (nm) of frames ``start..stop-1`` at the actuators, ``(frames, n_actuators)``; ``basis`` projected out."""
+        out = self.write_frames(start, stop, torch.empty(stop - start, self.n_actuators, dtype=torch.float64))
+        return out if basis is None else project_out(out, basis)
+
+
+def project_out(frames: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+    """Remove the orthonormal ``(n_actuators, m)`` ``basis`` from every frame, in place; returns ``frames``."""
+    return frames.addmm_(frames @ basis, basis.T, alpha=-1)

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from eofnn.errors import require
-from eofnn.sim.exact import KERNELS, ExactFrozenFlow, grid_axis_quarter
+from eofnn.sim.exact import KERNELS, ExactFrozenFlow, grid_axis_quarter, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
 from eofnn.sim.strip import FrozenFlowStrip
@@ -183,7 +183,18 @@ class Turbulence:
         """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
         require(0 <= start <= stop, f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop")
         basis = self._ptt if (self.atmosphere.remove_ptt if remove_ptt is None else remove_ptt) else None
-        return torch.stack([sum(strip.frames(start, stop, basis) for strip in strips) for strips in self._strips])
+        out = torch.empty(self.n_realisations, stop - start, self.grid.n_actuators, dtype=torch.float64)
+        for r, strips in enumerate(self._strips):  # layers add in place: large fresh tensors are slow to fault in
+            if self.atmosphere.model == "exact":
+                for i, layer in enumerate(strips):
+                    layer.write_frames(start, stop, out[r], add=i > 0)
+                if basis is not None:
+                    project_out(out[r], basis)
+                continue
+            out[r] = strips[0].frames(start, stop, basis)
+            for strip in strips[1:]:
+                out[r] += strip.frames(start, stop, basis)
+        return out
 
     def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
         """Yield ``(first_frame, frames)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
