@@ -83,17 +83,22 @@ def stream_peak_memory(n_across: int, n_frames: int, chunk_frames: int, seed: in
 
 
 def _stream(n_across: int, n_frames: int, chunk_frames: int, seed: int) -> dict:
-    """Stream the frames (reference scenario, exact model); report resident memory before and at its peak."""
-    import resource
+    """Stream the frames (reference scenario, exact model); report resident memory before and at its peak (Linux)."""
     import time
 
     sc = exact_scenario(Scenario.from_yaml(ROOT / "configs" / "reference.yaml"), n_across, n_frames)
 
-    def rss_bytes() -> int:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    def status_bytes(field: str) -> int:
+        # VmHWM (peak resident) belongs to this process image; ru_maxrss would carry a forking parent's over exec.
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
 
-    before = rss_bytes()
+    try:  # reset VmHWM to the current resident size, so the peak is this stream's, not the imports'
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+    before = status_bytes("VmRSS")
     t0 = time.perf_counter()
     turbulence = sc.turbulence(seed)
     setup_s = time.perf_counter() - t0
@@ -101,7 +106,7 @@ def _stream(n_across: int, n_frames: int, chunk_frames: int, seed: int) -> dict:
     for _, chunk in turbulence.chunks(n_frames, chunk_frames):
         total += float(chunk[:, -1, 0])  # use the frames
     elapsed = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
+    peak = status_bytes("VmHWM")
     layer = turbulence._strips[0][0]
     return {"n_across": n_across, "n_actuators": sc.grid.n_actuators, "frames": n_frames, "chunk_frames": chunk_frames,
             "rss_before_bytes": before, "peak_rss_bytes": peak, "peak_added_bytes": peak - before,
