@@ -84,6 +84,18 @@ def test_temporal_psd_matches_subaperture_frozen_flow_theory_without_comb():
     assert 0.8 < min(narrow) and max(narrow) < 1.25
 
 
+def test_the_b_spline_strip_fails_the_same_comparison():
+    """The check above can fail: the strip's piecewise-polynomial series collapse between multiples of v / pitch."""
+    speed, rate = 10.0, 1000.0
+    grid = ActuatorGrid(1.6, 8)
+    atm = Atmosphere(r0_m=R0, r0_wavelength_m=WAVELENGTH, layers=(Layer(1.0, speed, 0.0),), remove_ptt=False)
+    s = Turbulence(atm, grid, rate, seed=0, n_realisations=2).frames(0, 8192).numpy()
+    f, measured = welch(s, fs=rate, nperseg=4096, axis=1)
+    theory = theory_temporal_psd_nm2_per_hz(f, speed, grid.pitch_m, "point", 20.0, rate)
+    band = (f >= 120) & (f < 124)
+    assert measured.mean(axis=(0, 2))[band].mean() < 1e-3 * theory[band].mean()
+
+
 @pytest.mark.parametrize("kernel", ["subaperture", "point"])
 def test_structure_function_and_variance_match_kernel_filtered_theory(kernel):
     grid = ActuatorGrid(4.0, 20)
