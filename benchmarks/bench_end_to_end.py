@@ -10,6 +10,7 @@ from benchmarks.baselines import HcipyTurbulence, NumpyPredictiveLoop, numpy_lst
 from benchmarks.bench_turbulence import scenario_with_grid
 from benchmarks.common import Row, Timing, time_interleaved
 from eofnn.data.history import HistorySpec
+from eofnn.data.stream import DataConfig
 from eofnn.sim.loop import run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import fit_predictor
@@ -19,7 +20,8 @@ def eofnn_pipeline(scenario: Scenario, spec: HistorySpec, train_frames: int, val
                    seed: int, out: dict) -> None:
     """``fit_predictor`` then ``run_loop`` with the fitted controller; timings and results go to ``out``."""
     t0 = time.perf_counter()
-    result = fit_predictor(scenario, spec, train_frames=train_frames, val_frames=val_frames, seed=seed)
+    result = fit_predictor(scenario, spec.kind, spec.history_length,
+                           data=DataConfig(frames=train_frames, val_frames=val_frames, seed=seed))
     t1 = time.perf_counter()
     loop = run_loop(scenario.turbulence(seed, "test"), scenario.plant, result.predictor.controller(), eval_frames,
                     record=(), progress=False)

@@ -8,9 +8,9 @@ import torch
 from benchmarks.baselines import NumpyPredictiveLoop
 from benchmarks.bench_turbulence import scenario_with_grid
 from benchmarks.common import Row, Skipped, Timing, copy_bandwidth, synchronizer, time_interleaved
+from eofnn.control import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.models.linear import LinearFilter
-from eofnn.models.predictive import PredictiveController
 from eofnn.sim.loop import LoopInput, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.turbulence import Turbulence

@@ -8,8 +8,8 @@ from benchmarks.bench_fit import streamed_fit, synthetic_regression
 from benchmarks.bench_loop import ContinuingTurbulence, integrator_like_filter
 from benchmarks.bench_turbulence import scenario_with_grid
 from benchmarks.common import Series, time_interleaved
+from eofnn.control import PredictiveController
 from eofnn.data.history import HistorySpec
-from eofnn.models.predictive import PredictiveController
 from eofnn.sim.loop import LoopInput, run_loop
 from eofnn.sim.scenario import Scenario
 

@@ -1,4 +1,4 @@
-"""Errors that reach the user as one clear line."""
+"""Errors and warnings that reach the user as one clear line."""
 
 from __future__ import annotations
 
@@ -7,19 +7,27 @@ class ConfigError(ValueError):
     """A configuration value is invalid; the message names the value and what is allowed."""
 
 
+class OutputExistsError(ConfigError):
+    """An output path exists and ``overwrite`` was not asked for: nothing a user wrote is replaced unasked."""
+
+
 class CheckpointError(ValueError):
-    """A checkpoint is missing, unreadable or does not fit the set-up it is loaded into."""
+    """A checkpoint is missing, unreadable, names code that is not allowed, or does not fit its set-up."""
 
 
 class TelemetryError(ValueError):
     """A telemetry file is missing arrays, has wrong shapes or holds non-finite values."""
 
 
+class DivergedError(RuntimeError):
+    """A loop that had to stay stable (recording training data) diverged; the message names where."""
+
+
+class CollinearityWarning(UserWarning):
+    """The regressors are (near-)collinear: the fitted filter is decided by the regularisation, not the data."""
+
+
 def require(condition: bool, message: str) -> None:
     """Raise :class:`ConfigError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise ConfigError(message)
-
-
-class DivergedError(RuntimeError):
-    """A loop that had to stay stable (recording training data) diverged; the message names where."""

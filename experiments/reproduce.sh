@@ -6,10 +6,10 @@ cd "$(dirname "$0")/.."
 eofnn=.venv/bin/eofnn
 $eofnn compare --config configs/paper.yaml --out experiments/paper --overwrite true
 # Design choices, open-loop EOF in the nominal scenario (see experiments/README.md).
-only_ol='{"uncorrected": {"controller": "uncorrected"}, "ol_eof": {"history_length": 4, "alpha": 1.0e-12, "train_in": "nominal", "training": {"frames": 20000}}}'
+only_ol='{"uncorrected": {"controller": "uncorrected"}, "ol_eof": {"history_length": 4, "optimization": {"alpha": 1.0e-12}, "train_in": "nominal", "data": {"frames": 20000}}}'
 for alpha in 1.0e-6 1.0e-9 1.0e-12 1.0e-14; do
   $eofnn compare --config configs/paper.yaml --scenarios '{"nominal": {}}' --predictors "$only_ol" \
-    --predictors.ol_eof.alpha $alpha --out experiments/sweeps/alpha_$alpha --overwrite true
+    --predictors.ol_eof.optimization.alpha $alpha --out experiments/sweeps/alpha_$alpha --overwrite true
 done
 for p in 2 4 8 16; do
   $eofnn compare --config configs/paper.yaml --scenarios '{"nominal": {}}' --predictors "$only_ol" \
@@ -17,6 +17,6 @@ for p in 2 4 8 16; do
 done
 for frames in 2000 6000 20000; do
   $eofnn compare --config configs/paper.yaml --scenarios '{"nominal": {}}' --predictors "$only_ol" \
-    --predictors.ol_eof.training.frames $frames --out experiments/sweeps/frames_$frames --overwrite true
+    --predictors.ol_eof.data.frames $frames --out experiments/sweeps/frames_$frames --overwrite true
 done
 .venv/bin/python experiments/make_report.py

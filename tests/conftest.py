@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 
-from eofnn.sim import ActuatorGrid, Atmosphere, Layer
+from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant
 from eofnn.sim.scenario import Scenario
 
 
@@ -13,5 +13,5 @@ def small_scenario() -> Scenario:
         grid=ActuatorGrid(2.0, 10),
         atmosphere=Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=(Layer(1.0, 10.0, 0.0),)),
         frame_rate_hz=1000.0,
-        delay_frames=2,
+        plant=Plant(delay_frames=2),
     )

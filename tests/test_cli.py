@@ -52,7 +52,7 @@ def test_compare_writes_metrics_table_config_and_figures(tiny_results):
     resolved = yaml.safe_load((tiny_results / "config.yaml").read_text())
     assert resolved["predictors"]["cl_eof"]["history_length"] == 5
     assert resolved["evaluation"]["frames"] == 1200  # resolved: defaults filled in
-    assert resolved["predictors"]["ol_eof"]["training"]["batch_frames"] == 256
+    assert resolved["predictors"]["ol_eof"]["data"]["batch_frames"] == 256
     assert sorted(p.name for p in (tiny_results / "checkpoints").iterdir()) == [
         "cl_eof__dm_gain_2.ckpt", "cl_eof__nominal.ckpt", "ol_eof__nominal.ckpt"]
 
@@ -82,8 +82,8 @@ def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results,
 def test_fit_then_evaluate_under_another_plant(tmp_path, capsys):
     ckpt = tmp_path / "cl.ckpt"
     code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
-                    "--predictor.history_length", "5", "--predictor.training.frames", "2000",
-                    "--predictor.training.sequence_frames", "1000", "--predictor.training.val_frames", "300",
+                    "--predictor.history_length", "5", "--predictor.data.frames", "2000",
+                    "--predictor.data.sequence_frames", "1000", "--predictor.data.val_frames", "300",
                     "--out", ckpt)
     assert code == 0, err
     assert ckpt.exists() and (tmp_path / "cl.ckpt.yaml").exists()
@@ -101,10 +101,9 @@ def test_fit_then_evaluate_under_another_plant(tmp_path, capsys):
 
 def test_a_users_own_module_plugs_in_by_class_path(tmp_path, capsys):
     out = tmp_path / "user"
-    predictors = {"mine": {"history_length": 3, "fit_method": "sgd",
-                           "network": {"class_path": "user_networks.TapMixer"},
-                           "training": {"frames": 1000, "val_frames": 200, "sequence_frames": 500, "epochs": 1,
-                                        "lr": 0.01}}}
+    predictors = {"mine": {"history_length": 3, "network": {"class_path": "user_networks.TapMixer"},
+                           "data": {"frames": 1000, "val_frames": 200, "sequence_frames": 500},
+                           "optimization": {"fit_method": "sgd", "epochs": 1, "lr": 0.01}}}
     code, err = run(capsys, "compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors),
                     "--scenarios", '{"nominal": {}}', "--evaluation.frames", "400", "--evaluation.settle_frames",
                     "50", "--evaluation.psd_segment_frames", "64", "--out", out)
@@ -166,15 +165,15 @@ def test_simulate_writes_loadable_telemetry_and_a_plot(tmp_path, capsys):
     assert tel.eps.shape == (200, 80)
     assert (tel.eps[2:] - (tel.s[2:] - tel.s[:-2])).abs().max() < 1e-9
     assert tel.config["eofnn"]["frames"] == 200
-    assert (tmp_path / "run.png").read_bytes()[:4] == b"\x89PNG"
+    assert (tmp_path / "run.fits.png").read_bytes()[:4] == b"\x89PNG"
     code, err = run(capsys, "simulate", "--scenario", TINY_SCENARIO, "--frames", "200", "--out", out)
     assert code == 2 and "exists" in err
 
 
 def test_a_diverging_data_controller_is_reported_not_raised(tmp_path, capsys):
     code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
-                    "--predictor.training.integrator_gain", "1.5", "--predictor.training.frames", "1000",
-                    "--predictor.training.sequence_frames", "1000", "--out", tmp_path / "x.ckpt")
+                    "--predictor.data.integrator_gain", "1.5", "--predictor.data.frames", "1000",
+                    "--predictor.data.sequence_frames", "1000", "--out", tmp_path / "x.ckpt")
     assert code == 2
     errors = [line for line in err.splitlines() if line.startswith("eofnn: error:")]
     assert len(errors) == 1 and "diverged at frame" in errors[0] and "Traceback" not in err
@@ -189,3 +188,10 @@ def test_shipped_configs_parse(command, config, capsys):
     assert info.value.code == 0
     resolved = yaml.safe_load(capsys.readouterr().out)
     assert resolved["scenario"]["grid"]["n_across"] == 40
+
+
+def test_tiny_compare_numbers_are_pinned(tiny_results):
+    """Refactors must not move a number: the tiny experiment's metrics, recorded before the 'House in order'
+    restructuring, are reproduced bit for bit (update the file only for a deliberate change of the physics)."""
+    pinned = json.loads((Path(__file__).parent / "conf" / "tiny_compare_pinned.json").read_text())
+    assert json.loads((tiny_results / "metrics.json").read_text())["scenarios"] == pinned

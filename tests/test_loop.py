@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
+from eofnn.control import Dithered, Integrator, PseudoIntegrator, Uncorrected, critical_gain
 from eofnn.errors import ConfigError
-from eofnn.models.controllers import Dithered, Integrator, PseudoIntegrator, Uncorrected, critical_gain
 from eofnn.sim import Plant, run_loop
 from eofnn.sim.plant import PlantModel
 
@@ -38,7 +38,7 @@ def test_integrator_recursion(small_scenario):
 
 @pytest.mark.parametrize("delay", [1, 2, 3])
 def test_integrator_stability_boundary_matches_theory(small_scenario, delay):
-    scenario = small_scenario.__class__(small_scenario.grid, small_scenario.atmosphere, 1000.0, delay)
+    scenario = small_scenario.with_plant(delay_frames=delay)
     k_crit = critical_gain(delay)
     assert k_crit == pytest.approx({1: 2.0, 2: 1.0, 3: 2 * math.sin(math.pi / 10)}[delay])
     stable = run_loop(scenario.turbulence(0), scenario.plant, Integrator(0.9 * k_crit), 2000)
@@ -91,7 +91,7 @@ def test_plant_model_errors(small_scenario):
 
 
 def test_noisy_loop_is_reproducible(small_scenario):
-    scenario = small_scenario.with_model_errors(wfs_noise_nm=2.0)
+    scenario = small_scenario.with_plant(wfs_noise_nm=2.0)
     a = run_loop(scenario.turbulence(4), scenario.plant, Integrator(0.5), 100, noise_seed=3).telemetry
     b = run_loop(scenario.turbulence(4), scenario.plant, Integrator(0.5), 100, noise_seed=3).telemetry
     c = run_loop(scenario.turbulence(4), scenario.plant, Integrator(0.5), 100, noise_seed=4).telemetry
@@ -105,7 +105,7 @@ def test_noisy_loop_is_reproducible(small_scenario):
     [
         (lambda: Plant(delay_frames=0), "delay_frames=0"),
         (lambda: Plant(nonlinearity="cubic"), "nonlinearity='cubic'"),
-        (lambda: Plant.from_model_errors(2, {"dm_gian": 2.0}), "unknown model error 'dm_gian'"),
+        (lambda: Plant().with_errors(dm_gian=2.0), "unknown model error 'dm_gian'"),
         (lambda: Plant(wfs_noise_nm=-1.0), "wfs_noise_nm=-1.0"),
         (lambda: Integrator(gain=-0.1), "gain=-0.1"),
     ],

@@ -5,23 +5,37 @@ from __future__ import annotations
 import subprocess
 import sys
 import warnings
+from dataclasses import fields
 
 import pytest
 import torch
 from torch import nn
 
+from eofnn.control import Dithered, Integrator, PredictiveController, PseudoIntegrator
 from eofnn.data.history import HistorySpec, build_history, targets
-from eofnn.data.stream import LoopDataModule, SimulatedTelemetry, default_data_controller
-from eofnn.errors import CheckpointError, ConfigError
-from eofnn.models.controllers import PseudoIntegrator
+from eofnn.data.stream import DataConfig, LoopDataModule, SimulatedTelemetry
+from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError, OutputExistsError
 from eofnn.models.linear import LinearFilter
-from eofnn.models.predictive import PredictiveController
 from eofnn.sim import run_loop
-from eofnn.training.fit import fit_predictor, load_predictor
-from eofnn.training.ridge import CollinearityWarning, NormalEquations
-from eofnn.training.task import PredictorTask
+from eofnn.training.checkpoint import load_predictor
+from eofnn.training.fit import fit_predictor
+from eofnn.training.ridge import NormalEquations, fit_closed_form
+from eofnn.training.task import OptimizationConfig
 
-FAST = dict(train_frames=3000, val_frames=500, sequence_frames=1000)
+FAST = dict(frames=3000, val_frames=500, sequence_frames=1000)
+DATA_FIELDS = {f.name for f in fields(DataConfig)}
+
+
+def fit(scenario, kind, history_length, network=None, checkpoint_path=None, **options):
+    """fit_predictor with the options of both groups given flat (data fields, the rest optimisation)."""
+    data = DataConfig(**{k: v for k, v in options.items() if k in DATA_FIELDS})
+    optimization = OptimizationConfig(**{k: v for k, v in options.items() if k not in DATA_FIELDS})
+    return fit_predictor(scenario, kind, history_length, network, data=data, optimization=optimization,
+                         checkpoint_path=checkpoint_path)
+
+
+def recorder(gain=0.4, dither_nm=5.0):
+    return Dithered(Integrator(gain), dither_nm)
 
 
 def median_rms(scenario, controller, n_frames=1500, seed=9):
@@ -67,7 +81,7 @@ def test_predictive_controller_sees_the_same_histories_as_training(small_scenari
             return -0.3 * history[..., -1]  # any command, so that y and eps differ
 
     net = Recorder()
-    controller = default_data_controller(0.3, 0.0, 5.0) if kind == "closed_loop" else None
+    controller = recorder(0.3) if kind == "closed_loop" else None
     result = run_loop(small_scenario.turbulence(0), small_scenario.plant,
                       PredictiveController(net, spec), 60)
     tel = result.telemetry
@@ -79,15 +93,12 @@ def test_predictive_controller_sees_the_same_histories_as_training(small_scenari
 
 @pytest.mark.parametrize("structure", ["per_actuator", "shared", "neighbourhood"])
 def test_streamed_closed_form_equals_direct_ridge(small_scenario, structure):
-    noisy = small_scenario.with_model_errors(wfs_noise_nm=5.0)
+    noisy = small_scenario.with_plant(wfs_noise_nm=5.0)
     spec = HistorySpec("open_loop", 3, 2)
     grid = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}
     net = LinearFilter(noisy.grid.n_actuators, spec.n_taps, structure, radius=1.0, grid=grid)
-    dataset = SimulatedTelemetry(noisy, spec, 1200, seed=1, sequence_frames=600, batch_frames=97)
-    task = PredictorTask(net, "closed_form", alpha=1e-3, alpha_relative=True)
-    for i, batch in enumerate(dataset):
-        task.training_step(batch, i)
-    task.solve()
+    dataset = SimulatedTelemetry(noisy, spec, 1200, data=DataConfig(seed=1, sequence_frames=600, batch_frames=97))
+    fit_closed_form(net, dataset, alpha=1e-3, alpha_relative=True)
     x, t = all_batches(dataset)
     features, target = net.features(x), net.group_targets(t)
     gram = features.transpose(1, 2) @ features
@@ -105,13 +116,13 @@ def test_streamed_closed_form_equals_direct_ridge(small_scenario, structure):
 
 
 def test_sgd_reaches_the_closed_form_loss(small_scenario):
-    noisy = small_scenario.with_model_errors(wfs_noise_nm=20.0)
+    noisy = small_scenario.with_plant(wfs_noise_nm=20.0)
     spec = HistorySpec("open_loop", 3, 2)
     # One full-data batch per epoch: L-BFGS is a deterministic quasi-Newton method on it.
-    common = dict(train_frames=1500, val_frames=300, sequence_frames=1500, batch_frames=1500, seed=3)
-    closed = fit_predictor(noisy, spec, **common)
-    sgd = fit_predictor(noisy, spec, fit_method="sgd", optimizer="lbfgs", lr=1.0, max_epochs=3, **common)
-    x, t = all_batches(SimulatedTelemetry(noisy, spec, 1500, seed=3, sequence_frames=1500))
+    common = dict(frames=1500, val_frames=300, sequence_frames=1500, batch_frames=1500, seed=3)
+    closed = fit(noisy, "open_loop", 3, **common)
+    sgd = fit(noisy, "open_loop", 3, fit_method="sgd", optimizer="lbfgs", lr=1.0, epochs=3, **common)
+    x, t = all_batches(SimulatedTelemetry(noisy, spec, 1500, data=DataConfig(seed=3, sequence_frames=1500)))
     with torch.no_grad():
         loss_closed = (closed.predictor.network(x) - t).pow(2).mean().item()
         loss_sgd = (sgd.predictor.network(x) - t).pow(2).mean().item()
@@ -122,13 +133,13 @@ def test_sgd_reaches_the_closed_form_loss(small_scenario):
 def test_study_orderings_in_a_frozen_flow_loop(small_scenario):
     """OL EOF beats the pseudo-integrator 5x; CL EOF ~ OL EOF nominally; under a 2x DM gain CL holds, OL fails."""
     pseudo = median_rms(small_scenario, PseudoIntegrator())
-    ol = fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), **FAST).predictor
-    cl = fit_predictor(small_scenario, HistorySpec("closed_loop", 5, 2), dither_nm=10.0, **FAST).predictor
+    ol = fit(small_scenario, "open_loop", 4, **FAST).predictor
+    cl = fit(small_scenario, "closed_loop", 5, dither_nm=10.0, **FAST).predictor
     ol_nominal, cl_nominal = median_rms(small_scenario, ol.controller()), median_rms(small_scenario, cl.controller())
     assert ol_nominal * 5 < pseudo
     assert cl_nominal < 1.5 * ol_nominal
-    doubled = small_scenario.with_model_errors(dm_gain=2.0)
-    cl2 = fit_predictor(doubled, HistorySpec("closed_loop", 5, 2), dither_nm=10.0, integrator_gain=0.25,
+    doubled = small_scenario.with_plant(dm_gain=2.0)
+    cl2 = fit(doubled, "closed_loop", 5, dither_nm=10.0, integrator_gain=0.25,
                         **FAST).predictor
     assert median_rms(doubled, cl2.controller()) < 1.5 * cl_nominal
     result = run_loop(doubled.turbulence(9), doubled.plant, ol.controller(), 1500, record=())
@@ -136,9 +147,8 @@ def test_study_orderings_in_a_frozen_flow_loop(small_scenario):
 
 
 def test_unexcited_closed_loop_data_is_flagged(small_scenario):
-    spec = HistorySpec("closed_loop", 4, 2)
     with pytest.warns(CollinearityWarning):
-        result = fit_predictor(small_scenario, spec, dither_nm=0.0, **FAST)
+        result = fit(small_scenario, "closed_loop", 4, dither_nm=0.0, **FAST)
     # Honest either way: if it is used regardless, the loop result is reported, diverged or not.
     loop = run_loop(small_scenario.turbulence(9), small_scenario.plant, result.predictor.controller(), 500,
                     record=())
@@ -146,59 +156,59 @@ def test_unexcited_closed_loop_data_is_flagged(small_scenario):
 
 
 def test_refit_rounds_record_with_the_fitted_predictor(small_scenario):
-    result = fit_predictor(small_scenario, HistorySpec("closed_loop", 5, 2), dither_nm=10.0, refit_rounds=1, **FAST)
+    result = fit(small_scenario, "closed_loop", 5, dither_nm=10.0, refit_rounds=1, **FAST)
     assert [r["round"] for r in result.rounds] == [0, 1]
     assert median_rms(small_scenario, result.predictor.controller()) < 1.0
 
 
 def test_mlp_trains_through_the_same_loop_and_runs_closed_loop(small_scenario):
     pseudo = median_rms(small_scenario, PseudoIntegrator())
-    result = fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2),
+    result = fit(small_scenario, "open_loop", 4,
                            {"class_path": "MLP", "init_args": {"hidden": [16, 16]}}, fit_method="sgd", lr=3e-3,
-                           max_epochs=3, batch_frames=64, **FAST)
+                           epochs=3, batch_frames=64, **FAST)
     assert result.val_loss < result.rounds[0]["train_loss"] * 2
     assert median_rms(small_scenario, result.predictor.controller()) < pseudo / 3
     with pytest.raises(ConfigError, match="closed_form"):
-        fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), {"class_path": "MLP"}, **FAST)
+        fit(small_scenario, "open_loop", 4, {"class_path": "MLP"}, **FAST)
 
 
 def test_sgd_fits_are_reproducible_bit_for_bit(small_scenario):
-    def fit(seed):
-        return fit_predictor(small_scenario, HistorySpec("open_loop", 3, 2), {"class_path": "MLP",
-                             "init_args": {"hidden": [8]}}, fit_method="sgd", max_epochs=1, seed=seed,
-                             train_frames=600, val_frames=200, sequence_frames=300).predictor.network.state_dict()
+    def weights(seed):
+        return fit(small_scenario, "open_loop", 3, {"class_path": "MLP", "init_args": {"hidden": [8]}},
+                   fit_method="sgd", epochs=1, seed=seed, frames=600, val_frames=200,
+                   sequence_frames=300).predictor.network.state_dict()
 
-    first, again, other = fit(5), fit(5), fit(6)
+    first, again, other = weights(5), weights(5), weights(6)
     assert all(torch.equal(first[k], again[k]) for k in first)
     assert not all(torch.equal(first[k], other[k]) for k in first)
 
 
 def test_checkpoint_round_trip_in_another_process(small_scenario, tmp_path):
     path = tmp_path / "ol.ckpt"
-    result = fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), checkpoint_path=path, **FAST)
+    result = fit(small_scenario, "open_loop", 4, checkpoint_path=path, **FAST)
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     assert ckpt["hyper_parameters"]["spec"]["history_length"] == 4
     x = torch.randn(5, small_scenario.grid.n_actuators, 4, dtype=torch.float64) * 100
     torch.save(x, tmp_path / "x.pt")
     code = (
-        "import torch, sys; from eofnn.training.fit import load_predictor;"
+        "import torch, sys; from eofnn.training.checkpoint import load_predictor;"
         f"p = load_predictor({str(path)!r}); x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True);"
         f"torch.save(p.network(x).detach(), {str(tmp_path / 'y.pt')!r})"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
     other = torch.load(tmp_path / "y.pt", weights_only=True)
     assert torch.equal(other, result.predictor.network(x).detach())
-    with pytest.raises(FileExistsError):
-        fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), checkpoint_path=path, **FAST)
+    with pytest.raises(OutputExistsError):
+        fit(small_scenario, "open_loop", 4, checkpoint_path=path, **FAST)
 
 
 def test_checkpoint_into_an_incompatible_setup_fails_clearly(small_scenario, tmp_path):
     path = tmp_path / "ol.ckpt"
-    fit_predictor(small_scenario, HistorySpec("open_loop", 4, 2), checkpoint_path=path, **FAST)
+    fit(small_scenario, "open_loop", 4, checkpoint_path=path, **FAST)
     bigger = small_scenario.__class__(grid={"diameter_m": 2.0, "n_across": 12}, atmosphere=small_scenario.atmosphere)
     with pytest.raises(CheckpointError, match="n_actuators=80 but the scenario has n_actuators=112"):
         load_predictor(path, bigger)
-    slower = small_scenario.__class__(small_scenario.grid, small_scenario.atmosphere, delay_frames=3)
+    slower = small_scenario.with_plant(delay_frames=3)
     with pytest.raises(CheckpointError, match="delay_frames=2 but the scenario has delay_frames=3"):
         load_predictor(path, slower)
     with pytest.raises(CheckpointError, match="history_length=4 but history_length=6"):
@@ -212,16 +222,16 @@ def test_checkpoint_into_an_incompatible_setup_fails_clearly(small_scenario, tmp
 
 def test_workers_never_share_frames_and_seeds_reproduce(small_scenario):
     spec = HistorySpec("open_loop", 3, 2)
-    dm = LoopDataModule(small_scenario, spec, train_frames=1200, val_frames=300, sequence_frames=300, seed=4,
-                        num_workers=2)
+    dm = LoopDataModule(small_scenario, spec, DataConfig(frames=1200, val_frames=300, sequence_frames=300, seed=4,
+                                                   num_workers=2))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         two_workers = all_batches(dm.train_dataloader())[1]
-    one_worker = all_batches(SimulatedTelemetry(small_scenario, spec, 1200, seed=4, sequence_frames=300))[1]
+    one_worker = all_batches(SimulatedTelemetry(small_scenario, spec, 1200, data=DataConfig(seed=4, sequence_frames=300)))[1]
     # Same sequences whatever the number of workers (order may interleave), none repeated.
     assert sorted(two_workers[:, 0].tolist()) == sorted(one_worker[:, 0].tolist())
-    firsts = [seq[1][0, 0, 0].item() for seq in map(SimulatedTelemetry(small_scenario, spec, 1200, seed=4,
-                                                                        sequence_frames=300).sequence, range(4))]
+    firsts = [seq[1][0, 0, 0].item() for seq in map(SimulatedTelemetry(
+        small_scenario, spec, 1200, data=DataConfig(seed=4, sequence_frames=300)).sequence, range(4))]
     assert len(set(firsts)) == 4
     val = all_batches(dm.val_dataloader())[1]
     assert not torch.isin(val[:, 0], one_worker[:, 0]).any()
@@ -229,8 +239,9 @@ def test_workers_never_share_frames_and_seeds_reproduce(small_scenario):
 
 @pytest.mark.parametrize("kind", ["open_loop", "closed_loop"])
 def test_batches_are_windows_of_the_whole_sequence(small_scenario, kind):
-    dataset = SimulatedTelemetry(small_scenario, HistorySpec(kind, 3, 2), 500, seed=2, sequence_frames=500,
-                                 batch_frames=37, data_controller=default_data_controller(0.4, 0.0, 5.0))
+    dataset = SimulatedTelemetry(small_scenario, HistorySpec(kind, 3, 2), 500,
+                                 data=DataConfig(seed=2, sequence_frames=500, batch_frames=37),
+                                 data_controller=recorder())
     history, target = dataset.sequence(0)
     x, t = all_batches(dataset)
     assert torch.equal(x, history[0]) and torch.equal(t, target[0])

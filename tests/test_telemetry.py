@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from eofnn.errors import TelemetryError
-from eofnn.models.controllers import Integrator
+from eofnn.control import Integrator
+from eofnn.errors import OutputExistsError, TelemetryError
 from eofnn.sim import Telemetry, run_loop
 
 
@@ -19,7 +19,7 @@ def test_round_trip(small_scenario, tmp_path, suffix):
         assert torch.equal(getattr(back, name), value)
     assert back.delay_frames == 2
     assert back.config["scenario"]["grid"]["n_across"] == 10
-    with pytest.raises(FileExistsError):
+    with pytest.raises(OutputExistsError):
         tel.save(path)
     tel.save(path, overwrite=True)
 

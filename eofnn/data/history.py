@@ -10,16 +10,21 @@ The same functions serve training, evaluation and real telemetry. Taps run from 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 
-from eofnn.errors import ConfigError, require
+from eofnn.errors import ConfigError
+from eofnn.sim.scenario import Scenario
+from eofnn.validation import Constraint, Interval, OneOf, validated
 
 HISTORY_KINDS = ("open_loop", "closed_loop")
+#: Longest history accepted (frames); a 1264-actuator closed-loop history of this length is ~1 MB per frame.
+MAX_HISTORY_LENGTH = 256
 
 
 @dataclass(frozen=True)
+@validated
 class HistorySpec:
     """What a predictor sees: the kind of history, how many frames of it, and the loop delay.
 
@@ -37,12 +42,16 @@ class HistorySpec:
     history_length: int = 4
     delay_frames: int = 2
 
-    def __post_init__(self) -> None:
-        require(self.kind in HISTORY_KINDS, f"history kind={self.kind!r} is invalid: allowed are {', '.join(HISTORY_KINDS)}")
-        require(isinstance(self.history_length, int) and self.history_length >= 1,
-                f"history_length={self.history_length!r} is invalid: it must be an integer >= 1")
-        require(isinstance(self.delay_frames, int) and self.delay_frames >= 1,
-                f"delay_frames={self.delay_frames!r} is invalid: it must be an integer >= 1")
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "kind": OneOf(HISTORY_KINDS),
+        "history_length": Interval(1, MAX_HISTORY_LENGTH, integer=True, unit="frames"),
+        "delay_frames": Interval(1, 100, integer=True, unit="frames"),
+    }
+
+    @classmethod
+    def from_scenario(cls, kind: str, history_length: int, scenario: Scenario) -> HistorySpec:
+        """The history a predictor of ``kind`` and ``history_length`` reads in ``scenario`` (its plant's delay)."""
+        return cls(kind, history_length, scenario.plant.delay_frames)
 
     @property
     def n_taps(self) -> int:

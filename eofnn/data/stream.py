@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import copy
-import warnings
 from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import lightning as L
 import torch
@@ -12,17 +13,79 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.errors import DivergedError, require
-from eofnn.models.controllers import Dithered, Integrator
-from eofnn.sim.loop import run_loop
+from eofnn.seeding import int_seed, torch_generator
+from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.turbulence import stream_seed
-from eofnn.training.ridge import CollinearityWarning
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value, validated
+
+#: Most frames one fit may simulate (training plus validation): about three hours of CPU at 1264 actuators.
+MAX_FRAMES = 10_000_000
+
+
+@dataclass
+@validated
+class DataConfig:
+    """How a predictor's training data is simulated and cut into batches.
+
+    Parameters
+    ----------
+    frames : int
+        Training frames per epoch (rounded up to whole sequences).
+    val_frames : int
+        Frames of the held-out validation stream.
+    sequence_frames : int
+        Frames per independent turbulence realisation.
+    batch_frames : int
+        Frames per batch (times ``realisations`` samples).
+    realisations : int
+        Realisations simulated side by side per sequence.
+    seed : int
+        Seed of the training and validation streams; evaluation uses its own stream.
+    num_workers : int
+        DataLoader worker processes.
+    integrator_gain : float
+        Gain of the integrator that records closed-loop data.
+    dither_nm : float
+        RMS white dither added to the commands while recording closed-loop data (persistent excitation).
+    refit_rounds : int
+        Rounds in which the just-fitted predictor (plus the same dither) records the data of the next fit.
+    """
+
+    frames: int = 20000
+    val_frames: int = 2000
+    sequence_frames: int = 10000
+    batch_frames: int = 256
+    realisations: int = 1
+    seed: int = 0
+    num_workers: int = 0
+    integrator_gain: float = 0.5
+    dither_nm: float = 10.0
+    refit_rounds: int = 0
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "frames": Interval(1, MAX_FRAMES, integer=True),
+        "val_frames": Interval(1, MAX_FRAMES, integer=True),
+        "sequence_frames": Interval(2, 1_000_000, integer=True),
+        "batch_frames": Interval(1, 1_000_000, integer=True),
+        "realisations": Interval(1, 1024, integer=True),
+        "seed": Interval(0, 2**63 - 1, integer=True),
+        "num_workers": Interval(0, 64, integer=True),
+        "integrator_gain": Interval(0, 10),
+        "dither_nm": Interval(0, 1e5, unit="nm"),
+        "refit_rounds": Interval(0, 100, integer=True),
+    }
+    _where: ClassVar[str] = "data."
+
+    def __post_init__(self) -> None:
+        require(self.frames * (self.refit_rounds + 1) * self.realisations <= MAX_FRAMES,
+                f"data.frames={self.frames} x realisations={self.realisations} x (refit_rounds + 1) is more than "
+                f"{MAX_FRAMES} frames to simulate")
 
 
 class SimulatedTelemetry(IterableDataset):
     """Yields ``(history, target)`` batches of simulated telemetry, ``(samples, K, taps)`` and ``(samples, K)``.
 
-    Telemetry comes in *sequences* of ``sequence_frames`` frames, each from its own turbulence realisation
+    Telemetry comes in *sequences* of ``data.sequence_frames`` frames, each from its own turbulence realisation
     (stream ``"<stream>:<index>"``), so sequence ``i`` is the same whatever the number of workers; worker ``w``
     of ``W`` takes the sequences ``i = w, w + W, ...``: two workers never produce the same frames.
 
@@ -35,68 +98,60 @@ class SimulatedTelemetry(IterableDataset):
         Where the data is recorded.
     spec : HistorySpec
         History kind, length and delay.
-    n_frames : int
-        Frames per epoch (rounded up to whole sequences).
-    seed : int
-        Master seed.
+    frames : int
+        Frames of this stream (rounded up to whole sequences).
     stream : str
         Stream name; training and validation use different names.
-    sequence_frames : int
-        Frames per independent sequence.
-    batch_frames : int
-        Frames per yielded batch (times ``n_realisations`` samples).
-    n_realisations : int
-        Realisations simulated side by side per sequence.
+    data : DataConfig
+        Seed, sequence and batch lengths, realisations.
     data_controller : Controller, optional
-        Controller that records closed-loop data (required for closed-loop histories).
+        Records closed-loop data (required for closed-loop histories). A controller with a ``reseed(int)``
+        method gets a seed of its own per sequence (its dither).
     target_dm_gain : float, optional
         Targets are ``-s(n) / target_dm_gain``; by default the gain of the scenario's DM for closed-loop data
         (the command that really cancels the turbulence in the plant that recorded it) and 1 for open-loop data.
     """
 
-    def __init__(self, scenario: Scenario, spec: HistorySpec, n_frames: int, seed: int = 0, stream: str = "train",
-                 sequence_frames: int = 10000, batch_frames: int = 256, n_realisations: int = 1,
-                 data_controller=None, target_dm_gain: float | None = None) -> None:
+    def __init__(self, scenario: Scenario, spec: HistorySpec, frames: int, stream: str = "train",
+                 data: DataConfig | None = None, data_controller: Controller | None = None,
+                 target_dm_gain: float | None = None) -> None:
         super().__init__()
-        require(n_frames >= 1, f"n_frames={n_frames!r} is invalid: it must be >= 1")
-        require(sequence_frames > spec.first_frame,
-                f"sequence_frames={sequence_frames!r} is invalid: it must exceed the history span {spec.first_frame}")
-        require(batch_frames >= 1, f"batch_frames={batch_frames!r} is invalid: it must be >= 1")
+        data = data or DataConfig()
+        check_value("frames", frames, COUNT)
+        require(data.sequence_frames > spec.first_frame,
+                f"data.sequence_frames={data.sequence_frames!r} is invalid: it must exceed the history span "
+                f"{spec.first_frame}")
         if spec.kind == "closed_loop":
             require(data_controller is not None, "closed-loop data needs a data_controller")
-            if isinstance(data_controller, Dithered) and data_controller.amplitude_nm == 0:
-                warnings.warn("closed-loop data recorded without excitation (dither amplitude 0): the controller "
-                              "law ties y to past eps, so the regressors are collinear; set a dither > 0",
-                              CollinearityWarning, stacklevel=2)
-        self.scenario, self.spec, self.seed, self.stream = scenario, spec, seed, stream
-        self.sequence_frames, self.batch_frames, self.n_realisations = sequence_frames, batch_frames, n_realisations
-        self.n_sequences = -(-n_frames // sequence_frames)
+        self.scenario, self.spec, self.stream, self.data = scenario, spec, stream, data
+        self.n_sequences = -(-frames // data.sequence_frames)
         self.data_controller = data_controller
         if target_dm_gain is None:
             target_dm_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
+        check_value("target_dm_gain", target_dm_gain, POSITIVE)
         self.target_dm_gain = target_dm_gain
 
     def telemetry(self, index: int) -> dict[str, torch.Tensor]:
         """Arrays ``(R, frames, K)`` of sequence ``index``: ``s`` and ``s_hat`` (open loop) or ``s, y, wfs``."""
-        name = f"{self.stream}:{index}"
-        turbulence = self.scenario.turbulence(self.seed, name, self.n_realisations)
+        name, seed = f"{self.stream}:{index}", self.data.seed
+        turbulence = self.scenario.turbulence(seed, name, self.data.realisations)
         plant = self.scenario.plant
         if self.spec.kind == "open_loop":
-            s = turbulence.frames(0, self.sequence_frames)
+            s = turbulence.frames(0, self.data.sequence_frames)
             s_hat = s
             if plant.wfs_noise_nm > 0:
-                gen = torch.Generator().manual_seed(int(stream_seed(self.seed, name, 1).generate_state(1)[0]))
+                gen = torch_generator(seed, name, 1)
                 s_hat = s + plant.wfs_noise_nm / plant.wfs_gain * torch.randn(s.shape, generator=gen, dtype=s.dtype)
             return {"s": s, "s_hat": s_hat}
         controller = copy.deepcopy(self.data_controller)
-        if isinstance(controller, Dithered):
-            controller.seed = int(stream_seed(self.seed, name, 2).generate_state(1)[0])
-        result = run_loop(turbulence, plant, controller, self.sequence_frames, record=("s", "y", "wfs"),
-                          noise_seed=int(stream_seed(self.seed, name, 3).generate_state(1)[0]), progress=False)
+        if callable(getattr(controller, "reseed", None)):
+            controller.reseed(int_seed(seed, name, 2))
+        result = run_loop(turbulence, plant, controller, self.data.sequence_frames, record=("s", "y", "wfs"),
+                          noise_seed=int_seed(seed, name, 3), progress=False)
         if result.diverged:
             raise DivergedError(f"the data controller diverged at frame {result.diverged_frame} while recording "
-                                f"training sequence {name!r}: lower integrator_gain or dither_nm, or use fewer "
-                                "refit_rounds")
+                                f"training sequence {name!r}: lower data.integrator_gain or data.dither_nm, or use "
+                                "fewer data.refit_rounds")
         return {"s": result.telemetry.s, "y": result.telemetry.y, "wfs": result.telemetry.wfs}
 
     def _history(self, arrays: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,21 +168,16 @@ class SimulatedTelemetry(IterableDataset):
     def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         info = get_worker_info()
         worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
-        span = self.spec.first_frame
+        span, batch = self.spec.first_frame, self.data.batch_frames
         for index in range(worker, self.n_sequences, n_workers):
             arrays = self.telemetry(index)
             n_frames = arrays["s"].shape[1]
             # Histories are built one batch of frames at a time: a long sequence never needs its whole
             # (frames x K x taps) history tensor in memory.
-            for first in range(span, n_frames, self.batch_frames):
-                window = {k: v[:, first - span: first + self.batch_frames] for k, v in arrays.items()}
+            for first in range(span, n_frames, batch):
+                window = {k: v[:, first - span: first + batch] for k, v in arrays.items()}
                 x, t = self._history(window)
                 yield x.reshape(-1, *x.shape[2:]), t.reshape(-1, x.shape[-2])
-
-
-def default_data_controller(gain: float = 0.5, leak: float = 0.0, dither_nm: float = 10.0, seed: int = 0):
-    """Integrator plus white dither: the data controller that records closed-loop training data."""
-    return Dithered(Integrator(gain, leak), dither_nm, seed)
 
 
 class LoopDataModule(L.LightningDataModule):
@@ -139,36 +189,26 @@ class LoopDataModule(L.LightningDataModule):
         Where the data is recorded.
     spec : HistorySpec
         History kind, length and delay.
-    train_frames, val_frames : int
-        Frames per training epoch and in the fixed validation stream.
-    sequence_frames, batch_frames, n_realisations : int
-        See :class:`SimulatedTelemetry`.
-    seed : int
-        Master seed (validation uses its own stream of it).
+    data : DataConfig
+        Frames, sequences, batches, seed and workers.
     data_controller : Controller, optional
-        Records closed-loop data; :func:`default_data_controller` if None and the history is closed-loop.
-    num_workers : int
-        DataLoader worker processes.
+        Records closed-loop data (required for closed-loop histories).
     """
 
-    def __init__(self, scenario: Scenario, spec: HistorySpec, train_frames: int = 20000, val_frames: int = 2000,
-                 sequence_frames: int = 10000, batch_frames: int = 256, n_realisations: int = 1, seed: int = 0,
-                 data_controller=None, num_workers: int = 0, target_dm_gain: float | None = None) -> None:
+    def __init__(self, scenario: Scenario, spec: HistorySpec, data: DataConfig | None = None,
+                 data_controller: Controller | None = None, target_dm_gain: float | None = None) -> None:
         super().__init__()
-        if data_controller is None and spec.kind == "closed_loop":
-            data_controller = default_data_controller()
-        self.scenario, self.spec, self.seed = scenario, spec, seed
-        self.train_frames, self.val_frames = train_frames, val_frames
-        self.sequence_frames, self.batch_frames, self.n_realisations = sequence_frames, batch_frames, n_realisations
-        self.data_controller, self.num_workers, self.target_dm_gain = data_controller, num_workers, target_dm_gain
+        self.scenario, self.spec, self.data = scenario, spec, data or DataConfig()
+        self.data_controller, self.target_dm_gain = data_controller, target_dm_gain
 
-    def dataset(self, stream: str, n_frames: int) -> SimulatedTelemetry:
-        sequence_frames = min(self.sequence_frames, max(n_frames, self.spec.first_frame + 1))
-        return SimulatedTelemetry(self.scenario, self.spec, n_frames, self.seed, stream, sequence_frames,
-                                  self.batch_frames, self.n_realisations, self.data_controller, self.target_dm_gain)
+    def dataset(self, stream: str, frames: int) -> SimulatedTelemetry:
+        sequence_frames = min(self.data.sequence_frames, max(frames, self.spec.first_frame + 1))
+        data = replace(self.data, sequence_frames=sequence_frames)
+        return SimulatedTelemetry(self.scenario, self.spec, frames, stream, data, self.data_controller,
+                                  self.target_dm_gain)
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.dataset("train", self.train_frames), batch_size=None, num_workers=self.num_workers)
+        return DataLoader(self.dataset("train", self.data.frames), batch_size=None, num_workers=self.data.num_workers)
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(self.dataset("validation", self.val_frames), batch_size=None, num_workers=0)
+        return DataLoader(self.dataset("validation", self.data.val_frames), batch_size=None, num_workers=0)

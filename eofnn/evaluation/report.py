@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from eofnn.evaluation.experiment import ExperimentResult  # noqa: E402
+from eofnn.evaluation.results import ExperimentResult  # noqa: E402
 
 
 def _cell(m) -> str:

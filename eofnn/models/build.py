@@ -1,35 +1,62 @@
-"""Build predictor networks from ``class_path`` / ``init_args`` configs, so any ``nn.Module`` plugs in."""
+"""Build predictor networks from ``class_path`` / ``init_args`` configs, so any ``nn.Module`` plugs in.
+
+A network named in a user's own config is imported as asked. A network named by a *file* (a checkpoint someone
+sent) is only imported when its class path is eofnn's own or one the user trusts explicitly: importing a module
+runs its code, so the check is made on the string, before any import.
+"""
 
 from __future__ import annotations
 
 import importlib
 import inspect
+from collections.abc import Collection
 from typing import Any
 
 from torch import nn
 
-from eofnn.errors import ConfigError
+from eofnn.errors import CheckpointError, ConfigError
 
-#: Short names for eofnn's own networks.
+#: eofnn's own networks, by short name.
 ALIASES = {
     "LinearFilter": "eofnn.models.linear.LinearFilter",
     "OpenLoopEOF": "eofnn.models.linear.OpenLoopEOF",
     "ClosedLoopEOF": "eofnn.models.linear.ClosedLoopEOF",
     "MLP": "eofnn.models.mlp.MLP",
 }
+OWN_NETWORKS = frozenset(ALIASES.values())
+
+
+def resolve_class_path(class_path: Any) -> str:
+    """The full ``package.module.Class`` of ``class_path`` (an alias such as ``MLP`` is expanded)."""
+    if not isinstance(class_path, str):
+        raise ConfigError(f"class_path={class_path!r} is invalid: give package.module.Class or one of "
+                          f"{', '.join(ALIASES)}")
+    class_path = ALIASES.get(class_path, class_path)
+    module_name, _, name = class_path.rpartition(".")
+    if not module_name or not name.isidentifier():
+        raise ConfigError(f"class_path={class_path!r} is invalid: give package.module.Class or one of "
+                          f"{', '.join(ALIASES)}")
+    return class_path
+
+
+def check_trusted(class_path: str, trusted: Collection[str], where: str = "checkpoint") -> str:
+    """Refuse, without importing anything, a class path that is neither eofnn's own nor in ``trusted``."""
+    full = resolve_class_path(class_path)
+    if full not in OWN_NETWORKS and full not in {resolve_class_path(t) for t in trusted}:
+        raise CheckpointError(f"{where} names network class_path={full!r}, which is not one of eofnn's networks: "
+                              "if you trust it, name it in the config's network.class_path or in --trusted_networks")
+    return full
 
 
 def import_class(class_path: str) -> type:
-    """Import ``package.module.Class`` (or an alias such as ``MLP``)."""
-    class_path = ALIASES.get(class_path, class_path)
+    """Import ``package.module.Class`` (or an alias such as ``MLP``) named by the user."""
+    class_path = resolve_class_path(class_path)
     module_name, _, name = class_path.rpartition(".")
-    if not module_name:
-        raise ConfigError(f"class_path={class_path!r} is invalid: give package.module.Class or one of "
-                          f"{', '.join(ALIASES)}")
     try:
         cls = getattr(importlib.import_module(module_name), name)
     except (ImportError, AttributeError):
-        raise ConfigError(f"class_path={class_path!r} cannot be imported") from None
+        raise ConfigError(f"class_path={class_path!r} cannot be imported: is its module on the Python path "
+                          "(the folder of the config is added to it)?") from None
     if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
         raise ConfigError(f"class_path={class_path!r} is not a torch.nn.Module")
     return cls
@@ -43,9 +70,12 @@ def build_network(config: dict[str, Any], n_actuators: int, n_taps: int, grid: d
     it takes them and the config does not set them, so a user's module only declares what it needs.
     """
     if not isinstance(config, dict) or "class_path" not in config:
-        raise ConfigError(f"network config {config!r} is invalid: it needs a class_path")
+        raise ConfigError(f"network={config!r} is invalid: it needs a class_path (and optional init_args)")
     cls = import_class(config["class_path"])
-    init_args = dict(config.get("init_args") or {})
+    init_args = config.get("init_args") or {}
+    if not isinstance(init_args, dict):
+        raise ConfigError(f"network.init_args={init_args!r} is invalid: it must be a mapping")
+    init_args = dict(init_args)
     params = inspect.signature(cls).parameters
     derived = (("n_actuators", n_actuators), ("n_taps", n_taps), ("grid", grid), ("history_kind", history_kind),
                ("delay_frames", delay_frames))

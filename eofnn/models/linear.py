@@ -18,8 +18,18 @@ from torch import nn
 
 from eofnn.errors import require
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.validation import COUNT, Interval, OneOf, check_value
 
 STRUCTURES = ("per_actuator", "shared", "neighbourhood")
+
+
+def gather_neighbourhood(x: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """``(batch, K, M * taps)``: each actuator's ``(batch, K, taps)`` history beside its ``M`` neighbours'.
+
+    ``neighbours`` is :meth:`ActuatorGrid.neighbours`; its off-pupil slots (index ``K``) read zeros.
+    """
+    padded = torch.cat([x, torch.zeros_like(x[:, :1])], dim=1)
+    return padded[:, neighbours].flatten(-2)
 
 
 class LinearFilter(nn.Module):
@@ -42,8 +52,10 @@ class LinearFilter(nn.Module):
     def __init__(self, n_actuators: int, n_taps: int, structure: str = "per_actuator", radius: float = 1.0,
                  grid: dict | None = None) -> None:
         super().__init__()
-        require(structure in STRUCTURES, f"structure={structure!r} is invalid: allowed are {', '.join(STRUCTURES)}")
-        require(n_actuators >= 1 and n_taps >= 1, f"n_actuators={n_actuators!r}, n_taps={n_taps!r}: both must be >= 1")
+        check_value("structure", structure, OneOf(STRUCTURES))
+        check_value("n_actuators", n_actuators, COUNT)
+        check_value("n_taps", n_taps, COUNT)
+        check_value("radius", radius, Interval(0, 64, unit="pitches"))
         self.n_actuators, self.n_taps, self.structure, self.radius = n_actuators, n_taps, structure, radius
         if structure == "neighbourhood":
             require(grid is not None, "structure='neighbourhood' needs the actuator grid")
@@ -60,10 +72,7 @@ class LinearFilter(nn.Module):
 
     def _inputs(self, history: torch.Tensor) -> torch.Tensor:
         """``(batch, K, features)``: the history itself, or the neighbourhood histories side by side."""
-        if self.structure != "neighbourhood":
-            return history
-        padded = torch.cat([history, torch.zeros_like(history[:, :1])], dim=1)  # zero slot for off-pupil
-        return padded[:, self.neighbours].flatten(-2)  # (batch, K, M * taps)
+        return gather_neighbourhood(history, self.neighbours) if self.structure == "neighbourhood" else history
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
         x = self._inputs(history.to(self.weight.dtype))
@@ -91,12 +100,10 @@ class LinearFilter(nn.Module):
 
 
 class OpenLoopEOF(LinearFilter):
-    """Open-loop (pseudo-open-loop) EOF: ``y(n) = -F . [s_hat(n-d), ..., s_hat(n-d-p+1)]``."""
-
-    history_kind = "open_loop"
+    """Open-loop (pseudo-open-loop) EOF, a :class:`LinearFilter` on open-loop histories:
+    ``y(n) = -F . [s_hat(n-d), ..., s_hat(n-d-p+1)]``."""
 
 
 class ClosedLoopEOF(LinearFilter):
-    """Closed-loop EOF: ``y(n) = theta . [y(n-1..n-p), eps(n-d..n-d-p+1)]``."""
-
-    history_kind = "closed_loop"
+    """Closed-loop EOF, a :class:`LinearFilter` on closed-loop histories:
+    ``y(n) = theta . [y(n-1..n-p), eps(n-d..n-d-p+1)]``."""

@@ -8,7 +8,9 @@ import torch
 from torch import nn
 
 from eofnn.errors import require
+from eofnn.models.linear import gather_neighbourhood
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.validation import COUNT, POSITIVE, Interval, OneOf, check_value
 
 ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "tanh": nn.Tanh, "silu": nn.SiLU}
 
@@ -50,11 +52,12 @@ class MLP(nn.Module):
                  grid: dict | None = None, n_actuators: int | None = None, history_kind: str = "open_loop",
                  delay_frames: int = 2, scale_nm: float = 10.0) -> None:
         super().__init__()
-        require(activation in ACTIVATIONS,
-                f"activation={activation!r} is invalid: allowed are {', '.join(ACTIVATIONS)}")
-        require(scale_nm > 0, f"scale_nm={scale_nm!r} is invalid: it must be > 0")
-        require(history_kind in ("open_loop", "closed_loop"),
-                f"history_kind={history_kind!r} is invalid: allowed are open_loop, closed_loop")
+        check_value("activation", activation, OneOf(tuple(ACTIVATIONS)))
+        check_value("scale_nm", scale_nm, POSITIVE)
+        check_value("history_kind", history_kind, OneOf(("open_loop", "closed_loop")))
+        check_value("radius", radius, Interval(0, 64, unit="pitches"))
+        require(isinstance(hidden, Sequence) and all(COUNT.accepts(h) for h in hidden),
+                f"hidden={hidden!r} is invalid: it must be a list of layer widths >= 1")
         p = n_taps // 2 if history_kind == "closed_loop" else n_taps
         require(history_kind == "open_loop" or delay_frames <= p,
                 f"a closed-loop MLP needs history_length >= delay_frames, got {p} < {delay_frames}")
@@ -95,8 +98,7 @@ class MLP(nn.Module):
         if features.shape[-1] == 0:
             features = torch.zeros_like(x[..., :1])
         if self.neighbours is not None:
-            padded = torch.cat([features, torch.zeros_like(features[:, :1])], dim=1)
-            features = padded[:, self.neighbours].flatten(-2)
+            features = gather_neighbourhood(features, self.neighbours)
         f = features.to(self.skip.weight.dtype)
         correction = self.skip(f).squeeze(-1) + self.scale_nm * self.mlp(f / self.scale_nm).squeeze(-1)
         return base + correction.to(torch.float64)

@@ -4,14 +4,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import ClassVar
 
 import numpy as np
 import torch
 
-from eofnn.errors import require
+from eofnn.errors import ConfigError
+from eofnn.validation import Constraint, Interval, check_value, validated
+
+#: Largest grid accepted: 512 x 512 actuators already needs ~1.6 GB per 1000 float64 frames of telemetry.
+MAX_N_ACROSS = 512
 
 
 @dataclass(frozen=True)
+@validated
 class ActuatorGrid:
     """Actuators on a square grid of ``n_across`` x ``n_across`` at pitch ``diameter_m / n_across``.
 
@@ -32,16 +38,19 @@ class ActuatorGrid:
     n_across: int = 40
     obstruction: float = 0.0
 
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "diameter_m": Interval(0, 100, closed="right", unit="m"),
+        "n_across": Interval(2, MAX_N_ACROSS, integer=True, unit="actuators across the pupil"),
+        "obstruction": Interval(0, 1, closed="left", unit="fraction of the diameter"),
+    }
+
     def __post_init__(self) -> None:
-        require(self.diameter_m > 0, f"diameter_m={self.diameter_m!r} is invalid: it must be > 0 (metres)")
-        require(
-            isinstance(self.n_across, int) and self.n_across >= 2,
-            f"n_across={self.n_across!r} is invalid: it must be an integer >= 2 (actuators across the pupil)",
-        )
-        require(
-            0 <= self.obstruction < 1,
-            f"obstruction={self.obstruction!r} is invalid: it must be in [0, 1) (fraction of the diameter)",
-        )
+        # Counted without filling the cached properties: a config object's __dict__ stays its fields.
+        active = int(_pupil_mask(_square_grid(self.diameter_m, self.n_across), self.diameter_m, self.n_across,
+                                 self.obstruction).sum())
+        if active < 4:  # piston, tip and tilt need three actuators, a predictor one more
+            raise ConfigError(f"obstruction={self.obstruction!r} with n_across={self.n_across} leaves {active} "
+                              "active actuators: at least 4 are needed")
 
     @property
     def pitch_m(self) -> float:
@@ -50,18 +59,12 @@ class ActuatorGrid:
 
     @cached_property
     def _full_coords(self) -> np.ndarray:
-        centres = (np.arange(self.n_across) + 0.5) * self.pitch_m - self.diameter_m / 2
-        yy, xx = np.meshgrid(centres, centres, indexing="ij")
-        return np.stack([xx.ravel(), yy.ravel()], axis=1)
+        return _square_grid(self.diameter_m, self.n_across)
 
     @cached_property
     def mask(self) -> np.ndarray:
         """Boolean ``(n_across, n_across)`` map of active actuators (row = y, column = x)."""
-        r = np.hypot(self._full_coords[:, 0], self._full_coords[:, 1])
-        # A small tolerance keeps actuators that sit exactly on the rim, whatever the rounding.
-        tol = 1e-9 * self.diameter_m
-        inside = (r <= self.diameter_m / 2 + tol) & (r >= self.obstruction * self.diameter_m / 2 - tol)
-        return inside.reshape(self.n_across, self.n_across)
+        return _pupil_mask(self._full_coords, self.diameter_m, self.n_across, self.obstruction)
 
     @property
     def n_actuators(self) -> int:
@@ -86,11 +89,6 @@ class ActuatorGrid:
         q, _ = np.linalg.qr(modes)
         return q
 
-    def ptt_projector(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        """``(n_actuators, n_actuators)`` projector that removes piston, tip and tilt."""
-        q = self.ptt_basis()
-        return torch.as_tensor(np.eye(len(q)) - q @ q.T, dtype=dtype)
-
     def neighbours(self, radius: float) -> torch.Tensor:
         """Indices of the active actuators within ``radius`` pitches of each actuator.
 
@@ -98,7 +96,7 @@ class ActuatorGrid:
         slots beyond the pupil edge hold ``n_actuators`` (an index one past the end, for a zero pad).
         Offsets are in a fixed order, so the same offset has the same column for every actuator.
         """
-        require(radius >= 0, f"neighbourhood radius={radius!r} is invalid: it must be >= 0 (pitches)")
+        check_value("neighbourhood radius", radius, Interval(0, self.n_across, unit="pitches"))
         r = int(np.floor(radius))
         offsets = [
             (dr, dc)
@@ -119,3 +117,20 @@ class ActuatorGrid:
         out = torch.full((*values.shape[:-1], self.n_across * self.n_across), fill, dtype=values.dtype)
         out[..., torch.as_tensor(np.flatnonzero(self.mask.ravel()))] = values
         return out.reshape(*values.shape[:-1], self.n_across, self.n_across)
+
+
+def _square_grid(diameter_m: float, n_across: int) -> np.ndarray:
+    """``(n_across**2, 2)`` (x, y) centres of the square actuator grid, in metres."""
+    pitch = diameter_m / n_across
+    centres = (np.arange(n_across) + 0.5) * pitch - diameter_m / 2
+    yy, xx = np.meshgrid(centres, centres, indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+
+def _pupil_mask(coords: np.ndarray, diameter_m: float, n_across: int, obstruction: float) -> np.ndarray:
+    """Which grid centres lie in the (obstructed) pupil, as an ``(n_across, n_across)`` boolean map."""
+    r = np.hypot(coords[:, 0], coords[:, 1])
+    # A small tolerance keeps actuators that sit exactly on the rim, whatever the rounding.
+    tol = 1e-9 * diameter_m
+    inside = (r <= diameter_m / 2 + tol) & (r >= obstruction * diameter_m / 2 - tol)
+    return inside.reshape(n_across, n_across)

@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import torch
 from tqdm.auto import tqdm
 
 from eofnn.errors import require
+from eofnn.seeding import torch_generator
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
-from eofnn.sim.turbulence import Turbulence, stream_seed
+from eofnn.sim.turbulence import Turbulence
+from eofnn.validation import COUNT, check_value
 
 
 @dataclass
@@ -69,7 +71,6 @@ class LoopResult:
     turbulence_rms_nm: torch.Tensor
     diverged: bool = False
     diverged_frame: int | None = None
-    info: dict = field(default_factory=dict)
 
 
 def run_loop(
@@ -113,7 +114,7 @@ def run_loop(
     on_chunk : callable, optional
         Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk.
     """
-    require(isinstance(n_frames, int) and n_frames >= 1, f"n_frames={n_frames!r} is invalid: it must be an integer >= 1")
+    check_value("n_frames", n_frames, COUNT)
     unknown = set(record) - {"s", "y", "eps", "wfs"}
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
     grid = turbulence.grid
@@ -121,7 +122,7 @@ def run_loop(
     batch, n_act, delay = turbulence.n_realisations, grid.n_actuators, plant.delay_frames
     dtype = torch.float64
     controller.reset(batch, n_act, delay, dtype)
-    generator = torch.Generator().manual_seed(int(stream_seed(noise_seed, "wfs-noise").generate_state(1)[0]))
+    generator = torch_generator(noise_seed, "wfs-noise")
     # Ring buffers of the last `delay` measurements and turbulence frames: slot n % delay holds frame n - delay.
     wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
     turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype)

@@ -7,19 +7,21 @@ shifted by a fraction of an actuator pitch), a nonlinearity, and a WFS with a ga
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
+from typing import ClassVar
 
 import numpy as np
 import torch
 
-from eofnn.errors import ConfigError, require
+from eofnn.errors import ConfigError
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.validation import Constraint, Interval, OneOf, validated
 
 NONLINEARITIES = ("none", "tanh", "quadratic")
 
 
 @dataclass(frozen=True)
+@validated
 class Plant:
     """Loop delay and model errors.
 
@@ -52,37 +54,29 @@ class Plant:
     wfs_noise_nm: float = 0.0
     wfs_gain: float = 1.0
 
-    def __post_init__(self) -> None:
-        require(
-            isinstance(self.delay_frames, int) and self.delay_frames >= 1,
-            f"delay_frames={self.delay_frames!r} is invalid: it must be an integer >= 1",
-        )
-        require(math.isfinite(self.dm_gain), f"dm_gain={self.dm_gain!r} is invalid: it must be finite")
-        require(
-            self.nonlinearity in NONLINEARITIES,
-            f"nonlinearity={self.nonlinearity!r} is invalid: allowed are {', '.join(NONLINEARITIES)}",
-        )
-        require(self.nonlinearity_scale_nm > 0,
-                f"nonlinearity_scale_nm={self.nonlinearity_scale_nm!r} is invalid: it must be > 0 (nm)")
-        require(self.wfs_noise_nm >= 0, f"wfs_noise_nm={self.wfs_noise_nm!r} is invalid: it must be >= 0 (nm)")
-        for name in ("misregistration_x", "misregistration_y", "wfs_gain"):
-            value = getattr(self, name)
-            require(math.isfinite(value), f"{name}={value!r} is invalid: it must be finite")
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "delay_frames": Interval(1, 100, integer=True, unit="frames"),
+        "dm_gain": Interval(0, 100, closed="right"),
+        "misregistration_x": Interval(-10, 10, unit="actuator pitches"),
+        "misregistration_y": Interval(-10, 10, unit="actuator pitches"),
+        "nonlinearity": OneOf(NONLINEARITIES),
+        "nonlinearity_scale_nm": Interval(0, 1e7, closed="right", unit="nm"),
+        "wfs_noise_nm": Interval(0, 1e6, unit="nm"),
+        "wfs_gain": Interval(0, 100, closed="right"),
+    }
 
     @classmethod
     def model_error_names(cls) -> tuple[str, ...]:
-        """Names accepted in a scenario's ``model_errors``."""
-        return tuple(f.name for f in fields(cls) if f.name != "delay_frames")
+        """Names a scenario variant may change (every field: the delay and the model errors)."""
+        return tuple(f.name for f in fields(cls))
 
-    @classmethod
-    def from_model_errors(cls, delay_frames: int = 2, model_errors: dict | None = None) -> Plant:
-        """Build a plant from a delay and a mapping of model-error names to values."""
-        model_errors = dict(model_errors or {})
-        allowed = cls.model_error_names()
-        for name in model_errors:
+    def with_errors(self, **changes) -> Plant:
+        """A copy with some fields changed; an unknown name is a one-line error."""
+        allowed = self.model_error_names()
+        for name in changes:
             if name not in allowed:
                 raise ConfigError(f"unknown model error {name!r}: allowed are {', '.join(allowed)}")
-        return cls(delay_frames=delay_frames, **model_errors)
+        return replace(self, **changes)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import yaml
 
-from eofnn.errors import ConfigError, require
+from eofnn.errors import ConfigError
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant
 from eofnn.sim.turbulence import Atmosphere, Layer, Turbulence
+from eofnn.validation import Constraint, Interval, validated
 
 
 @dataclass(frozen=True)
+@validated
 class Scenario:
     """Where a controller is evaluated or its training data recorded.
 
@@ -26,38 +28,37 @@ class Scenario:
         Turbulence profile.
     frame_rate_hz : float
         Loop frame rate in Hz.
-    delay_frames : int
-        Loop delay in frames.
-    model_errors : dict
-        Plant model errors by name (see :meth:`Plant.model_error_names`); empty for the nominal plant.
+    plant : Plant
+        Loop delay and model errors (the one home of the delay: everything else derives it from here).
     """
 
     grid: ActuatorGrid = field(default_factory=ActuatorGrid)
     atmosphere: Atmosphere = field(default_factory=Atmosphere)
     frame_rate_hz: float = 1000.0
-    delay_frames: int = 2
-    model_errors: dict[str, Any] = field(default_factory=dict)
+    plant: Plant = field(default_factory=Plant)
+
+    _constraints: ClassVar[dict[str, Constraint]] = {"frame_rate_hz": Interval(0, 1e6, closed="right", unit="Hz")}
 
     def __post_init__(self) -> None:
-        require(self.frame_rate_hz > 0, f"frame_rate_hz={self.frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
-        if isinstance(self.grid, dict):
-            object.__setattr__(self, "grid", _build(ActuatorGrid, self.grid, "grid"))
-        if isinstance(self.atmosphere, dict):
-            object.__setattr__(self, "atmosphere", _build(Atmosphere, self.atmosphere, "atmosphere"))
-        object.__setattr__(self, "model_errors", dict(self.model_errors or {}))
-        _ = self.plant  # validates delay and model errors now, before anything runs
+        for name, cls in (("grid", ActuatorGrid), ("atmosphere", Atmosphere), ("plant", Plant)):
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                object.__setattr__(self, name, _build(cls, value, name))
+            elif not isinstance(value, cls):
+                raise ConfigError(f"{name}={value!r} is invalid: it must be a mapping of {cls.__name__} fields")
 
     @property
-    def plant(self) -> Plant:
-        return Plant.from_model_errors(self.delay_frames, self.model_errors)
+    def delay_frames(self) -> int:
+        """The loop delay in frames (the plant's)."""
+        return self.plant.delay_frames
 
     def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1) -> Turbulence:
         """The turbulence stream of this scenario for ``seed`` and ``stream``."""
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations)
 
-    def with_model_errors(self, **model_errors: Any) -> Scenario:
-        """A copy with other model errors (the same sky and telescope)."""
-        return Scenario(self.grid, self.atmosphere, self.frame_rate_hz, self.delay_frames, model_errors)
+    def with_plant(self, **changes: Any) -> Scenario:
+        """A copy whose plant has some fields changed (the same sky and telescope)."""
+        return replace(self, plant=self.plant.with_errors(**changes))
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -71,9 +72,14 @@ class Scenario:
     @classmethod
     def from_yaml(cls, path: str | Path) -> Scenario:
         path = Path(path)
-        if not path.exists():
+        if not path.is_file():
             raise ConfigError(f"scenario file {str(path)!r} does not exist")
-        data = yaml.safe_load(path.read_text()) or {}
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except (yaml.YAMLError, UnicodeDecodeError) as err:
+            raise ConfigError(f"scenario file {str(path)!r} is not valid YAML ({type(err).__name__})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"scenario file {str(path)!r} must hold a mapping of scenario fields")
         return cls.from_dict(data.get("scenario", data))
 
 
@@ -81,11 +87,11 @@ def _build(cls, config: dict, where: str):
     """Instantiate a config dataclass, turning unknown keys into one clear line."""
     if not isinstance(config, dict):
         raise ConfigError(f"{where} must be a mapping, got {type(config).__name__}")
-    allowed = set(cls.__dataclass_fields__)
+    allowed = {name for name in cls.__dataclass_fields__ if not name.startswith("_")}
     unknown = sorted(set(config) - allowed)
     if unknown:
         raise ConfigError(f"unknown key(s) {', '.join(unknown)} in {where}: allowed are {', '.join(sorted(allowed))}")
-    if cls is Atmosphere and "layers" in config:
+    if cls is Atmosphere and isinstance(config.get("layers"), (list, tuple)):
         config = dict(config, layers=tuple(_build(Layer, lay, "layer") if isinstance(lay, dict) else lay
                                            for lay in config["layers"]))
     try:

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from eofnn.errors import TelemetryError
+from eofnn.outputs import check_output_file
 
 ARRAYS = ("s", "y", "eps", "wfs")
 
@@ -64,9 +65,7 @@ class Telemetry:
 
     def save(self, path: str | Path, overwrite: bool = False) -> Path:
         """Write to ``.fits`` or ``.npz`` (by suffix); refuses to overwrite an existing file unless asked."""
-        path = Path(path)
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists: pass overwrite=True to replace it")
+        path = check_output_file(path, overwrite)
         meta = json.dumps({"delay_frames": self.delay_frames, "config": self.config})
         if path.suffix.lower() in (".fits", ".fit"):
             from astropy.io import fits

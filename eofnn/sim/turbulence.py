@@ -17,22 +17,25 @@ Layers add (Cn² fractions set each layer's r0); piston, tip and tilt are remove
 from __future__ import annotations
 
 import math
-import zlib
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch
 
 from eofnn.errors import require
+from eofnn.seeding import stream_seed
 from eofnn.sim.exact import KERNELS, ExactFrozenFlow, grid_axis_quarter, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
 from eofnn.sim.strip import FrozenFlowStrip
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, check_value, validated
 
 MODELS = ("exact", "hcipy_pupil", "strip")
 
 
 @dataclass(frozen=True)
+@validated
 class Layer:
     """One frozen-flow layer.
 
@@ -50,12 +53,15 @@ class Layer:
     wind_speed_mps: float = 5.1
     wind_direction_deg: float = 0.0
 
-    def __post_init__(self) -> None:
-        require(self.cn2_fraction > 0, f"cn2_fraction={self.cn2_fraction!r} is invalid: it must be > 0")
-        require(self.wind_speed_mps >= 0, f"wind_speed_mps={self.wind_speed_mps!r} is invalid: it must be >= 0 (m/s)")
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "cn2_fraction": POSITIVE,
+        "wind_speed_mps": Interval(0, 1000, unit="m/s"),
+        "wind_direction_deg": Interval(-360, 360, unit="degrees"),
+    }
 
 
 @dataclass(frozen=True)
+@validated
 class Atmosphere:
     """Turbulence profile.
 
@@ -97,28 +103,27 @@ class Atmosphere:
     kernel: str = "point"
     screen_frames: int = 16384
 
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "model": OneOf(MODELS),
+        "kernel": OneOf(KERNELS),
+        "screen_frames": COUNT,
+        "r0_m": Interval(0, 100, closed="right", unit="m"),
+        "r0_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
+        "outer_scale_m": Interval(0, 1e4, closed="right", unit="m"),
+        "oversampling": Interval(1, 16, integer=True),
+        "interpolation_order": OneOf((1, 3, 5)),
+        "remove_ptt": IsBool(),
+    }
+
     def __post_init__(self) -> None:
-        require(self.model in MODELS, f"model={self.model!r} is invalid: allowed are {', '.join(MODELS)}")
-        require(self.kernel in KERNELS, f"kernel={self.kernel!r} is invalid: allowed are {', '.join(KERNELS)}")
+        require(isinstance(self.layers, (tuple, list)) and len(self.layers) >= 1,
+                f"layers={self.layers!r} is invalid: give a list of at least one layer")
+        layers = tuple(Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers)
+        require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
+        object.__setattr__(self, "layers", layers)
         require(self.model == "exact" or self.kernel == "point",
                 f"kernel={self.kernel!r} is invalid for model {self.model!r}: it samples points on the actuator-pitch "
                 "grid; use kernel 'point' or model 'exact'")
-        require(isinstance(self.screen_frames, int) and self.screen_frames >= 1,
-                f"screen_frames={self.screen_frames!r} is invalid: it must be an integer >= 1")
-        require(self.r0_m > 0, f"r0_m={self.r0_m!r} is invalid: it must be > 0 (metres)")
-        require(self.r0_wavelength_m > 0, f"r0_wavelength_m={self.r0_wavelength_m!r} is invalid: it must be > 0 (metres)")
-        require(self.outer_scale_m > 0, f"outer_scale_m={self.outer_scale_m!r} is invalid: it must be > 0 (metres)")
-        require(len(self.layers) >= 1, "layers is empty: give at least one layer")
-        require(
-            isinstance(self.oversampling, int) and self.oversampling >= 1,
-            f"oversampling={self.oversampling!r} is invalid: it must be an integer >= 1",
-        )
-        require(
-            self.interpolation_order in (1, 3, 5),
-            f"interpolation_order={self.interpolation_order!r} is invalid: allowed are 1, 3, 5",
-        )
-        layers = tuple(Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers)
-        object.__setattr__(self, "layers", layers)
         if self.model == "exact":
             require(math.isfinite(self.outer_scale_m),
                     f"outer_scale_m={self.outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
@@ -131,12 +136,6 @@ class Atmosphere:
         """Fried parameter of one layer at ``r0_wavelength_m`` (r0 scales as Cn² to the -3/5)."""
         total = sum(lay.cn2_fraction for lay in self.layers)
         return self.r0_m * (layer.cn2_fraction / total) ** (-3 / 5)
-
-
-def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:
-    """Seed for one named stream (``"train"``, ``"test"``, ...) and sub-key; distinct names never share draws."""
-    require(isinstance(seed, (int, np.integer)) and seed >= 0, f"seed={seed!r} is invalid: it must be an integer >= 0")
-    return np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(stream.encode()), *key))
 
 
 class Turbulence:
@@ -167,8 +166,8 @@ class Turbulence:
         stream: str = "test",
         n_realisations: int = 1,
     ) -> None:
-        require(frame_rate_hz > 0, f"frame_rate_hz={frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
-        require(n_realisations >= 1, f"n_realisations={n_realisations!r} is invalid: it must be >= 1")
+        check_value("frame_rate_hz", frame_rate_hz, POSITIVE)
+        check_value("n_realisations", n_realisations, COUNT)
         self.atmosphere = atmosphere
         self.grid = grid
         self.n_realisations = n_realisations
@@ -179,10 +178,10 @@ class Turbulence:
         ]
         self._ptt = torch.as_tensor(grid.ptt_basis())
 
-    def frames(self, start: int, stop: int, remove_ptt: bool | None = None) -> torch.Tensor:
+    def frames(self, start: int, stop: int) -> torch.Tensor:
         """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
         require(0 <= start <= stop, f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop")
-        basis = self._ptt if (self.atmosphere.remove_ptt if remove_ptt is None else remove_ptt) else None
+        basis = self._ptt if self.atmosphere.remove_ptt else None
         out = torch.empty(self.n_realisations, stop - start, self.grid.n_actuators, dtype=torch.float64)
         for r, strips in enumerate(self._strips):  # layers add in place: large fresh tensors are slow to fault in
             if self.atmosphere.model == "exact":

@@ -1,26 +1,37 @@
-"""Fitting a predictor: a function beside the model, returning a small result object (BoTorch style)."""
+"""Fitting a predictor: a function beside the model that takes grouped options and returns a small result (BoTorch style).
+
+``fit_predictor(scenario, history, history_length, network, data=..., optimization=...)`` simulates the training
+telemetry in ``scenario`` (:class:`~eofnn.data.stream.DataConfig`), fits the network
+(:class:`~eofnn.training.task.OptimizationConfig`) and returns a :class:`FitResult`. Two steps, both explicit:
+
+1. *closed form* (linear networks): one streamed pass of ridge regression, :func:`~eofnn.training.ridge.fit_closed_form`,
+   then Lightning's ``validate`` for the held-out loss;
+2. *SGD* (any network): Lightning's ``fit``.
+"""
 
 from __future__ import annotations
 
 import copy
-import logging
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import lightning as L
-import torch
 from torch import nn
 
+from eofnn.control.baselines import Dithered, Integrator
+from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
-from eofnn.data.stream import LoopDataModule, default_data_controller
-from eofnn.errors import CheckpointError, ConfigError
-from eofnn.models.build import build_network
-from eofnn.models.controllers import Dithered
-from eofnn.models.predictive import PredictiveController
+from eofnn.data.stream import DataConfig, LoopDataModule
+from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
+from eofnn.outputs import check_output_file, staged_file
+from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
-from eofnn.training.task import PredictorTask
+from eofnn.training.ridge import fit_closed_form, supports_closed_form
+from eofnn.training.task import OptimizationConfig, PredictorTask
+
+DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
 
 
 @dataclass
@@ -30,14 +41,11 @@ class TrainedPredictor:
     network: nn.Module
     spec: HistorySpec
     network_config: dict
-    grid: dict
+    n_actuators: int
     info: dict = field(default_factory=dict)
 
-    @property
-    def n_actuators(self) -> int:
-        return int(self.info["n_actuators"])
-
     def controller(self, dm_gain_model: float = 1.0) -> PredictiveController:
+        """The loop-side controller that runs this predictor (``dm_gain_model``: the DM gain it believes)."""
         return PredictiveController(self.network, self.spec, dm_gain_model)
 
     def check_fits(self, scenario: Scenario, where: str = "checkpoint", history_length: int | None = None) -> None:
@@ -46,9 +54,9 @@ class TrainedPredictor:
         if self.n_actuators != n:
             raise CheckpointError(f"{where} was trained for n_actuators={self.n_actuators} but the scenario has "
                                   f"n_actuators={n}")
-        if self.spec.delay_frames != scenario.delay_frames:
+        if self.spec.delay_frames != scenario.plant.delay_frames:
             raise CheckpointError(f"{where} was trained for delay_frames={self.spec.delay_frames} but the scenario "
-                                  f"has delay_frames={scenario.delay_frames}")
+                                  f"has delay_frames={scenario.plant.delay_frames}")
         if history_length is not None and history_length != self.spec.history_length:
             raise CheckpointError(f"{where} has history_length={self.spec.history_length} but "
                                   f"history_length={history_length} was asked for")
@@ -65,135 +73,101 @@ class FitResult:
     checkpoint: Path | None = None
 
 
+def recording_controller(spec: HistorySpec, data: DataConfig) -> Controller | None:
+    """The controller that records closed-loop training data: an integrator plus white dither (none for open loop)."""
+    if spec.kind != "closed_loop":
+        return None
+    if data.dither_nm == 0:
+        warnings.warn("closed-loop data recorded without excitation (data.dither_nm = 0): the controller law ties y "
+                      "to past eps, so the regressors are collinear; set a dither > 0", CollinearityWarning,
+                      stacklevel=3)
+    return Dithered(Integrator(data.integrator_gain, 0.0), data.dither_nm, data.seed)
+
+
 def fit_predictor(
     scenario: Scenario,
-    spec: HistorySpec,
+    history: str = "open_loop",
+    history_length: int = 4,
     network: dict[str, Any] | None = None,
     *,
-    fit_method: str = "closed_form",
-    alpha: float = 1e-9,
-    alpha_relative: bool = True,
-    optimizer: str = "adam",
-    lr: float = 1e-3,
-    weight_decay: float = 0.0,
-    max_epochs: int = 1,
-    train_frames: int = 20000,
-    val_frames: int = 2000,
-    sequence_frames: int = 10000,
-    batch_frames: int = 256,
-    n_realisations: int = 1,
-    seed: int = 0,
-    integrator_gain: float = 0.5,
-    dither_nm: float = 10.0,
-    refit_rounds: int = 0,
-    num_workers: int = 0,
+    data: DataConfig | None = None,
+    optimization: OptimizationConfig | None = None,
     checkpoint_path: str | Path | None = None,
     overwrite: bool = False,
     progress: bool = False,
-    log_dir: str | Path | None = None,
 ) -> FitResult:
     """Train a predictor on telemetry simulated in ``scenario``.
 
-    Closed-loop histories are recorded with an integrator (``integrator_gain``) plus ``dither_nm`` of white
-    dither; with ``refit_rounds > 0`` the just-fitted predictor (plus the same dither) records the data of the
-    next round, and the fit is redone from scratch on it.
+    Closed-loop histories are recorded with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of
+    white dither; with ``data.refit_rounds > 0`` the just-fitted predictor (plus the same dither) records the data
+    of the next round, and the fit is redone from scratch on it.
 
     Parameters
     ----------
     scenario : Scenario
-        Where training data is simulated (its plant included: closed-loop EOF learns that plant).
-    spec : HistorySpec
-        History kind, length and delay (the delay must match the scenario's).
-    network : dict
+        Where training data is simulated (its plant included: closed-loop EOF learns that plant, and the
+        history's delay is the plant's).
+    history : {"open_loop", "closed_loop"}
+        Pseudo-open-loop values, or past commands and residuals.
+    history_length : int
+        Frames of history.
+    network : dict, optional
         ``{"class_path": ..., "init_args": {...}}``; a per-actuator :class:`~eofnn.models.linear.LinearFilter`
         by default.
-    fit_method, alpha, alpha_relative, optimizer, lr, weight_decay, max_epochs
-        See :class:`~eofnn.training.task.PredictorTask`; ``max_epochs`` applies to SGD (a closed-form fit is one pass).
-    train_frames, val_frames, sequence_frames, batch_frames, n_realisations, seed, num_workers
-        See :class:`~eofnn.data.stream.LoopDataModule`.
+    data : DataConfig
+        How the training and validation telemetry is simulated.
+    optimization : OptimizationConfig
+        Fit method, ridge, optimiser and accelerator.
     checkpoint_path : path, optional
         Where to write the Lightning checkpoint; an existing file is kept unless ``overwrite``.
+    progress : bool
+        Lightning's progress bar.
     """
-    if spec.delay_frames != scenario.delay_frames:
-        raise ConfigError(f"history delay_frames={spec.delay_frames} differs from the scenario's "
-                          f"delay_frames={scenario.delay_frames}")
+    data = data or DataConfig()
+    optimization = optimization or OptimizationConfig()
+    spec = HistorySpec.from_scenario(history, history_length, scenario)
     if checkpoint_path is not None:
-        checkpoint_path = Path(checkpoint_path)
-        if checkpoint_path.exists() and not overwrite:
-            raise FileExistsError(f"checkpoint {checkpoint_path} exists: pass overwrite to replace it")
-    network_config = network or {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
+        checkpoint_path = check_output_file(checkpoint_path, overwrite, "checkpoint")
+    network_config = network or DEFAULT_NETWORK
     grid = {"diameter_m": scenario.grid.diameter_m, "n_across": scenario.grid.n_across,
             "obstruction": scenario.grid.obstruction}
     # Network initialisation and SGD draw from torch's global generator: seed it, so a fit is reproducible.
-    L.seed_everything(seed, workers=True, verbose=False)
-    net = build_network(network_config, scenario.grid.n_actuators, spec.n_taps, grid, spec.kind, spec.delay_frames)
-    info = {"n_actuators": scenario.grid.n_actuators, "scenario": scenario.to_dict(), "fit_method": fit_method,
-            "train_frames": train_frames, "seed": seed, "refit_rounds": refit_rounds, "dither_nm": dither_nm}
-    task = PredictorTask(net, fit_method, alpha, alpha_relative, optimizer, lr, weight_decay,
-                         spec=spec.to_dict(), network_config=network_config, grid=grid, info=info)
-    data_controller = default_data_controller(integrator_gain, 0.0, dither_nm, seed) if spec.kind == "closed_loop" \
-        else None
+    L.seed_everything(data.seed, workers=True, verbose=False)
+    info = {"scenario": scenario.to_dict(), "data": asdict(data)}
+    task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid, asdict(optimization), info)
+    net = task.network
+    if optimization.fit_method == "closed_form" and not supports_closed_form(net):
+        raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {type(net).__name__} has no "
+                          "features()/load_solution(): use optimization.fit_method: sgd")
+    data_controller = recording_controller(spec, data)
     rounds = []
     trainer = None
-    for round_index in range(refit_rounds + 1):
+    for round_index in range(data.refit_rounds + 1):
         if round_index > 0:
-            data_controller = Dithered(PredictiveController(copy.deepcopy(net), spec), dither_nm, seed + round_index)
-        datamodule = LoopDataModule(scenario, spec, train_frames, val_frames, sequence_frames, batch_frames,
-                                    n_realisations, seed + 1000 * round_index, data_controller, num_workers)
-        trainer = _trainer(1 if fit_method == "closed_form" else max_epochs, progress, log_dir)
-        with warnings.catch_warnings():
-            # A closed-form fit has no optimiser by design; Lightning says so on every fit.
-            warnings.filterwarnings("ignore", message=".*configure_optimizers` returned `None`.*")
-            trainer.fit(task, datamodule=datamodule)
-        metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+            data_controller = Dithered(PredictiveController(copy.deepcopy(net), spec), data.dither_nm,
+                                       data.seed + round_index)
+        datamodule = LoopDataModule(scenario, spec, replace(data, seed=data.seed + 1000 * round_index), data_controller)
+        trainer = _trainer(optimization, progress)
+        if optimization.fit_method == "closed_form":
+            solved = fit_closed_form(net, datamodule.train_dataloader(), optimization.alpha, optimization.alpha_relative)
+            metrics = {"train_loss": solved.train_loss, "condition": solved.condition}
+            metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
+                                            weights_only=True)[0])
+        else:
+            trainer.fit(task, datamodule=datamodule, weights_only=True)
+            metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
         rounds.append({"round": round_index, **metrics})
-    predictor = TrainedPredictor(net, spec, network_config, grid, info)
+    net.eval()
+    predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info)
     if checkpoint_path is not None:
-        checkpoint_path.parent.mkdir(parents=True, exist_ok=True)
-        trainer.save_checkpoint(checkpoint_path)
+        with staged_file(checkpoint_path, overwrite) as partial:
+            trainer.save_checkpoint(partial)
     last = rounds[-1]
     return FitResult(predictor, last.get("train_loss"), last.get("val_loss"), rounds, checkpoint_path)
 
 
-def _trainer(max_epochs: int, progress: bool, log_dir) -> L.Trainer:
-    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.pytorch.accelerators.cuda",
-                 "lightning.pytorch.trainer.connectors.checkpoint_connector"):
-        logging.getLogger(name).setLevel(logging.WARNING)
-    logger = L.pytorch.loggers.CSVLogger(str(log_dir), name="fit") if log_dir is not None else False
-    return L.Trainer(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=logger, enable_checkpointing=False,
-                     enable_progress_bar=progress, enable_model_summary=False, num_sanity_val_steps=0,
-                     deterministic=True)
-
-
-def load_predictor(path: str | Path, scenario: Scenario | None = None,
-                   history_length: int | None = None) -> TrainedPredictor:
-    """Rebuild a predictor from a checkpoint written by :func:`fit_predictor` (``weights_only`` loading).
-
-    With ``scenario`` (and ``history_length``), also check that it fits them, with a one-line error if not.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises UnpicklingError, EOFError, RuntimeError... for files that are not checkpoints
-        raise CheckpointError(f"checkpoint {str(path)!r} is not an eofnn predictor checkpoint "
-                              f"({type(err).__name__})") from None
-    try:
-        hp = ckpt["hyper_parameters"]
-        spec = HistorySpec(**hp["spec"])
-        info = dict(hp["info"])
-        network = build_network(hp["network_config"], info["n_actuators"], spec.n_taps, hp["grid"], spec.kind,
-                                spec.delay_frames)
-        state = {k.removeprefix("network."): v for k, v in ckpt["state_dict"].items() if k.startswith("network.")}
-        network.load_state_dict(state)
-    except (KeyError, TypeError, RuntimeError, ValueError) as err:
-        if isinstance(err, ConfigError):
-            raise
-        raise CheckpointError(f"checkpoint {str(path)!r} is not an eofnn predictor checkpoint "
-                              f"({type(err).__name__}: {str(err).splitlines()[0]})") from None
-    network.eval()
-    predictor = TrainedPredictor(network, spec, hp["network_config"], hp["grid"], info)
-    if scenario is not None:
-        predictor.check_fits(scenario, f"checkpoint {str(path)!r}", history_length)
-    return predictor
+def _trainer(optimization: OptimizationConfig, progress: bool) -> L.Trainer:
+    epochs = 1 if optimization.fit_method == "closed_form" else optimization.epochs
+    return L.Trainer(max_epochs=epochs, accelerator=optimization.accelerator, devices=1, logger=False,
+                     enable_checkpointing=False, enable_progress_bar=progress, enable_model_summary=False,
+                     num_sanity_val_steps=0, deterministic=True)

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
-from eofnn.errors import require
-
-
-class CollinearityWarning(UserWarning):
-    """The regressors are (near-)collinear: the fitted filter is decided by the regularisation, not the data."""
+from eofnn.errors import CollinearityWarning, require
+from eofnn.validation import NON_NEGATIVE, check_value
 
 
 @dataclass
@@ -22,18 +21,12 @@ class RidgeSolution:
     ----------
     weights : Tensor
         ``(groups, features)`` solution.
-    alpha : Tensor
-        ``(groups,)`` absolute ridge parameter used per group.
     condition : float
         Largest condition number of ``D D^T`` over groups (before regularisation).
-    n_samples : int
-        Samples accumulated per group.
     """
 
     weights: torch.Tensor
-    alpha: torch.Tensor
     condition: float
-    n_samples: int
 
 
 class NormalEquations:
@@ -78,7 +71,7 @@ class NormalEquations:
             (the controller law ties ``y`` to past ``eps`` exactly); smooth turbulence alone reaches 1e12-1e15.
         """
         require(self.gram is not None, "no data accumulated: call update() before solve()")
-        require(alpha >= 0, f"alpha={alpha!r} is invalid: it must be >= 0")
+        check_value("alpha", alpha, NON_NEGATIVE)
         n_features = self.gram.shape[-1]
         diagonal = self.gram.diagonal(dim1=1, dim2=2)
         # Features that are zero in every sample (neighbourhood slots beyond the pupil edge) get zero weight:
@@ -92,17 +85,50 @@ class NormalEquations:
         if condition > warn_condition:
             warnings.warn(
                 f"regressors are (near-)collinear: cond(D D^T) = {condition:.2e}; the fit is ill-posed "
-                "(for closed-loop data, add dither excitation or raise alpha)", CollinearityWarning, stacklevel=2)
+                "(for closed-loop data, add dither excitation or raise alpha)", CollinearityWarning, stacklevel=3)
         regularised = gram + absolute.view(-1, 1, 1) * torch.eye(n_features, dtype=torch.float64, device=gram.device)
         chol, info = torch.linalg.cholesky_ex(regularised)
         if int(info.max()) == 0:
             weights = torch.cholesky_solve(self.cross.unsqueeze(-1), chol).squeeze(-1)
         else:  # singular without regularisation: least-norm solution
             weights = (torch.linalg.pinv(regularised, hermitian=True) @ self.cross.unsqueeze(-1)).squeeze(-1)
-        return RidgeSolution(weights, absolute, condition, self.n_samples)
+        return RidgeSolution(weights, condition)
 
     def loss(self, weights: torch.Tensor) -> float:
         """Mean squared error of ``weights`` on the accumulated data, from the sufficient statistics."""
         w = weights.to(torch.float64)
         sse = self.target_power - 2 * (w * self.cross).sum(-1) + (w.unsqueeze(1) @ self.gram @ w.unsqueeze(-1)).view(-1)
         return float(sse.sum() / (self.n_samples * self.gram.shape[0]))
+
+
+def supports_closed_form(network: nn.Module | type) -> bool:
+    """Whether ``network`` exposes the linear-regression interface (``features``, ``group_targets``, ``load_solution``)."""
+    return all(callable(getattr(network, name, None)) for name in ("features", "group_targets", "load_solution"))
+
+
+@dataclass
+class ClosedFormFit:
+    """Outcome of :func:`fit_closed_form`: the training loss (nm²) and the conditioning of the problem."""
+
+    train_loss: float
+    condition: float
+
+
+@torch.no_grad()
+def fit_closed_form(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], alpha: float,
+                    alpha_relative: bool = True) -> ClosedFormFit:
+    """Fit a linear network in one streamed pass: accumulate its normal equations over ``batches``, solve, load.
+
+    The network's fitted state is overwritten. ``batches`` yields ``(history, target)`` pairs (a DataLoader of
+    :class:`~eofnn.data.stream.SimulatedTelemetry`, or recorded telemetry cut into histories).
+    """
+    require(supports_closed_form(network),
+            f"fit_method='closed_form' needs a linear network; {type(network).__name__} has no features()/"
+            "load_solution(): use fit_method: sgd")
+    equations = NormalEquations()
+    for history, target in batches:
+        equations.update(network.features(history), network.group_targets(target))
+    require(equations.gram is not None, "no training data: the training stream yielded no batch")
+    solution = equations.solve(alpha, alpha_relative)
+    network.load_solution(solution.weights.to(network.weight.dtype))
+    return ClosedFormFit(equations.loss(solution.weights), solution.condition)

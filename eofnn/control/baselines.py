@@ -6,9 +6,9 @@ import math
 
 import torch
 
-from eofnn.errors import require
+from eofnn.seeding import torch_generator
 from eofnn.sim.loop import LoopInput
-from eofnn.sim.turbulence import stream_seed
+from eofnn.validation import Interval, check_value
 
 
 class Uncorrected:
@@ -39,8 +39,8 @@ class Integrator:
     """
 
     def __init__(self, gain: float = 0.5, leak: float = 0.0) -> None:
-        require(gain >= 0, f"integrator gain={gain!r} is invalid: it must be >= 0")
-        require(0 <= leak <= 1, f"integrator leak={leak!r} is invalid: it must be in [0, 1]")
+        check_value("integrator gain", gain, Interval(0, 10))
+        check_value("integrator leak", leak, Interval(0, 1))
         self.gain, self.leak = gain, leak
 
     def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
@@ -68,12 +68,16 @@ class Dithered:
     """
 
     def __init__(self, controller, amplitude_nm: float, seed: int = 0) -> None:
-        require(amplitude_nm >= 0, f"dither amplitude_nm={amplitude_nm!r} is invalid: it must be >= 0")
+        check_value("dither amplitude_nm", amplitude_nm, Interval(0, 1e5, unit="nm"))
         self.controller, self.amplitude_nm, self.seed = controller, amplitude_nm, seed
+
+    def reseed(self, seed: int) -> None:
+        """Draw the dither from another seed from the next reset on (one per recorded sequence)."""
+        self.seed = seed
 
     def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
         self.controller.reset(batch, n_actuators, delay_frames, dtype)
-        self._gen = torch.Generator().manual_seed(int(stream_seed(self.seed, "dither").generate_state(1)[0]))
+        self._gen = torch_generator(self.seed, "dither")
         self._shape, self._dtype = (batch, n_actuators), dtype
 
     def step(self, inp: LoopInput) -> torch.Tensor:

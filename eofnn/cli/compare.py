@@ -1,0 +1,62 @@
+"""``eofnn compare`` and ``eofnn evaluate``: scenarios x controllers in closed loop, written to one folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from jsonargparse import ArgumentParser
+
+from eofnn.cli.common import add_common, add_evaluation, log
+from eofnn.evaluation.config import PredictorConfig
+from eofnn.evaluation.experiment import Experiment
+from eofnn.evaluation.report import write_report
+from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
+from eofnn.outputs import check_output_folder, staged_folder
+
+COMPARE = ("Run an experiment: every controller in every scenario (plant), predictors trained once where asked, "
+           "evaluated in closed loop on a held-out stream. Writes metrics.json, results.md, config.yaml, figures, "
+           "timeseries.npz and checkpoints/ into --out, all at once when the run is complete.")
+EVALUATE = ("Evaluate saved checkpoints (from fit or compare) in any scenario, without retraining, beside "
+            "baseline controllers.")
+
+
+def add_compare_arguments(parser: ArgumentParser) -> None:
+    add_common(parser, "Output folder (must be empty unless --overwrite true).")
+    add_evaluation(parser)
+    parser.add_argument("--predictors", type=dict[str, PredictorConfig], required=True,
+                        help="Controller name -> configuration.")
+
+
+def add_evaluate_arguments(parser: ArgumentParser) -> None:
+    add_common(parser, "Output folder (must be empty unless --overwrite true).")
+    add_evaluation(parser)
+    parser.add_argument("--checkpoints", type=dict[str, str], required=True, help="Name -> checkpoint path.")
+    parser.add_argument("--baselines", type=list[str], default=["uncorrected", "pseudo_integrator", "integrator"],
+                        help="Baseline controllers to run beside the checkpoints.")
+
+
+def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str) -> ExperimentResult:
+    """Validate everything and check the output folder, then run and write the results in one move."""
+    out = check_output_folder(cfg.out, cfg.overwrite)
+    experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
+                            trusted_networks=cfg.trusted_networks)
+    with staged_folder(out, cfg.overwrite) as staging:
+        experiment.checkpoint_dir = staging / "checkpoints"
+        (staging / "config.yaml").write_text(config_dump)
+        result = experiment.run()
+        write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference)
+        save_timeseries(result, staging / "timeseries.npz")
+        write_metrics(result, staging / "metrics.json")
+    log(f"results in {Path(out)}/ (metrics.json, results.md, figures)")
+    return result
+
+
+def run_compare(cfg, config_dump: str) -> ExperimentResult:
+    return run_experiment(cfg, cfg.predictors, config_dump)
+
+
+def run_evaluate(cfg, config_dump: str) -> ExperimentResult:
+    predictors = {name: PredictorConfig(controller=name) for name in cfg.baselines}
+    for name, path in cfg.checkpoints.items():
+        predictors[name] = PredictorConfig(checkpoint=path)
+    return run_experiment(cfg, predictors, config_dump)

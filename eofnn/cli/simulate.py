@@ -1,0 +1,68 @@
+"""``eofnn simulate``: run one controller (a baseline or a checkpoint) and save its telemetry and an RMS plot."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+from jsonargparse import ArgumentParser
+
+from eofnn.cli.common import add_common, log
+from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
+from eofnn.errors import ConfigError
+from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.experiment import build_scenarios, trusted_class_paths
+from eofnn.evaluation.metrics import loop_metrics
+from eofnn.evaluation.report import plot_rms_vs_time
+from eofnn.evaluation.results import ExperimentResult
+from eofnn.outputs import check_output_file, staged_file
+from eofnn.sim.loop import run_loop
+from eofnn.training.checkpoint import load_predictor
+from eofnn.validation import Interval, check_value
+
+DESCRIPTION = ("Run one controller (a baseline or a checkpoint) in a scenario and save its telemetry (s, y, eps, wfs "
+               "in nm) as FITS or .npz, with a plot of the RMS residual beside it.")
+SUFFIXES = (".fits", ".fit", ".npz")
+
+
+def add_arguments(parser: ArgumentParser) -> None:
+    add_common(parser, "Telemetry file to write (.fits or .npz); the plot goes to the same name with .png.")
+    parser.add_argument("--predictor", type=PredictorConfig, default=PredictorConfig(controller="integrator"),
+                        help="The controller: controller: uncorrected|pseudo_integrator|integrator, or "
+                             "controller: predictor with a checkpoint.")
+    parser.add_argument("--frames", type=int, default=2000, help="Frames to simulate.")
+    parser.add_argument("--realisations", type=int, default=1, help="Independent realisations (batch).")
+    parser.add_argument("--seed", type=int, default=1, help="Seed of the turbulence and noise.")
+
+
+def run(cfg, config_dump: str) -> None:
+    out = Path(cfg.out)
+    if out.suffix.lower() not in SUFFIXES:
+        raise ConfigError(f"out={str(out)!r} has suffix {out.suffix!r}: allowed are {', '.join(SUFFIXES)}")
+    plot = out.with_name(out.name + ".png")  # run.fits -> run.fits.png: a .fits and an .npz never share a plot
+    check_output_file(out, cfg.overwrite)
+    check_output_file(plot, cfg.overwrite)
+    check_value("frames", cfg.frames, Interval(1, 10_000_000, integer=True))
+    check_value("realisations", cfg.realisations, Interval(1, 1024, integer=True))
+    check_value("seed", cfg.seed, Interval(0, 2**63 - 1, integer=True))
+    p: PredictorConfig = cfg.predictor
+    predictor = None
+    if p.controller in NEEDS_PREDICTOR:
+        if p.checkpoint is None:
+            raise ConfigError("simulate runs a baseline or a checkpoint: set predictor.controller to a baseline or "
+                              "give predictor.checkpoint")
+        predictor = load_predictor(p.checkpoint, cfg.scenario, trusted_networks=trusted_class_paths(
+            {"controller": p}, cfg.trusted_networks))
+    scenario = build_scenarios(cfg.scenario, {"scenario": {}})["scenario"]
+    result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
+                      build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress)
+    telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)
+    telemetry.config.update({"eofnn": yaml.safe_load(config_dump), "diverged_frame": result.diverged_frame})
+    settle = min(EvaluationConfig().settle_frames, cfg.frames // 2)
+    metrics = loop_metrics(result, settle, EvaluationConfig().strehl_wavelength_m)
+    with staged_file(out, cfg.overwrite) as partial:
+        telemetry.save(partial, overwrite=True)
+    with staged_file(plot, cfg.overwrite) as partial:
+        plot_rms_vs_time(ExperimentResult({"scenario": {p.controller: metrics}}), scenario.frame_rate_hz, partial)
+    log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary()}))

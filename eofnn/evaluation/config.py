@@ -1,0 +1,153 @@
+"""The configuration of an experiment's controllers and of their closed-loop evaluation (YAML <-> dataclasses)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from eofnn.control.baselines import Integrator
+from eofnn.control.registry import NEEDS_PREDICTOR, controller_names
+from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
+from eofnn.data.stream import DataConfig
+from eofnn.errors import ConfigError
+from eofnn.models.build import import_class
+from eofnn.training.ridge import supports_closed_form
+from eofnn.training.task import OptimizationConfig
+from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, check_value, validated
+
+#: Most frames of one closed-loop evaluation (per realisation).
+MAX_EVALUATION_FRAMES = 10_000_000
+
+
+@dataclass
+@validated
+class PredictorConfig:
+    """One controller of an experiment: a baseline, a predictor to train, or a saved checkpoint.
+
+    Parameters
+    ----------
+    controller : str
+        ``uncorrected``, ``pseudo_integrator``, ``integrator`` or ``predictor``.
+    history : str
+        ``open_loop`` (pseudo-open-loop values) or ``closed_loop`` (commands and residuals).
+    history_length : int
+        Frames of history.
+    network : dict, optional
+        ``{class_path: ..., init_args: {...}}`` of any ``torch.nn.Module`` mapping ``(batch, K, taps)`` to
+        ``(batch, K)``; a per-actuator ``eofnn.models.linear.LinearFilter`` by default. With ``checkpoint``, naming
+        the checkpoint's class here trusts it (a checkpoint may only name eofnn's own networks otherwise).
+    data : DataConfig
+        How the training data is simulated.
+    optimization : OptimizationConfig
+        How the network is fitted (closed form or SGD, ridge alpha, optimiser).
+    train_in : str, optional
+        Name of the scenario whose plant records the training data (trained once, reused everywhere);
+        by default the predictor is trained in each scenario it is evaluated in.
+    checkpoint : str, optional
+        A checkpoint from ``eofnn fit`` or ``compare`` to evaluate instead of training.
+    gain : float
+        Integrator gain (``controller: integrator``).
+    leak : float
+        Integrator leak (``controller: integrator``).
+    dm_gain_model : float
+        DM gain the controller believes, for the pseudo-open-loop reconstruction.
+    """
+
+    controller: str = "predictor"
+    history: str = "open_loop"
+    history_length: int = 4
+    network: dict[str, Any] | None = None
+    data: DataConfig = field(default_factory=DataConfig)
+    optimization: OptimizationConfig = field(default_factory=OptimizationConfig)
+    train_in: str | None = None
+    checkpoint: str | None = None
+    gain: float = 0.5
+    leak: float = 0.0
+    dm_gain_model: float = 1.0
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "controller": OneOf(controller_names()),
+        "history": OneOf(HISTORY_KINDS),
+        "history_length": Interval(1, MAX_HISTORY_LENGTH, integer=True, unit="frames"),
+        "train_in": OrNone(IsString()),
+        "checkpoint": OrNone(IsString()),
+        "dm_gain_model": Interval(0, 100, closed="right"),
+    }
+
+    def __post_init__(self) -> None:
+        if isinstance(self.data, dict):
+            self.data = DataConfig(**self.data)
+        if isinstance(self.optimization, dict):
+            self.optimization = OptimizationConfig(**self.optimization)
+        if self.controller not in NEEDS_PREDICTOR and self.checkpoint is not None:
+            raise ConfigError(f"controller={self.controller!r} does not run a checkpoint: checkpoint="
+                              f"{self.checkpoint!r} is for controller: predictor")
+        if self.controller == "integrator":
+            Integrator(self.gain, self.leak)  # validates gain and leak
+        if self.network is not None:
+            if not isinstance(self.network, dict) or "class_path" not in self.network:
+                raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
+            if self.checkpoint is None:  # a network to train, named by the user: import it now to check it
+                cls = import_class(self.network["class_path"])
+                if self.optimization.fit_method == "closed_form" and not supports_closed_form(cls):
+                    raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {cls.__name__} "
+                                      "has no features()/load_solution(): use optimization.fit_method: sgd")
+
+    @property
+    def trains(self) -> bool:
+        """Whether this controller is a predictor trained by the experiment (not a baseline or a checkpoint)."""
+        return self.controller in NEEDS_PREDICTOR and self.checkpoint is None
+
+
+@dataclass
+@validated
+class EvaluationConfig:
+    """How controllers are evaluated in closed loop.
+
+    Parameters
+    ----------
+    frames : int
+        Frames per run.
+    settle_frames : int
+        Frames discarded at the start (the loop settling) before statistics.
+    realisations : int
+        Independent turbulence realisations run side by side.
+    seed : int
+        Seed of the test stream (a stream of its own: never shared with training).
+    strehl_wavelength_m : float
+        Wavelength of the Maréchal Strehl, in metres.
+    divergence_factor : float
+        A residual above this times the turbulence RMS counts as diverged.
+    psd_segment_frames : int
+        Segment length of the residual PSD (at most the settled frames).
+    """
+
+    frames: int = 5000
+    settle_frames: int = 500
+    realisations: int = 1
+    seed: int = 1
+    strehl_wavelength_m: float = 1.65e-6
+    divergence_factor: float = 10.0
+    psd_segment_frames: int = 1024
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "frames": Interval(2, MAX_EVALUATION_FRAMES, integer=True),
+        "settle_frames": Interval(0, MAX_EVALUATION_FRAMES, integer=True),
+        "realisations": Interval(1, 1024, integer=True),
+        "seed": Interval(0, 2**63 - 1, integer=True),
+        "strehl_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
+        "divergence_factor": Interval(1, 1e6, closed="right"),
+        "psd_segment_frames": Interval(8, MAX_EVALUATION_FRAMES, integer=True),
+    }
+    _where: ClassVar[str] = "evaluation."
+
+    def __post_init__(self) -> None:
+        if self.settle_frames >= self.frames:
+            raise ConfigError(f"evaluation.settle_frames={self.settle_frames} is invalid: it must be below "
+                              f"evaluation.frames={self.frames}")
+        check_value("psd_segment_frames", self.psd_segment_frames,
+                    Interval(8, self.frames - self.settle_frames, integer=True, unit="at most the settled frames"),
+                    "evaluation.")
+
+
+__all__ = ["EvaluationConfig", "PredictorConfig"]

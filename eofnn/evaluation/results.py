@@ -1,0 +1,43 @@
+"""What an experiment produced: metrics by scenario and predictor, and the files that keep them."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from eofnn.evaluation.metrics import LoopMetrics
+
+
+@dataclass
+class ExperimentResult:
+    """Metrics by scenario and predictor, where the checkpoints went (relative to the output folder), timings."""
+
+    metrics: dict[str, dict[str, LoopMetrics]]
+    checkpoints: dict[str, str] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {
+            "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
+            "checkpoints": self.checkpoints,
+            "timings_s": self.timings_s,
+        }
+
+
+def write_metrics(result: ExperimentResult, path: Path) -> None:
+    """``metrics.json``: every scalar metric, the checkpoints and the timings."""
+    path.write_text(json.dumps(result.to_json(), indent=2))
+
+
+def save_timeseries(result: ExperimentResult, path: Path) -> None:
+    """Per-frame RMS and PSDs of every run, for re-plotting without re-running."""
+    data = {}
+    for s, preds in result.metrics.items():
+        for p, m in preds.items():
+            data[f"{s}/{p}/rms_nm"] = np.asarray(m.rms_nm, dtype=np.float64)
+            data[f"{s}/{p}/psd_freq_hz"] = np.asarray(m.psd_freq_hz, dtype=np.float64)
+            data[f"{s}/{p}/psd_nm2_per_hz"] = np.asarray(m.psd_nm2_per_hz, dtype=np.float64)
+    np.savez_compressed(path, **data)

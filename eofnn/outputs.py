@@ -1,0 +1,112 @@
+"""One policy for everything eofnn writes: never replace a user's file unasked, never leave a half-written one.
+
+Outputs are checked before any work starts (exists? writable?), then written into a temporary sibling and moved
+into place only when complete, so an interrupted or crashed run leaves either the old result or the new one.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from eofnn.errors import ConfigError, OutputExistsError
+
+
+def _writable_parent(path: Path, what: str) -> None:
+    """The nearest existing ancestor of ``path`` must be a writable folder."""
+    parent = path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{what}={str(path)!r} cannot be written: {str(parent)!r} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what}={str(path)!r} cannot be written: folder {str(parent)!r} is not writable")
+
+
+def check_output_file(path: str | Path, overwrite: bool, what: str = "out") -> Path:
+    """Refuse an existing file (unless ``overwrite``), a folder in its place, or a place that cannot be written."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{what}={str(path)!r} is a folder: give a file name")
+    if path.exists() and not overwrite:
+        raise OutputExistsError(f"{str(path)!r} exists: choose another --out or pass --overwrite true")
+    _writable_parent(path, what)
+    return path
+
+
+def check_output_folder(path: str | Path, overwrite: bool, what: str = "out") -> Path:
+    """Refuse a non-empty folder (unless ``overwrite``), a file in its place, or a place that cannot be written."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what}={str(path)!r} is a file, not a folder")
+    if path.exists() and any(path.iterdir()) and not overwrite:
+        raise OutputExistsError(f"{what}={str(path)!r} is not empty: choose another folder or pass --overwrite true")
+    _writable_parent(path, what)
+    return path
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM for the few system calls that swap a result into place."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _partial_name(path: Path, tag: str) -> Path:
+    return path.with_name(f".{path.name}.{tag}-{os.getpid()}")
+
+
+@contextmanager
+def staged_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary folder beside ``path``; on success it replaces ``path`` whole, on failure it is removed."""
+    path = check_output_folder(path, overwrite)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = _partial_name(path, "partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+    try:
+        yield partial
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    old = _partial_name(path, "old")
+    with _signals_deferred():
+        if path.exists():
+            os.replace(path, old)
+        os.replace(partial, path)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextmanager
+def staged_file(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary file name beside ``path`` (same suffix); on success it replaces ``path`` atomically."""
+    path = check_output_file(path, overwrite)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+    try:
+        yield partial
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    with _signals_deferred():
+        os.replace(partial, path)
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file, so a reader never sees half of it."""
+    path = Path(path)
+    partial = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    partial.write_text(text)
+    os.replace(partial, path)
