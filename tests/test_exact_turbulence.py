@@ -98,11 +98,17 @@ def test_the_b_spline_strip_fails_the_same_comparison():
     assert measured.mean(axis=(0, 2))[band].mean() < 1e-3 * theory[band].mean()
 
 
-@pytest.mark.parametrize("kernel", ["subaperture", "point"])
-def test_structure_function_and_variance_match_kernel_filtered_theory(kernel):
+@pytest.mark.parametrize(
+    "kernel, layers",
+    [("subaperture", (Layer(1.0, 20.0, 0.0),)), ("point", (Layer(1.0, 20.0, 0.0),)),
+     ("subaperture", (Layer(0.6, 20.0, 90.0), Layer(0.4, 25.0, 180.0)))],
+    ids=["subaperture", "point", "two-layers"],
+)
+def test_structure_function_and_variance_match_kernel_filtered_theory(kernel, layers):
+    """Cn² adds over layers, so any profile has the (kernel-filtered) statistics of its total r0."""
     grid = ActuatorGrid(4.0, 20)
     # 20 m/s at 25 Hz: frames 0.8 m apart; 16 realisations x 60 frames sample ~800 m of screen (~200 outer scales).
-    atm = exact_atmosphere((Layer(1.0, 20.0, 0.0), ), outer_scale_m=4.0, kernel=kernel, screen_frames=60)
+    atm = exact_atmosphere(layers, outer_scale_m=4.0, kernel=kernel, screen_frames=60)
     s = Turbulence(atm, grid, 25.0, seed=3, n_realisations=16).frames(0, 60)
     maps = grid.to_map(s)
     pitches = np.array([1, 2, 3])
