@@ -1,14 +1,17 @@
 """Exact frozen flow: a von Kármán screen synthesised in the Fourier domain, evaluated where each actuator looks.
 
-One layer moving along a grid axis is a Fourier series, periodic over ``P`` along the wind and over ``N_w`` actuator
-pitches across it. Frame ``n`` at actuator ``k`` is that series at ``(u_k - n v dt, w_k)``: no frame is ever
-interpolated from another, so frozen flow holds to rounding and a frame depends only on the seed and ``n``.
+One layer is a Fourier series in its own frame (``u`` along the wind, ``w`` across), periodic over ``P`` along the
+wind and over ``N_w`` line spacings across it. Frame ``n`` at actuator ``k`` is that series at
+``(u_k - n v dt, w_k)``: no frame is ever interpolated from another, so frozen flow holds to rounding and a frame
+depends only on the seed and ``n``.
 
-*Across the wind* actuators lie on ``n_across`` lines one pitch apart. A field read only on those lines cannot
-tell an across-wind frequency ``f_w`` from ``f_w + a / pitch``, so each lattice frequency carries the variance of
-all its aliases (summed over ``|a| <= _ALIASES``): the lines then have the cross-covariance of the continuous
-screen, periodised over ``N_w`` pitches (Poisson summation) — exact once ``N_w`` pitches hold several outer scales,
-where the von Kármán covariance has decayed as ``exp(-2 pi r / L0)``.
+*Across the wind*: for a wind along a lattice direction of the grid (``atan2(p, q)`` with small integers: 0, 90,
+180, 270 and 45 degrees, atan(1/2), ...) the actuators lie on lines parallel to it, ``pitch / hypot(p, q)`` apart.
+A field read only on those lines cannot tell an across-wind frequency ``f_w`` from ``f_w + a / spacing``, so each
+lattice frequency carries the variance of all its aliases (summed over ``|a| <= _ALIASES``): the lines then have
+the cross-covariance of the continuous screen, periodised over ``N_w`` spacings (Poisson summation) — exact once
+``N_w`` spacings hold several outer scales, where the von Kármán covariance has decayed as ``exp(-2 pi r / L0)``.
+Other directions put every actuator on its own line and are refused (use model ``strip``).
 
 *Along the wind* the field on each line is a trigonometric polynomial (frequencies up to ``f_max``: twice the
 frame rate's Nyquist ``1 / (2 v dt)`` and at least ``_SPATIAL_BAND / pitch``). It is evaluated at every
@@ -62,6 +65,12 @@ _FREQUENCY_CHUNK_ELEMENTS = 2**20
 _MAX_SHARED_VARIANCE_BYTES = 64 * 2**20
 #: Refuse a screen whose fine series would exceed this many bytes per layer and realisation.
 _MAX_SERIES_BYTES = 2 * 2**30
+#: Wind directions (q, p) along which the actuators line up: atan2(p, q) with small coprime p, q.
+_MAX_SLOPE = 4
+_LATTICE_DIRECTIONS = [(q, p) for q in range(-_MAX_SLOPE, _MAX_SLOPE + 1) for p in range(-_MAX_SLOPE, _MAX_SLOPE + 1)
+                       if math.gcd(p, q) == 1]
+#: How close (degrees) a wind direction must be to a lattice direction; it is then taken as that direction.
+_DIRECTION_TOLERANCE_DEG = 1e-6
 KERNELS = ("subaperture", "point")
 
 
@@ -99,49 +108,62 @@ def nice_fft_size(n: int) -> int:
     return best
 
 
-def grid_axis_quarter(direction_deg: float) -> int:
-    """``k`` in 0..3 for a wind along a grid axis (``direction_deg = 90 k``); a one-line error otherwise."""
-    quarter = direction_deg / 90.0
-    require(abs(quarter - round(quarter)) < 1e-9,
-            f"wind_direction_deg={direction_deg!r} is invalid for model 'exact': it must be a multiple of 90 "
-            "(along a grid axis); use model 'strip' for other directions")
-    return round(quarter) % 4
+def lattice_direction(direction_deg: float) -> tuple[int, int]:
+    """``(p, q)``, coprime with ``|p|, |q| <= _MAX_SLOPE``, such that the wind blows along ``(q, p)`` on the grid.
 
-
-def wind_axes(grid: ActuatorGrid, direction_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(u_m, line)``: along-wind coordinate (m) and across-wind line index of each active actuator.
-
-    The exact model needs the wind along a grid axis (0, 90, 180 or 270 degrees), so that actuators lie on lines
-    parallel to it.
+    Such a wind keeps every actuator on a line parallel to it (lines ``pitch / hypot(p, q)`` apart): 0, 90, 180 and
+    270 degrees, 45 degrees and its multiples, atan(1/2) = 26.565... degrees, and so on. A one-line error otherwise.
     """
-    k = grid_axis_quarter(direction_deg)
+    angle = math.radians(direction_deg)
+    for q, p in sorted(_LATTICE_DIRECTIONS, key=lambda v: abs(v[0]) + abs(v[1])):
+        error = math.remainder(angle - math.atan2(p, q), 2 * math.pi)
+        if abs(error) < math.radians(_DIRECTION_TOLERANCE_DEG):
+            return p, q
+    nearest = min(_LATTICE_DIRECTIONS, key=lambda v: abs(math.remainder(angle - math.atan2(v[1], v[0]), 2 * math.pi)))
+    require(False, f"wind_direction_deg={direction_deg!r} is invalid for model 'exact': it must run along a lattice "
+                   f"direction of the grid, atan2(p, q) with |p|, |q| <= {_MAX_SLOPE} (e.g. 0, 45, 90; nearest "
+                   f"{math.degrees(math.atan2(nearest[1], nearest[0])):.9g}); use model 'strip' for other directions")
+    return 0, 1
+
+
+def wind_axes(grid: ActuatorGrid, direction_deg: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """``(u_m, line, line_spacing_m, unit)``: along-wind coordinate (m) and across-wind line index of each active
+    actuator, the spacing of those lines (m) and the wind's unit vector (x, y).
+    """
+    p, q = lattice_direction(direction_deg)
+    norm = math.hypot(p, q)
+    unit = np.array([q, p]) / norm
     x, y = grid.positions_m.T
     rows, cols = grid.indices.T
-    return (x, y, -x, -y)[k], (rows, cols, rows, cols)[k]
+    across = rows * q - cols * p  # (-x p + y q) / pitch up to a constant: an integer per line
+    return x * unit[0] + y * unit[1], across - across.min(), grid.pitch_m / norm, unit
 
 
 def lattice_variance_nm2(r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str, pitch_m: float,
-                         period_m: float, n_lattice: int, q_first: int, q_stop: int) -> np.ndarray:
+                         line_spacing_m: float, unit: tuple[float, float], n_aliases: int, period_m: float,
+                         n_lattice: int, q_first: int, q_stop: int) -> np.ndarray:
     """``(q_stop - q_first, n_lattice)`` variance (nm²) of the Fourier coefficients ``(q, l)``, ``q`` in a range.
 
-    Along-wind frequency ``q / period_m``, across-wind lattice frequency ``fftfreq(n_lattice, pitch_m)[l]`` plus
-    its aliases ``a / pitch_m``: the spectrum (times the kernel's squared transform) integrated over one frequency
-    cell. Single precision: the weights of a random field need no more.
+    Along-wind frequency ``q / period_m``, across-wind lattice frequency ``fftfreq(n_lattice, line_spacing_m)[l]``
+    plus its aliases ``a / line_spacing_m`` (``|a| <= n_aliases``): the spectrum times the kernel's squared
+    transform (the subaperture's ``sinc(pitch f_x) sinc(pitch f_y)`` in the telescope frame, the wind along
+    ``unit``), over one frequency cell.
+    Single precision: the weights of a random field need no more.
     """
-    d = pitch_m
-    f_w = np.fft.fftfreq(n_lattice, d)[:, None] + np.arange(-_ALIASES[kernel], _ALIASES[kernel] + 1)[None, :] / d
-    across = (np.sinc(d * f_w) ** 2 if kernel == "subaperture" else np.ones_like(f_w)).astype(np.float32)
+    d, e_x, e_y = line_spacing_m, np.float32(unit[0]), np.float32(unit[1])
+    f_w = np.fft.fftfreq(n_lattice, d)[:, None] + np.arange(-n_aliases, n_aliases + 1)[None, :] / d
     f_w2 = (f_w**2 + outer_scale_m**-2).astype(np.float32)
+    f_w = f_w.astype(np.float32)
     cell = (r0_wavelength_m / (2 * np.pi) * 1e9) ** 2 / (period_m * n_lattice * d)  # rad² per cell -> nm²
     out = np.empty((q_stop - q_first, n_lattice), dtype=np.float32)
     chunk = max(1, _FREQUENCY_CHUNK_ELEMENTS // f_w.size)
     for first in range(q_first, q_stop, chunk):
-        f_u = np.arange(first, min(first + chunk, q_stop)) / period_m
-        psd = (f_u.astype(np.float32)[:, None, None] ** 2 + f_w2[None]) ** np.float32(-11 / 6)
-        row = np.einsum("qla,la->ql", psd, across) * np.float32(VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * cell)
-        if kernel == "subaperture":
-            row *= (np.sinc(d * f_u) ** 2).astype(np.float32)[:, None]
-        out[first - q_first: first - q_first + len(f_u)] = row
+        f_u = (np.arange(first, min(first + chunk, q_stop)) / period_m).astype(np.float32)[:, None, None]
+        psd = (f_u**2 + f_w2[None]) ** np.float32(-11 / 6)
+        if kernel == "subaperture":  # telescope-frame frequencies of (f_u, f_w)
+            psd *= (np.sinc(pitch_m * (f_u * e_x - f_w * e_y)) * np.sinc(pitch_m * (f_u * e_y + f_w * e_x))) ** 2
+        out[first - q_first: first - q_first + len(f_u)] = psd.sum(-1) * np.float32(
+            VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * cell)
     return out
 
 
@@ -154,7 +176,7 @@ def _shared_variance_nm2(*key) -> np.ndarray:
 
 
 class ExactFrozenFlow:
-    """One realisation of one layer moving along a grid axis, seen through a sensing kernel, on the actuators.
+    """One realisation of one layer moving along a lattice direction, seen through a sensing kernel, on the actuators.
 
     Parameters
     ----------
@@ -163,7 +185,8 @@ class ExactFrozenFlow:
     r0_m, r0_wavelength_m, outer_scale_m : float
         Layer's Fried parameter (m) at a wavelength (m), and the outer scale (m, finite).
     wind_speed_mps, wind_direction_deg : float
-        Wind speed (m/s, > 0) and direction (degrees from +x towards +y, a multiple of 90).
+        Wind speed (m/s, > 0) and direction (degrees from +x towards +y, along a lattice direction: see
+        :func:`lattice_direction`).
     frame_period_s : float
         Time between frames in seconds.
     kernel : {"subaperture", "point"}
@@ -192,7 +215,7 @@ class ExactFrozenFlow:
     def _plan(self, grid: ActuatorGrid, outer_scale_m: float, step_m: float, direction_deg: float) -> None:
         """Sizes: fine grid along the wind, lattice across it, and each actuator's kernel weights."""
         self.pitch_m = grid.pitch_m
-        u, line = wind_axes(grid, direction_deg)
+        u, line, self.line_spacing_m, self._unit = wind_axes(grid, direction_deg)
         f_max = max(_TEMPORAL_BAND / (2 * step_m), _SPATIAL_BAND / grid.pitch_m)
         self.fine_per_frame = math.ceil(2 * _OVERSAMPLING * f_max * step_m - 1e-9)  # integer fine samples per frame
         self.fine_m = step_m / self.fine_per_frame
@@ -204,7 +227,7 @@ class ExactFrozenFlow:
         self.n_modes = self.n_fine // (2 * _OVERSAMPLING)  # along-wind frequencies q in [-n_modes, n_modes]
         self.n_lines = int(line.max()) + 1
         self.n_lattice = nice_fft_size(max(2 * self.n_lines, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m
-                                                                       / grid.pitch_m)))
+                                                                       / self.line_spacing_m)))
         require(8 * self.n_fine * self.n_lines <= _MAX_SERIES_BYTES,
                 f"the exact screen needs {8 * self.n_fine * self.n_lines / 2**30:.1f} GiB per layer "
                 f"(screen_frames={self.screen_frames}, {step_m * 1e3:.3g} mm per frame): lower screen_frames")
@@ -228,7 +251,13 @@ class ExactFrozenFlow:
 
     def _synthesise(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float, kernel: str) -> torch.Tensor:
         """``(n_lines, n_fine)`` fine series: OPD (nm) of each line, deconvolved by the kernel's transform."""
-        key = (r0_m, r0_wavelength_m, outer_scale_m, kernel, self.pitch_m, self.n_fine * self.fine_m, self.n_lattice)
+        n_aliases = _ALIASES[kernel]
+        if kernel == "subaperture" and 0 not in self._unit:
+            # Oblique wind: the subaperture passes a ridge |f_w| ~ |f_u| (one sinc factor stays ~1), so the aliases
+            # must reach the along-wind band.
+            n_aliases += math.ceil(self.n_modes / (self.n_fine * self.fine_m) * self.line_spacing_m)
+        key = (r0_m, r0_wavelength_m, outer_scale_m, kernel, self.pitch_m, self.line_spacing_m, tuple(self._unit),
+               n_aliases, self.n_fine * self.fine_m, self.n_lattice)
         shared = (self.n_modes + 1) * self.n_lattice * 4 <= _MAX_SHARED_VARIANCE_BYTES
         variance = _shared_variance_nm2(*key, 0, self.n_modes + 1) if shared else None
         # Field = sqrt(2) Re sum_q A(q) exp(-i 2 pi q p / n_fine) over q in [-n_modes, n_modes], p in fine samples.

@@ -25,7 +25,7 @@ import torch
 
 from eofnn.errors import require
 from eofnn.seeding import stream_seed
-from eofnn.sim.exact import KERNELS, ExactFrozenFlow, grid_axis_quarter, project_out
+from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
 from eofnn.sim.strip import FrozenFlowStrip
@@ -130,7 +130,7 @@ class Atmosphere:
             for lay in layers:
                 require(lay.wind_speed_mps > 0,
                         f"wind_speed_mps={lay.wind_speed_mps!r} is invalid for model 'exact': it must be > 0 (m/s)")
-                grid_axis_quarter(lay.wind_direction_deg)
+                lattice_direction(lay.wind_direction_deg)
 
     def layer_r0_m(self, layer: Layer) -> float:
         """Fried parameter of one layer at ``r0_wavelength_m`` (r0 scales as Cn² to the -3/5)."""
