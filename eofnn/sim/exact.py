@@ -18,16 +18,21 @@ frame rate's Nyquist ``1 / (2 v dt)`` and at least ``_SPATIAL_BAND / pitch``). I
 actuator's exact, non-grid position with a type-2 non-uniform FFT ("exponential of semicircle" kernel, as FINUFFT):
 the line's coefficients, divided by the kernel's Fourier transform, are transformed to a grid ``_OVERSAMPLING``
 times finer than the band needs, and a value is the sum of ``2 * _SPREAD`` grid points weighted by the kernel —
-exact to about 1e-11 of the RMS (``tests/test_exact_turbulence.py`` checks it against the direct Fourier sum).
+exact to about 2e-12 of the RMS (``tests/test_exact_turbulence.py`` checks it against the direct Fourier sum).
 The frame step is a whole number of fine-grid samples, so each actuator's weights are fixed and a frame is one
 small matrix product.
 
 *Sensing kernel*: ``subaperture`` multiplies the spectrum by ``sinc(d f_x) sinc(d f_y)`` (the mean over the
-actuator's ``d x d`` subaperture, ``d`` = pitch); ``point`` reads the field at the actuator.
+actuator's ``d x d`` subaperture, ``d`` = pitch, telescope-frame frequencies); ``point`` reads the field at the
+actuator. The subaperture's transform has zeros: with the wind along x the temporal PSD has true nulls at
+multiples of ``v / d`` (not peaks; the theory in the tests has them too).
 
-Memory per layer and realisation: the fine series, ``8 * N_f * n_across`` bytes with
-``N_f ~ 2 _OVERSAMPLING f_max (screen_frames v dt + D)`` samples: at 1 kHz, 5.1 m/s and 40 across about
-``32 * (screen_frames + 1570) * 40`` bytes, 23 MB for 16384 frames and 130 MB for 1e5 frames.
+Memory per layer and realisation: the fine series, ``8 * N_f * n_lines`` bytes with
+``N_f ~ 2 _OVERSAMPLING f_max (screen_frames v dt + D)`` samples and ``n_lines = n_across (|p| + |q|)``: at 1 kHz,
+5.1 m/s along x and 40 across about ``32 * (screen_frames + 1570) * 40`` bytes, 23 MB for 16384 frames and
+131 MB for 1e5 frames; the set-up needs about as much again for a moment, and streaming keeps one block of
+``_BLOCK_FRAMES`` frames (41 MB at 40 across). Set-up time grows with ``screen_frames`` (about 1-2 s per layer
+and realisation for 16384 frames at 40 across).
 """
 
 from __future__ import annotations
