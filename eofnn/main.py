@@ -20,7 +20,8 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate
+from eofnn.cli import compare, fit, simulate, stability, sweep, telemetry
+from eofnn.cli.configfile import check_config_file
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
 DESCRIPTION = """\
@@ -30,6 +31,12 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn fit      --scenario configs/reference.yaml --predictor.history closed_loop --out runs/cl.ckpt
   eofnn evaluate --config configs/evaluate.yaml --out results/eval          # saved checkpoints under any plant
   eofnn simulate --scenario configs/reference.yaml --out runs/integrator.fits  # one controller -> telemetry
+  eofnn stability --checkpoint runs/cl.ckpt --scenario configs/reference.yaml --out results/stab  # margins
+  eofnn sweep    --config configs/paper_small.yaml --grid GRID.yaml --out results/sweep  # a grid of compares
+  eofnn identify --telemetry run.fits --out plant.json                     # plant from dithered telemetry
+  eofnn fit      --telemetry run.fits --plant plant.json --out runs/ol.ckpt  # train on telemetry alone
+  eofnn replay   --checkpoint runs/ol.ckpt --telemetry held_out.fits --out results/replay
+  eofnn export   --checkpoint runs/ol.ckpt --out filter.fits                # for eofnn.runtime / any RTC
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -56,6 +63,16 @@ COMMANDS: dict[str, Command] = {
                         compare.run_evaluate),
     "simulate": Command("Simulate one controller and save telemetry.", simulate.DESCRIPTION, simulate.add_arguments,
                         simulate.run),
+    "stability": Command("Stability margins of a linear predictor in a plant.", stability.DESCRIPTION,
+                         stability.add_arguments, stability.run),
+    "sweep": Command("A grid of compare runs: resumable, local or on Ray.", sweep.DESCRIPTION, sweep.add_arguments,
+                     sweep.run),
+    "identify": Command("Identify the plant from dithered telemetry.", telemetry.IDENTIFY,
+                        telemetry.add_identify_arguments, telemetry.run_identify),
+    "replay": Command("Replay a checkpoint on held-out telemetry.", telemetry.REPLAY, telemetry.add_replay_arguments,
+                      telemetry.run_replay),
+    "export": Command("Export a linear predictor as filter FITS.", telemetry.EXPORT, telemetry.add_export_arguments,
+                      telemetry.run_export),
 }
 
 
@@ -85,19 +102,23 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"eofnn: warning: {message}", file=sys.stderr)
 
 
-def _config_folders_on_path(args: list[str]) -> None:
-    """A user's module beside their config (``class_path: my_net.Net``) imports without PYTHONPATH tricks."""
-    for flag, value in zip(args, args[1:], strict=False):
-        if flag == "--config":
-            folder = str(Path(value).resolve().parent)
-            if folder not in sys.path:
-                sys.path.insert(0, folder)
+def _config_files(args: list[str]) -> list[str]:
+    return [value for flag, value in zip(args, args[1:], strict=False) if flag == "--config"]
+
+
+def _prepare_config_files(args: list[str]) -> None:
+    """Check every ``--config`` file before jsonargparse reads it, and put its folder on the Python path, so a
+    user's module beside their config (``class_path: my_net.Net``) imports without PYTHONPATH tricks."""
+    for value in _config_files(args):
+        check_config_file(value)
+        folder = str(Path(value).resolve().parent)
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
 
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted)."""
     args = list(sys.argv[1:] if args is None else args)
-    _config_folders_on_path(args)
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     parser = build_parser()
@@ -108,18 +129,20 @@ def main(args: list[str] | None = None) -> int:
             warnings.filterwarnings("ignore", message=".*does not have many workers.*")
             # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
             warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
+            _prepare_config_files(args)
             cfg = parser.parse_args(args)
             command = cfg.command
             dump = yaml.safe_load(parser.dump(cfg))[command]
             sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
-            COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
+            status = COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
     except USER_ERRORS as err:
         print(f"eofnn: error: {_one_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)
         return 130
-    return 0
+    # A command may return its own exit status (sweep: 1 when some points failed); results are not statuses.
+    return status if isinstance(status, int) and not isinstance(status, bool) else 0
 
 
 def console() -> None:

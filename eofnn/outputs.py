@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import tempfile
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -24,8 +25,12 @@ def _writable_parent(path: Path, what: str) -> None:
         parent = parent.parent
     if not parent.is_dir():
         raise ConfigError(f"{what}={str(path)!r} cannot be written: {str(parent)!r} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{what}={str(path)!r} cannot be written: folder {str(parent)!r} is not writable")
+    try:  # a real write, not os.access: root passes that test even on read-only file systems
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as err:
+        raise ConfigError(f"{what}={str(path)!r} cannot be written: folder {str(parent)!r} is not writable "
+                          f"({err.strerror or type(err).__name__})") from None
 
 
 def check_output_file(path: str | Path, overwrite: bool, what: str = "out") -> Path:

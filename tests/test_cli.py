@@ -195,3 +195,22 @@ def test_tiny_compare_numbers_are_pinned(tiny_results):
     restructuring, are reproduced bit for bit (update the file only for a deliberate change of the physics)."""
     pinned = json.loads((Path(__file__).parent / "conf" / "tiny_compare_pinned.json").read_text())
     assert json.loads((tiny_results / "metrics.json").read_text())["scenarios"] == pinned
+
+
+def test_compare_can_train_from_the_scenarios_telemetry_alone(tmp_path, capsys):
+    """data.truth: false: record dithered telemetry, identify the plant, fit from y and wfs only."""
+    predictors = {"integrator": {"controller": "integrator", "gain": 0.4},
+                  "cl_tel": {"history": "closed_loop", "history_length": 5,
+                             "data": {"frames": 2000, "val_frames": 400, "dither_nm": 10.0, "integrator_gain": 0.25,
+                                      "truth": False}}}
+    out = tmp_path / "tel"
+    code, err = run(capsys, "compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors), "--scenarios",
+                    '{"dm_gain_2": {"dm_gain": 2.0}}', "--out", out)
+    assert code == 0, err
+    assert "telemetry alone" in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    m = metrics["scenarios"]["dm_gain_2"]
+    assert not m["cl_tel"]["diverged"]
+    assert m["cl_tel"]["median_rms_nm"] < m["integrator"]["median_rms_nm"] / 10
+    low, high = metrics["stability"]["dm_gain_2"]["cl_tel"]["dm_gain_interval"]
+    assert low < 2.0 < high  # stable in the plant it learnt, without ever being told its gain

@@ -12,7 +12,7 @@ FLOORS = ["sim", "data", "models", "control", "training", "evaluation", "cli"]
 #: Packages that sit on a floor of another name.
 SAME_FLOOR = {"analysis": "evaluation", "main": "cli"}
 #: Leaf modules anyone may import; they import nothing of eofnn above themselves.
-BASE = {"errors", "validation", "seeding", "outputs"}
+BASE = {"errors", "validation", "seeding", "outputs", "resources"}
 #: Modules that must stand alone (copied into a real-time computer): no eofnn import at all.
 STANDALONE = {"runtime"}
 

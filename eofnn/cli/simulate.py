@@ -12,13 +12,13 @@ from eofnn.cli.common import add_common, log
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
-from eofnn.evaluation.experiment import build_scenarios, trusted_class_paths
+from eofnn.evaluation.experiment import load_configured_checkpoint, trusted_class_paths
 from eofnn.evaluation.metrics import loop_metrics
 from eofnn.evaluation.report import plot_rms_vs_time
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, staged_file
+from eofnn.resources import require_memory
 from eofnn.sim.loop import run_loop
-from eofnn.training.checkpoint import load_predictor
 from eofnn.validation import Interval, check_value
 
 DESCRIPTION = ("Run one controller (a baseline or a checkpoint) in a scenario and save its telemetry (s, y, eps, wfs "
@@ -48,13 +48,17 @@ def run(cfg, config_dump: str) -> None:
     check_value("seed", cfg.seed, Interval(0, 2**63 - 1, integer=True))
     p: PredictorConfig = cfg.predictor
     predictor = None
+    if p.controller in NEEDS_PREDICTOR and p.checkpoint is None:
+        raise ConfigError("simulate runs a baseline or a checkpoint: set predictor.controller to a baseline or "
+                          "give predictor.checkpoint")
+    scenario = cfg.scenario
+    # Telemetry keeps s, y, eps, wfs of every frame in float64.
+    require_memory(4 * 8 * cfg.frames * cfg.realisations * scenario.grid.n_actuators,
+                   f"simulate with frames={cfg.frames}, realisations={cfg.realisations} and "
+                   f"{scenario.grid.n_actuators} actuators")
     if p.controller in NEEDS_PREDICTOR:
-        if p.checkpoint is None:
-            raise ConfigError("simulate runs a baseline or a checkpoint: set predictor.controller to a baseline or "
-                              "give predictor.checkpoint")
-        predictor = load_predictor(p.checkpoint, cfg.scenario, trusted_networks=trusted_class_paths(
-            {"controller": p}, cfg.trusted_networks))
-    scenario = build_scenarios(cfg.scenario, {"scenario": {}})["scenario"]
+        predictor = load_configured_checkpoint("controller", p, {"scenario": scenario},
+                                               trusted_class_paths({"controller": p}, cfg.trusted_networks))
     result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
                       build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress)
     telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)

@@ -7,6 +7,7 @@ from torch import nn
 
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
+from eofnn.models.build import input_dtype
 from eofnn.sim.loop import LoopInput
 
 
@@ -63,7 +64,7 @@ class PredictiveController:
     def __init__(self, network: nn.Module, spec: HistorySpec, dm_gain_model: float = 1.0) -> None:
         self.network, self.spec, self.dm_gain_model = network, spec, dm_gain_model
         params = list(network.parameters())
-        self._dtype = params[0].dtype if params else torch.float64
+        self._dtype = input_dtype(network)
         # The loop runs where the turbulence is (CPU); a network on another device gets its input moved there.
         self._device = params[0].device if params else torch.device("cpu")
 

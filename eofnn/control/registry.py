@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from eofnn.control.baselines import Integrator, PseudoIntegrator, Uncorrected
+from eofnn.control.baselines import Dithered, Integrator, PseudoIntegrator, Uncorrected
 from eofnn.control.predictive import PredictiveController
 from eofnn.errors import ConfigError
 from eofnn.sim.loop import Controller
@@ -61,6 +61,20 @@ def _integrator(config: Any, predictor: Any) -> Controller:
     return Integrator(config.gain, config.leak)
 
 
+@register_controller("dithered_integrator")
+def _dithered_integrator(config: Any, predictor: Any) -> Controller:
+    """The integrator plus ``data.dither_nm`` of white dither: telemetry from which the plant can be identified."""
+    return Dithered(Integrator(config.gain, config.leak), config.data.dither_nm, config.data.seed)
+
+
+def dm_gain_model_of(config: Any, predictor: Any) -> float:
+    """The DM gain a predictive controller believes: the config's if set, else the predictor's own model."""
+    chosen = getattr(config, "dm_gain_model", None)
+    if chosen is None:
+        chosen = getattr(predictor, "dm_gain_model", 1.0) if predictor is not None else 1.0
+    return float(chosen)
+
+
 @register_controller("predictor", needs_predictor=True)
 def _predictor(config: Any, predictor: Any) -> Controller:
-    return PredictiveController(predictor.network, predictor.spec, config.dm_gain_model)
+    return PredictiveController(predictor.network, predictor.spec, dm_gain_model_of(config, predictor))

@@ -13,10 +13,11 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.errors import DivergedError, require
+from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value, validated
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, check_value, validated
 
 #: Most frames one fit may simulate (training plus validation): about three hours of CPU at 1264 actuators.
 MAX_FRAMES = 10_000_000
@@ -49,6 +50,10 @@ class DataConfig:
         RMS white dither added to the commands while recording closed-loop data (persistent excitation).
     refit_rounds : int
         Rounds in which the just-fitted predictor (plus the same dither) records the data of the next fit.
+    truth : bool
+        ``true``: targets from the simulator's turbulence ``s`` (a study's labelled shortcut). ``false``: learn as
+        an observatory would, from telemetry alone: record ``frames + val_frames`` frames with the dithered
+        integrator, identify the plant from the dither, fit from ``y`` and ``wfs`` (the learner never sees ``s``).
     """
 
     frames: int = 20000
@@ -61,6 +66,7 @@ class DataConfig:
     integrator_gain: float = 0.5
     dither_nm: float = 10.0
     refit_rounds: int = 0
+    truth: bool = True
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(1, MAX_FRAMES, integer=True),
@@ -73,6 +79,7 @@ class DataConfig:
         "integrator_gain": Interval(0, 10),
         "dither_nm": Interval(0, 1e5, unit="nm"),
         "refit_rounds": Interval(0, 100, integer=True),
+        "truth": IsBool(),
     }
     _where: ClassVar[str] = "data."
 
@@ -80,6 +87,17 @@ class DataConfig:
         require(self.frames * (self.refit_rounds + 1) * self.realisations <= MAX_FRAMES,
                 f"data.frames={self.frames} x realisations={self.realisations} x (refit_rounds + 1) is more than "
                 f"{MAX_FRAMES} frames to simulate")
+
+
+def require_training_memory(scenario: Scenario, spec: HistorySpec, data: DataConfig) -> None:
+    """Refuse, up front, training data that would not fit in memory.
+
+    A sequence holds ``s, y, eps, wfs`` (float64); a batch its history tensor and the targets.
+    """
+    n_act = scenario.grid.n_actuators
+    require_memory(8 * data.realisations * n_act * (4 * data.sequence_frames + data.batch_frames * (spec.n_taps + 1)),
+                   f"training data with data.sequence_frames={data.sequence_frames}, data.realisations="
+                   f"{data.realisations}, data.batch_frames={data.batch_frames} and {n_act} actuators")
 
 
 class SimulatedTelemetry(IterableDataset):
@@ -123,6 +141,7 @@ class SimulatedTelemetry(IterableDataset):
                 f"{spec.first_frame}")
         if spec.kind == "closed_loop":
             require(data_controller is not None, "closed-loop data needs a data_controller")
+        require_training_memory(scenario, spec, data)
         self.scenario, self.spec, self.stream, self.data = scenario, spec, stream, data
         self.n_sequences = -(-frames // data.sequence_frames)
         self.data_controller = data_controller

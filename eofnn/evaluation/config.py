@@ -28,10 +28,11 @@ class PredictorConfig:
     ----------
     controller : str
         ``uncorrected``, ``pseudo_integrator``, ``integrator`` or ``predictor``.
-    history : str
-        ``open_loop`` (pseudo-open-loop values) or ``closed_loop`` (commands and residuals).
-    history_length : int
-        Frames of history.
+    history : str, optional
+        ``open_loop`` (pseudo-open-loop values) or ``closed_loop`` (commands and residuals); unset, ``open_loop``
+        for a predictor to train and the checkpoint's own for a checkpoint (set, it must match the checkpoint).
+    history_length : int, optional
+        Frames of history; unset, 4 for a predictor to train and the checkpoint's own for a checkpoint.
     network : dict, optional
         ``{class_path: ..., init_args: {...}}`` of any ``torch.nn.Module`` mapping ``(batch, K, taps)`` to
         ``(batch, K)``; a per-actuator ``eofnn.models.linear.LinearFilter`` by default. With ``checkpoint``, naming
@@ -49,13 +50,14 @@ class PredictorConfig:
         Integrator gain (``controller: integrator``).
     leak : float
         Integrator leak (``controller: integrator``).
-    dm_gain_model : float
-        DM gain the controller believes, for the pseudo-open-loop reconstruction.
+    dm_gain_model : float, optional
+        DM gain the controller believes, for the pseudo-open-loop reconstruction; unset, the predictor's own: the
+        gain identified from telemetry for a predictor trained on telemetry, 1 (the nominal DM) otherwise.
     """
 
     controller: str = "predictor"
-    history: str = "open_loop"
-    history_length: int = 4
+    history: str | None = None
+    history_length: int | None = None
     network: dict[str, Any] | None = None
     data: DataConfig = field(default_factory=DataConfig)
     optimization: OptimizationConfig = field(default_factory=OptimizationConfig)
@@ -63,15 +65,15 @@ class PredictorConfig:
     checkpoint: str | None = None
     gain: float = 0.5
     leak: float = 0.0
-    dm_gain_model: float = 1.0
+    dm_gain_model: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
-        "history": OneOf(HISTORY_KINDS),
-        "history_length": Interval(1, MAX_HISTORY_LENGTH, integer=True, unit="frames"),
+        "history": OrNone(OneOf(HISTORY_KINDS)),
+        "history_length": OrNone(Interval(1, MAX_HISTORY_LENGTH, integer=True, unit="frames")),
         "train_in": OrNone(IsString()),
         "checkpoint": OrNone(IsString()),
-        "dm_gain_model": Interval(0, 100, closed="right"),
+        "dm_gain_model": OrNone(Interval(0, 100, closed="right")),
     }
 
     def __post_init__(self) -> None:
@@ -79,6 +81,9 @@ class PredictorConfig:
             self.data = DataConfig(**self.data)
         if isinstance(self.optimization, dict):
             self.optimization = OptimizationConfig(**self.optimization)
+        if self.checkpoint is None:
+            self.history = self.history or "open_loop"
+            self.history_length = self.history_length or 4
         if self.controller not in NEEDS_PREDICTOR and self.checkpoint is not None:
             raise ConfigError(f"controller={self.controller!r} does not run a checkpoint: checkpoint="
                               f"{self.checkpoint!r} is for controller: predictor")

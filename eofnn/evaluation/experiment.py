@@ -7,20 +7,31 @@ from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
+from eofnn.analysis.linear import controller_stability
+from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
-from eofnn.errors import ConfigError, require
+from eofnn.data.history import HistorySpec
+from eofnn.data.stream import require_training_memory
+from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.results import ExperimentResult
+from eofnn.resources import require_memory
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor
+from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry
 
 
 def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: str | Path | None = None,
-                    overwrite: bool = False, progress: bool = False) -> FitResult:
-    """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``."""
+                    overwrite: bool = False, progress: bool = False) -> FitResult | TelemetryFit:
+    """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``: against the simulator's truth,
+    or (``data.truth: false``) from the telemetry alone, through the plant identified from its dither."""
+    if not cfg.data.truth:
+        return fit_from_scenario_telemetry(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
+                                           optimization=cfg.optimization, checkpoint_path=checkpoint_path,
+                                           overwrite=overwrite, progress=progress)
     return fit_predictor(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
                          optimization=cfg.optimization, checkpoint_path=checkpoint_path, overwrite=overwrite,
                          progress=progress)
@@ -46,6 +57,19 @@ def trusted_class_paths(predictors: dict[str, PredictorConfig], extra: Collectio
     """Network class paths the user named (in the config or on the command line): checkpoints may name these."""
     named = {cfg.network["class_path"] for cfg in predictors.values() if cfg.network is not None}
     return named | set(extra)
+
+
+def load_configured_checkpoint(name: str, cfg: PredictorConfig, scenarios: dict[str, Scenario],
+                               trusted: Collection[str]) -> TrainedPredictor:
+    """The checkpoint of controller ``name``, checked against its config (history) and every scenario it runs in."""
+    predictor = load_predictor(cfg.checkpoint, trusted_networks=trusted)
+    where = f"predictor {name!r}: checkpoint {cfg.checkpoint!r}"
+    if cfg.history is not None and cfg.history != predictor.spec.kind:
+        raise CheckpointError(f"{where} holds a {predictor.spec.kind} predictor but history={cfg.history!r} was "
+                              "asked for")
+    for scenario_name, scenario in scenarios.items():
+        predictor.check_fits(scenario, f"{where} in scenario {scenario_name!r}", cfg.history_length)
+    return predictor
 
 
 class Experiment:
@@ -80,6 +104,12 @@ class Experiment:
         self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
                            for name, cfg in predictors.items()}
         self.evaluation = evaluation
+        n_act = max(s.grid.n_actuators for s in self.scenarios.values())
+        # Per frame and realisation two RMS values are kept; per realisation a turbulence chunk of 1024 frames
+        # and the arrays of that chunk (s, y, eps, wfs) are in flight.
+        require_memory(8 * evaluation.realisations * (2 * evaluation.frames + 5 * 1024 * n_act),
+                       f"evaluation with evaluation.frames={evaluation.frames}, evaluation.realisations="
+                       f"{evaluation.realisations} and {n_act} actuators")
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.progress, self.log = progress, log
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
@@ -87,15 +117,15 @@ class Experiment:
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
+            if cfg.trains:
+                for scenario_value in self.scenarios.values():
+                    spec = HistorySpec.from_scenario(cfg.history, cfg.history_length, scenario_value)
+                    require_training_memory(scenario_value, spec, cfg.data)
             if cfg.train_in is not None and cfg.train_in not in self.scenarios:
                 raise ConfigError(f"predictor {name!r}: train_in={cfg.train_in!r} is not a scenario: allowed are "
                                   f"{', '.join(self.scenarios)}")
             if cfg.checkpoint is not None:
-                predictor = load_predictor(cfg.checkpoint, trusted_networks=trusted)
-                for scenario_name, scenario_value in self.scenarios.items():
-                    predictor.check_fits(scenario_value, f"predictor {name!r} in scenario {scenario_name!r}: "
-                                         f"checkpoint {cfg.checkpoint!r}")
-                self._loaded[name] = predictor
+                self._loaded[name] = load_configured_checkpoint(name, cfg, self.scenarios, trusted)
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
@@ -107,7 +137,7 @@ class Experiment:
         if key not in self._trained:
             path = None if self.checkpoint_dir is None else self.checkpoint_dir / f"{name}__{train_in}.ckpt"
             self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
-                     f"{cfg.optimization.fit_method})")
+                     f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
             result = fit_from_config(self.scenarios[train_in], cfg, path, overwrite=True, progress=bool(self.progress))
             self._trained[key] = result.predictor
             if path is not None:
@@ -130,16 +160,38 @@ class Experiment:
                           progress=self.progress, on_chunk=psd)
         return loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
 
+    def stability(self, name: str, scenario_name: str) -> dict | None:
+        """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
+        cfg = self.predictors[name]
+        predictor = self.predictor(name, scenario_name) if cfg.controller in NEEDS_PREDICTOR else None
+        result = controller_stability(cfg, predictor, self.scenarios[scenario_name])
+        return None if result is None else stability_summary(result)
+
     def run(self) -> ExperimentResult:
         metrics: dict[str, dict[str, LoopMetrics]] = {}
+        stability: dict[str, dict[str, dict]] = {}
         timings = {}
         for scenario_name in self.scenarios:
-            metrics[scenario_name] = {}
+            metrics[scenario_name], stability[scenario_name] = {}, {}
             for name in self.predictors:
                 start = time.perf_counter()
                 m = self.evaluate(name, scenario_name)
                 timings[f"{scenario_name}/{name}"] = round(time.perf_counter() - start, 3)
                 metrics[scenario_name][name] = m
-                shown = f"diverged at frame {m.diverged_frame}" if m.diverged else f"{m.median_rms_nm:.4g} nm"
-                self.log(f"{scenario_name:>12s} {name:>18s}: median RMS {shown}")
-        return ExperimentResult(metrics, dict(self.checkpoints), timings)
+                margins = self.stability(name, scenario_name)
+                if margins is not None:
+                    stability[scenario_name][name] = margins
+                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins)}")
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability)
+
+
+def _describe(m: LoopMetrics, margins: dict | None) -> str:
+    """One progress line: the median RMS (or where it diverged) and, for a linear controller, its DM gain margin."""
+    text = f"median RMS {'diverged at frame ' + str(m.diverged_frame) if m.diverged else f'{m.median_rms_nm:.4g} nm'}"
+    if margins is None:
+        return text
+    low, high = margins["dm_gain_interval"]
+    text += "; analytic: " + ("stable" if margins["stable"] else "unstable")
+    if margins["stable"] and low is not None and high is not None:
+        text += f" for DM gain {max(low, 0.0):.3g} to {high:.3g}"
+    return text

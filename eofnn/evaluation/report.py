@@ -40,10 +40,14 @@ def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, floa
     return "\n".join(lines) + "\n"
 
 
-def _colours(result: ExperimentResult) -> dict[str, str]:
-    """One colour per predictor, the same in every panel and figure."""
+#: Line styles cycled with the colours, so that curves lying on top of each other stay distinguishable.
+_STYLES = ("-", "--", "-.", ":")
+
+
+def _styles(result: ExperimentResult) -> dict[str, dict]:
+    """One colour and one line style per controller, the same in every panel and figure."""
     names = list(dict.fromkeys(p for preds in result.metrics.values() for p in preds))
-    return {name: f"C{i % 10}" for i, name in enumerate(names)}
+    return {name: {"color": f"C{i % 10}", "linestyle": _STYLES[i % len(_STYLES)]} for i, name in enumerate(names)}
 
 
 def _legend(ax) -> None:
@@ -53,18 +57,24 @@ def _legend(ax) -> None:
 
 
 def _figure(result: ExperimentResult, path: Path, title: str, xlabel: str, ylabel: str, draw) -> None:
-    """One panel per scenario: ``draw(ax, predictors, colours)`` fills it; titles, legends and saving are shared."""
-    fig, axes = plt.subplots(1, len(result.metrics), figsize=(5.5 * len(result.metrics), 4.8), squeeze=False,
-                             sharey=True)
-    axes = axes[0]
+    """One panel per scenario, wrapped into rows of at most three: ``draw(ax, predictors, styles)`` fills each;
+    titles, legends and saving are shared."""
+    n = len(result.metrics)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 4.8 * rows), squeeze=False, sharey=True)
     fig.suptitle(title)
-    colours = _colours(result)
-    for ax, (scenario, preds) in zip(axes, result.metrics.items(), strict=True):
-        draw(ax, preds, colours)
+    styles = _styles(result)
+    flat = axes.ravel()
+    for ax, (scenario, preds) in zip(flat, result.metrics.items(), strict=False):
+        draw(ax, preds, styles)
         ax.set_title(scenario)
         ax.set_xlabel(xlabel)
         _legend(ax)
-    axes[0].set_ylabel(ylabel)
+    for ax in flat[n:]:
+        ax.set_visible(False)
+    for row in axes:
+        row[0].set_ylabel(ylabel)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -73,15 +83,17 @@ def _figure(result: ExperimentResult, path: Path, title: str, xlabel: str, ylabe
 def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path) -> None:
     """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
 
-    def draw(ax, preds, colours):
+    def draw(ax, preds, styles):
         for name, m in preds.items():
             rms = np.asarray(m.rms_nm)
             if rms.size == 0:
                 continue
             t = np.arange(rms.size) / frame_rate_hz
-            label = name + (f" (diverged @ {m.diverged_frame})" if m.diverged else "")
-            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label, color=colours[name])
-        ax.axvspan(0, next(iter(preds.values())).settle_frames / frame_rate_hz, color="0.9", zorder=0)
+            label = name + (f" (diverged at {m.diverged_frame / frame_rate_hz:.3g} s)" if m.diverged else "")
+            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label, **styles[name])
+        settle_s = next(iter(preds.values())).settle_frames / frame_rate_hz
+        if settle_s > 0:
+            ax.axvspan(0, settle_s, color="0.9", zorder=0, label="settling (not in the statistics)")
         ax.grid(True, which="both", alpha=0.3)
 
     _figure(result, path, "Residual spatial RMS", "time (s)", "RMS residual (nm)", draw)
@@ -90,13 +102,13 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
 def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
     """Histograms of the settled per-frame RMS (log bins), one panel per scenario."""
 
-    def draw(ax, preds, colours):
+    def draw(ax, preds, styles):
         settled = {n: np.asarray(m.rms_nm)[m.settle_frames:] for n, m in preds.items() if not m.diverged}
         values = np.concatenate([v for v in settled.values() if v.size]) if settled else np.array([])
         if values.size:
             bins = np.logspace(np.log10(max(values.min(), 1e-6)), np.log10(values.max()) + 1e-9, 60)
             for name, v in settled.items():
-                ax.hist(v, bins=bins, histtype="step", label=name, color=colours[name])
+                ax.hist(v, bins=bins, histtype="step", label=name, **styles[name])
             ax.set_xscale("log")
 
     _figure(result, path, "Distribution of per-frame RMS residual (after settling)", "RMS residual (nm)", "frames",
@@ -106,21 +118,34 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
 def plot_psds(result: ExperimentResult, path: Path) -> None:
     """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
 
-    def draw(ax, preds, colours):
+    def draw(ax, preds, styles):
         for name, m in preds.items():
             if m.psd_freq_hz and not m.diverged:
                 f, p = np.asarray(m.psd_freq_hz)[1:], np.asarray(m.psd_nm2_per_hz)[1:]
-                ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name, color=colours[name])
+                ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name, **styles[name])
         ax.grid(True, which="both", alpha=0.3)
 
     _figure(result, path, "Temporal power spectrum of the residual", "frequency (Hz)", "PSD (nm²/Hz)", draw)
+
+
+def _caveat(result: ExperimentResult) -> str:
+    """Sub-nanometre residuals need a word beside them: they describe the simulator, not the predictor."""
+    small = sorted({p for preds in result.metrics.values() for p, m in preds.items()
+                    if m.median_rms_nm is not None and m.median_rms_nm < 1.0})
+    if not small:
+        return ""
+    return (f"\nNote: {', '.join(small)} reach below 1 nm. Without WFS noise such a floor is set by how the "
+            "simulator builds the turbulence (interpolation, sampling and sensing of the screen), not by the "
+            "predictor: different constructions of the same atmosphere span 0.004 nm to 30 nm, and with 1 nm or more "
+            "of WFS noise they agree within about 25%. Compare sub-nanometre numbers with a study's only for the "
+            "same turbulence construction, and look at the residual PSD (residual_psd.png) before believing them.\n")
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                  reference: dict[str, dict[str, float]] | None = None) -> list[Path]:
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
-    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference))
+    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])

@@ -18,10 +18,13 @@ class ExperimentResult:
     metrics: dict[str, dict[str, LoopMetrics]]
     checkpoints: dict[str, str] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
+    #: Analytic stability of the linear controllers: scenario -> controller -> summary (stable, DM gain interval...).
+    stability: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
+            "stability": self.stability,
             "checkpoints": self.checkpoints,
             "timings_s": self.timings_s,
         }

@@ -12,6 +12,7 @@ import inspect
 from collections.abc import Collection
 from typing import Any
 
+import torch
 from torch import nn
 
 from eofnn.errors import CheckpointError, ConfigError
@@ -86,3 +87,16 @@ def build_network(config: dict[str, Any], n_actuators: int, n_taps: int, grid: d
         return cls(**init_args)
     except TypeError as err:
         raise ConfigError(f"cannot build {config['class_path']}: {err}") from None
+
+
+def input_dtype(network: nn.Module) -> torch.dtype:
+    """The dtype a network takes its histories in: its ``input_dtype`` if it declares one, else its first parameter's.
+
+    Histories are float64 nm; a float32 network (the torch default) gets them converted, so a user's module runs
+    in its own precision.
+    """
+    declared = getattr(network, "input_dtype", None)
+    if declared is not None:
+        return declared
+    first = next(network.parameters(), None)
+    return torch.float64 if first is None else first.dtype

@@ -86,6 +86,9 @@ class MLP(nn.Module):
         nn.init.zeros_(last.bias)
         self.mlp = nn.Sequential(*layers, last)
 
+    #: Histories come in float64: the base (the pseudo-integrator) is exact, only the learned correction is float32.
+    input_dtype = torch.float64
+
     def forward(self, history: torch.Tensor) -> torch.Tensor:
         x = history.to(torch.float64)  # the base is exact; only the learned correction runs in float32
         if self.history_kind == "open_loop":

@@ -9,7 +9,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from eofnn.errors import ConfigError
+from eofnn.errors import ConfigError, TelemetryError
 from eofnn.validation import Constraint, Interval, check_value, validated
 
 #: Largest grid accepted: 512 x 512 actuators already needs ~1.6 GB per 1000 float64 frames of telemetry.
@@ -31,7 +31,7 @@ class ActuatorGrid:
     n_across : int
         Actuators across the pupil diameter.
     obstruction : float
-        Central obstruction as a fraction of the diameter, in [0, 1).
+        Central obstruction as a fraction of the diameter, in [0, 0.9].
     """
 
     diameter_m: float = 8.0
@@ -41,7 +41,7 @@ class ActuatorGrid:
     _constraints: ClassVar[dict[str, Constraint]] = {
         "diameter_m": Interval(0, 100, closed="right", unit="m"),
         "n_across": Interval(2, MAX_N_ACROSS, integer=True, unit="actuators across the pupil"),
-        "obstruction": Interval(0, 1, closed="left", unit="fraction of the diameter"),
+        "obstruction": Interval(0, 0.9, unit="fraction of the diameter"),
     }
 
     def __post_init__(self) -> None:
@@ -51,6 +51,31 @@ class ActuatorGrid:
         if active < 4:  # piston, tip and tilt need three actuators, a predictor one more
             raise ConfigError(f"obstruction={self.obstruction!r} with n_across={self.n_across} leaves {active} "
                               "active actuators: at least 4 are needed")
+
+    @classmethod
+    def from_positions(cls, positions_m, tolerance: float = 1e-3) -> ActuatorGrid:
+        """The grid whose active actuators are ``positions_m`` ``(K, 2)`` (metres), listed in this class's order.
+
+        The pitch is the smallest spacing, the grid is centred on the positions' bounding box, and the central
+        obstruction (if any) is the innermost radius; a layout that is not such a grid, or that lists the actuators
+        in another order, raises :class:`~eofnn.errors.TelemetryError` (``tolerance`` in pitches).
+        """
+        pos = np.asarray(positions_m, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) < 4:
+            raise TelemetryError(f"actuator positions have shape {pos.shape}: expected (actuators >= 4, 2) in metres")
+        gaps = np.abs(pos[:, None, :] - pos[None, :, :]).max(-1)
+        pitch = float(gaps[gaps > 0].min())
+        centre = (pos.max(0) + pos.min(0)) / 2
+        n_across = int(round(float((pos.max(0) - pos.min(0)).max()) / pitch)) + 1
+        radius = np.hypot(*(pos - centre).T)
+        obstruction = float(radius.min() / (n_across * pitch / 2)) if radius.min() > pitch else 0.0
+        # Rounded to 12 digits: positions written in metres give back the diameter they were made from.
+        grid = cls(float(f"{n_across * pitch:.12g}"), n_across, max(0.0, float(f"{obstruction:.12g}") - 1e-9))
+        if grid.n_actuators != len(pos) or np.abs(grid.positions_m - (pos - centre)).max() > tolerance * pitch:
+            raise TelemetryError(f"actuator positions ({len(pos)} actuators, pitch {pitch:.4g} m) are not the active "
+                                 "actuators of a square grid on a circular pupil in row-major order (y then x): "
+                                 "neighbourhoods cannot be built from them")
+        return grid
 
     @property
     def pitch_m(self) -> float:

@@ -169,6 +169,7 @@ def run_loop(
         **{name: torch.cat(kept[name], 1) for name in record},
         delay_frames=delay,
         config={"plant": plant.to_dict()},
+        positions_m=torch.as_tensor(grid.positions_m),
     )
     return LoopResult(
         telemetry=telemetry,

@@ -6,11 +6,16 @@ Arrays are ``(frames, n_actuators)`` or ``(batch, frames, n_actuators)``, in nm:
 - ``y``: DM commands as the controller believes them,
 - ``eps``: true residual ``s + DM(y)``,
 - ``wfs``: what the WFS reported of ``eps`` (equal to ``eps`` for a perfect sensor).
+
+Files from other simulators or a real-time computer need only ``y`` and ``wfs`` and the loop delay; the layout
+(HDU names, header keys, npz keys) is documented in ``docs/telemetry.md``.
 """
 
 from __future__ import annotations
 
 import json
+import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,11 +26,30 @@ from eofnn.errors import TelemetryError
 from eofnn.outputs import check_output_file
 
 ARRAYS = ("s", "y", "eps", "wfs")
+#: What training, identification and replay from telemetry alone need.
+TELEMETRY_REQUIRED = ("y", "wfs")
+#: FITS primary-header keywords (8-character standard ones first, HIERARCH long names accepted too).
+DELAY_KEYS = ("DELAY", "DELAY_FRAMES")
+FRAME_RATE_KEYS = ("FRATE", "FRAME_RATE_HZ")
 
 
 @dataclass
 class Telemetry:
-    """Arrays of one loop run plus the configuration that made them."""
+    """Arrays of one loop run plus the configuration that made them.
+
+    Attributes
+    ----------
+    s, y, eps, wfs : Tensor or None
+        ``(frames, K)`` or ``(batch, frames, K)`` float64 arrays in nm (see the module docstring).
+    delay_frames : int
+        Loop delay ``d``: ``y(n)`` may use ``wfs`` up to frame ``n - d``.
+    config : dict
+        What made the run (eofnn writes the plant and scenario here).
+    frame_rate_hz : float or None
+        Loop frame rate in Hz, when known.
+    positions_m : Tensor or None
+        ``(K, 2)`` actuator (x, y) positions in metres, when known (neighbourhood filters need them).
+    """
 
     s: torch.Tensor | None = None
     y: torch.Tensor | None = None
@@ -33,6 +57,8 @@ class Telemetry:
     wfs: torch.Tensor | None = None
     delay_frames: int = 2
     config: dict = field(default_factory=dict)
+    frame_rate_hz: float | None = None
+    positions_m: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         shape = None
@@ -40,7 +66,7 @@ class Telemetry:
             value = getattr(self, name)
             if value is None:
                 continue
-            value = torch.as_tensor(value)
+            value = _real_tensor(value, name)
             setattr(self, name, value)
             if value.ndim not in (2, 3):
                 raise TelemetryError(
@@ -50,18 +76,39 @@ class Telemetry:
             if shape is not None and tuple(value.shape) != shape:
                 raise TelemetryError(f"telemetry array {name!r} has shape {tuple(value.shape)}, others {shape}")
             shape = tuple(value.shape)
-            if not torch.isfinite(value).all():
-                bad = int((~torch.isfinite(value)).sum())
-                raise TelemetryError(f"telemetry array {name!r} holds {bad} non-finite values (NaN or inf)")
+        self.delay_frames = _delay(self.delay_frames, "delay_frames")
+        if self.frame_rate_hz is not None:
+            rate = _number(self.frame_rate_hz, "frame_rate_hz")
+            if not rate > 0:
+                raise TelemetryError(f"telemetry frame_rate_hz={self.frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
+            self.frame_rate_hz = rate
+        if self.positions_m is not None:
+            self.positions_m = _real_tensor(self.positions_m, "positions_m")
+            n_act = None if shape is None else shape[-1]
+            if self.positions_m.ndim != 2 or self.positions_m.shape[1] != 2 or (
+                    n_act is not None and self.positions_m.shape[0] != n_act):
+                raise TelemetryError(f"telemetry positions_m has shape {tuple(self.positions_m.shape)}: expected "
+                                     f"({n_act if n_act is not None else 'actuators'}, 2) actuator (x, y) in metres")
 
     def arrays(self) -> dict[str, torch.Tensor]:
         """The arrays present, by name."""
         return {name: getattr(self, name) for name in ARRAYS if getattr(self, name) is not None}
 
+    @property
+    def batched(self) -> bool:
+        """Whether the arrays are ``(batch, frames, K)``."""
+        return next(iter(self.arrays().values())).ndim == 3
+
     def realisation(self, index: int) -> Telemetry:
         """One realisation of batched telemetry as ``(frames, actuators)`` arrays."""
         return Telemetry(**{k: v[index] for k, v in self.arrays().items()}, delay_frames=self.delay_frames,
-                         config=self.config)
+                         config=self.config, frame_rate_hz=self.frame_rate_hz, positions_m=self.positions_m)
+
+    def sequences(self) -> list[Telemetry]:
+        """The independent sequences of this telemetry: its realisations, each ``(frames, K)``."""
+        if not self.batched:
+            return [self]
+        return [self.realisation(i) for i in range(next(iter(self.arrays().values())).shape[0])]
 
     def save(self, path: str | Path, overwrite: bool = False) -> Path:
         """Write to ``.fits`` or ``.npz`` (by suffix); refuses to overwrite an existing file unless asked."""
@@ -73,48 +120,136 @@ class Telemetry:
             primary = fits.PrimaryHDU()
             primary.header["EOFNN"] = (1, "eofnn telemetry format version")
             primary.header["DELAY"] = (self.delay_frames, "loop delay in frames")
+            if self.frame_rate_hz is not None:
+                primary.header["FRATE"] = (self.frame_rate_hz, "loop frame rate in Hz")
             primary.header["BUNIT"] = "nm"
             hdus = [primary]
             for name, value in self.arrays().items():
                 hdus.append(fits.ImageHDU(value.numpy(), name=name.upper()))
+            if self.positions_m is not None:
+                hdus.append(fits.ImageHDU(self.positions_m.numpy(), name="POSITIONS"))
             hdus.append(fits.BinTableHDU.from_columns(
                 [fits.Column(name="json", format=f"{max(len(meta), 1)}A", array=np.array([meta]))], name="CONFIG"))
             fits.HDUList(hdus).writeto(path, overwrite=overwrite)
         elif path.suffix.lower() == ".npz":
-            np.savez(path, meta=np.array(meta), **{k: v.numpy() for k, v in self.arrays().items()})
+            extra = {"delay_frames": np.array(self.delay_frames)}
+            if self.frame_rate_hz is not None:
+                extra["frame_rate_hz"] = np.array(self.frame_rate_hz)
+            if self.positions_m is not None:
+                extra["positions_m"] = self.positions_m.numpy()
+            np.savez(path, meta=np.array(meta), **extra, **{k: v.numpy() for k, v in self.arrays().items()})
         else:
             raise TelemetryError(f"telemetry file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits, .npz")
         return path
 
     @classmethod
     def load(cls, path: str | Path, required: tuple[str, ...] = ARRAYS) -> Telemetry:
-        """Read a file written by :meth:`save`; missing ``required`` arrays, bad shapes or NaNs raise."""
-        path = Path(path)
-        if not path.exists():
-            raise TelemetryError(f"telemetry file {str(path)!r} does not exist")
-        arrays: dict[str, np.ndarray] = {}
-        meta = {"delay_frames": 2, "config": {}}
-        if path.suffix.lower() in (".fits", ".fit"):
-            from astropy.io import fits
+        """Read a telemetry file in the layout of ``docs/telemetry.md`` (what :meth:`save` writes is one).
 
-            with fits.open(path) as hdul:
-                names = {hdu.name for hdu in hdul}
-                for name in ARRAYS:
-                    if name.upper() in names:
-                        arrays[name] = np.asarray(hdul[name.upper()].data, dtype=np.float64)
-                if "CONFIG" in names:
-                    meta = json.loads(hdul["CONFIG"].data["json"][0])
-        elif path.suffix.lower() == ".npz":
-            with np.load(path, allow_pickle=False) as data:
-                for name in ARRAYS:
-                    if name in data.files:
-                        arrays[name] = np.asarray(data[name], dtype=np.float64)
-                if "meta" in data.files:
-                    meta = json.loads(str(data["meta"]))
-        else:
-            raise TelemetryError(f"telemetry file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits, .npz")
+        Missing ``required`` arrays, bad shapes, NaNs, complex or text arrays, a missing or non-integer delay and
+        unreadable files raise :class:`TelemetryError` with one line.
+        """
+        path = Path(path)
+        where = f"telemetry file {str(path)!r}"
+        if not path.exists():
+            raise TelemetryError(f"{where} does not exist")
+        suffix = path.suffix.lower()
+        if suffix not in (".fits", ".fit", ".npz"):
+            raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .fits, .npz")
+        try:
+            arrays, positions, delay, rate, meta = (_read_fits if suffix != ".npz" else _read_npz)(path)
+        except TelemetryError:
+            raise
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as err:
+            raise TelemetryError(f"{where} is not readable as {suffix[1:]} telemetry "
+                                 f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
         missing = [name for name in required if name not in arrays]
         if missing:
-            raise TelemetryError(f"telemetry file {str(path)!r} lacks array(s) {', '.join(missing)}")
-        return cls(**{k: torch.from_numpy(v) for k, v in arrays.items()}, delay_frames=int(meta["delay_frames"]),
-                   config=meta.get("config", {}))
+            raise TelemetryError(f"{where} lacks array(s) {', '.join(missing)}")
+        if delay is None:
+            delay = meta.get("delay_frames")
+        # Arrays are checked first (shapes, values), then the delay: a file with both wrong names its arrays.
+        telemetry = cls(**arrays, delay_frames=1 if delay is None else _delay(delay, f"{where}: delay_frames"),
+                        config=meta.get("config", {}), frame_rate_hz=rate, positions_m=positions)
+        if delay is None:
+            raise TelemetryError(f"{where} lacks the loop delay: set header key DELAY (FITS) or array delay_frames "
+                                 "(npz) to an integer >= 1 (frames)")
+        return telemetry
+
+
+def _real_tensor(value, name: str) -> torch.Tensor:
+    """A finite float64 tensor of real numbers, or one line saying why not."""
+    if isinstance(value, np.ndarray) and value.dtype.kind not in "fiu":
+        raise TelemetryError(f"telemetry array {name!r} has dtype {value.dtype}: it must hold real numbers (nm)")
+    value = torch.as_tensor(value)
+    if value.is_complex() or value.dtype == torch.bool:
+        raise TelemetryError(f"telemetry array {name!r} has dtype {value.dtype}: it must hold real numbers (nm)")
+    value = value.to(torch.float64)
+    if not torch.isfinite(value).all():
+        bad = int((~torch.isfinite(value)).sum())
+        raise TelemetryError(f"telemetry array {name!r} holds {bad} non-finite values (NaN or inf)")
+    return value
+
+
+def _number(value, name: str) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TelemetryError(f"telemetry {name}={value!r} is invalid: it must be a number")
+    return float(value)
+
+
+def _delay(value, name: str) -> int:
+    """The loop delay as an int >= 1 (integral floats such as FITS ``2.0`` pass)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    numeric = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not numeric or not float(value).is_integer() or value < 1:
+        raise TelemetryError(f"{name}={value!r} is invalid: it must be an integer >= 1 (frames)")
+    return int(value)
+
+
+def _array(data, name: str) -> np.ndarray:
+    data = np.asarray(data)
+    if data.dtype.kind not in "fiu":
+        raise TelemetryError(f"telemetry array {name!r} has dtype {data.dtype}: it must hold real numbers (nm)")
+    return data.astype(np.float64)
+
+
+def _read_fits(path: Path):
+    from astropy.io import fits
+
+    arrays, positions, delay, rate, meta = {}, None, None, None, {}
+    # astropy only warns about truncated or corrupt files and returns what it could read: make that an error.
+    with warnings.catch_warnings(record=True) as caught, fits.open(path, memmap=False) as hdul:
+        warnings.simplefilter("always")
+        header = hdul[0].header
+        names = {hdu.name for hdu in hdul}
+        for name in ARRAYS:
+            if name.upper() in names and hdul[name.upper()].data is not None:
+                arrays[name] = torch.from_numpy(_array(hdul[name.upper()].data, name))
+        if "POSITIONS" in names:
+            positions = torch.from_numpy(_array(hdul["POSITIONS"].data, "positions_m"))
+        delay = next((header[k] for k in DELAY_KEYS if k in header), None)
+        rate = next((header[k] for k in FRAME_RATE_KEYS if k in header), None)
+        if "CONFIG" in names:
+            meta = json.loads(hdul["CONFIG"].data["json"][0])
+    problems = [str(w.message).splitlines()[0] for w in caught if "astropy" in type(w.message).__module__]
+    if problems:
+        raise TelemetryError(f"telemetry file {str(path)!r} is truncated or corrupt ({problems[0]})")
+    return arrays, positions, delay, rate, meta
+
+
+def _read_npz(path: Path):
+    arrays, positions, delay, rate, meta = {}, None, None, None, {}
+    with np.load(path, allow_pickle=False) as data:
+        for name in ARRAYS:
+            if name in data.files:
+                arrays[name] = torch.from_numpy(_array(data[name], name))
+        if "positions_m" in data.files:
+            positions = torch.from_numpy(_array(data["positions_m"], "positions_m"))
+        if "delay_frames" in data.files:
+            delay = data["delay_frames"]
+        if "frame_rate_hz" in data.files:
+            rate = data["frame_rate_hz"].item() if data["frame_rate_hz"].ndim == 0 else data["frame_rate_hz"]
+        if "meta" in data.files:
+            meta = json.loads(str(data["meta"]))
+    return arrays, positions, delay, rate, meta

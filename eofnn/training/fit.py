@@ -44,6 +44,12 @@ class TrainedPredictor:
     n_actuators: int
     info: dict = field(default_factory=dict)
 
+    @property
+    def dm_gain_model(self) -> float:
+        """The DM gain this predictor's pseudo-open-loop reconstruction assumes by default: identified from telemetry
+        when it learnt from telemetry, 1 (the nominal DM) otherwise."""
+        return float(self.info.get("dm_gain_model", 1.0))
+
     def controller(self, dm_gain_model: float = 1.0) -> PredictiveController:
         """The loop-side controller that runs this predictor (``dm_gain_model``: the DM gain it believes)."""
         return PredictiveController(self.network, self.spec, dm_gain_model)
@@ -148,14 +154,19 @@ def fit_predictor(
                                        data.seed + round_index)
         datamodule = LoopDataModule(scenario, spec, replace(data, seed=data.seed + 1000 * round_index), data_controller)
         trainer = _trainer(optimization, progress)
-        if optimization.fit_method == "closed_form":
-            solved = fit_closed_form(net, datamodule.train_dataloader(), optimization.alpha, optimization.alpha_relative)
-            metrics = {"train_loss": solved.train_loss, "condition": solved.condition}
-            metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
-                                            weights_only=True)[0])
-        else:
-            trainer.fit(task, datamodule=datamodule, weights_only=True)
-            metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+        try:
+            if optimization.fit_method == "closed_form":
+                solved = fit_closed_form(net, datamodule.train_dataloader(), optimization.alpha,
+                                         optimization.alpha_relative)
+                metrics = {"train_loss": solved.train_loss, "condition": solved.condition}
+                metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
+                                                weights_only=True)[0])
+            else:
+                trainer.fit(task, datamodule=datamodule, weights_only=True)
+                metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+        except SystemExit:
+            # Lightning answers Ctrl-C inside fit/validate with its own shutdown and sys.exit(1): it is an interruption.
+            raise KeyboardInterrupt from None
         rounds.append({"round": round_index, **metrics})
     net.eval()
     predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info)

@@ -14,7 +14,7 @@ import lightning as L
 import torch
 
 from eofnn.data.history import HistorySpec
-from eofnn.models.build import build_network
+from eofnn.models.build import build_network, input_dtype
 from eofnn.validation import NON_NEGATIVE, Constraint, Interval, IsBool, OneOf, validated
 
 FIT_METHODS = ("closed_form", "sgd")
@@ -103,11 +103,16 @@ class PredictorTask(L.LightningModule):
                                      self.spec.delay_frames)
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
-        return self.network(history)
+        """The network's commands (nm) for histories (nm), given in the network's own dtype.
+
+        Histories are float64 and unscaled (nm of optical path): a float32 network gets them converted, and a
+        network that wants inputs of order one scales them itself (as :class:`~eofnn.models.mlp.MLP` does).
+        """
+        return self.network(history.to(input_dtype(self.network)))
 
     def _loss(self, batch) -> torch.Tensor:
         history, target = batch
-        prediction = self.network(history)
+        prediction = self(history)
         return (prediction - target.to(prediction.dtype)).pow(2).mean()
 
     def training_step(self, batch, batch_idx):

@@ -1,0 +1,55 @@
+"""Figures of the analysis: Bode-style plots of a stability result."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from eofnn.analysis.stability import StabilityResult  # noqa: E402
+
+
+def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -> Path:
+    """|rejection| and |noise transfer| against frequency for the worst and the median group, with margins.
+
+    Dotted vertical lines mark the frequencies at which a pole leaves the unit circle at either end of the worst
+    group's DM gain interval; the interval and the delay margin are in the title.
+    """
+    path = Path(path)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True)
+    freqs = result.frequencies_hz.numpy()
+    lower, upper = result.gain_margin
+    worst, median = result.worst_group, result.median_group
+    if result.rejection.numel():
+        for group, label, style in ((worst, f"worst (group {worst})", "-"), (median, f"median (group {median})", "--")):
+            axes[0].loglog(freqs, result.rejection[group].abs().numpy(), style, label=label)
+            axes[1].loglog(freqs, result.noise_transfer[group].abs().numpy(), style, label=label)
+        bounds = result.gain_interval[worst].tolist()
+        for bound, crossing, style in zip(bounds, result.gain_crossing_hz[worst].tolist(), (":", "-."), strict=True):
+            if crossing == crossing and crossing > 0:  # not NaN; 0 Hz cannot be drawn on a log axis
+                for ax in axes:
+                    ax.axvline(crossing, color="grey", linestyle=style,
+                               label=f"at DM gain {bound:.3g} a pole leaves at {crossing:.3g} Hz")
+    else:
+        for ax in axes:
+            ax.text(0.5, 0.5, "transfer functions not computed\n(coupled system too large)", ha="center",
+                    transform=ax.transAxes)
+    for ax, name in zip(axes, ("|rejection|  eps / s", "|noise transfer|  eps / v"), strict=True):
+        ax.axhline(1.0, color="black", linewidth=0.6)
+        ax.set_xlabel("frequency (Hz)")
+        ax.set_ylabel(name)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    status = (f"stable, DM gain in ({lower:.3g}, {upper:.3g}), delay margin "
+              f"{float(result.delay_margin_frames.min()):.3g} frames" if result.stable else
+              f"UNSTABLE (max pole modulus {float(result.max_root_modulus.max()):.4g})")
+    fig.suptitle(f"{title + ': ' if title else ''}{result.kind} {result.structure}, p={result.history_length}, "
+                 f"delay {result.setup.delay_frames:g} frames, DM gain {result.setup.dm_gain:g} — {status}", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

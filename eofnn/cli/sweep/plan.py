@@ -1,0 +1,125 @@
+"""From a base ``compare`` config and a grid to the resolved config of every point, checked before anything runs.
+
+The base config is parsed by the ``compare`` parser itself (``eofnn.main.build_parser``) and dumped with every
+default filled in, so a dotted grid key resolves exactly as ``eofnn compare`` would read it. Each point's config
+is that dump with the swept values set; it is written to the point's folder and run with
+``eofnn compare --config point.yaml``.
+
+Checks: every grid key must name an existing config entry (its last part may be new only inside a free mapping
+such as ``scenario.model_errors``, where the compare parser or the plant then checks the name), and every value of
+every key is parsed, instantiated and set up as an experiment (``Experiment(...)``: scenarios, ``train_in``,
+checkpoints) beside the first value of the other keys. Combinations that are only invalid together (say
+``evaluation.frames`` below a swept ``evaluation.settle_frames``) are caught when that point starts, and recorded
+as a failed point with compare's one-line error.
+"""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from eofnn.cli.sweep.grid import GridPoint, expand
+from eofnn.errors import CheckpointError, ConfigError, TelemetryError, require
+
+#: Entries of a compare config that the sweep sets for each point itself.
+RUN_KEYS = ("config", "out", "overwrite", "progress")
+
+
+@dataclass(frozen=True)
+class Point:
+    """A point of a sweep: its id (folder name), swept values by dotted key, and its full resolved config (YAML)."""
+
+    id: str
+    values: dict[str, Any]
+    config_yaml: str
+
+
+def _compare_parser():
+    # Imported here: eofnn.main registers the sweep subcommand, so it imports this package first.
+    from eofnn.main import build_parser
+
+    return build_parser()
+
+
+def one_line(err: BaseException) -> str:
+    """An error (jsonargparse's nested ones included) as compare prints it, on one line."""
+    from eofnn.main import _one_line
+
+    return _one_line(err)
+
+
+def resolve_base(config_path: str | Path) -> dict:
+    """The base config as ``eofnn compare --config config_path`` resolves it, defaults filled in."""
+    path = Path(config_path)
+    require(path.is_file(), f"config={str(path)!r} is not a file")
+    parser = _compare_parser()
+    cfg = parser.parse_args(["compare", "--config", str(path), "--out", "unused"])
+    resolved = yaml.safe_load(parser.dump(cfg))["compare"]
+    for key in RUN_KEYS:
+        resolved.pop(key, None)
+    return resolved
+
+
+def with_values(base: dict, values: dict[str, Any]) -> dict:
+    """A copy of ``base`` with each dotted key set; every part but the last must already be a mapping there."""
+    config = copy.deepcopy(base)
+    for key, value in values.items():
+        node, where = config, "the config"
+        *parents, leaf = key.split(".")
+        for part in parents:
+            if part not in node:
+                raise ConfigError(f"grid key {key!r} is unknown: {where} has no {part!r} (it has "
+                                  f"{', '.join(map(str, node)) or 'nothing'})")
+            if not isinstance(node[part], dict):
+                raise ConfigError(f"grid key {key!r} is unknown: {where}.{part} is {node[part]!r}, not a mapping"
+                                  .replace("the config.", ""))
+            node, where = node[part], part if where == "the config" else f"{where}.{part}"
+        node[leaf] = copy.deepcopy(value)
+    return config
+
+
+def to_yaml(config: dict) -> str:
+    return yaml.safe_dump(config, sort_keys=False)
+
+
+class _Checker:
+    """Parses configs as ``eofnn compare`` does and sets up the experiment, without running anything."""
+
+    def __init__(self, workdir: Path) -> None:
+        self.parser = _compare_parser()
+        self.workdir = workdir
+
+    def __call__(self, config: dict, label: str) -> None:
+        from jsonargparse import ArgumentError
+
+        from eofnn.evaluation.experiment import Experiment
+
+        path = self.workdir / "point.yaml"
+        path.write_text(to_yaml(config))
+        try:
+            cfg = self.parser.parse_args(["compare", "--config", str(path), "--out", str(self.workdir / "out")])
+            init = self.parser.instantiate(cfg)["compare"]
+            Experiment(init.scenario, init.scenarios, init.predictors, init.evaluation, log=lambda message: None,
+                       trusted_networks=init.trusted_networks)
+        except (ArgumentError, ConfigError, CheckpointError, TelemetryError, TypeError, ValueError) as err:
+            # TypeError/ValueError: a value of the wrong type that reached a constructor unchecked.
+            raise ConfigError(f"{label}: {one_line(err)}") from None
+
+
+def plan(config_path: str | Path, grid: dict[str, list[Any]]) -> list[Point]:
+    """Every point of ``grid`` over the base config, checked (see the module's docstring)."""
+    base = resolve_base(config_path)
+    grid_points: list[GridPoint] = expand(grid)
+    first = grid_points[0].values
+    with tempfile.TemporaryDirectory(prefix="eofnn-sweep-") as tmp:
+        check = _Checker(Path(tmp))
+        check(with_values(base, first), "grid " + ", ".join(f"{k}={v!r}" for k, v in first.items()))
+        for key, values in grid.items():
+            for value in values[1:]:
+                check(with_values(base, dict(first, **{key: value})), f"grid {key}={value!r}")
+    return [Point(p.id, p.values, to_yaml(with_values(base, p.values))) for p in grid_points]

@@ -1,0 +1,148 @@
+"""``eofnn identify``, ``eofnn replay``, ``eofnn export``, and the telemetry path of ``eofnn fit``: from recorded
+telemetry alone (``docs/telemetry.md``) to a deployable filter (``docs/export.md``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from jsonargparse import ActionConfigFile, ArgumentParser
+
+from eofnn.analysis.replay import replay, replay_figure
+from eofnn.cli.common import log
+from eofnn.data.history import HistorySpec
+from eofnn.data.targets import load_telemetry, telemetry_grid
+from eofnn.errors import CheckpointError, ConfigError
+from eofnn.evaluation.config import PredictorConfig
+from eofnn.outputs import check_output_file, check_output_folder, staged_folder
+from eofnn.sim.telemetry import Telemetry
+from eofnn.training.checkpoint import load_predictor
+from eofnn.training.export import export_filter
+from eofnn.training.from_telemetry import TelemetryFit, fit_from_telemetry
+from eofnn.training.identify import IdentifiedPlant, identify_plant
+
+IDENTIFY = ("Identify the plant from dithered closed-loop telemetry (FITS/npz with y and wfs, docs/telemetry.md): DM "
+            "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise, each with a "
+            "standard error, into plant.json.")
+REPLAY = ("Replay a checkpoint on held-out telemetry: its prediction error against what the telemetry later shows "
+          "was needed (RMS per frame, map per actuator, temporal PSD), beside the telemetry's own controller, into "
+          "DIR/replay.json and DIR/replay.png.")
+EXPORT = ("Export a linear predictor's coefficients as FITS (docs/export.md) for eofnn.runtime.PredictiveFilter or any "
+          "other real-time computer.")
+PLANT_HELP = ("DM model for POL values and targets: 'identify' (from this telemetry's dither), 'nominal' (DM(y) = y: "
+              "the study's assumption) or a plant.json written by eofnn identify.")
+
+
+def _base(parser: ArgumentParser, out_help: str) -> None:
+    parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
+    parser.add_argument("--telemetry", type=str | list[str], required=True,
+                        help="Telemetry file, .fits or .npz, with y and wfs in nm, or a list [a.fits, b.fits] of files "
+                             "of one plant.")
+    parser.add_argument("--out", type=str, required=True, help=out_help)
+    parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
+
+
+def resolve_plant_option(plant: str, telemetry: list[Telemetry]) -> IdentifiedPlant | None:
+    """``--plant``: identify from the telemetry, the nominal DM (None), or a plant.json."""
+    if plant == "identify":
+        identified = identify_plant(telemetry)
+        identified.require_identified()
+        return identified
+    if plant == "nominal":
+        return None
+    return IdentifiedPlant.from_json(plant)
+
+
+def add_identify_arguments(parser: ArgumentParser) -> None:
+    _base(parser, "plant.json to write.")
+    parser.add_argument("--radius", type=float, default=1.5, help="Coupling neighbourhood radius in pitches.")
+    parser.add_argument("--nuisance_lags", type=int, default=2, help="Past frames of y and wfs as nuisance regressors.")
+    parser.add_argument("--max_lag", type=int | None, default=None, help="Largest WFS lag searched (frames).")
+
+
+def _files(value: str | list[str]) -> list[str]:
+    return [value] if isinstance(value, str) else list(value)
+
+
+def run_identify(cfg, config_dump: str) -> dict:
+    out = check_output_file(cfg.out, cfg.overwrite)
+    telemetry = load_telemetry(cfg.telemetry)
+    plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag)
+    plant.settings["telemetry"] = _files(cfg.telemetry)
+    plant.to_json(out, overwrite=cfg.overwrite)
+    keys = ("identified", "dm_gain", "dm_gain_se", "misregistration_x", "misregistration_x_se", "misregistration_y",
+            "misregistration_y_se", "lag_frames", "wfs_noise_nm", "wfs_noise_nm_se")
+    summary = {"plant": str(out), **{k: getattr(plant, k) for k in keys}}
+    log(json.dumps(summary))
+    return summary
+
+
+def add_fit_telemetry_arguments(parser: ArgumentParser) -> None:
+    """What ``eofnn fit`` adds for training from telemetry alone."""
+    parser.add_argument("--telemetry", type=str | list[str] | None, default=None,
+                        help="Train from these telemetry files alone (y, wfs) instead of simulating the scenario; the "
+                             "last predictor.data.val_frames frames (at most a fifth) are held out for validation.")
+    parser.add_argument("--plant", type=str, default="identify", help=f"With --telemetry: {PLANT_HELP}")
+
+
+def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
+    p: PredictorConfig = cfg.predictor
+    telemetry = load_telemetry(cfg.telemetry)
+    spec = HistorySpec(p.history, p.history_length, telemetry[0].delay_frames)
+    plant = resolve_plant_option(cfg.plant, telemetry)
+    frames = min(seq.y.shape[0] for t in telemetry for seq in t.sequences())
+    log(f"fitting {p.history} predictor, history {p.history_length}, {p.optimization.fit_method}, from telemetry "
+        f"{', '.join(_files(cfg.telemetry))} ({frames} frames), plant {cfg.plant}")
+    return fit_from_telemetry(telemetry, spec, p.network, plant=plant, optimization=p.optimization,
+                              batch_frames=p.data.batch_frames, val_frames=min(p.data.val_frames, frames // 5),
+                              seed=p.data.seed, checkpoint_path=out, overwrite=cfg.overwrite,
+                              progress=bool(cfg.progress), info={"telemetry": _files(cfg.telemetry)})
+
+
+def add_replay_arguments(parser: ArgumentParser) -> None:
+    _base(parser, "Folder for replay.json and replay.png.")
+    parser.add_argument("--checkpoint", type=str, required=True, help="Predictor checkpoint (eofnn fit).")
+    parser.add_argument("--plant", type=str, default="identify", help=PLANT_HELP)
+    parser.add_argument("--start", type=int, default=0, help="First frame of each file to replay (earlier: history).")
+    parser.add_argument("--settle_frames", type=int, default=0, help="Frames after the first left out of statistics.")
+    parser.add_argument("--trusted_networks", type=list[str], default=[],
+                        help="Network class paths, beyond eofnn's own, that the checkpoint may name.")
+
+
+def run_replay(cfg, config_dump: str) -> dict:
+    out = check_output_folder(cfg.out, cfg.overwrite)
+    predictor = load_predictor(cfg.checkpoint, trusted_networks=cfg.trusted_networks)
+    telemetry = load_telemetry(cfg.telemetry)
+    plant = resolve_plant_option(cfg.plant, telemetry)
+    result = replay(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
+                    settle_frames=cfg.settle_frames)
+    with staged_folder(out, cfg.overwrite) as folder:
+        result.to_json(folder / "replay.json")
+        replay_figure(result, folder / "replay.png", telemetry_grid(telemetry[0]))
+    summary = {"replay": str(out / "replay.json"), **result.summary()}
+    log(json.dumps(summary))
+    return summary
+
+
+def add_export_arguments(parser: ArgumentParser) -> None:
+    parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
+    parser.add_argument("--checkpoint", type=str, required=True, help="Linear predictor checkpoint (eofnn fit).")
+    parser.add_argument("--out", type=str, required=True, help="Filter FITS file to write.")
+    parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
+    parser.add_argument("--dm_gain_model", type=float | None, default=None,
+                        help="DM gain of the POL reconstruction (open loop); default the one the fit used, else 1.")
+
+
+def run_export(cfg, config_dump: str) -> dict:
+    out = check_output_file(cfg.out, cfg.overwrite)
+    predictor = load_predictor(cfg.checkpoint)
+    gain = cfg.dm_gain_model if cfg.dm_gain_model is not None else float(predictor.info.get("dm_gain_model", 1.0))
+    try:
+        export_filter(predictor.network, predictor.spec, out, dm_gain_model=gain, overwrite=cfg.overwrite,
+                      info={"checkpoint": str(cfg.checkpoint)[-60:]})
+    except ConfigError as err:
+        raise CheckpointError(f"checkpoint {cfg.checkpoint!r} cannot be exported: {err}") from None
+    summary = {"filter": str(out), "history": predictor.spec.to_dict(), "dm_gain_model": gain}
+    log(json.dumps(summary))
+    return summary
+

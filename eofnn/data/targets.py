@@ -1,0 +1,138 @@
+"""Training data from telemetry alone: pseudo-open-loop reconstruction and targets through an identified DM.
+
+A telescope has ``y`` (commands) and ``wfs`` (sensor residuals), never the turbulence ``s`` or the true DM. With a
+DM response ``DM_model`` identified from the dither (:func:`eofnn.training.identify.identify_plant`):
+
+- POL reconstruction: ``s_hat(n) = wfs(n) - DM_model(y(n))``  (equal to ``s(n)`` plus WFS noise when the model is
+  right, since ``wfs(n) = s(n) + DM(y(n)) + noise``);
+- target of frame ``n``: the command that would have cancelled it, ``-s_hat(n) / g`` with the identified global
+  gain ``g`` (the telemetry twin of the simulator-truth :func:`eofnn.data.history.targets` ``-s(n) / g``);
+- open-loop histories from ``s_hat``; closed-loop histories from ``y`` and ``wfs`` as recorded (no model needed).
+
+The noise in ``s_hat(n)`` is independent of every history that predicts frame ``n`` (they use ``wfs`` up to
+``n - d``), so it adds variance to the targets but no bias to a least-squares fit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import torch
+from torch.utils.data import IterableDataset
+
+from eofnn.data.history import HistorySpec, build_history, open_loop_history
+from eofnn.errors import TelemetryError
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
+
+#: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
+DMResponse = Callable[[torch.Tensor], torch.Tensor]
+
+
+def pol_reconstruction(wfs: torch.Tensor, y: torch.Tensor, dm_response: DMResponse) -> torch.Tensor:
+    """Pseudo-open-loop turbulence ``s_hat = wfs - DM_model(y)`` (nm), ``(..., frames, K)``."""
+    return wfs - dm_response(y)
+
+
+def telemetry_targets(wfs: torch.Tensor, y: torch.Tensor, spec: HistorySpec, dm_response: DMResponse,
+                      dm_gain: float) -> torch.Tensor:
+    """``(..., samples, K)`` targets ``-s_hat(n) / dm_gain`` for frames ``n >= spec.first_frame``."""
+    return -pol_reconstruction(wfs, y, dm_response)[..., spec.first_frame:, :] / dm_gain
+
+
+def telemetry_history(wfs: torch.Tensor, y: torch.Tensor, spec: HistorySpec, dm_response: DMResponse) -> torch.Tensor:
+    """History tensor of ``spec`` from telemetry: POL values through ``dm_response`` (open loop) or ``y, wfs``."""
+    if spec.kind == "open_loop":
+        return open_loop_history(pol_reconstruction(wfs, y, dm_response), spec)
+    return build_history(spec, y=y, wfs=wfs)
+
+
+def check_sequences(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec | None = None) -> list[Telemetry]:
+    """Independent ``(frames, K)`` sequences of one or several telemetry files, checked to fit ``spec``."""
+    items = [telemetry] if isinstance(telemetry, Telemetry) else list(telemetry)
+    if not items:
+        raise TelemetryError("no telemetry given")
+    sequences = [seq for item in items for seq in item.sequences()]
+    for seq in sequences:
+        if seq.y is None or seq.wfs is None:
+            raise TelemetryError("telemetry lacks y or wfs: training and replay from telemetry need both")
+    n_act = {seq.y.shape[-1] for seq in sequences}
+    if len(n_act) > 1:
+        raise TelemetryError(f"telemetry files disagree on the number of actuators: {sorted(n_act)}")
+    delays = {seq.delay_frames for seq in sequences}
+    if len(delays) > 1:
+        raise TelemetryError(f"telemetry files disagree on delay_frames: {sorted(delays)}")
+    if spec is not None:
+        if spec.delay_frames != sequences[0].delay_frames:
+            raise TelemetryError(f"telemetry has delay_frames={sequences[0].delay_frames} but the history asks for "
+                                 f"delay_frames={spec.delay_frames}")
+        short = min(seq.y.shape[0] for seq in sequences)
+        if short <= spec.first_frame:
+            raise TelemetryError(f"telemetry has {short} frames: the history (length {spec.history_length}, delay "
+                                 f"{spec.delay_frames}) needs more than {spec.first_frame}")
+    return sequences
+
+
+class TelemetryBatches(IterableDataset):
+    """Yields ``(history, target)`` batches, ``(samples, K, taps)`` and ``(samples, K)``, from recorded telemetry.
+
+    The telemetry twin of :class:`eofnn.data.stream.SimulatedTelemetry`: histories are built one batch of frames at
+    a time (never the whole history tensor), targets through the identified DM (see the module docstring). Frames
+    ``[first, stop)`` of every sequence are used (``stop=None``: to the end), so a held-out tail can be kept aside.
+
+    Parameters
+    ----------
+    telemetry : Telemetry or sequence of Telemetry
+        Recorded ``y`` and ``wfs`` (several files or batches: independent sequences).
+    spec : HistorySpec
+        History kind, length and delay (the delay must match the telemetry's).
+    dm_response : callable
+        Identified ``y -> DM(y)`` (nm).
+    dm_gain : float
+        Identified global DM gain ``g``: targets are ``-s_hat / g``.
+    batch_frames : int
+        Frames per yielded batch (per sequence).
+    first, stop : int
+        Frame range used in each sequence.
+    """
+
+    def __init__(self, telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec, dm_response: DMResponse,
+                 dm_gain: float, batch_frames: int = 1024, first: int = 0, stop: int | None = None) -> None:
+        super().__init__()
+        self.sequences = check_sequences(telemetry, spec)
+        if not (math.isfinite(dm_gain) and dm_gain != 0):
+            raise TelemetryError(f"dm_gain={dm_gain!r} is invalid: it must be finite and non-zero")
+        self.spec, self.dm_response, self.dm_gain = spec, dm_response, float(dm_gain)
+        self.batch_frames, self.first, self.stop = batch_frames, first, stop
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        span = self.spec.first_frame
+        for seq in self.sequences:
+            stop = seq.y.shape[0] if self.stop is None else min(self.stop, seq.y.shape[0])
+            for start in range(max(self.first, span), stop, self.batch_frames):
+                window = slice(start - span, min(start + self.batch_frames, stop))
+                y, wfs = seq.y[window], seq.wfs[window]
+                yield (telemetry_history(wfs, y, self.spec, self.dm_response),
+                       telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))
+
+
+def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
+    """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs``."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    if not paths:
+        raise TelemetryError("no telemetry file given")
+    return [Telemetry.load(path, required=TELEMETRY_REQUIRED) for path in paths]
+
+
+def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | None = None) -> ActuatorGrid | None:
+    """The actuator grid of ``telemetry``: ``grid`` if given, else its positions, else its eofnn scenario, else None."""
+    if grid is not None:
+        return grid
+    if telemetry.positions_m is not None:
+        return ActuatorGrid.from_positions(telemetry.positions_m)
+    scenario = telemetry.config.get("scenario") or telemetry.config.get("eofnn", {}).get("scenario")
+    if isinstance(scenario, dict) and isinstance(scenario.get("grid"), dict):
+        return ActuatorGrid(**scenario["grid"])
+    return None

@@ -1,0 +1,189 @@
+"""Training from telemetry alone: a predictor fitted on recorded ``y`` and ``wfs`` through an identified plant.
+
+The simulator-truth path (:func:`eofnn.training.fit.fit_predictor`) learns ``-s(n)/g`` with the true ``s`` and
+``g``; this one learns ``-s_hat(n)/g_hat`` with ``s_hat = wfs - DM_model(y)`` and ``DM_model``, ``g_hat`` from
+:func:`eofnn.training.identify.identify_plant` (or a plant given by the user, or the nominal assumption ``DM(y) = y``,
+which is what the study's open-loop EOF does and why it fails under a DM gain error).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import lightning as L
+from torch import nn
+from torch.utils.data import DataLoader
+
+from eofnn.control.baselines import Dithered, Integrator
+from eofnn.control.predictive import PredictiveController
+from eofnn.data.history import HistorySpec
+from eofnn.data.stream import DataConfig
+from eofnn.data.targets import TelemetryBatches, check_sequences, telemetry_grid
+from eofnn.errors import ConfigError, DivergedError, TelemetryError
+from eofnn.outputs import check_output_file, staged_file
+from eofnn.seeding import int_seed
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop import run_loop
+from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.scenario import Scenario
+from eofnn.sim.telemetry import Telemetry
+from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, _trainer
+from eofnn.training.identify import IdentifiedPlant, identify_plant
+from eofnn.training.ridge import fit_closed_form
+from eofnn.training.task import OptimizationConfig, PredictorTask
+
+
+@dataclass
+class TelemetryFit:
+    """A predictor fitted from telemetry, the DM model it was fitted through, its losses (nm² of command) and
+    checkpoint."""
+
+    predictor: TrainedPredictor
+    dm_gain: float
+    model_errors: dict
+    plant_source: str
+    train_loss: float | None
+    val_loss: float | None
+    checkpoint: Path | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def network(self) -> nn.Module:
+        return self.predictor.network
+
+    @property
+    def spec(self) -> HistorySpec:
+        return self.predictor.spec
+
+    def controller(self) -> PredictiveController:
+        """Loop-side controller; open loop reconstructs POL values with the DM gain the fit assumed."""
+        return self.predictor.controller(self.dm_gain if self.spec.kind == "open_loop" else 1.0)
+
+
+def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int, grid: ActuatorGrid | None):
+    """``(dm_response, dm_gain, model_errors, source)`` of an identified plant, model errors, or the nominal DM."""
+    if isinstance(plant, IdentifiedPlant):
+        return plant.dm_response("model"), float(plant.dm_gain or 0.0), plant.model_errors(), "identified"
+    errors = dict(plant or {})
+    model = Plant(delay_frames=delay_frames).with_errors(**errors)
+    if model.misregistration_x or model.misregistration_y:
+        if grid is None:
+            raise TelemetryError("a misregistered DM model needs the actuator grid: put positions_m in the telemetry")
+        return PlantModel(model, grid).apply_dm, model.dm_gain, errors, "given"
+    return (lambda y: model.dm_gain * y), model.dm_gain, errors, "given" if errors else "nominal"
+
+
+def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec, network: dict | None = None,
+                       *, plant: IdentifiedPlant | dict | None = None, grid: ActuatorGrid | None = None,
+                       optimization: OptimizationConfig | None = None, batch_frames: int = 1024, stop: int | None = None,
+                       val_frames: int = 0, seed: int = 0, checkpoint_path: str | Path | None = None,
+                       overwrite: bool = False, progress: bool = False, info: dict | None = None) -> TelemetryFit:
+    """Train a predictor on telemetry alone (the telemetry twin of :func:`eofnn.training.fit.fit_predictor`).
+
+    Parameters
+    ----------
+    telemetry : Telemetry or sequence of Telemetry
+        Recorded ``y`` and ``wfs`` (nm): one or several files, batched or not.
+    spec : HistorySpec
+        History kind, length and delay (the delay must be the telemetry's).
+    network : dict, optional
+        ``{"class_path": ..., "init_args": {...}}``; a per-actuator linear filter (the study's EOF) by default.
+    plant : IdentifiedPlant, dict or None
+        The DM model for POL values and targets: an identification result, a dict of model errors
+        (``dm_gain``, ``misregistration_x``, ``misregistration_y``), or None for the nominal ``DM(y) = y``.
+    grid : ActuatorGrid, optional
+        The actuator grid, when the telemetry holds no positions (neighbourhood filters and misregistered DM models
+        need it).
+    optimization : OptimizationConfig
+        Closed form (linear networks, one streamed pass) or SGD (any network, e.g. the MLP).
+    batch_frames : int
+        Frames per streamed batch.
+    stop : int, optional
+        Train on frames before ``stop`` only (keep the rest for :func:`eofnn.analysis.replay.replay`).
+    val_frames : int
+        The last ``val_frames`` frames (before ``stop``) of each sequence are held out as validation.
+    seed : int
+        Seed of network initialisation and SGD.
+    checkpoint_path : path, optional
+        Where to write a checkpoint that :func:`eofnn.training.checkpoint.load_predictor` reads.
+    info : dict, optional
+        Provenance recorded in the checkpoint (e.g. the telemetry files).
+    """
+    sequences = check_sequences(telemetry, spec)
+    optimization = optimization or OptimizationConfig()
+    if checkpoint_path is not None:
+        checkpoint_path = check_output_file(checkpoint_path, overwrite, "checkpoint")
+    n_act, n_frames = sequences[0].y.shape[-1], min(seq.y.shape[0] for seq in sequences)
+    first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
+    grid = telemetry_grid(first_item, grid)
+    dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, grid)
+    train_stop = (stop if stop is not None else n_frames) - val_frames
+    if train_stop <= spec.first_frame or (val_frames and val_frames <= spec.first_frame):
+        raise TelemetryError(f"stop={stop}, val_frames={val_frames}: {n_frames} frames leave no training or "
+                             f"validation history (each needs more than {spec.first_frame} frames)")
+    grid_dict = None if grid is None else {"diameter_m": grid.diameter_m, "n_across": grid.n_across,
+                                           "obstruction": grid.obstruction}
+    info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
+            "n_sequences": len(sequences), **(info or {})}
+    L.seed_everything(seed, workers=True, verbose=False)
+    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict, asdict(optimization), info)
+    train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
+    val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
+                           stop=train_stop + val_frames) if val_frames else None
+    needs_trainer = optimization.fit_method != "closed_form" or val is not None or checkpoint_path is not None
+    trainer = _trainer(optimization, progress) if needs_trainer else None
+    train_loss = val_loss = None
+    if optimization.fit_method == "closed_form":
+        train_loss = fit_closed_form(task.network, train, optimization.alpha, optimization.alpha_relative).train_loss
+        if val is not None or checkpoint_path is not None:  # validating also attaches the trainer that saves
+            metrics = trainer.validate(task, dataloaders=DataLoader(val or train, batch_size=None), verbose=False)[0]
+            val_loss = metrics["val_loss"] if val is not None else None
+    else:
+        trainer.fit(task, train_dataloaders=DataLoader(train, batch_size=None),
+                    val_dataloaders=DataLoader(val, batch_size=None) if val is not None else None)
+        metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+        train_loss, val_loss = metrics.get("train_loss"), metrics.get("val_loss")
+    network_config = task.hparams.network
+    predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info)
+    if checkpoint_path is not None:
+        with staged_file(checkpoint_path, overwrite) as partial:
+            trainer.save_checkpoint(partial)
+    return TelemetryFit(predictor, dm_gain, errors, source, train_loss, None if val_loss is None else float(val_loss),
+                        checkpoint_path, info)
+
+
+def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", history_length: int = 4,
+                                network: dict | None = None, *, data: DataConfig | None = None,
+                                optimization: OptimizationConfig | None = None,
+                                checkpoint_path: str | Path | None = None, overwrite: bool = False,
+                                progress: bool = False) -> TelemetryFit:
+    """What an observatory would do in ``scenario``: record telemetry, identify the plant, fit from telemetry alone.
+
+    The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
+    does not learn from simulator truth): ``data.frames + data.val_frames`` frames per realisation are recorded
+    with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white dither in the scenario's plant;
+    the plant is identified from that dither, and the predictor is fitted from ``y`` and ``wfs`` alone, the last
+    ``data.val_frames`` frames held out for validation. The learner never sees ``s`` or the plant.
+    """
+    data = data or DataConfig()
+    spec = HistorySpec.from_scenario(history, history_length, scenario)
+    if data.dither_nm <= 0:
+        raise ConfigError(f"data.dither_nm={data.dither_nm!r} is invalid for telemetry training: the plant is "
+                          "identified from the dither, so it must be > 0 (nm)")
+    recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
+    n_frames = data.frames + data.val_frames
+    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", data.realisations), scenario.plant, recorder,
+                      n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"), record=("y", "wfs"),
+                      progress=progress)
+    if result.diverged:
+        raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame} in the scenario's "
+                            "plant: lower data.integrator_gain or data.dither_nm")
+    plant = identify_plant(result.telemetry)
+    plant.require_identified()
+    return fit_from_telemetry(result.telemetry, spec, network, plant=plant, optimization=optimization,
+                              batch_frames=data.batch_frames, val_frames=data.val_frames, seed=data.seed,
+                              checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress,
+                              info={"scenario": scenario.to_dict(), "data": asdict(data),
+                                    "identified_plant": plant.model_errors()})

@@ -1,0 +1,364 @@
+"""Plant identification from dithered closed-loop telemetry: the interaction matrix measured on sky.
+
+The data controller adds white dither ``w(n)`` to its commands, ``y(n) = C(n) + w(n)``, where ``C(n)`` is what the
+controller computed from the past (an integrator, a predictor). The WFS reports
+
+    wfs_k(n) = sum_j G_kj y_j(n) + s_k(n) + v_k(n)
+
+with ``G`` the DM response (gain, misregistration: a sparse matrix over each actuator's neighbourhood),
+``s`` the turbulence and ``v`` white WFS noise. Regressing ``wfs(n)`` on ``y(n)`` directly is biased: ``C(n)`` is
+built from past residuals, which are correlated with ``s(n)``. The dither is the one part of ``y`` that is
+independent of the turbulence, so the estimate is built on it. Levels do not work for the usual data controller:
+an integrator's state ``C(n) = y(n-1) - w(n-1) - k wfs(n-d)`` involves the unobserved ``w(n-1)`` and, unrolled,
+the whole past, so a finite regression of ``y(n)`` on its past leaves a remainder of past dither that the projection
+mixes with turbulence (measured: a 6% gain bias with 5 nm of WFS noise). *Increments* do: ``Dy(n) = y(n) - y(n-1)
+= -k wfs(n-d) + w(n) - w(n-1)`` has finite memory. Two regressions (streamed normal equations), with the nuisance
+regressors ``z_j(n) = [y_j(n-2..n-p-1), wfs_j(n-2..n-p-1)]`` (``p = nuisance_lags``), which hold no ``w(n)`` or
+``w(n-1)`` when the delay is at least 2 frames:
+
+1. *Whitening.* Per actuator, regress ``Dy_j(n)`` on ``z_j(n)``. For an integrator the fit is ``-k wfs_j(n-d)``
+   exactly and the residual is ``u_j(n) = w_j(n) - w_j(n-1)``: independent of the turbulence, the noise, the
+   nuisance regressors and the other actuators' dither.
+2. *Response.* Per actuator ``k``, regress ``Dwfs_k(n) = wfs_k(n) - wfs_k(n-1)`` on ``u_j(n)`` for the neighbours
+   ``j`` of ``k`` and on ``z_k(n)`` (the residual's own past, which absorbs the controller's and much of the
+   turbulence's part and so shrinks the error). ``Dwfs_k(n) = sum_j G_kj (u_j(n) + fit_j(n)) + Ds_k + Dv_k`` and
+   every term but ``G_kj u_j(n)`` is independent of ``u_j(n)``, so the coefficient on ``u_j(n)`` is ``G_kj``
+   (Frisch-Waugh-Lovell). Standard errors come from the residual variance and the inverse Gram matrix.
+
+The method is exact for (leak-free) integrators with delay >= 2 frames, the data controller of eofnn and of most
+AO systems; a controller with more memory (a leaky integrator, a predictor recording refit data) leaves a small
+remainder of past dither in ``u``; raising ``nuisance_lags`` to its history length shrinks it.
+
+From the coupling rows ``G_k.``: per-actuator gains (row sums), and, pooled over actuators whose neighbourhood is
+complete, the global gain ``g = sum P`` and the misregistration of a bilinear shift as
+:func:`eofnn.sim.plant._shift_operator` applies it, whose weights ``tri(a + dy) tri(b + dx)`` have first moments
+``dx = -sum_b b P / g``, ``dy = -sum_a a P / g`` (exact for shifts within the neighbourhood; standard errors by
+the delta method, taking actuators as independent). The WFS lag is where the pooled response of ``Dwfs(n + l)``
+to ``u(n)`` peaks over ``l = 0..max_lag``: 0 in the documented convention (``wfs(n)`` measures ``eps(n)``); a file
+whose ``wfs`` is recorded ``L`` frames later is realigned and identified again.
+
+The WFS noise: the POL reconstruction ``s_hat = wfs - DM_model(y) = s + v`` has structure function
+``D(l) = D_s(l) + 2 sigma_v**2`` for lags ``l >= 1``; smooth turbulence has an even ``D_s(l) = c l**2 + O(l**4)``,
+so ``(4 D(1) - D(2)) / 3 = 2 sigma_v**2`` (the autocovariance extrapolation to lag 0 used on AO telemetry).
+
+What telemetry cannot separate: a DM gain from a WFS optical gain (only their product ``g`` is seen: it is the
+product that POL reconstruction needs); a DM from a WFS misregistration (only the relative one); white noise from
+turbulence that is not smooth over three frames (it biases the noise estimate up); temporally correlated noise
+from turbulence (it is counted as turbulence); a DM nonlinearity (the fit is the linear response at the operating
+point). Without dither ``w_hat`` vanishes and nothing can be identified: the result says so.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from eofnn.data.targets import check_sequences, telemetry_grid
+from eofnn.errors import CollinearityWarning, ConfigError, TelemetryError, require
+from eofnn.outputs import check_output_file, write_text_atomic
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.telemetry import Telemetry
+from eofnn.training.ridge import NormalEquations
+
+
+class PlantNotIdentifiedWarning(UserWarning):
+    """The telemetry holds no excitation (dither): the plant cannot be identified from it."""
+
+
+@dataclass
+class IdentifiedPlant:
+    """What :func:`identify_plant` found, with standard errors (``*_se``); ``None`` where nothing was identified.
+
+    Gains are dimensionless (nm applied per nm commanded), misregistrations in actuator pitches (x = columns,
+    y = rows of :class:`~eofnn.sim.grid.ActuatorGrid`), noise in nm RMS per actuator and frame, lags in frames.
+    ``coupling[k][m]`` is the response of actuator ``k``'s measurement to a command on actuator
+    ``neighbours[k][m]`` (``n_actuators`` marks a slot beyond the pupil edge); ``offsets[m]`` is that slot's
+    (row, column) offset.
+    """
+
+    identified: bool
+    delay_frames: int
+    grid: dict
+    lag_frames: int | None = None
+    dm_gain: float | None = None
+    dm_gain_se: float | None = None
+    misregistration_x: float | None = None
+    misregistration_x_se: float | None = None
+    misregistration_y: float | None = None
+    misregistration_y_se: float | None = None
+    wfs_noise_nm: float | None = None
+    wfs_noise_nm_se: float | None = None
+    excitation_rms_nm: float = 0.0
+    residual_rms_nm: float | None = None
+    lag_response: list[float] = field(default_factory=list)
+    actuator_gains: list[float] = field(default_factory=list)
+    actuator_gains_se: list[float] = field(default_factory=list)
+    coupling: list[list[float]] = field(default_factory=list)
+    coupling_se: list[list[float]] = field(default_factory=list)
+    neighbours: list[list[int]] = field(default_factory=list)
+    offsets: list[list[int]] = field(default_factory=list)
+    n_frames: int = 0
+    n_sequences: int = 0
+    settings: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self, path: str | Path | None = None, overwrite: bool = False) -> str:
+        """The result as JSON (``plant.json``); written to ``path`` if given (an existing file only if ``overwrite``)."""
+        text = json.dumps(self.to_dict(), indent=1)
+        if path is not None:
+            write_text_atomic(check_output_file(path, overwrite), text)
+        return text
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> IdentifiedPlant:
+        path = Path(path)
+        if not path.exists():
+            raise ConfigError(f"plant file {str(path)!r} does not exist")
+        try:
+            return cls(**json.loads(path.read_text()))
+        except (json.JSONDecodeError, TypeError) as err:
+            raise ConfigError(f"plant file {str(path)!r} is not an eofnn plant.json ({type(err).__name__})") from None
+
+    def require_identified(self) -> None:
+        """One-line :class:`TelemetryError` unless the plant was identified."""
+        if not self.identified:
+            raise TelemetryError("the plant was not identified (the telemetry holds no dither): give a plant instead")
+
+    def model_errors(self) -> dict[str, float]:
+        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`."""
+        self.require_identified()
+        return {"dm_gain": self.dm_gain, "misregistration_x": self.misregistration_x,
+                "misregistration_y": self.misregistration_y}
+
+    def plant(self) -> Plant:
+        """The identified plant as an eofnn :class:`~eofnn.sim.plant.Plant` (linear DM, no noise)."""
+        return Plant(delay_frames=self.delay_frames).with_errors(**self.model_errors())
+
+    def dm_response(self, kind: str = "model"):
+        """``y -> DM(y)`` (nm): the fitted gain + misregistration (``"model"``) or the raw coupling (``"sparse"``)."""
+        self.require_identified()
+        require(kind in ("model", "sparse"), f"dm_response kind={kind!r} is invalid: allowed are model, sparse")
+        if kind == "model":
+            return PlantModel(self.plant(), ActuatorGrid(**self.grid)).apply_dm
+        index, weight = torch.as_tensor(self.neighbours), torch.as_tensor(self.coupling, dtype=torch.float64)
+
+        def apply(y: torch.Tensor) -> torch.Tensor:
+            padded = torch.cat([y, torch.zeros_like(y[..., :1])], dim=-1)
+            return (padded[..., index] * weight).sum(-1)
+        return apply
+
+
+def _lagged(x: torch.Tensor, lags: range, start: int, stop: int) -> torch.Tensor:
+    """``(K, len(lags), stop - start)`` of ``x[:, n - lag]`` for a ``(K, frames)`` signal.
+
+    Regressors are laid out ``(groups, features, samples)``, samples contiguous: the normal equations get them as
+    a transposed view, so the Gram products run on contiguous rows without a copy.
+    """
+    return torch.stack([x[:, start - lag: stop - lag] for lag in lags], dim=1)
+
+
+def _chunks(start: int, stop: int, size: int):
+    for first in range(start, stop, size):
+        yield first, min(first + size, stop)
+
+
+def _solve(ne: NormalEquations) -> torch.Tensor:
+    with warnings.catch_warnings():  # collinearity without dither is reported by identify_plant itself
+        warnings.simplefilter("ignore", CollinearityWarning)
+        return ne.solve(0.0, relative=False).weights
+
+
+def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGrid | None = None, *,
+                   radius: float = 1.5, nuisance_lags: int = 2, max_lag: int | None = None, batch_frames: int = 1024,
+                   min_excitation: float = 1e-6) -> IdentifiedPlant:
+    """Identify DM response, WFS lag and noise from dithered closed-loop telemetry (method: module docstring).
+
+    Parameters
+    ----------
+    telemetry : Telemetry or sequence of Telemetry
+        Recorded ``y`` and ``wfs`` (nm); several files or batches are independent sequences of one plant.
+    grid : ActuatorGrid, optional
+        The actuator grid; by default from the telemetry's ``positions_m`` or its eofnn scenario.
+    radius : float
+        Neighbourhood radius in pitches over which coupling is fitted (1.5: the 3 x 3 neighbours, enough for
+        misregistrations below one pitch).
+    nuisance_lags : int
+        ``p``: frames ``n-2 .. n-p-1`` of ``y`` and ``wfs`` in the nuisance regressors; must reach the data
+        controller's input ``wfs(n - delay)`` (``p >= delay - 1``).
+    max_lag : int, optional
+        Largest WFS lag searched, in frames (default ``delay_frames + 2``).
+    batch_frames : int
+        Frames per streamed batch.
+    min_excitation : float
+        Below this ratio of whitened to raw command-increment RMS, the telemetry counts as undithered.
+    """
+    sequences = check_sequences(telemetry)
+    first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
+    grid = telemetry_grid(first_item, grid)
+    if grid is None:
+        raise TelemetryError("plant identification needs the actuator grid: put positions_m (POSITIONS) in the "
+                             "telemetry or pass grid")
+    n_act, delay = sequences[0].y.shape[-1], sequences[0].delay_frames
+    if grid.n_actuators != n_act:
+        raise TelemetryError(f"telemetry has {n_act} actuators but the grid has {grid.n_actuators}")
+    require(isinstance(nuisance_lags, int) and nuisance_lags >= max(1, delay - 1),
+            f"nuisance_lags={nuisance_lags!r} is invalid: it must be an integer >= max(1, delay_frames - 1) = "
+            f"{max(1, delay - 1)}")
+    max_lag = delay + 2 if max_lag is None else max_lag
+    require(isinstance(max_lag, int) and max_lag >= 0, f"max_lag={max_lag!r} is invalid: it must be an integer >= 0")
+    settings = {"radius": radius, "nuisance_lags": nuisance_lags, "max_lag": max_lag, "batch_frames": batch_frames}
+    first = nuisance_lags + 1 + max_lag
+    short = min(seq.y.shape[0] for seq in sequences)
+    if short < first + 200:
+        raise TelemetryError(f"telemetry has {short} frames: identification needs at least {first + 200}")
+    result = IdentifiedPlant(False, delay, {"diameter_m": grid.diameter_m, "n_across": grid.n_across,
+                                            "obstruction": grid.obstruction},
+                             n_frames=sum(seq.y.shape[0] for seq in sequences), n_sequences=len(sequences),
+                             settings=settings)
+    if delay < 2:
+        result.warnings.append("delay_frames=1: the controller's input wfs(n-1) holds the previous dither, so the "
+                               "whitening is not exact; identified values may be biased")
+    signals = [(seq.y.T.contiguous(), seq.wfs.T.contiguous()) for seq in sequences]
+    innovations = _whiten(signals, nuisance_lags, first, batch_frames)
+    power = sum(float(u[:, first:].pow(2).sum()) for u in innovations)
+    raw = sum(float((y[:, first:] - y[:, first - 1:-1]).pow(2).sum()) for y, _ in signals)
+    result.excitation_rms_nm = math.sqrt(power / 2 / sum(u[:, first:].numel() for u in innovations))
+    if power <= min_excitation ** 2 * raw:
+        message = ("the telemetry holds no excitation: the commands are a function of the past residuals (no "
+                   "dither), so the plant cannot be identified from it; record with a white dither")
+        warnings.warn(message, PlantNotIdentifiedWarning, stacklevel=2)
+        result.warnings.append(message)
+        return result
+
+    # WFS lag: where the pooled response of Dwfs(n + l) to the dither innovation u(n) peaks.
+    response, norm = torch.zeros(max_lag + 1, dtype=torch.float64), 0.0
+    for (y, wfs), u in zip(signals, innovations, strict=True):
+        stop = y.shape[1] - max_lag
+        u_used = u[:, first:stop]
+        norm += float(((y[:, first:stop] - y[:, first - 1:stop - 1]) * u_used).sum())
+        increments = wfs[:, first - 1:].diff(dim=1)  # increments[:, i] = wfs(first + i) - wfs(first + i - 1)
+        for lag in range(max_lag + 1):
+            response[lag] += float((increments[:, lag: lag + stop - first] * u_used).sum())
+    response /= norm
+    lag = int(response.abs().argmax())
+    if lag > 0:  # wfs recorded `lag` frames late: realign to the documented convention and identify again
+        shifted = [Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=delay) for seq in sequences]
+        again = identify_plant(shifted, grid, radius=radius, nuisance_lags=nuisance_lags, max_lag=max_lag,
+                               batch_frames=batch_frames, min_excitation=min_excitation)
+        again.lag_frames, again.lag_response = lag, response.tolist()
+        again.n_frames, again.warnings = result.n_frames, [
+            f"wfs(n) responds to y(n - {lag}), not y(n): the file is {lag} frame(s) behind the documented alignment "
+            "and was realigned for identification; realign it (wfs[lag:], y[:-lag]) before training"] + again.warnings
+        return again
+    result.lag_frames, result.lag_response = lag, response.tolist()
+    _response(result, signals, innovations, grid, radius, nuisance_lags, first, batch_frames)
+    result.wfs_noise_nm, result.wfs_noise_nm_se = _noise(signals, result.dm_response("model"), first)
+    return result
+
+
+def _nuisance(y: torch.Tensor, wfs: torch.Tensor, p: int, a: int, b: int) -> torch.Tensor:
+    """``z(n) = [y(n-2..n-p-1), wfs(n-2..n-p-1)]``: the past that holds neither ``w(n)`` nor ``w(n-1)``."""
+    return torch.cat([_lagged(y, range(2, p + 2), a, b), _lagged(wfs, range(2, p + 2), a, b)], 1)
+
+
+def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor]:
+    """Step 1: ``u(n) = Dy(n) - fit(Dy(n) | z(n))`` per actuator, ``(K, frames)`` per sequence (0 before ``first``)."""
+    whitening = NormalEquations()
+    for y, wfs in signals:
+        for a, b in _chunks(first, y.shape[1], batch_frames):
+            whitening.update(_nuisance(y, wfs, p, a, b).transpose(1, 2), y[:, a:b] - y[:, a - 1:b - 1])
+    beta = _solve(whitening)
+    innovations = []
+    for y, wfs in signals:
+        u = torch.zeros_like(y)
+        for a, b in _chunks(first, y.shape[1], batch_frames):
+            fit = torch.bmm(beta.unsqueeze(1), _nuisance(y, wfs, p, a, b)).squeeze(1)
+            u[:, a:b] = y[:, a:b] - y[:, a - 1:b - 1] - fit
+        innovations.append(u)
+    return innovations
+
+
+def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid, radius: float, p: int, first: int,
+              batch_frames: int) -> None:
+    """Step 2 and what follows from it: coupling, gains, misregistration, their standard errors (into ``result``)."""
+    n_act = grid.n_actuators
+    neighbours = grid.neighbours(radius)
+    n_nb = neighbours.shape[1]
+    regression = NormalEquations()
+    for (y, wfs), u in zip(signals, innovations, strict=True):
+        u_pad = torch.cat([u, torch.zeros_like(u[:1])], 0)  # a zero row for neighbour slots beyond the pupil edge
+        for a, b in _chunks(first, y.shape[1], batch_frames):
+            features = torch.cat([u_pad[neighbours, a:b], _nuisance(y, wfs, p, a, b)], 1)
+            regression.update(features.transpose(1, 2), wfs[:, a:b] - wfs[:, a - 1:b - 1])
+    weights = _solve(regression)
+    gram = regression.gram
+    sse = regression.target_power - 2 * (weights * regression.cross).sum(-1) + (
+        weights.unsqueeze(1) @ gram @ weights.unsqueeze(-1)).view(-1)
+    n_features = (gram.diagonal(dim1=1, dim2=2) > 0).sum(-1)
+    residual_var = sse.clamp(min=0) / (regression.n_samples - n_features)
+    covariance = residual_var.view(-1, 1, 1) * torch.linalg.pinv(gram, hermitian=True)
+    coupling, coupling_cov = weights[:, :n_nb], covariance[:, :n_nb, :n_nb]
+    result.residual_rms_nm = float(residual_var.mean().sqrt())
+
+    interior = (neighbours < n_act).all(1)
+    if not interior.any():
+        raise TelemetryError(f"no actuator has all {n_nb} neighbours within radius {radius}: the grid is too small")
+    pattern = coupling[interior].mean(0)
+    pattern_cov = coupling_cov[interior].sum(0) / int(interior.sum()) ** 2
+    k0 = int(interior.nonzero()[0])
+    indices = torch.as_tensor(grid.indices)
+    offsets = (indices[neighbours[k0]] - indices[k0]).to(torch.float64)  # (row, column) = (y, x)
+    gain = float(pattern.sum())
+    dx, dy = float(-(offsets[:, 1] @ pattern) / gain), float(-(offsets[:, 0] @ pattern) / gain)
+
+    def se(gradient: torch.Tensor) -> float:
+        return float((gradient @ pattern_cov @ gradient).clamp(min=0).sqrt())
+
+    ones = torch.ones(n_nb, dtype=torch.float64)
+    result.identified = True
+    result.dm_gain, result.dm_gain_se = gain, se(ones)
+    result.misregistration_x, result.misregistration_x_se = dx, se(-(offsets[:, 1] + dx) / gain)
+    result.misregistration_y, result.misregistration_y_se = dy, se(-(offsets[:, 0] + dy) / gain)
+    result.actuator_gains = coupling.sum(-1).tolist()
+    result.actuator_gains_se = (ones @ coupling_cov @ ones).clamp(min=0).sqrt().tolist()
+    result.coupling, result.coupling_se = coupling.tolist(), coupling_cov.diagonal(dim1=1, dim2=2).sqrt().tolist()
+    result.neighbours, result.offsets = neighbours.tolist(), offsets.to(torch.int64).tolist()
+    if result.dm_gain_se > 0.05 * abs(gain):
+        result.warnings.append(f"weak excitation: the DM gain {gain:.3g} has a standard error of "
+                               f"{result.dm_gain_se:.2g}; record longer or with a larger dither")
+
+
+def _noise(signals, dm_response, first: int) -> tuple[float, float]:
+    """White WFS noise RMS (nm) and its standard error from the structure function of the POL reconstruction."""
+    n_act = signals[0][0].shape[0]
+    # The model DM as at most 4 sources per actuator (a bilinear shift), found from its response to each actuator:
+    # rows of (K, frames) signals are then gathered whole.
+    response = dm_response(torch.eye(n_act, dtype=torch.float64))  # row j: what a unit command on j applies
+    weight, index = response.T.abs().topk(min(4, n_act), dim=1)
+    weight = response.T.gather(1, index)
+    sums, count = torch.zeros(2, n_act, dtype=torch.float64), 0
+    for y, wfs in signals:
+        s_hat = wfs[:, first:].clone()
+        for m in range(index.shape[1]):
+            s_hat -= weight[:, m, None] * y[index[:, m], first:]
+        stop = s_hat.shape[1] - 2
+        for lag in (1, 2):
+            sums[lag - 1] += (s_hat[:, lag: stop + lag] - s_hat[:, :stop]).pow(2).sum(-1)
+        count += stop
+    structure = sums / count
+    variance = (4 * structure[0] - structure[1]) / 6  # per actuator, nm^2: D(l) = 2 sigma^2 + c l^2
+    mean, se_var = float(variance.mean()), float(variance.std() / math.sqrt(variance.numel()))
+    if mean <= 0:
+        return 0.0, math.sqrt(se_var)
+    sigma = math.sqrt(mean)
+    return sigma, se_var / (2 * sigma)

@@ -1,0 +1,176 @@
+"""A corpus of bad inputs, class by class (issue: every bad input gets one line): each ends with exit code 2,
+one line that names the value, no traceback, nothing run and nothing a user wrote changed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from eofnn.main import main
+
+CONF = Path(__file__).parent / "conf"
+TINY = CONF / "tiny_compare.yaml"
+
+# Every numeric field a user sets, with the key it has on the command line.
+NUMERIC_KEYS = [
+    "scenario.atmosphere.r0_m", "scenario.atmosphere.r0_wavelength_m", "scenario.atmosphere.outer_scale_m",
+    "scenario.frame_rate_hz", "scenario.grid.diameter_m", "scenario.grid.obstruction", "scenario.plant.dm_gain",
+    "scenario.plant.wfs_noise_nm", "scenario.plant.wfs_gain", "scenario.plant.misregistration_x",
+    "scenario.plant.nonlinearity_scale_nm", "predictors.ol_eof.optimization.alpha", "predictors.ol_eof.optimization.lr",
+    "predictors.cl_eof.data.dither_nm", "predictors.cl_eof.data.integrator_gain", "predictors.integrator.gain",
+    "predictors.ol_eof.dm_gain_model", "evaluation.strehl_wavelength_m", "evaluation.divergence_factor",
+]
+NON_FINITE = [".inf", "-.inf", ".nan", "null"]
+
+
+def run_bad(capsys, args, expected, out):
+    code = main([str(a) for a in args])
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("eofnn: error:"), err
+    assert "Traceback" not in err
+    assert expected in lines[0], lines[0]
+    assert not Path(out).exists()
+    return lines[0]
+
+
+@pytest.mark.parametrize("value", NON_FINITE)
+@pytest.mark.parametrize("key", NUMERIC_KEYS)
+def test_non_finite_and_null_values(capsys, tmp_path, key, value):
+    run_bad(capsys, ["compare", "--config", TINY, f"--{key}={value}", "--out", tmp_path / "o"], key.rsplit(".", 1)[-1],
+            tmp_path / "o")
+
+
+@pytest.mark.parametrize("layer", ["{cn2_fraction: .inf}", "{wind_speed_mps: .nan}", "{wind_direction_deg: .inf}",
+                                   "{cn2_fraction: -1}", "{wind_speed_mps: 'fast'}", "{speed: 3}"])
+def test_bad_layers(capsys, tmp_path, layer):
+    key = layer.strip("{}").split(":")[0]
+    run_bad(capsys, ["compare", "--config", TINY, "--scenario.atmosphere.layers", f"[{layer}]", "--out", tmp_path / "o"],
+            key, tmp_path / "o")
+
+
+@pytest.mark.parametrize("changes, expected", [
+    ({"dm_gain": "two"}, "dm_gain='two'"), ({"dm_gain": [0.1]}, "dm_gain=[0.1]"), ({"dm_gain": True}, "dm_gain=True"),
+    ({"dm_gain": None}, "dm_gain=None"), ({"wfs_noise_nm": "1 nm"}, "wfs_noise_nm='1 nm'"),
+    ({"nonlinearity": 3}, "nonlinearity=3"), ({"delay_frames": 1.5}, "delay_frames=1.5"),
+    ({"dm_gian": 2.0}, "unknown model error 'dm_gian'"), ({"dm_gain": float("inf")}, "dm_gain=inf"),
+])
+def test_wrong_types_in_scenario_variants(capsys, tmp_path, changes, expected):
+    run_bad(capsys, ["compare", "--config", TINY, "--scenarios", json.dumps({"bad": changes}).replace("Infinity", ".inf"),
+                     "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--scenario.plant.dm_gain", "two"], "dm_gain"),
+    (["--evaluation.frames", "1.5"], "frames"),
+    (["--predictors.ol_eof.history_length", "2.5"], "history_length"),
+    (["--predictors.ol_eof.history", "sideways"], "history='sideways'"),
+    (["--scenarios", "[1, 2]"], "scenarios"),
+    (["--scenarios", "{x: 3}"], "scenarios"),
+    (["--predictors.ol_eof.network", "{class_path: 3}"], "class_path=3"),
+    (["--predictors.ol_eof.network", "{class_path: MLP, init_args: [1]}"], "predictors"),
+    (["--predictors.ol_eof.network", "{class_path: no.such.Module}"], "cannot be imported"),
+    (["--predictors.ol_eof.controller", "smith_predictor"], "controller"),
+    (["--predictors.ol_eof.optimization.fit_method", "magic"], "fit_method"),
+    (["--predictors.integrator.leak", "2"], "leak=2"),
+])
+def test_wrong_types_and_choices(capsys, tmp_path, args, expected):
+    run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--scenario.grid.obstruction", "0.97"], "obstruction=0.97"),
+    (["--scenario.grid.obstruction", "1.0"], "obstruction=1.0"),
+    (["--scenario.grid.obstruction", "-0.1"], "obstruction=-0.1"),
+    (["--scenario.grid.diameter_m", "0"], "diameter_m=0"),
+    (["--scenario.grid.diameter_m", "-8"], "diameter_m=-8"),
+    (["--scenario.grid.n_across", "1"], "n_across=1"),
+    (["--scenario.frame_rate_hz", "0"], "frame_rate_hz=0"),
+    (["--scenario.plant.delay_frames", "0"], "delay_frames=0"),
+])
+def test_impossible_geometry_and_timing(capsys, tmp_path, args, expected):
+    run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--scenario.grid.n_across", "100000"], "n_across=100000"),
+    (["--evaluation.frames", str(10**12)], "frames=1000000000000"),
+    (["--evaluation.realisations", str(10**6)], "realisations=1000000"),
+    (["--predictors.ol_eof.data.frames", str(10**12)], "frames=1000000000000"),
+    (["--predictors.ol_eof.data.sequence_frames", str(10**9)], "sequence_frames=1000000000"),
+    (["--predictors.ol_eof.history_length", str(10**6)], "history_length=1000000"),
+    (["--scenario.grid.n_across", "512", "--evaluation.realisations", "1024"], "of memory"),
+    (["--scenario.grid.n_across", "512", "--predictors.ol_eof.data.realisations", "1024"], "of memory"),
+])
+def test_sizes_that_cannot_fit_are_refused_up_front(capsys, tmp_path, args, expected):
+    run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+def _alias_bomb(levels: int = 7) -> str:
+    lines = ['a0: &a0 ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    for i in range(1, levels):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]")
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("content, expected", [
+    (_alias_bomb(), "YAML nodes"),
+    (bytes(range(256)) * 8, "not text"),
+    ("predictors: [unclosed\n", "not valid YAML"),
+    ("scenario: !!python/object/apply:os.system ['echo hi']\n", "python/object/apply:os.system is refused"),
+    ("scenario: {grid: {n_across: 8}}\npredictors: {x: {controller: uncorrected}}\nsurprise: 1\n", "surprise"),
+])
+def test_unreadable_or_hostile_config_files(capsys, tmp_path, content, expected):
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    run_bad(capsys, ["compare", "--config", path, "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+def test_a_missing_config_or_scenario_file(capsys, tmp_path):
+    run_bad(capsys, ["compare", "--config", tmp_path / "none.yaml", "--out", tmp_path / "o"], "does not exist",
+            tmp_path / "o")
+    run_bad(capsys, ["compare", "--config", tmp_path, "--out", tmp_path / "o"], "does not exist", tmp_path / "o")
+
+
+@pytest.mark.parametrize("content", [b"not a checkpoint", b"PK\x03\x04truncated zip", b"", bytes(range(256))])
+def test_unreadable_checkpoints(capsys, tmp_path, content):
+    ckpt = tmp_path / "bad.ckpt"
+    ckpt.write_bytes(content)
+    run_bad(capsys, ["evaluate", "--config", CONF / "tiny_evaluate.yaml", "--checkpoints", json.dumps({"x": str(ckpt)}),
+                     "--out", tmp_path / "o"], "not an eofnn predictor checkpoint", tmp_path / "o")
+
+
+def test_output_paths_that_cannot_be_written(capsys, tmp_path):
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("mine")
+    run_bad(capsys, ["compare", "--config", TINY, "--out", a_file / "sub"], "is a file", a_file / "sub")
+    run_bad(capsys, ["compare", "--config", TINY, "--out", "/proc/eofnn_results"], "cannot be written",
+            "/proc/eofnn_results")
+    run_bad(capsys, ["simulate", "--scenario", CONF / "tiny_scenario.yaml", "--out", tmp_path / "run.txt"],
+            "suffix '.txt'", tmp_path / "run.txt")
+    run_bad(capsys, ["fit", "--scenario", CONF / "tiny_scenario.yaml", "--out", tmp_path], "is a folder",
+            tmp_path / "never")
+    code = main(["compare", "--config", str(TINY), "--out", str(a_file)])
+    assert code == 2 and "is a file" in capsys.readouterr().err
+    assert a_file.read_text() == "mine"
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--predictor.checkpoint", "runs/cl.ckpt"], "does not run a checkpoint"),
+    (["--predictor.controller", "predictor"], "simulate runs a baseline or a checkpoint"),
+    (["--predictor.controller", "predictor", "--predictor.checkpoint", "/no/such.ckpt"], "does not exist"),
+    (["--frames", "0"], "frames=0"),
+    (["--realisations", "100000"], "realisations=100000"),
+    (["--frames", "10000000", "--scenario.grid.n_across", "64"], "of memory"),
+])
+def test_simulate_never_runs_something_else(capsys, tmp_path, args, expected):
+    run_bad(capsys, ["simulate", "--scenario", CONF / "tiny_scenario.yaml", *args, "--out", tmp_path / "run.fits"],
+            expected, tmp_path / "run.fits")
+
+
+def test_a_psd_segment_longer_than_the_settled_frames(capsys, tmp_path):
+    run_bad(capsys, ["compare", "--config", TINY, "--evaluation.psd_segment_frames", "4096", "--out", tmp_path / "o"],
+            "psd_segment_frames=4096", tmp_path / "o")

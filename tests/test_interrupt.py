@@ -1,0 +1,64 @@
+"""An interrupted run loses nothing: Ctrl-C (a real SIGINT) during ``compare --overwrite true`` over a complete earlier
+result leaves that result exactly as it was, and a finished run replaces it whole, never a mix of the two."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CONF = Path(__file__).parent / "conf"
+
+
+def _earlier_result(folder: Path) -> dict[str, bytes]:
+    folder.mkdir()
+    files = {"metrics.json": b'{"scenarios": "the earlier result"}', "config.yaml": b"earlier: true\n",
+             "results.md": b"# earlier\n"}
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+    return files
+
+
+def _contents(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+def _compare(out: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", "eofnn.main", "compare", "--config", str(CONF / "tiny_compare.yaml"),
+                             "--out", str(out), "--overwrite", "true"], stderr=subprocess.PIPE, text=True, env=env)
+
+
+def test_ctrl_c_during_an_overwrite_leaves_the_earlier_result(tmp_path):
+    out = tmp_path / "run"
+    before = _earlier_result(out)
+    proc = _compare(out)
+    deadline = time.monotonic() + 300
+    # Wait until the run is well under way: its staging folder holds a trained checkpoint.
+    while time.monotonic() < deadline and proc.poll() is None:
+        if list(tmp_path.glob(".run.partial-*/checkpoints/*.ckpt")):
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    lines = [line for line in err.strip().splitlines() if line.startswith("eofnn:")]
+    assert lines[-1].startswith("eofnn: interrupted") and "Traceback" not in err
+    assert _contents(out) == before and sorted(p.name for p in out.iterdir()) == sorted(before)
+    assert not list(tmp_path.glob(".run.*")), "no staging folder is left behind"
+
+
+def test_a_finished_overwrite_replaces_the_result_whole(tmp_path):
+    out = tmp_path / "run"
+    _earlier_result(out)
+    proc = _compare(out)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    after = _contents(out)
+    assert b"the earlier result" not in after["metrics.json"] and b"earlier" not in after["results.md"]
+    assert {"metrics.json", "results.md", "config.yaml", "rms_vs_time.png", "residual_psd.png"} <= set(after)
+    assert (out / "checkpoints").is_dir() and not list(tmp_path.glob(".run.*"))
