@@ -30,7 +30,7 @@ from benchmarks.common import Series, Skipped, fmt_seconds
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
-BENCHMARKS = ("turbulence", "loop", "fit", "end_to_end", "scaling")
+BENCHMARKS = ("turbulence", "exact", "loop", "fit", "end_to_end", "scaling")
 #: Benchmarks whose functions take a ``device``; the others are CPU code in eofnn (HCIPy, numpy, the loop).
 DEVICE_BENCHMARKS = ("loop", "fit")
 
@@ -38,6 +38,8 @@ DEVICE_BENCHMARKS = ("loop", "fit")
 FULL = {
     "turbulence": {"n_across": (40, 80), "chunk_frames": 1024, "chunks_per_repeat": 10, "hcipy_frames": 500,
                    "repeat": 5, "setup_repeat": 3},
+    "exact": {"n_across": (40, 80), "chunk_frames": 1024, "chunks_per_repeat": 8, "hcipy_frames": 400, "repeat": 3,
+              "stream_frames": 100_000, "stream_across": 40},
     "loop": {"n_across": 40, "history_length": 12, "n_frames": 2000, "step_count": 2000, "repeat": 5},
     "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "batch_frames": (256, 4096), "repeat": 3},
     "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
@@ -47,6 +49,8 @@ FULL = {
 QUICK = {
     "turbulence": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
                    "setup_repeat": 1},
+    "exact": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
+              "stream_frames": 1000, "stream_across": 8},
     "loop": {"n_across": 10, "history_length": 12, "n_frames": 200, "step_count": 200, "repeat": 2,
              "bandwidth_bytes": 16 * 2**20},
     "fit": {"n_frames": 2000, "n_actuators": 80, "n_taps": 12, "batch_frames": (256, 1024), "repeat": 2},
@@ -65,6 +69,10 @@ def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, 
         from benchmarks.bench_turbulence import bench_turbulence
 
         return bench_turbulence(scenario, **sizes), []
+    if name == "exact":
+        from benchmarks.bench_exact import bench_exact
+
+        return bench_exact(scenario, **sizes), []
     if name == "loop":
         from benchmarks.bench_loop import bench_loop
 

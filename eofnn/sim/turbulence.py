@@ -1,36 +1,37 @@
-"""Frozen-flow turbulence sampled on the actuator grid.
+"""Frozen-flow turbulence on the actuator grid: the atmosphere's description and the stream ``s(n)`` of frames.
 
-Each layer is an HCIPy :class:`~hcipy.InfiniteAtmosphericLayer` used as a *strip generator*: the layer is laid
-along its wind direction at the sampling pitch and moved by exactly one pixel at a time, so every HCIPy step
-extrudes one new, statistically consistent column (Assémat et al. 2006). Frames are then translations of
-that long strip, interpolated in torch with B-splines (order 5 by default, the order HCIPy uses for
-sub-pixel shifts). A frame costs a gather instead of an HCIPy evolve, and frame ``n`` depends only on the
-seed and ``n``: any frame range can be generated, in any chunking, and gives the same numbers.
+Three models build a layer (``Atmosphere.model``):
+
+- ``exact`` (:mod:`eofnn.sim.exact`): a von Kármán screen synthesised in the Fourier domain and evaluated at every
+  actuator's exact position, frame ``n`` at ``x - n v dt``, seen through the sensing kernel (``subaperture``: the
+  mean over each actuator's subaperture; ``point``). No interpolation: the physics to judge predictors with.
+- ``hcipy_pupil`` (:mod:`eofnn.sim.hcipy_pupil`): HCIPy's ``InfiniteAtmosphericLayer`` on the actuator-pitch pupil
+  grid advanced with ``layer.t``, as the reference study did (its rim extrusion and sub-pixel interpolation kept).
+- ``strip`` (:mod:`eofnn.sim.strip`): a strip at the actuator pitch translated with B-splines. Fast, any wind
+  direction, right spatial statistics; but every series is piecewise polynomial (comb peaks at multiples of
+  ``v / pitch`` in temporal PSDs), which makes prediction look almost perfect.
+
+Layers add (Cn² fractions set each layer's r0); piston, tip and tilt are removed unless asked otherwise.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-import hcipy
 import numpy as np
 import torch
-from scipy.ndimage import spline_filter1d
 
 from eofnn.errors import require
 from eofnn.seeding import stream_seed
+from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project_out
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.hcipy_pupil import HcipyPupilLayer
+from eofnn.sim.strip import FrozenFlowStrip
 from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, check_value, validated
 
-#: HCIPy's achromatic screen is phase x wavelength, i.e. 2 pi x OPD in metres; this converts it to OPD in nm.
-_NM_PER_SCREEN_UNIT = 1e9 / (2 * np.pi)
-#: Columns of the strip prefiltered together; prefilter blocks are fixed so results never depend on chunking.
-_BLOCK_COLUMNS = 256
-#: Extra columns each side of a block for the (IIR) spline prefilter; the quintic pole is 0.43, 0.43**48 ~ 1e-18.
-_PREFILTER_MARGIN = 48
+MODELS = ("exact", "hcipy_pupil", "strip")
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,15 @@ class Atmosphere:
         B-spline order of the sub-pixel translation: 1 (linear), 3 (cubic) or 5 (quintic, as HCIPy).
     remove_ptt : bool
         Project piston, tip and tilt out of every frame.
+    model : {"strip", "exact", "hcipy_pupil"}
+        How layers are built (see the module docstring); ``oversampling`` and ``interpolation_order`` are the
+        strip's.
+    kernel : {"point", "subaperture"}
+        Sensing kernel: ``point`` samples the field at the actuators; ``subaperture`` (model ``exact`` only)
+        averages it over each actuator's pitch x pitch subaperture.
+    screen_frames : int
+        Frames one realisation of the ``exact`` model holds (frames ``0 .. screen_frames - 1``); memory and set-up
+        time grow with it.
     """
 
     r0_m: float = 0.083
@@ -89,8 +99,14 @@ class Atmosphere:
     oversampling: int = 1
     interpolation_order: int = 5
     remove_ptt: bool = True
+    model: str = "strip"
+    kernel: str = "point"
+    screen_frames: int = 16384
 
     _constraints: ClassVar[dict[str, Constraint]] = {
+        "model": OneOf(MODELS),
+        "kernel": OneOf(KERNELS),
+        "screen_frames": COUNT,
         "r0_m": Interval(0, 100, closed="right", unit="m"),
         "r0_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
         "outer_scale_m": Interval(0, 1e4, closed="right", unit="m"),
@@ -106,215 +122,21 @@ class Atmosphere:
         layers = [Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers]
         require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
         object.__setattr__(self, "layers", layers)
+        require(self.model == "exact" or self.kernel == "point",
+                f"kernel={self.kernel!r} is invalid for model {self.model!r}: it samples points on the actuator-pitch "
+                "grid; use kernel 'point' or model 'exact'")
+        if self.model == "exact":
+            require(math.isfinite(self.outer_scale_m),
+                    f"outer_scale_m={self.outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
+            for lay in layers:
+                require(lay.wind_speed_mps > 0,
+                        f"wind_speed_mps={lay.wind_speed_mps!r} is invalid for model 'exact': it must be > 0 (m/s)")
+                lattice_direction(lay.wind_direction_deg)
 
     def layer_r0_m(self, layer: Layer) -> float:
         """Fried parameter of one layer at ``r0_wavelength_m`` (r0 scales as Cn² to the -3/5)."""
         total = sum(lay.cn2_fraction for lay in self.layers)
         return self.r0_m * (layer.cn2_fraction / total) ** (-3 / 5)
-
-
-@functools.cache
-def _bspline_polynomials(order: int) -> torch.Tensor:
-    """``(order + 1, order + 1)`` matrix ``C`` with weights ``w_j(f) = sum_p f**p C[p, j]`` for ``f`` in [0, 1).
-
-    For odd orders the knots of the centred B-spline are integers, so each weight is one polynomial in ``f``.
-    """
-    f = np.linspace(0.0, 1.0, order + 1, endpoint=False) + 0.5 / (order + 1)
-    offsets = np.arange(order + 1) - (order - 1) // 2
-    t = f[:, None] - offsets[None, :]
-    half = (order + 1) / 2
-    values = sum(
-        (-1) ** k * math.comb(order + 1, k) * np.clip(t + half - k, 0, None) ** order for k in range(order + 2)
-    ) / math.factorial(order)
-    vandermonde = f[:, None] ** np.arange(order + 1)[None, :]
-    return torch.as_tensor(np.linalg.solve(vandermonde, values))
-
-
-def bspline_weights(frac: torch.Tensor, order: int) -> torch.Tensor:
-    """Weights ``(..., order + 1)`` of the B-spline coefficients around a point at fractional offset ``frac``.
-
-    The coefficients are those at nodes ``floor(x) - (order - 1) // 2 + j`` for ``j = 0..order``.
-    """
-    powers = frac.unsqueeze(-1) ** torch.arange(order + 1, dtype=frac.dtype)
-    return powers @ _bspline_polynomials(order).to(frac.dtype)
-
-
-class FrozenFlowStrip:
-    """One realisation of one layer: a long strip along the wind, sampled at the actuator positions.
-
-    Parameters
-    ----------
-    positions_m : ndarray
-        ``(n_actuators, 2)`` actuator positions in metres.
-    pitch_m : float
-        Strip sampling pitch in metres.
-    r0_m, r0_wavelength_m, outer_scale_m : float
-        Layer turbulence strength (Fried parameter at a wavelength) and outer scale.
-    layer : Layer
-        Wind of the layer.
-    frame_period_s : float
-        Time between frames in seconds.
-    order : int
-        B-spline interpolation order.
-    seed : SeedSequence
-        Seed of this realisation.
-    """
-
-    def __init__(
-        self,
-        positions_m: np.ndarray,
-        pitch_m: float,
-        r0_m: float,
-        r0_wavelength_m: float,
-        outer_scale_m: float,
-        layer: Layer,
-        frame_period_s: float,
-        order: int,
-        seed: np.random.SeedSequence,
-    ) -> None:
-        self.order = order
-        self.pitch_m = pitch_m
-        self._seed = seed
-        self._cn2 = hcipy.Cn_squared_from_fried_parameter(r0_m, r0_wavelength_m)
-        self._outer_scale_m = outer_scale_m
-        angle = math.radians(layer.wind_direction_deg)
-        u = positions_m[:, 0] * math.cos(angle) + positions_m[:, 1] * math.sin(angle)
-        w = -positions_m[:, 0] * math.sin(angle) + positions_m[:, 1] * math.cos(angle)
-        margin = order + 2
-        # Across the wind: actuator w positions in strip rows; on nodes when the wind is along a grid axis.
-        w_index = _snap((w - w.min()) / pitch_m) + margin
-        self.n_rows = int(np.ceil(w_index.max())) + margin + 1
-        # Along the wind: strip coordinate of actuator k at frame n is u_index[k] + n * columns_per_frame.
-        self.u_index = torch.as_tensor(_snap((u.max() - u) / pitch_m) + margin + _PREFILTER_MARGIN)
-        self._aligned = bool(torch.all(self.u_index == torch.round(self.u_index)))
-        self.columns_per_frame = layer.wind_speed_mps * frame_period_s / pitch_m
-        self._w_weights = _interpolation_matrix(w_index, self.n_rows, order)  # (n_act, n_rows)
-        self._n_initial_columns = max(self.n_rows, int(np.ceil(self.u_index.max().item())) + margin + 1)
-        self._reset()
-
-    def _reset(self) -> None:
-        grid = hcipy.make_uniform_grid([self._n_initial_columns, self.n_rows],
-                                       [self._n_initial_columns * self.pitch_m, self.n_rows * self.pitch_m])
-        # One pixel per unit "time": every evolve extrudes exactly one new column, with no interpolation.
-        self._layer = hcipy.InfiniteAtmosphericLayer(
-            grid, self._cn2, self._outer_scale_m, velocity=self.pitch_m, use_interpolation=False,
-            seed=np.random.default_rng(self._seed),
-        )
-        self._steps = 0
-        screen = self._screen()
-        self._raw = [screen[:, i] for i in range(screen.shape[1])]  # columns, prefiltered across the wind
-        self._raw_offset = 0  # strip index of self._raw[0]
-        self._blocks: dict[int, torch.Tensor] = {}
-
-    def _screen(self) -> np.ndarray:
-        opd_nm = np.asarray(self._layer.phase_for(1.0)).reshape(self.n_rows, self._n_initial_columns) * _NM_PER_SCREEN_UNIT
-        if self.order > 1:
-            opd_nm = spline_filter1d(opd_nm, self.order, axis=0, mode="mirror")
-        return opd_nm
-
-    def _ensure_columns(self, stop: int) -> None:
-        while self._raw_offset + len(self._raw) < stop:
-            self._steps += 1
-            self._layer.evolve_until(self._steps)
-            column = np.asarray(self._layer.phase_for(1.0)).reshape(self.n_rows, -1)[:, -1] * _NM_PER_SCREEN_UNIT
-            if self.order > 1:
-                column = spline_filter1d(column, self.order, mode="mirror")
-            self._raw.append(column)
-
-    def _forget_before(self, block: int) -> None:
-        """Streaming: drop strip blocks and raw columns that frames from ``block`` on never read again."""
-        for b in [b for b in self._blocks if b < block]:
-            del self._blocks[b]
-        first_needed = max(block * _BLOCK_COLUMNS - _PREFILTER_MARGIN, 0)
-        drop = min(first_needed - self._raw_offset, len(self._raw))
-        if drop > 0:
-            del self._raw[:drop]
-            self._raw_offset += drop
-
-    def _block(self, b: int) -> torch.Tensor:
-        """``(n_actuators, _BLOCK_COLUMNS)`` strip coefficients of block ``b``, contracted across the wind."""
-        if b not in self._blocks:
-            start, stop = b * _BLOCK_COLUMNS, (b + 1) * _BLOCK_COLUMNS
-            lo, hi = max(start - _PREFILTER_MARGIN, 0), stop + _PREFILTER_MARGIN
-            if lo < self._raw_offset:
-                self._reset()
-            self._ensure_columns(hi)
-            raw = np.stack(self._raw[lo - self._raw_offset: hi - self._raw_offset], axis=1)
-            if self.order > 1:
-                raw = spline_filter1d(raw, self.order, axis=1, mode="mirror")
-            coeffs = torch.as_tensor(raw[:, start - lo: stop - lo])
-            self._blocks[b] = self._w_weights @ coeffs
-        return self._blocks[b]
-
-    def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
-        """OPD (nm) of frames ``start..stop-1`` at the actuators, as a ``(frames, n_actuators)`` tensor.
-
-        With an orthonormal ``(n_actuators, m)`` ``basis``, those modes are projected out of every frame.
-        """
-        half = (self.order - 1) // 2
-        taps = torch.arange(self.order + 1)
-        shift = torch.arange(start, stop, dtype=torch.float64) * self.columns_per_frame  # (T,) strip columns moved
-        if self._aligned:
-            # Every actuator sits on a strip node, so all share the fractional position of a frame: the first
-            # coefficient of actuator k at frame n is u_index[k] + floor(shift[n]) - half.
-            whole = torch.floor(shift)
-            weights = bspline_weights(shift - whole, self.order)  # (T, order+1)
-            u_index = self.u_index.long()
-            lo = int(u_index.min() + whole[0]) - half
-            hi = int(u_index.max() + whole[-1]) - half + self.order
-        else:
-            position = self.u_index.unsqueeze(0) + shift.unsqueeze(1)  # (T, K)
-            base = torch.floor(position)
-            weights = bspline_weights(position - base, self.order)  # (T, K, order+1)
-            first = base.long() - half
-            lo, hi = int(first.min()), int(first.max()) + self.order
-        lo_block, hi_block = lo // _BLOCK_COLUMNS, hi // _BLOCK_COLUMNS
-        self._forget_before(lo_block)
-        coeffs = torch.cat([self._block(b) for b in range(lo_block, hi_block + 1)], dim=1)
-        offset = lo_block * _BLOCK_COLUMNS
-        if self._aligned:
-            # Shift each actuator's row once so that a frame reads the same columns for every actuator; each frame
-            # is then a weighted sum of order + 1 of those columns.
-            c = (whole - whole[0]).long()
-            width = int(c[-1]) + self.order + 1
-            rows = (u_index + int(whole[0]) - half - offset).unsqueeze(1) + torch.arange(width)
-            shifted = torch.gather(coeffs, 1, rows)  # (K, width)
-            if basis is not None:  # projecting the few columns is cheaper than projecting every frame
-                shifted = shifted - basis @ (basis.T @ shifted)
-            columns = shifted.T.contiguous()  # (width, K)
-            change = torch.nonzero(c[1:] != c[:-1]).flatten() + 1
-            edges = [0, *change.tolist(), len(c)]
-            if len(c) >= 4 * (len(edges) - 1):
-                # Slow wind: long runs of frames share their columns; one small dense product per run.
-                return torch.cat([weights[a:b] @ columns[int(c[a]): int(c[a]) + self.order + 1]
-                                  for a, b in zip(edges[:-1], edges[1:], strict=True)])
-            # Fast wind: a banded sparse matrix (order + 1 weights per frame) times the columns.
-            t = len(c)
-            index = torch.stack([torch.arange(t).repeat_interleave(self.order + 1), (c.unsqueeze(1) + taps).flatten()])
-            banded = torch.sparse_coo_tensor(index, weights.flatten(), (t, width), check_invariants=False,
-                                             is_coalesced=True)
-            return torch.sparse.mm(banded, columns)
-        index = (first - offset).T.unsqueeze(-1) + taps  # (K, T, order+1)
-        values = torch.gather(coeffs, 1, index.reshape(coeffs.shape[0], -1)).view(index.shape)
-        out = torch.einsum("ktj,tkj->tk", values, weights)
-        return out if basis is None else out - (out @ basis) @ basis.T
-
-
-def _snap(x: np.ndarray) -> np.ndarray:
-    """Round values within 1e-9 of an integer, so grid-aligned positions sit exactly on strip nodes."""
-    r = np.round(x)
-    return np.where(np.abs(x - r) < 1e-9, r, x)
-
-
-def _interpolation_matrix(index: np.ndarray, size: int, order: int) -> torch.Tensor:
-    """``(len(index), size)`` B-spline interpolation weights at fractional positions ``index``."""
-    idx = torch.as_tensor(index, dtype=torch.float64)
-    base = torch.floor(idx)
-    weights = bspline_weights(idx - base, order)
-    cols = base.long().unsqueeze(-1) - (order - 1) // 2 + torch.arange(order + 1)
-    out = torch.zeros(len(index), size, dtype=torch.float64)
-    out.scatter_add_(1, cols, weights)
-    return out
 
 
 class Turbulence:
@@ -350,16 +172,9 @@ class Turbulence:
         self.atmosphere = atmosphere
         self.grid = grid
         self.n_realisations = n_realisations
-        pitch = grid.pitch_m / atmosphere.oversampling
         self._strips = [
-            [
-                FrozenFlowStrip(
-                    grid.positions_m, pitch, atmosphere.layer_r0_m(layer), atmosphere.r0_wavelength_m,
-                    atmosphere.outer_scale_m, layer, 1.0 / frame_rate_hz, atmosphere.interpolation_order,
-                    stream_seed(seed, stream, r, i),
-                )
-                for i, layer in enumerate(atmosphere.layers)
-            ]
+            [_layer_generator(atmosphere, grid, layer, 1.0 / frame_rate_hz, stream_seed(seed, stream, r, i))
+             for i, layer in enumerate(atmosphere.layers)]
             for r in range(n_realisations)
         ]
         self._ptt = torch.as_tensor(grid.ptt_basis())
@@ -368,9 +183,34 @@ class Turbulence:
         """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
         require(0 <= start <= stop, f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop")
         basis = self._ptt if self.atmosphere.remove_ptt else None
-        return torch.stack([sum(strip.frames(start, stop, basis) for strip in strips) for strips in self._strips])
+        out = torch.empty(self.n_realisations, stop - start, self.grid.n_actuators, dtype=torch.float64)
+        for r, strips in enumerate(self._strips):  # layers add in place: large fresh tensors are slow to fault in
+            if self.atmosphere.model == "exact":
+                for i, layer in enumerate(strips):
+                    layer.write_frames(start, stop, out[r], add=i > 0)
+                if basis is not None:
+                    project_out(out[r], basis)
+                continue
+            out[r] = strips[0].frames(start, stop, basis)
+            for strip in strips[1:]:
+                out[r] += strip.frames(start, stop, basis)
+        return out
 
     def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
         """Yield ``(first_frame, frames)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
         for first in range(start, start + n_frames, chunk):
             yield first, self.frames(first, min(first + chunk, start + n_frames))
+
+
+def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, frame_period_s: float,
+                     seed: np.random.SeedSequence):
+    """One realisation of one layer, built by ``atmosphere.model``: anything with ``frames(start, stop, basis)``."""
+    r0_m, wavelength_m, outer_m = atmosphere.layer_r0_m(layer), atmosphere.r0_wavelength_m, atmosphere.outer_scale_m
+    if atmosphere.model == "exact":
+        return ExactFrozenFlow(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
+                               frame_period_s, atmosphere.kernel, atmosphere.screen_frames, seed)
+    if atmosphere.model == "hcipy_pupil":
+        return HcipyPupilLayer(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
+                               frame_period_s, seed)
+    return FrozenFlowStrip(grid.positions_m, grid.pitch_m / atmosphere.oversampling, r0_m, wavelength_m, outer_m,
+                           layer, frame_period_s, atmosphere.interpolation_order, seed)
