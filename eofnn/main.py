@@ -90,7 +90,7 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
-def _one_line(err: BaseException) -> str:
+def one_line(err: BaseException) -> str:
     """Collapse jsonargparse's nested messages into one line."""
     lines = [line.strip() for line in str(err).splitlines() if line.strip()]
     lines = [line for line in lines if not line.startswith("Problem with given class_path")]
@@ -136,7 +136,7 @@ def main(args: list[str] | None = None) -> int:
             sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
             status = COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
     except USER_ERRORS as err:
-        print(f"eofnn: error: {_one_line(err)}", file=sys.stderr)
+        print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)

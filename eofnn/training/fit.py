@@ -153,7 +153,7 @@ def fit_predictor(
             data_controller = Dithered(PredictiveController(copy.deepcopy(net), spec), data.dither_nm,
                                        data.seed + round_index)
         datamodule = LoopDataModule(scenario, spec, replace(data, seed=data.seed + 1000 * round_index), data_controller)
-        trainer = _trainer(optimization, progress)
+        trainer = make_trainer(optimization, progress)
         try:
             if optimization.fit_method == "closed_form":
                 solved = fit_closed_form(net, datamodule.train_dataloader(), optimization.alpha,
@@ -177,7 +177,8 @@ def fit_predictor(
     return FitResult(predictor, last.get("train_loss"), last.get("val_loss"), rounds, checkpoint_path)
 
 
-def _trainer(optimization: OptimizationConfig, progress: bool) -> L.Trainer:
+def make_trainer(optimization: OptimizationConfig, progress: bool) -> L.Trainer:
+    """The Lightning trainer of a fit: one epoch for a closed-form fit (validation only), no logger of its own."""
     epochs = 1 if optimization.fit_method == "closed_form" else optimization.epochs
     return L.Trainer(max_epochs=epochs, accelerator=optimization.accelerator, devices=1, logger=False,
                      enable_checkpointing=False, enable_progress_bar=progress, enable_model_summary=False,

@@ -29,7 +29,7 @@ from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry import Telemetry
-from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, _trainer
+from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, make_trainer
 from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.training.ridge import fit_closed_form
 from eofnn.training.task import OptimizationConfig, PredictorTask
@@ -133,7 +133,7 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
                            stop=train_stop + val_frames) if val_frames else None
     needs_trainer = optimization.fit_method != "closed_form" or val is not None or checkpoint_path is not None
-    trainer = _trainer(optimization, progress) if needs_trainer else None
+    trainer = make_trainer(optimization, progress) if needs_trainer else None
     train_loss = val_loss = None
     if optimization.fit_method == "closed_form":
         train_loss = fit_closed_form(task.network, train, optimization.alpha, optimization.alpha_relative).train_loss

@@ -48,9 +48,9 @@ def _compare_parser():
 
 def one_line(err: BaseException) -> str:
     """An error (jsonargparse's nested ones included) as compare prints it, on one line."""
-    from eofnn.main import _one_line
+    from eofnn.main import one_line
 
-    return _one_line(err)
+    return one_line(err)
 
 
 def resolve_base(config_path: str | Path) -> dict:
