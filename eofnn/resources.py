@@ -22,6 +22,21 @@ def available_memory_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
+#: Actuator-frames per second a controller is simulated at, conservatively (2-core machine, 1264 actuators).
+ACTUATOR_FRAMES_PER_S = 2e6
+#: Longest run accepted without ``--allow_long true``, in seconds.
+MAX_SECONDS = 24 * 3600
+
+
+def require_time(actuator_frames: float, what: str, allow_long: bool = False) -> None:
+    """One-line :class:`ConfigError` when ``what`` would take more than a day at a conservative simulation rate."""
+    seconds = actuator_frames / ACTUATOR_FRAMES_PER_S
+    if seconds > MAX_SECONDS and not allow_long:
+        raise ConfigError(f"{what} would take about {seconds / 3600:.3g} h (estimated at {ACTUATOR_FRAMES_PER_S:.0e} "
+                          f"actuator-frames per second), more than the {MAX_SECONDS // 3600} h limit: make it smaller, "
+                          "or pass --allow_long true to run it anyway")
+
+
 def _gib(n: float) -> str:
     return f"{n / 2**30:.3g} GiB"
 

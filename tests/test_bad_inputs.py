@@ -108,6 +108,8 @@ def test_impossible_geometry_and_timing(capsys, tmp_path, args, expected):
     (["--predictors.ol_eof.history_length", str(10**6)], "history_length=1000000"),
     (["--scenario.grid.n_across", "512", "--evaluation.realisations", "1024"], "of memory"),
     (["--scenario.grid.n_across", "512", "--predictors.ol_eof.data.realisations", "1024"], "of memory"),
+    (["--scenario.grid.n_across", "40", "--evaluation.frames", "10000000", "--evaluation.realisations", "4"],
+     "--allow_long true"),
 ])
 def test_sizes_that_cannot_fit_are_refused_up_front(capsys, tmp_path, args, expected):
     run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")

@@ -44,7 +44,11 @@ def test_compare_writes_metrics_table_config_and_figures(tiny_results):
     assert doubled["ol_eof"]["diverged"] and doubled["ol_eof"]["median_rms_nm"] is None
     assert not doubled["cl_eof"]["diverged"]
     assert doubled["cl_eof"]["median_rms_nm"] < 1.5 * nominal["cl_eof"]["median_rms_nm"]
-    for name in ("rms_vs_time.png", "rms_histogram.png", "residual_psd.png"):
+    contrast = metrics["raw_contrast"]["nominal"]
+    assert set(contrast["ol_eof"]) == {"2", "3", "5"} or set(contrast["ol_eof"]) == {"2", "3", "5", "10"}
+    assert contrast["ol_eof"]["3"] < contrast["integrator"]["3"] < contrast["uncorrected"]["3"]
+    assert "ol_eof" not in metrics["raw_contrast"]["dm_gain_2"]  # diverged: no contrast
+    for name in ("rms_vs_time.png", "rms_histogram.png", "residual_psd.png", "contrast.png"):
         data = (tiny_results / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     table = (tiny_results / "results.md").read_text()

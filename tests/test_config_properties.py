@@ -23,8 +23,9 @@ FIELDS = [(cls, name) for cls in (Layer, Atmosphere, Plant, DataConfig, Optimiza
           for name, c in cls._constraints.items() if isinstance(c, Interval)]
 FIELDS += [(ActuatorGrid, "diameter_m"), (EvaluationConfig, "strehl_wavelength_m"),
            (EvaluationConfig, "divergence_factor"), (EvaluationConfig, "seed")]
+#: (Atmosphere.kernel is left out: which kernels a model allows is a cross-field rule, tested with the models.)
 CHOICES = [(cls, name) for cls in (Atmosphere, Plant, OptimizationConfig)
-           for name, c in cls._constraints.items() if isinstance(c, OneOf)]
+           for name, c in cls._constraints.items() if isinstance(c, OneOf) and (cls, name) != (Atmosphere, "kernel")]
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 #: Fields whose largest values make another, derived limit bite (frames x realisations x rounds).
 PRODUCT_LIMITED = {(DataConfig, "frames"), (DataConfig, "realisations"), (DataConfig, "refit_rounds")}

@@ -37,5 +37,7 @@ def add_evaluation(parser: ArgumentParser) -> None:
                              f"the names are the plant's fields: {names}.")
     parser.add_argument("--evaluation", type=EvaluationConfig, default=EvaluationConfig(),
                         help="Closed-loop evaluation settings.")
+    parser.add_argument("--allow_long", type=bool, default=False,
+                        help="Run an experiment estimated to take more than a day (refused otherwise).")
     parser.add_argument("--reference", type=dict[str, dict[str, float]] | None, default=None,
                         help="Published numbers (scenario -> controller -> median RMS nm) shown beside ours.")

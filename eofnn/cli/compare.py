@@ -45,7 +45,7 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
     out = check_output_folder(cfg.out, cfg.overwrite)
     grid = check_grid(getattr(cfg, "robustness", None))
     experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
-                            trusted_networks=cfg.trusted_networks)
+                            trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
     with staged_folder(out, cfg.overwrite) as staging:
         experiment.checkpoint_dir = staging / "checkpoints"
         (staging / "config.yaml").write_text(config_dump)

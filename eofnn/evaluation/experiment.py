@@ -14,9 +14,10 @@ from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.results import ExperimentResult
-from eofnn.resources import require_memory
+from eofnn.resources import require_memory, require_time
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
@@ -98,7 +99,8 @@ class Experiment:
     def __init__(self, scenario: Scenario, scenarios: dict[str, dict[str, Any]],
                  predictors: dict[str, PredictorConfig], evaluation: EvaluationConfig,
                  checkpoint_dir: str | Path | None = None, progress: bool | None = None,
-                 log: Callable[[str], None] = print, trusted_networks: Collection[str] = ()) -> None:
+                 log: Callable[[str], None] = print, trusted_networks: Collection[str] = (),
+                 allow_long: bool = False) -> None:
         require(isinstance(predictors, dict) and len(predictors) >= 1, "predictors is empty: give at least one")
         self.scenarios = build_scenarios(scenario, scenarios)
         self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
@@ -115,6 +117,14 @@ class Experiment:
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
         self._loaded: dict[str, TrainedPredictor] = {}
         self.checkpoints: dict[str, str] = {}
+        # Time: every controller runs in every scenario; each trained predictor simulates its data once per scenario
+        # (or once where train_in says).
+        work = evaluation.frames * evaluation.realisations * n_act * len(self.predictors) * len(self.scenarios)
+        work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
+                    * n_act * (1 if cfg.train_in else len(self.scenarios))
+                    for cfg in self.predictors.values() if cfg.trains)
+        require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
+                     f"{n_act} actuators)", allow_long)
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
             if cfg.trains:
@@ -160,11 +170,20 @@ class Experiment:
         scenario = plant_scenario if plant_scenario is not None else self.scenarios[scenario_name]
         controller = self.controller(name, scenario_name)
         psd = WelchPSD(ev.psd_segment_frames, scenario.frame_rate_hz, ev.settle_frames)
+        contrast = RawContrast(scenario.grid, ev.strehl_wavelength_m, ev.settle_frames)
+
+        def on_chunk(first: int, arrays: dict) -> None:
+            psd(first, arrays)
+            contrast(first, arrays)
+
         result = run_loop(scenario.turbulence(ev.seed, "test", ev.realisations), scenario.plant, controller,
                           ev.frames, noise_seed=ev.seed, record=(), divergence_factor=ev.divergence_factor,
-                          progress=self.progress, on_chunk=psd)
+                          progress=self.progress, on_chunk=on_chunk)
         metrics = loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
         metrics.fallback_frame = getattr(controller, "fallback_frame", None)
+        if not result.diverged:
+            metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
+            metrics.contrast_at = contrast.at()
         return metrics
 
     def stability(self, name: str, scenario_name: str) -> dict | None:

@@ -69,6 +69,11 @@ class LoopMetrics:
     psd_nm2_per_hz: list[float] = field(default_factory=list, repr=False)
     #: First frame at which an adaptive controller fell back to its integrator (``None``: it never did, or n/a).
     fallback_frame: int | None = None
+    #: Raw contrast behind a perfect coronagraph (at ``strehl_wavelength_m``): separations in lambda/D, the profile,
+    #: and the values at 2, 3, 5 and 10 lambda/D (empty when the loop diverged).
+    contrast_separation_lod: list[float] = field(default_factory=list, repr=False)
+    contrast: list[float] = field(default_factory=list, repr=False)
+    contrast_at: dict[str, float | None] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back)."""

@@ -128,6 +128,19 @@ def plot_psds(result: ExperimentResult, path: Path) -> None:
     _figure(result, path, "Temporal power spectrum of the residual", "frequency (Hz)", "PSD (nm²/Hz)", draw)
 
 
+def plot_contrast(result: ExperimentResult, path: Path) -> None:
+    """Raw contrast behind a perfect coronagraph against separation, one panel per scenario."""
+
+    def draw(ax, preds, styles):
+        for name, m in preds.items():
+            if m.contrast and not m.diverged:
+                sep, c = np.asarray(m.contrast_separation_lod)[1:], np.asarray(m.contrast)[1:]
+                ax.semilogy(sep, np.maximum(c, 1e-18), lw=0.9, label=name, **styles[name])
+        ax.grid(True, which="both", alpha=0.3)
+
+    _figure(result, path, "Raw contrast behind a perfect coronagraph", "separation (λ/D)", "raw contrast", draw)
+
+
 def _caveat(result: ExperimentResult) -> str:
     """Sub-nanometre residuals need a word beside them: they describe the simulator, not the predictor."""
     small = sorted({p for preds in result.metrics.values() for p, m in preds.items()
@@ -146,8 +159,9 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
     table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _caveat(result))
-    figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png"]
+    figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])
     plot_psds(result, figures[2])
+    plot_contrast(result, figures[3])
     return [table, *figures]

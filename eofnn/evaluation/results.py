@@ -25,6 +25,8 @@ class ExperimentResult:
         return {
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
             "stability": self.stability,
+            "raw_contrast": {s: {p: m.contrast_at for p, m in preds.items() if m.contrast_at}
+                             for s, preds in self.metrics.items()},
             "checkpoints": self.checkpoints,
             "timings_s": self.timings_s,
         }
@@ -43,4 +45,6 @@ def save_timeseries(result: ExperimentResult, path: Path) -> None:
             data[f"{s}/{p}/rms_nm"] = np.asarray(m.rms_nm, dtype=np.float64)
             data[f"{s}/{p}/psd_freq_hz"] = np.asarray(m.psd_freq_hz, dtype=np.float64)
             data[f"{s}/{p}/psd_nm2_per_hz"] = np.asarray(m.psd_nm2_per_hz, dtype=np.float64)
+            data[f"{s}/{p}/contrast_separation_lod"] = np.asarray(m.contrast_separation_lod, dtype=np.float64)
+            data[f"{s}/{p}/raw_contrast"] = np.asarray(m.contrast, dtype=np.float64)
     np.savez_compressed(path, **data)

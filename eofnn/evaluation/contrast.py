@@ -1,0 +1,92 @@
+"""Raw contrast behind a perfect coronagraph, from the residual phase on the actuator grid (what on-sky papers plot).
+
+Per sampled frame the residual ``eps`` (nm) becomes a pupil field ``A exp(i 2 pi eps / lambda)`` on the actuator
+grid (one sample per actuator, the pupil mask as amplitude). A perfect coronagraph removes the pupil-averaged
+field, ``E_c = A (exp(i phi) - <exp(i phi)>_pupil)`` (Cavarlaz / Guyon's ideal coronagraph); its focal-plane
+intensity, zero-padded ``padding`` times (so ``padding`` pixels per lambda/D), is normalised by the peak of the
+unobstructed PSF. The mean over frames is averaged azimuthally: raw contrast against separation in lambda/D, up to
+the grid's control radius ``n_across / 2``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.validation import Interval, check_value
+
+#: Separations (lambda/D) reported in metrics.json.
+REPORTED_SEPARATIONS = (2.0, 3.0, 5.0, 10.0)
+
+
+class RawContrast:
+    """Accumulates the coronagraphic intensity of every ``every``-th settled frame; feed it through ``on_chunk``.
+
+    Parameters
+    ----------
+    grid : ActuatorGrid
+        Where the residual is sampled.
+    wavelength_m : float
+        Science wavelength in metres.
+    settle_frames : int
+        Frames skipped at the start.
+    every : int
+        One frame in ``every`` is propagated (frames a few ms apart are nearly the same speckles).
+    padding : int
+        Zero padding of the pupil: focal-plane pixels per lambda/D.
+    """
+
+    def __init__(self, grid: ActuatorGrid, wavelength_m: float, settle_frames: int = 0, every: int = 10,
+                 padding: int = 4) -> None:
+        check_value("every", every, Interval(1, 10_000, integer=True))
+        check_value("padding", padding, Interval(2, 16, integer=True))
+        self.grid, self.wavelength_m, self.settle, self.every, self.padding = grid, wavelength_m, settle_frames, every, padding
+        n = grid.n_across
+        self._size = padding * n
+        self._index = torch.as_tensor(grid.indices[:, 0] * self._size + grid.indices[:, 1])
+        amplitude = torch.zeros(self._size * self._size, dtype=torch.complex128)
+        amplitude[self._index] = 1.0
+        self._peak = float(torch.fft.fft2(amplitude.view(self._size, self._size)).abs().max() ** 2)
+        self._sum: torch.Tensor | None = None
+        self._count = 0
+
+    def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
+        eps = arrays["eps"]
+        frames = [i for i in range(eps.shape[1]) if (first_frame + i) >= self.settle and (first_frame + i) % self.every == 0]
+        if not frames:
+            return
+        phase = eps[:, frames].reshape(-1, eps.shape[-1]) * (2 * math.pi * 1e-9 / self.wavelength_m)
+        field = torch.exp(1j * phase)
+        field = field - field.mean(-1, keepdim=True)  # the perfect coronagraph: no coherent part is left
+        pupil = torch.zeros(field.shape[0], self._size * self._size, dtype=torch.complex128)
+        pupil[:, self._index] = field
+        intensity = torch.fft.fft2(pupil.view(-1, self._size, self._size)).abs().pow(2).sum(0)
+        self._sum = intensity if self._sum is None else self._sum + intensity
+        self._count += field.shape[0]
+
+    def profile(self) -> tuple[list[float], list[float]]:
+        """Separations (lambda/D, one per focal-plane pixel) and the azimuthally averaged raw contrast."""
+        if self._sum is None:
+            return [], []
+        image = torch.fft.fftshift(self._sum / (self._count * self._peak))
+        c = self._size // 2
+        yy, xx = torch.meshgrid(torch.arange(self._size) - c, torch.arange(self._size) - c, indexing="ij")
+        radius = torch.round(torch.hypot(yy.double(), xx.double())).long()
+        limit = self.grid.n_across * self.padding // 2  # the control radius n/2 lambda/D
+        sums = torch.zeros(limit + 1, dtype=torch.float64).scatter_add_(0, radius.clamp(max=limit).flatten(),
+                                                                       image.flatten())
+        counts = torch.zeros(limit + 1, dtype=torch.float64).scatter_add_(0, radius.clamp(max=limit).flatten(),
+                                                                         torch.ones(image.numel(), dtype=torch.float64))
+        separations = (torch.arange(limit) / self.padding).tolist()
+        return separations, (sums[:limit] / counts[:limit]).tolist()
+
+    def at(self, separations: tuple[float, ...] = REPORTED_SEPARATIONS) -> dict[str, float | None]:
+        """Raw contrast at the given separations (lambda/D); ``None`` beyond the control radius or with no frames."""
+        seps, values = self.profile()
+        out = {}
+        for s in separations:
+            index = round(s * self.padding)
+            out[f"{s:g}"] = values[index] if values and index < len(values) else None
+        return out
