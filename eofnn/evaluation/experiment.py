@@ -117,14 +117,6 @@ class Experiment:
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
         self._loaded: dict[str, TrainedPredictor] = {}
         self.checkpoints: dict[str, str] = {}
-        # Time: every controller runs in every scenario; each trained predictor simulates its data once per scenario
-        # (or once where train_in says).
-        work = evaluation.frames * evaluation.realisations * n_act * len(self.predictors) * len(self.scenarios)
-        work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
-                    * n_act * (1 if cfg.train_in else len(self.scenarios))
-                    for cfg in self.predictors.values() if cfg.trains)
-        require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
-                     f"{n_act} actuators)", allow_long)
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
             if cfg.trains:
@@ -136,6 +128,14 @@ class Experiment:
                                   f"{', '.join(self.scenarios)}")
             if cfg.checkpoint is not None:
                 self._loaded[name] = load_configured_checkpoint(name, cfg, self.scenarios, trusted)
+        # Time: every controller runs in every scenario; each trained predictor simulates its data once per scenario
+        # (or once where train_in says).
+        work = evaluation.frames * evaluation.realisations * n_act * len(self.predictors) * len(self.scenarios)
+        work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
+                    * n_act * (1 if cfg.train_in else len(self.scenarios))
+                    for cfg in self.predictors.values() if cfg.trains)
+        require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
+                     f"{n_act} actuators)", allow_long)
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
