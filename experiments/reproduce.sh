@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate the reproduction of the reference study: run configs/paper.yaml, the design-choice sweeps, and
-# rewrite experiments/README.md from their metrics. About 20 minutes on 2 cores (19 measured). Run after scripts/setup.sh.
+# rewrite experiments/README.md from their metrics. About 20 minutes on 2 cores. Run after scripts/setup.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 eofnn=.venv/bin/eofnn
