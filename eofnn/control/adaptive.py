@@ -20,6 +20,7 @@ finite, that realisation switches to an integrator restarted from zero for good,
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections import deque
 
 import torch
@@ -57,7 +58,7 @@ def integrator_filter(spec: HistorySpec, gain: float, leak: float = 0.0) -> torc
     return weights
 
 
-class AdaptiveController:
+class AdaptiveController(ABC):
     """Shared machinery: histories, the telemetry regression pairs, dither and the fallback.
 
     Parameters
@@ -207,11 +208,13 @@ class AdaptiveController:
             self._open_loop_rms = self._open_loop_sum / (n - d + 1)
 
     # -- learning (subclasses) -----------------------------------------------------------------------------------
+    @abstractmethod
     def _reset_learning(self, batch: int, n_actuators: int, taps: int) -> None:
-        raise NotImplementedError
+        """Clear what the filter has learnt (RLS covariances, blend normal equations) for a new run."""
 
+    @abstractmethod
     def _learn(self, regressor: torch.Tensor, target: torch.Tensor, frame: int) -> None:
-        raise NotImplementedError
+        """Update the filter with one frame's ``(batch, K, taps)`` regressor and ``(batch, K)`` target."""
 
 
 class RLSController(AdaptiveController):
