@@ -145,10 +145,5 @@ def main(args: list[str] | None = None) -> int:
     return status if isinstance(status, int) and not isinstance(status, bool) else 0
 
 
-def console() -> None:
-    """Console-script wrapper: exit with :func:`main`'s status."""
-    sys.exit(main())
-
-
 if __name__ == "__main__":
-    console()
+    sys.exit(main())

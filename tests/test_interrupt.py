@@ -62,3 +62,17 @@ def test_a_finished_overwrite_replaces_the_result_whole(tmp_path):
     assert b"the earlier result" not in after["metrics.json"] and b"earlier" not in after["results.md"]
     assert {"metrics.json", "results.md", "config.yaml", "rms_vs_time.png", "residual_psd.png"} <= set(after)
     assert (out / "checkpoints").is_dir() and not list(tmp_path.glob(".run.*"))
+
+
+def test_ctrl_c_while_eofnn_is_still_importing_is_one_line_and_130(tmp_path):
+    """The console script answers Ctrl-C even during its imports (torch, Lightning: seconds), without a traceback."""
+    code = ("import sys; sys.argv = ['eofnn', 'compare', '--config', sys.argv[1], '--out', sys.argv[2]];"
+            "from eofnn.console import console; console()")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(CONF / "tiny_compare.yaml"), str(tmp_path / "out")],
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("eofnn: interrupted")
+    assert not (tmp_path / "out").exists()

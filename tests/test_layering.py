@@ -10,7 +10,7 @@ import pytest
 #: Floors from the bottom up; a module may import its own floor and those below it.
 FLOORS = ["sim", "data", "models", "control", "training", "evaluation", "cli"]
 #: Packages that sit on a floor of another name.
-SAME_FLOOR = {"analysis": "evaluation", "main": "cli"}
+SAME_FLOOR = {"analysis": "evaluation", "main": "cli", "console": "cli"}
 #: Leaf modules anyone may import; they import nothing of eofnn above themselves.
 BASE = {"errors", "validation", "seeding", "outputs", "resources"}
 #: Modules that must stand alone (copied into a real-time computer): no eofnn import at all.
