@@ -154,10 +154,14 @@ class Experiment:
                 self.checkpoints[f"{name}/{train_in}"] = f"{path.parent.name}/{path.name}"
         return self._trained[key]
 
+    def _predictor_if_any(self, name: str, scenario_name: str) -> TrainedPredictor | None:
+        """The trained predictor of controller ``name`` if it runs one (baselines run none)."""
+        return self.predictor(name, scenario_name) if self.predictors[name].controller in NEEDS_PREDICTOR else None
+
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
         cfg = self.predictors[name]
-        predictor = self.predictor(name, scenario_name) if cfg.controller in NEEDS_PREDICTOR else None
+        predictor = self._predictor_if_any(name, scenario_name)
         return build_controller(cfg, predictor)
 
     def evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
@@ -189,7 +193,7 @@ class Experiment:
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
         cfg = self.predictors[name]
-        predictor = self.predictor(name, scenario_name) if cfg.controller in NEEDS_PREDICTOR else None
+        predictor = self._predictor_if_any(name, scenario_name)
         result = controller_stability(cfg, predictor, self.scenarios[scenario_name])
         return None if result is None else stability_summary(result)
 

@@ -115,30 +115,31 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
             draw)
 
 
-def plot_psds(result: ExperimentResult, path: Path) -> None:
-    """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
+def _curves_figure(result: ExperimentResult, path: Path, x: str, y: str, floor: float, log_x: bool, lw: float,
+                   title: str, xlabel: str, ylabel: str) -> None:
+    """One curve per controller that did not diverge, of its ``y`` list against its ``x`` list (first point dropped,
+    log y clipped at ``floor``), one panel per scenario."""
 
     def draw(ax, preds, styles):
         for name, m in preds.items():
-            if m.psd_freq_hz and not m.diverged:
-                f, p = np.asarray(m.psd_freq_hz)[1:], np.asarray(m.psd_nm2_per_hz)[1:]
-                ax.loglog(f, np.maximum(p, 1e-30), lw=0.8, label=name, **styles[name])
+            if getattr(m, y) and not m.diverged:
+                xs, ys = np.asarray(getattr(m, x))[1:], np.asarray(getattr(m, y))[1:]
+                (ax.loglog if log_x else ax.semilogy)(xs, np.maximum(ys, floor), lw=lw, label=name, **styles[name])
         ax.grid(True, which="both", alpha=0.3)
 
-    _figure(result, path, "Temporal power spectrum of the residual", "frequency (Hz)", "PSD (nm²/Hz)", draw)
+    _figure(result, path, title, xlabel, ylabel, draw)
+
+
+def plot_psds(result: ExperimentResult, path: Path) -> None:
+    """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
+    _curves_figure(result, path, "psd_freq_hz", "psd_nm2_per_hz", 1e-30, True, 0.8,
+                   "Temporal power spectrum of the residual", "frequency (Hz)", "PSD (nm²/Hz)")
 
 
 def plot_contrast(result: ExperimentResult, path: Path) -> None:
     """Raw contrast behind a perfect coronagraph against separation, one panel per scenario."""
-
-    def draw(ax, preds, styles):
-        for name, m in preds.items():
-            if m.contrast and not m.diverged:
-                sep, c = np.asarray(m.contrast_separation_lod)[1:], np.asarray(m.contrast)[1:]
-                ax.semilogy(sep, np.maximum(c, 1e-18), lw=0.9, label=name, **styles[name])
-        ax.grid(True, which="both", alpha=0.3)
-
-    _figure(result, path, "Raw contrast behind a perfect coronagraph", "separation (λ/D)", "raw contrast", draw)
+    _curves_figure(result, path, "contrast_separation_lod", "contrast", 1e-18, False, 0.9,
+                   "Raw contrast behind a perfect coronagraph", "separation (λ/D)", "raw contrast")
 
 
 def _caveat(result: ExperimentResult) -> str:
