@@ -41,7 +41,7 @@ FULL = {
     "exact": {"n_across": (40, 80), "chunk_frames": 1024, "chunks_per_repeat": 8, "hcipy_frames": 400, "repeat": 3,
               "stream_frames": 100_000, "stream_across": 40},
     "loop": {"n_across": 40, "history_length": 12, "n_frames": 2000, "step_count": 2000, "repeat": 5},
-    "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "batch_frames": (256, 4096), "repeat": 3},
+    "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "repeat": 3},
     "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
                    "val_frames": 2000, "eval_frames": 5000, "repeat": 2},
     "scaling": {},
