@@ -8,6 +8,7 @@ from torch import nn
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.models.build import input_dtype
+from eofnn.models.linear import LinearFilter
 from eofnn.sim.loop import LoopInput
 
 
@@ -51,6 +52,11 @@ class PredictiveController:
     reset) the command is zero, so that every history the network sees is a true one (``eps = s + DM(y)`` with
     the commands really applied) rather than one padded with zeros.
 
+    A per-actuator or shared :class:`~eofnn.models.linear.LinearFilter` whose weights live on the loop's device in
+    the loop's dtype runs on a fast path: the history is written into one preallocated buffer and the filter is
+    ``torch.mul`` and ``torch.sum`` into preallocated outputs, the same arithmetic as ``LinearFilter.forward``
+    (bit-identical commands) without the per-step allocations.
+
     Parameters
     ----------
     network : nn.Module
@@ -81,20 +87,43 @@ class PredictiveController:
         self._signal = HistoryRing(shape, p, dtype)
         self._frames_seen = 0
         self.network.eval()
+        weight = getattr(self.network, "weight", None)
+        fast = (isinstance(self.network, LinearFilter) and self.network.structure in ("per_actuator", "shared")
+                and weight.dtype == dtype and weight.device == self._device == torch.device("cpu"))
+        self._weight = weight.detach() if fast else None
+        if fast:
+            taps = self.spec.n_taps
+            self._history = torch.empty(batch, n_actuators, taps, dtype=dtype)
+            self._product = torch.empty(batch, n_actuators, taps, dtype=dtype)
 
     @torch.no_grad()
     def step(self, inp: LoopInput) -> torch.Tensor:
         p, d = self.spec.history_length, self.spec.delay_frames
         if self.spec.kind == "open_loop":
             self._signal.push(inp.wfs - self.dm_gain_model * self._y[d - 1])  # POL value of frame n - d
-            history = self._signal.view
         else:
             self._signal.push(inp.wfs)
-            history = torch.cat([self._y.view[..., :p], self._signal.view], dim=-1)
         if self._frames_seen < self.spec.first_frame:
             y = torch.zeros_like(inp.wfs)
+        elif self._weight is not None:
+            y = self._fast_filter(p)
         else:
+            if self.spec.kind == "open_loop":
+                history = self._signal.view
+            else:
+                history = torch.cat([self._y.view[..., :p], self._signal.view], dim=-1)
             y = self.network(history.to(self._device, self._dtype)).to(inp.wfs.device, self._out_dtype)
         self._frames_seen += 1
         self._y.push(y)
         return y
+
+    def _fast_filter(self, p: int) -> torch.Tensor:
+        """``LinearFilter.forward`` of the current history, through the preallocated buffers."""
+        if self.spec.kind == "open_loop":
+            history = self._signal.view
+        else:
+            history = self._history
+            history[..., :p].copy_(self._y.view[..., :p])
+            history[..., p:].copy_(self._signal.view)
+        torch.mul(history, self._weight, out=self._product)
+        return self._product.sum(-1)

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from eofnn.errors import CollinearityWarning, require
-from eofnn.validation import NON_NEGATIVE, Interval, check_value
+from eofnn.validation import NON_NEGATIVE, check_value
 
 
 @dataclass
@@ -35,63 +35,31 @@ class NormalEquations:
     Data never has to fit in memory: each :meth:`update` adds one batch of ``(groups, samples, features)``
     regressors and ``(groups, samples)`` targets in float64.
 
-    Small batches are first copied into a preallocated block of at most ``block_bytes``; a full block (or a batch
-    at least a block long) is added with three batched products (``torch.baddbmm``) into preallocated
-    accumulators. Batches of 256 frames (``fit_predictor``'s default) would otherwise each pay the start-up of
-    one small matrix product per group, several times the products' arithmetic on a loaded machine. The result
-    is bit-reproducible for a given sequence of batch sizes; memory stays bounded by the block.
-
-    Parameters
-    ----------
-    block_bytes : int
-        Most bytes of the block that buffers small batches (0: no buffering).
+    Each update is three batched products (``torch.baddbmm``) added into preallocated accumulators, with no
+    per-batch temporaries. (Buffering small batches into a larger block was measured and is slower: the copy
+    costs more than the products' start-up it saves.)
     """
 
-    def __init__(self, block_bytes: int = 256 * 2**20) -> None:
-        check_value("block_bytes", block_bytes, Interval(0, None, integer=True))
-        self.block_bytes = block_bytes
+    def __init__(self) -> None:
         self._gram: torch.Tensor | None = None
         self._cross: torch.Tensor | None = None  # (groups, features, 1)
         self._power: torch.Tensor | None = None  # (groups, 1, 1)
-        self._block: tuple[torch.Tensor, torch.Tensor] | None = None  # (groups, block, features), (groups, block, 1)
-        self._pending = 0  # samples waiting in the block
-        self._n_added = 0
-
-    @property
-    def n_samples(self) -> int:
-        """Samples passed to :meth:`update` so far."""
-        return self._n_added + self._pending
+        self.n_samples = 0
 
     @property
     def gram(self) -> torch.Tensor | None:
         """``(groups, features, features)``: ``D D^T`` accumulated so far."""
-        self._flush()
         return self._gram
 
     @property
     def cross(self) -> torch.Tensor | None:
         """``(groups, features)``: ``P D^T`` accumulated so far."""
-        self._flush()
         return None if self._cross is None else self._cross.squeeze(-1)
 
     @property
     def target_power(self) -> torch.Tensor | None:
         """``(groups,)``: the sum of squared targets accumulated so far."""
-        self._flush()
         return None if self._power is None else self._power.view(-1)
-
-    def _add(self, x: torch.Tensor, t: torch.Tensor) -> None:
-        """Add ``x (groups, samples, features)`` and ``t (groups, samples, 1)`` to the accumulators."""
-        xt = x.transpose(1, 2)
-        torch.baddbmm(self._gram, xt, x, out=self._gram)
-        torch.baddbmm(self._cross, xt, t, out=self._cross)
-        torch.baddbmm(self._power, t.transpose(1, 2), t, out=self._power)
-        self._n_added += x.shape[1]
-
-    def _flush(self) -> None:
-        if self._pending:
-            n, self._pending = self._pending, 0
-            self._add(self._block[0][:, :n], self._block[1][:, :n])
 
     @torch.no_grad()
     def update(self, features: torch.Tensor, target: torch.Tensor) -> None:
@@ -101,20 +69,11 @@ class NormalEquations:
             self._gram = x.new_zeros(groups, n_features, n_features)
             self._cross = x.new_zeros(groups, n_features, 1)
             self._power = x.new_zeros(groups, 1, 1)
-            block = self.block_bytes // (8 * groups * (n_features + 1))
-            if block > 1:
-                self._block = (x.new_empty(groups, block, n_features), x.new_empty(groups, block, 1))
-        block = 0 if self._block is None else self._block[0].shape[1]
-        if samples >= block:
-            self._flush()
-            self._add(x, t)
-            return
-        if self._pending + samples > block:
-            self._flush()
-        a, b = self._pending, self._pending + samples
-        self._block[0][:, a:b].copy_(x)
-        self._block[1][:, a:b].copy_(t)
-        self._pending = b
+        xt = x.transpose(1, 2)
+        torch.baddbmm(self._gram, xt, x, out=self._gram)
+        torch.baddbmm(self._cross, xt, t, out=self._cross)
+        torch.baddbmm(self._power, t.transpose(1, 2), t, out=self._power)
+        self.n_samples += samples
 
     def solve(self, alpha: float = 0.0, relative: bool = True, warn_condition: float = 1e16) -> RidgeSolution:
         """Solve the regularised normal equations.
@@ -132,7 +91,6 @@ class NormalEquations:
         """
         require(self._gram is not None, "no data accumulated: call update() before solve()")
         check_value("alpha", alpha, NON_NEGATIVE)
-        self._flush()
         n_features = self._gram.shape[-1]
         diagonal = self._gram.diagonal(dim1=1, dim2=2)
         # Features that are zero in every sample (neighbourhood slots beyond the pupil edge) get zero weight:
@@ -158,7 +116,6 @@ class NormalEquations:
     def loss(self, weights: torch.Tensor) -> float:
         """Mean squared error of ``weights`` on the accumulated data, from the sufficient statistics."""
         w = weights.to(torch.float64)
-        self._flush()
         sse = self.target_power - 2 * (w * self.cross).sum(-1) + (w.unsqueeze(1) @ self._gram @ w.unsqueeze(-1)).view(-1)
         return float(sse.sum() / (self.n_samples * self._gram.shape[0]))
 
