@@ -95,7 +95,8 @@ def test_the_b_spline_strip_fails_the_same_comparison():
     """The check above can fail: the strip's piecewise-polynomial series collapse between multiples of v / pitch."""
     speed, rate = 10.0, 1000.0
     grid = ActuatorGrid(1.6, 8)
-    atm = Atmosphere(r0_m=R0, r0_wavelength_m=WAVELENGTH, layers=(Layer(1.0, speed, 0.0),), remove_ptt=False)
+    atm = Atmosphere(r0_m=R0, r0_wavelength_m=WAVELENGTH, layers=(Layer(1.0, speed, 0.0),), remove_ptt=False,
+                     model="strip")
     s = Turbulence(atm, grid, rate, seed=0, n_realisations=2).frames(0, 8192).numpy()
     f, measured = welch(s, fs=rate, nperseg=4096, axis=1)
     theory = theory_temporal_psd_nm2_per_hz(f, speed, grid.pitch_m, "point", 20.0, rate)

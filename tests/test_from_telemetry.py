@@ -87,7 +87,8 @@ def test_open_loop_eof_needs_the_identified_plant(unknown_plant):
     integrator = closed_loop_rms(sc, Integrator(0.3))
     assert identified == pytest.approx(truth, rel=0.2)
     assert identified < 0.5 * integrator
-    assert nominal > 5 * identified  # the study's failure: POL under the nominal assumption (here it diverges)
+    # The study's failure: POL under the nominal assumption loses most of the gain (worse than the integrator).
+    assert nominal > 3 * identified and nominal > integrator
 
 
 @pytest.mark.parametrize("kind", ["open_loop", "closed_loop"])

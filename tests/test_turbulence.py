@@ -30,7 +30,8 @@ def theory_structure_function_nm2(r_m: np.ndarray, r0_m: float, wavelength_m: fl
 def test_structure_function_matches_von_karman(layers):
     """Cn² adds over layers, so any profile has the structure function of its total r0."""
     grid = ActuatorGrid(4.0, 20)
-    atm = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=layers, remove_ptt=False)
+    atm = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=layers, remove_ptt=False,
+                     model="strip")
     # 20 m/s at 25 Hz: frames 0.8 m apart, so 60 frames x 12 realisations sample ~200 m of screen.
     s = Turbulence(atm, grid, 25.0, seed=3, stream="physics", n_realisations=12).frames(0, 60)
     maps = grid.to_map(s)  # (B, T, n, n) with NaN off the pupil
@@ -51,7 +52,8 @@ def test_structure_function_matches_von_karman(layers):
 def test_frozen_flow_integer_shift_is_exact():
     grid = ActuatorGrid(4.0, 20)
     # 4 m/s at 100 Hz: 0.04 m per frame, so 5 frames move the screen exactly one 0.2 m pitch along +x.
-    atm = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, layers=(Layer(1.0, 4.0, 0.0),), remove_ptt=False)
+    atm = Atmosphere(r0_m=0.1, r0_wavelength_m=500e-9, layers=(Layer(1.0, 4.0, 0.0),), remove_ptt=False,
+                     model="strip")
     s = Turbulence(atm, grid, 100.0, seed=1).frames(0, 40)[0]
     maps = grid.to_map(s)
     later, earlier = maps[7:, :, 1:], maps[2:-5, :, :-1]  # s(x, n + 5) = s(x - pitch, n)
@@ -79,7 +81,7 @@ def test_frozen_flow_subpixel_translation(direction):
 
 def test_any_frame_range_and_chunking_give_the_same_frames():
     grid = ActuatorGrid(2.0, 10)
-    atm = Atmosphere(layers=(Layer(0.7, 30.0, 10.0), Layer(0.3, 12.0, 250.0)))
+    atm = Atmosphere(layers=(Layer(0.7, 30.0, 10.0), Layer(0.3, 12.0, 250.0)), model="strip")
     whole = Turbulence(atm, grid, 500.0, seed=5, n_realisations=2).frames(0, 900)
     chunked = torch.cat([c for _, c in Turbulence(atm, grid, 500.0, seed=5, n_realisations=2).chunks(900, 77)], 1)
     torch.testing.assert_close(chunked, whole, rtol=0, atol=1e-9)

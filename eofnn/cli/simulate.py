@@ -59,6 +59,7 @@ def run(cfg, config_dump: str) -> None:
     require_memory(4 * 8 * cfg.frames * cfg.realisations * scenario.grid.n_actuators,
                    f"simulate with frames={cfg.frames}, realisations={cfg.realisations} and "
                    f"{scenario.grid.n_actuators} actuators")
+    scenario.require_stream_frames(cfg.frames, f"frames={cfg.frames}")
     if p.controller in NEEDS_PREDICTOR:
         predictor = load_configured_checkpoint("controller", p, {"scenario": scenario},
                                                trusted_class_paths({"controller": p}, cfg.trusted_networks))

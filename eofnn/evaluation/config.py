@@ -49,6 +49,11 @@ class PredictorConfig:
         A checkpoint from ``eofnn fit`` or ``compare`` to evaluate instead of training.
     gain : float
         Integrator gain (``controller: integrator``).
+    gains : list of float, optional
+        Integrator gains to choose from (``controller: integrator``): in each scenario the experiment closes the
+        loop with each on a stream of its own (``data.frames`` frames, seed ``data.seed``, never the test stream)
+        and keeps the one with the lowest median residual, the best-gain integrator a fair comparison needs;
+        ``gain`` is then not used. The gains tried, their residuals and the choice go to ``metrics.json``.
     leak : float
         Integrator leak (``controller: integrator``).
     adaptation : AdaptationConfig
@@ -67,6 +72,7 @@ class PredictorConfig:
     train_in: str | None = None
     checkpoint: str | None = None
     gain: float = 0.5
+    gains: list[float] | None = None
     leak: float = 0.0
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     dm_gain_model: float | None = None
@@ -95,6 +101,13 @@ class PredictorConfig:
                               f"{self.checkpoint!r} is for controller: predictor")
         if self.controller == "integrator":
             Integrator(self.gain, self.leak)  # validates gain and leak
+        if self.gains is not None:
+            if self.controller != "integrator":
+                raise ConfigError(f"gains={self.gains!r} is for controller: integrator, not {self.controller!r}")
+            if not isinstance(self.gains, (list, tuple)) or not self.gains:
+                raise ConfigError(f"gains={self.gains!r} is invalid: give a non-empty list of integrator gains")
+            for gain in self.gains:
+                Integrator(gain, self.leak)
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")

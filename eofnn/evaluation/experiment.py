@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Collection
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.linear import summary as stability_summary
+from eofnn.control.baselines import Integrator
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
@@ -18,6 +20,7 @@ from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import require_memory, require_time
+from eofnn.seeding import int_seed
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
@@ -116,6 +119,8 @@ class Experiment:
         self.progress, self.log = progress, log
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
         self._loaded: dict[str, TrainedPredictor] = {}
+        #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
+        self.gain_scans: dict[tuple[str, str], dict] = {}
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
@@ -131,11 +136,24 @@ class Experiment:
         # Time: every controller runs in every scenario; each trained predictor simulates its data once per scenario
         # (or once where train_in says).
         work = evaluation.frames * evaluation.realisations * n_act * len(self.predictors) * len(self.scenarios)
+        work += sum(len(cfg.gains) * cfg.data.frames * n_act * len(self.scenarios)
+                    for cfg in self.predictors.values() if cfg.gains is not None)
         work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
                     * n_act * (1 if cfg.train_in else len(self.scenarios))
                     for cfg in self.predictors.values() if cfg.trains)
         require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
                      f"{n_act} actuators)", allow_long)
+        # Streams the exact turbulence screen must hold (training sequences are checked with their memory).
+        for scenario_value in self.scenarios.values():
+            scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}")
+            for name, cfg in self.predictors.items():
+                if cfg.gains is not None:
+                    scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
+                                                         f"{cfg.data.frames} (the gain scan)")
+                elif cfg.trains and not cfg.data.truth:
+                    n = cfg.data.frames + cfg.data.val_frames
+                    scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
+                                                         f"(data.frames + data.val_frames = {n})")
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
@@ -158,11 +176,36 @@ class Experiment:
         """The trained predictor of controller ``name`` if it runs one (baselines run none)."""
         return self.predictor(name, scenario_name) if self.predictors[name].controller in NEEDS_PREDICTOR else None
 
+    def config(self, name: str, scenario_name: str) -> PredictorConfig:
+        """Controller ``name``'s config as it runs in ``scenario_name``: a best-gain integrator has its gain chosen."""
+        cfg = self.predictors[name]
+        if cfg.gains is None:
+            return cfg
+        key = (name, scenario_name)
+        if key not in self.gain_scans:
+            self.gain_scans[key] = self._scan_gains(cfg, self.scenarios[scenario_name])
+            scan = self.gain_scans[key]
+            self.log(f"{scenario_name:>12s} {name:>18s}: best integrator gain {scan['gain']:g} of "
+                     f"{', '.join(f'{g:g}' for g in cfg.gains)}")
+        return replace(cfg, gains=None, gain=self.gain_scans[key]["gain"])
+
+    def _scan_gains(self, cfg: PredictorConfig, scenario: Scenario) -> dict:
+        """Close the loop with each of ``cfg.gains`` on a stream of its own; the lowest median residual wins."""
+        settle = min(self.evaluation.settle_frames, cfg.data.frames // 2)
+        scanned: dict[str, float | None] = {}
+        for gain in cfg.gains:
+            result = run_loop(scenario.turbulence(cfg.data.seed, "gain-scan"), scenario.plant,
+                              Integrator(gain, cfg.leak), cfg.data.frames, noise_seed=int_seed(cfg.data.seed, "gain-scan"),
+                              record=(), divergence_factor=self.evaluation.divergence_factor, progress=False)
+            scanned[f"{gain:g}"] = None if result.diverged else float(result.residual_rms_nm[:, settle:].median())
+        finite = {g: v for g, v in zip(cfg.gains, scanned.values()) if v is not None}
+        require(bool(finite), f"every integrator gain of gains={cfg.gains!r} diverged in scenario: give smaller gains")
+        return {"gain": min(finite, key=finite.get), "scanned": scanned}
+
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
-        cfg = self.predictors[name]
         predictor = self._predictor_if_any(name, scenario_name)
-        return build_controller(cfg, predictor)
+        return build_controller(self.config(name, scenario_name), predictor)
 
     def evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
         """Closed-loop metrics of controller ``name`` as made for ``scenario_name``, on the test stream.
@@ -192,9 +235,8 @@ class Experiment:
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
-        cfg = self.predictors[name]
         predictor = self._predictor_if_any(name, scenario_name)
-        result = controller_stability(cfg, predictor, self.scenarios[scenario_name])
+        result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
         return None if result is None else stability_summary(result)
 
     def run(self) -> ExperimentResult:
@@ -212,7 +254,10 @@ class Experiment:
                 if margins is not None:
                     stability[scenario_name][name] = margins
                 self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins)}")
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability)
+        gains: dict[str, dict[str, dict]] = {}
+        for (name, scenario_name), scan in self.gain_scans.items():
+            gains.setdefault(scenario_name, {})[name] = scan
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains)
 
 
 def _describe(m: LoopMetrics, margins: dict | None) -> str:

@@ -155,11 +155,22 @@ def _caveat(result: ExperimentResult) -> str:
             "same turbulence construction, and look at the residual PSD (residual_psd.png) before believing them.\n")
 
 
+def _gains(result: ExperimentResult) -> str:
+    """A line per best-gain integrator: the gain chosen in each scenario."""
+    lines = []
+    for scenario, scans in result.integrator_gains.items():
+        for name, scan in scans.items():
+            lines.append(f"- {name} in {scenario}: gain {scan['gain']:g} (best of {', '.join(scan['scanned'])})")
+    return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n" \
+        if lines else ""
+
+
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                  reference: dict[str, dict[str, float]] | None = None) -> list[Path]:
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
-    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _caveat(result))
+    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _gains(result)
+                     + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])

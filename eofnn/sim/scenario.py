@@ -56,6 +56,14 @@ class Scenario:
         """The turbulence stream of this scenario for ``seed`` and ``stream``."""
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations)
 
+    def require_stream_frames(self, n_frames: int, what: str) -> None:
+        """Refuse, up front, a stream of ``n_frames`` frames that the ``exact`` turbulence screen cannot hold."""
+        atm = self.atmosphere
+        if atm.model == "exact" and n_frames > atm.screen_frames:
+            raise ConfigError(f"{what} needs {n_frames} frames of one turbulence realisation but "
+                              f"atmosphere.screen_frames={atm.screen_frames} (model exact): raise "
+                              f"atmosphere.screen_frames to at least {n_frames}, or use shorter streams")
+
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""
         return replace(self, plant=self.plant.with_errors(**changes))

@@ -29,7 +29,7 @@ from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
 from eofnn.sim.strip import FrozenFlowStrip
-from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, check_value, validated
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, OrNone, check_value, validated
 
 MODELS = ("exact", "hcipy_pupil", "strip")
 
@@ -81,12 +81,14 @@ class Atmosphere:
         B-spline order of the sub-pixel translation: 1 (linear), 3 (cubic) or 5 (quintic, as HCIPy).
     remove_ptt : bool
         Project piston, tip and tilt out of every frame.
-    model : {"strip", "exact", "hcipy_pupil"}
-        How layers are built (see the module docstring); ``oversampling`` and ``interpolation_order`` are the
-        strip's.
-    kernel : {"point", "subaperture"}
-        Sensing kernel: ``point`` samples the field at the actuators; ``subaperture`` (model ``exact`` only)
-        averages it over each actuator's pitch x pitch subaperture.
+    model : {"exact", "hcipy_pupil", "strip"}
+        How layers are built (see the module docstring); ``exact`` by default. ``oversampling`` and
+        ``interpolation_order`` are the strip's.
+    kernel : {"subaperture", "point"} or None
+        Sensing kernel: ``subaperture`` (model ``exact`` only) averages the phase over each actuator's pitch x pitch
+        subaperture, a perfect zonal Shack-Hartmann-like measurement; ``point`` samples the field at the actuators.
+        ``None`` (the default) takes the model's own (:attr:`sensing_kernel`): ``subaperture`` for ``exact``,
+        ``point`` for the others.
     screen_frames : int
         Frames one realisation of the ``exact`` model holds (frames ``0 .. screen_frames - 1``); memory and set-up
         time grow with it.
@@ -99,13 +101,13 @@ class Atmosphere:
     oversampling: int = 1
     interpolation_order: int = 5
     remove_ptt: bool = True
-    model: str = "strip"
-    kernel: str = "point"
-    screen_frames: int = 16384
+    model: str = "exact"
+    kernel: str | None = None
+    screen_frames: int = 10000
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "model": OneOf(MODELS),
-        "kernel": OneOf(KERNELS),
+        "kernel": OrNone(OneOf(KERNELS)),
         "screen_frames": COUNT,
         "r0_m": Interval(0, 100, closed="right", unit="m"),
         "r0_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
@@ -122,7 +124,7 @@ class Atmosphere:
         layers = [Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers]
         require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
         object.__setattr__(self, "layers", layers)
-        require(self.model == "exact" or self.kernel == "point",
+        require(self.model == "exact" or self.kernel in (None, "point"),
                 f"kernel={self.kernel!r} is invalid for model {self.model!r}: it samples points on the actuator-pitch "
                 "grid; use kernel 'point' or model 'exact'")
         if self.model == "exact":
@@ -132,6 +134,13 @@ class Atmosphere:
                 require(lay.wind_speed_mps > 0,
                         f"wind_speed_mps={lay.wind_speed_mps!r} is invalid for model 'exact': it must be > 0 (m/s)")
                 lattice_direction(lay.wind_direction_deg)
+
+    @property
+    def sensing_kernel(self) -> str:
+        """The kernel in use: ``kernel``, or the model's own when it is ``None``."""
+        if self.kernel is not None:
+            return self.kernel
+        return "subaperture" if self.model == "exact" else "point"
 
     def layer_r0_m(self, layer: Layer) -> float:
         """Fried parameter of one layer at ``r0_wavelength_m`` (r0 scales as Cn² to the -3/5)."""
@@ -208,7 +217,7 @@ def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, f
     r0_m, wavelength_m, outer_m = atmosphere.layer_r0_m(layer), atmosphere.r0_wavelength_m, atmosphere.outer_scale_m
     if atmosphere.model == "exact":
         return ExactFrozenFlow(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
-                               frame_period_s, atmosphere.kernel, atmosphere.screen_frames, seed)
+                               frame_period_s, atmosphere.sensing_kernel, atmosphere.screen_frames, seed)
     if atmosphere.model == "hcipy_pupil":
         return HcipyPupilLayer(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
                                frame_period_s, seed)

@@ -174,6 +174,7 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
                           "identified from the dither, so it must be > 0 (nm)")
     recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
     n_frames = data.frames + data.val_frames
+    scenario.require_stream_frames(n_frames, f"telemetry training (data.frames + data.val_frames = {n_frames})")
     result = run_loop(scenario.turbulence(data.seed, "telemetry-train", data.realisations), scenario.plant, recorder,
                       n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"), record=("y", "wfs"),
                       progress=progress)

@@ -1,0 +1,41 @@
+"""The best-gain integrator: compare chooses each scenario's gain on a stream of its own."""
+
+from __future__ import annotations
+
+import pytest
+
+from eofnn.control.baselines import critical_gain
+from eofnn.errors import ConfigError
+from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.experiment import Experiment
+
+
+def test_the_best_gain_is_chosen_per_scenario_and_used_everywhere(small_scenario):
+    gains = [0.05, 0.4, 1.5]  # 1.5 is beyond the critical gain of a two-frame delay (1): it diverges
+    assert gains[-1] > critical_gain(2)
+    experiment = Experiment(
+        small_scenario, {"nominal": {}, "dm_gain_2": {"dm_gain": 2.0}},
+        {"integrator": PredictorConfig(controller="integrator", gains=gains, data={"frames": 600, "seed": 3})},
+        EvaluationConfig(frames=600, settle_frames=100, psd_segment_frames=128), log=lambda line: None)
+    result = experiment.run()
+    nominal, doubled = (result.integrator_gains[s]["integrator"] for s in ("nominal", "dm_gain_2"))
+    assert nominal["scanned"]["1.5"] is None and doubled["scanned"]["1.5"] is None  # diverged, reported
+    assert nominal["gain"] == 0.4  # a gain far below critical lags the turbulence
+    for scan in (nominal, doubled):
+        finite = {g: v for g, v in scan["scanned"].items() if v is not None}
+        assert float(min(finite, key=finite.get)) == scan["gain"]
+    # The chosen gain is what runs: the stability analysis sees the loop gain g * 0.4 at dm_gain 2.
+    assert result.stability["nominal"]["integrator"]["stable"]
+    low, high = result.stability["dm_gain_2"]["integrator"]["dm_gain_interval"]
+    assert high == pytest.approx(critical_gain(2) / doubled["gain"], rel=1e-6)
+    assert result.to_json()["integrator_gains"]["nominal"]["integrator"]["gain"] == 0.4
+
+
+@pytest.mark.parametrize("config, expected", [
+    ({"controller": "predictor", "gains": [0.3]}, "gains=[0.3] is for controller: integrator"),
+    ({"controller": "integrator", "gains": []}, "gains=[] is invalid"),
+    ({"controller": "integrator", "gains": [0.3, 20.0]}, "integrator gain=20.0 is invalid"),
+])
+def test_bad_gain_lists_are_one_line_errors(config, expected):
+    with pytest.raises(ConfigError, match=expected.replace("[", r"\[").replace("]", r"\]")):
+        PredictorConfig(**config)
