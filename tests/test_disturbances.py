@@ -22,9 +22,10 @@ from eofnn.training.fit import fit_predictor
 
 RATE = 1000.0
 GRID = ActuatorGrid(2.0, 10)
+FROZEN = (Layer(1.0, 10.0, 0.0),)
 
 
-def _scenario(vibrations=(), layers=(Layer(1.0, 10.0, 0.0),), remove_ptt=False, r0_m=0.1, **plant) -> Scenario:
+def _scenario(vibrations=(), layers=FROZEN, remove_ptt=False, r0_m=0.1, **plant) -> Scenario:
     """A 2 m telescope, 10 actuators across: a small outer scale (5 m) keeps the exact screens small and fast."""
     atmosphere = Atmosphere(r0_m=r0_m, r0_wavelength_m=500e-9, outer_scale_m=5.0, layers=list(layers), model="exact",
                             kernel="subaperture", screen_frames=4096, remove_ptt=remove_ptt)

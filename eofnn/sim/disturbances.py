@@ -37,7 +37,7 @@ from scipy.signal import lfilter, lfiltic
 
 from eofnn.errors import require
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.validation import NON_NEGATIVE, Constraint, Interval, OneOf, validated
+from eofnn.validation import Constraint, Interval, OneOf, validated
 
 #: Vibration modes and their Noll indices (Noll 1976: 2 = tip along x, 3 = tilt along y, 4 = focus, ...).
 MODES = {"tip": 2, "tilt": 3, "focus": 4, "astigmatism_45": 5, "astigmatism_0": 6, "coma_y": 7, "coma_x": 8}
