@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import yaml
 from scipy.signal import welch
 
 from eofnn.control.baselines import Integrator
@@ -155,3 +156,25 @@ def test_an_integrator_leaves_the_vibration_peak_that_a_predictor_removes():
         rms[name] = float(result.residual_rms_nm[:, 500:].median())
     assert peak["predictor"] < 0.01 * peak["integrator"]
     assert rms["predictor"] < 0.3 * rms["integrator"]
+
+
+def test_the_cli_runs_vibrations_and_boiling_from_yaml_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
+    from eofnn.main import main
+    from eofnn.sim import Telemetry
+
+    scenario = _scenario([Vibration("focus", 100.0, 20.0, 0.0)],
+                         layers=[Layer(1.0, 10.0, 0.0, boiling_time_s=0.02)]).to_dict()
+    (tmp_path / "scenario.yaml").write_text(yaml.safe_dump(scenario))
+    out = tmp_path / "run.npz"
+    args = ["simulate", "--scenario", str(tmp_path / "scenario.yaml"), "--predictor.controller", "uncorrected",
+            "--frames", "300", "--out", str(out)]
+    assert main(args) == 0
+    capsys.readouterr()
+    s = Telemetry.load(out).s
+    expected = Scenario.from_dict(scenario).turbulence(1).frames(0, 300)[0]  # simulate's default seed
+    assert torch.allclose(s, expected, atol=1e-9)  # the file's scenario: the boiling layer and the vibration
+    bad = ["--scenario.vibrations", "[{mode: tip, frequency_hz: 700, amplitude_nm: 5}]"]
+    assert main(args[:3] + bad + args[3:] + ["--overwrite", "true"]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert errors == ["eofnn: error: frequency_hz=700.0 is invalid: a vibration must be below the Nyquist frequency "
+                      "frame_rate_hz / 2 = 500 Hz"]
