@@ -12,6 +12,7 @@ Three models build a layer (``Atmosphere.model``):
   ``v / pitch`` in temporal PSDs), which makes prediction look almost perfect.
 
 Layers add (Cn² fractions set each layer's r0); piston, tip and tilt are removed unless asked otherwise.
+Telescope vibrations (added after that removal) and boiling layers are in :mod:`eofnn.sim.disturbances`.
 """
 
 from __future__ import annotations
