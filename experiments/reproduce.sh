@@ -5,6 +5,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 eofnn=.venv/bin/eofnn
 $eofnn compare --config configs/paper.yaml --out experiments/paper --overwrite true
+# A 40 Hz tip vibration in the realistic telescope: integrator against open-loop EOF (about 2 minutes).
+$eofnn compare --config configs/vibrations.yaml --out experiments/vibrations --overwrite true
 # Design choices, open-loop EOF in the nominal scenario (see experiments/README.md).
 only_ol='{"uncorrected": {"controller": "uncorrected"}, "ol_eof": {"history_length": 4, "optimization": {"alpha": 1.0e-12}, "train_in": "nominal", "data": {"frames": 20000}}}'
 for alpha in 1.0e-6 1.0e-9 1.0e-12 1.0e-14; do

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from eofnn.sim.disturbances import Vibration
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop import Controller, LoopInput, LoopResult, run_loop
 from eofnn.sim.plant import Plant
@@ -10,5 +11,5 @@ from eofnn.sim.turbulence import Atmosphere, Layer, Turbulence
 
 __all__ = [
     "ActuatorGrid", "Atmosphere", "Controller", "Layer", "LoopInput", "LoopResult", "Plant", "Telemetry",
-    "Turbulence", "run_loop",
+    "Turbulence", "Vibration", "run_loop",
 ]

@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 import yaml
 
 from eofnn.errors import ConfigError
+from eofnn.sim.disturbances import Vibration, build_vibrations
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant
 from eofnn.sim.turbulence import Atmosphere, Layer, Turbulence
@@ -30,12 +31,17 @@ class Scenario:
         Loop frame rate in Hz.
     plant : Plant
         Loop delay and model errors (the one home of the delay: everything else derives it from here).
+    vibrations : list of Vibration
+        Telescope vibrations added to the turbulence ``s(n)`` (after the atmosphere's piston/tip/tilt removal, so
+        they are seen): e.g. ``[{mode: tip, frequency_hz: 40, amplitude_nm: 30, damping: 0.01}]``; fields in
+        :class:`~eofnn.sim.disturbances.Vibration`. None by default.
     """
 
     grid: ActuatorGrid = field(default_factory=ActuatorGrid)
     atmosphere: Atmosphere = field(default_factory=Atmosphere)
     frame_rate_hz: float = 1000.0
     plant: Plant = field(default_factory=Plant)
+    vibrations: list[Vibration] = field(default_factory=list)
 
     _constraints: ClassVar[dict[str, Constraint]] = {"frame_rate_hz": Interval(0, 1e6, closed="right", unit="Hz")}
 
@@ -46,6 +52,7 @@ class Scenario:
                 object.__setattr__(self, name, _build(cls, value, name))
             elif not isinstance(value, cls):
                 raise ConfigError(f"{name}={value!r} is invalid: it must be a mapping of {cls.__name__} fields")
+        object.__setattr__(self, "vibrations", build_vibrations(self.vibrations, self.frame_rate_hz))
 
     @property
     def delay_frames(self) -> int:
@@ -54,7 +61,8 @@ class Scenario:
 
     def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1) -> Turbulence:
         """The turbulence stream of this scenario for ``seed`` and ``stream``."""
-        return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations)
+        return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
+                          self.vibrations)
 
     def require_stream_frames(self, n_frames: int, what: str) -> None:
         """Refuse, up front, a stream of ``n_frames`` frames that the ``exact`` turbulence screen cannot hold."""
@@ -71,6 +79,7 @@ class Scenario:
     def to_dict(self) -> dict:
         out = asdict(self)
         out["atmosphere"]["layers"] = [dict(lay) for lay in out["atmosphere"]["layers"]]
+        out["vibrations"] = [dict(vib) for vib in out["vibrations"]]
         return out
 
     @classmethod

@@ -12,11 +12,13 @@ Three models build a layer (``Atmosphere.model``):
   ``v / pitch`` in temporal PSDs), which makes prediction look almost perfect.
 
 Layers add (Cn² fractions set each layer's r0); piston, tip and tilt are removed unless asked otherwise.
+Telescope vibrations (added after that removal) and boiling layers are in :mod:`eofnn.sim.disturbances`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -25,6 +27,7 @@ import torch
 
 from eofnn.errors import require
 from eofnn.seeding import stream_seed
+from eofnn.sim.disturbances import BoilingLayer, Vibration, VibrationSeries, sub_seed
 from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
@@ -47,16 +50,22 @@ class Layer:
         Wind speed in m/s.
     wind_direction_deg : float
         Direction the screen moves towards, in degrees from +x towards +y.
+    boiling_time_s : float or None
+        E-folding time (s) of the screen's own decorrelation (model ``exact`` only; ``None`` or 0: frozen flow).
+        A stress test: the layer's variance and structure function are unchanged and its temporal covariance is
+        frozen flow's times ``exp(-|t| / boiling_time_s)`` (construction: :mod:`eofnn.sim.disturbances`).
     """
 
     cn2_fraction: float = 1.0
     wind_speed_mps: float = 5.1
     wind_direction_deg: float = 0.0
+    boiling_time_s: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "cn2_fraction": POSITIVE,
         "wind_speed_mps": Interval(0, 1000, unit="m/s"),
         "wind_direction_deg": Interval(-360, 360, unit="degrees"),
+        "boiling_time_s": OrNone(Interval(0, None, unit="s")),
     }
 
 
@@ -127,6 +136,10 @@ class Atmosphere:
         require(self.model == "exact" or self.kernel in (None, "point"),
                 f"kernel={self.kernel!r} is invalid for model {self.model!r}: it samples points on the actuator-pitch "
                 "grid; use kernel 'point' or model 'exact'")
+        for lay in layers:
+            require(not lay.boiling_time_s or self.model == "exact",
+                    f"boiling_time_s={lay.boiling_time_s!r} is invalid for model {self.model!r}: boiling layers need "
+                    "model 'exact'")
         if self.model == "exact":
             require(math.isfinite(self.outer_scale_m),
                     f"outer_scale_m={self.outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
@@ -165,6 +178,9 @@ class Turbulence:
         Name of the stream (``"train"``, ``"validation"``, ``"test"``, ...): streams never share a realisation.
     n_realisations : int
         Independent realisations generated side by side (the batch dimension).
+    vibrations : sequence of Vibration
+        Telescope vibrations added to every frame after the piston/tip/tilt projection (so they are always seen),
+        drawn from the stream ``"vibration:" + stream`` (see :mod:`eofnn.sim.disturbances`).
     """
 
     def __init__(
@@ -175,6 +191,7 @@ class Turbulence:
         seed: int,
         stream: str = "test",
         n_realisations: int = 1,
+        vibrations: Sequence[Vibration] = (),
     ) -> None:
         check_value("frame_rate_hz", frame_rate_hz, POSITIVE)
         check_value("n_realisations", n_realisations, COUNT)
@@ -187,6 +204,9 @@ class Turbulence:
             for r in range(n_realisations)
         ]
         self._ptt = torch.as_tensor(grid.ptt_basis())
+        self._vibrations = [VibrationSeries(vibrations, grid, 1.0 / frame_rate_hz,
+                                            stream_seed(seed, f"vibration:{stream}", r))
+                            for r in range(n_realisations)] if vibrations else []
 
     def frames(self, start: int, stop: int) -> torch.Tensor:
         """OPD in nm of frames ``start..stop-1``: a ``(n_realisations, frames, n_actuators)`` float64 tensor."""
@@ -203,6 +223,8 @@ class Turbulence:
             out[r] = strips[0].frames(start, stop, basis)
             for strip in strips[1:]:
                 out[r] += strip.frames(start, stop, basis)
+        for r, vibrations in enumerate(self._vibrations):  # after the projection: the telescope's tip is seen
+            vibrations.add_to(out[r], start, stop)
         return out
 
     def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
@@ -213,11 +235,18 @@ class Turbulence:
 
 def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, frame_period_s: float,
                      seed: np.random.SeedSequence):
-    """One realisation of one layer, built by ``atmosphere.model``: anything with ``frames(start, stop, basis)``."""
+    """One realisation of one layer, built by ``atmosphere.model``: anything with ``frames(start, stop, basis)``
+    (``write_frames(start, stop, out, add)`` for model ``exact``)."""
     r0_m, wavelength_m, outer_m = atmosphere.layer_r0_m(layer), atmosphere.r0_wavelength_m, atmosphere.outer_scale_m
     if atmosphere.model == "exact":
-        return ExactFrozenFlow(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
-                               frame_period_s, atmosphere.sensing_kernel, atmosphere.screen_frames, seed)
+        def screen(child: np.random.SeedSequence) -> ExactFrozenFlow:
+            return ExactFrozenFlow(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
+                                   frame_period_s, atmosphere.sensing_kernel, atmosphere.screen_frames, child)
+        if not layer.boiling_time_s:
+            return screen(seed)
+        # Boiling: a second realisation (sub-stream 1) and the mixing angle's walk (sub-stream 2).
+        return BoilingLayer((screen(seed), screen(sub_seed(seed, 1))), layer.boiling_time_s, frame_period_s,
+                            sub_seed(seed, 2))
     if atmosphere.model == "hcipy_pupil":
         return HcipyPupilLayer(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
                                frame_period_s, seed)
