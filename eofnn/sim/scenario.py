@@ -48,8 +48,8 @@ class Scenario:
                 raise ConfigError(f"{name}={value!r} is invalid: it must be a mapping of {cls.__name__} fields")
 
     @property
-    def delay_frames(self) -> int:
-        """The loop delay in frames (the plant's)."""
+    def delay_frames(self) -> int | float:
+        """The loop delay in frames (the plant's; fractional allowed)."""
         return self.plant.delay_frames
 
     def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1) -> Turbulence:
