@@ -12,6 +12,7 @@ import torch
 import yaml
 from torch import nn
 
+from eofnn.analysis.replay import replay
 from eofnn.analysis.stability import LoopSetup, analyse_filter, analyse_integrator
 from eofnn.control import Integrator, PredictiveController, PseudoIntegrator
 from eofnn.control.adaptive import RLSController
@@ -229,3 +230,13 @@ def test_compare_runs_at_delay_1_5_from_the_cli(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert code != 0 and "trained for delay_frames=1.5 but the scenario has delay_frames=2" in err
     assert len(err.splitlines()) == 1
+
+
+def test_replay_at_1_5_predicts_the_closed_loop_residual(loops):
+    """Offline replay of the OL EOF on telemetry recorded at 1.5 (nominal DM, no noise) gives the residual of the
+    loop the predictor closes: the averaged predicted commands against the averaged recorded ones."""
+    scen = scenario(1.5, 6)
+    tel = run_loop(scen.turbulence(9, "test"), scen.plant, Integrator(0.5), 1000).telemetry
+    predictor = loops[1.5]["open_loop_predictor"]
+    result = replay(predictor.network, predictor.spec, tel, settle_frames=200)
+    assert result.predictor.median_rms_nm == pytest.approx(loops[1.5]["open_loop"], rel=0.15)
