@@ -3,10 +3,10 @@
 For each frame ``n`` the predictor computes the command ``y_pred(n)`` from the history that was available at ``n``
 (``y`` and ``wfs`` as recorded); the telemetry later shows what was needed: ``y_need(n) = -s_hat(n) / g`` with the
 POL reconstruction ``s_hat(n) = wfs(n) - DM_model(y(n))`` and the identified (or given) global gain ``g``: the
-training target of :mod:`eofnn.data.targets`. For a fractional delay ``d + f`` the DM terms are the frame's
-averages ``(1 - f) y(n) + f y(n - 1)`` (of the recorded and of the predicted commands). The error is reported on the wavefront, ``e(n) = g (y_pred(n) -
+training target of :mod:`eofnn.data.targets`. The error is reported on the wavefront, ``e(n) = g (y_pred(n) -
 y_need(n)) = g y_pred(n) + s_hat(n)`` in nm, beside the error the telemetry's own controller really left, the
-measured residual ``wfs(n)`` (``= g y(n) + s_hat(n)`` for a DM that is a pure gain).
+measured residual ``wfs(n)`` (``= g y(n) + s_hat(n)`` for a DM that is a pure gain). For a fractional delay
+``d + f`` each ``y`` in these is the frame's average ``(1 - f) y(n) + f y(n - 1)`` (recorded and predicted alike).
 
 What is comparable with a closed-loop run: for a DM that is a pure gain, ``e(n)`` is ``eps(n) = s(n) + g y(n)`` of
 a loop driven by the predictor, plus the WFS noise ``v(n)`` that ``s_hat(n)`` carries (the true residual does not):
