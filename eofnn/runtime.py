@@ -52,9 +52,9 @@ class PredictiveFilter:
                  neighbours: np.ndarray | None = None) -> None:
         self.coefficients = np.asarray(coefficients, dtype=np.float64)
         self.taps = [(str(signal), int(lag)) for signal, lag in taps]
-        self.delay_frames, self.dm_gain_model = int(delay_frames), float(dm_gain_model)
-        if self.delay_frames < 1:
+        if not float(delay_frames).is_integer() or delay_frames < 1:  # a fractional delay is not truncated silently
             raise FilterFileError(f"delay_frames={delay_frames!r} is invalid: it must be an integer >= 1")
+        self.delay_frames, self.dm_gain_model = int(delay_frames), float(dm_gain_model)
         for signal, lag in self.taps:
             if signal not in SIGNALS:
                 raise FilterFileError(f"tap signal {signal!r} is invalid: allowed are {', '.join(SIGNALS)}")
@@ -99,7 +99,7 @@ class PredictiveFilter:
                 table = hdul["TAPS"].data
                 taps = [(str(s).strip(), int(lag)) for s, lag in zip(table["SIGNAL"], table["LAG"], strict=True)]
                 neighbours = np.array(hdul["NEIGHBOURS"].data) if "NEIGHBOURS" in hdul else None
-                return cls(coefficients, taps, int(header["DELAY"]), float(header.get("DMGAIN", 1.0)), neighbours)
+                return cls(coefficients, taps, header["DELAY"], float(header.get("DMGAIN", 1.0)), neighbours)
         except FilterFileError:
             raise
         except (OSError, KeyError, ValueError, TypeError) as err:

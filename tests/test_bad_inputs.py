@@ -59,7 +59,7 @@ def test_bad_layers(capsys, tmp_path, layer):
 @pytest.mark.parametrize("changes, expected", [
     ({"dm_gain": "two"}, "dm_gain='two'"), ({"dm_gain": [0.1]}, "dm_gain=[0.1]"), ({"dm_gain": True}, "dm_gain=True"),
     ({"dm_gain": None}, "dm_gain=None"), ({"wfs_noise_nm": "1 nm"}, "wfs_noise_nm='1 nm'"),
-    ({"nonlinearity": 3}, "nonlinearity=3"), ({"delay_frames": 1.5}, "delay_frames=1.5"),
+    ({"nonlinearity": 3}, "nonlinearity=3"), ({"delay_frames": 0.5}, "delay_frames=0.5"),
     ({"dm_gian": 2.0}, "unknown model error 'dm_gian'"), ({"dm_gain": float("inf")}, "dm_gain=inf"),
 ])
 def test_wrong_types_in_scenario_variants(capsys, tmp_path, changes, expected):

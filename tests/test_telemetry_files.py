@@ -147,7 +147,7 @@ def test_bad_hand_written_files(tmp_path):
         "shapes": (_fits(tmp_path / "b.fits", y=good, wfs=np.zeros((50, 7))), "'wfs' has shape"),
         "nan": (_fits(tmp_path / "c.fits", y=good, wfs=np.where(np.eye(50, 6) > 0, np.nan, 0.0)), "'wfs' holds 6 non"),
         "no delay": (_fits(tmp_path / "d.fits", None, y=good, wfs=good), "lacks the loop delay"),
-        "fractional delay": (_fits(tmp_path / "e.fits", 1.5, y=good, wfs=good), "delay_frames=1.5 is invalid"),
+        "delay below a frame": (_fits(tmp_path / "e.fits", 0.5, y=good, wfs=good), "delay_frames=0.5 is invalid"),
         "zero delay": (_fits(tmp_path / "f.fits", 0, y=good, wfs=good), "delay_frames=0 is invalid"),
         "positions": (_fits(tmp_path / "g.fits", y=good, wfs=good, positions=np.zeros((5, 2))), "positions_m has shape"),
     }

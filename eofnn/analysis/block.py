@@ -28,8 +28,11 @@ BISECTIONS = 30
 
 
 def matrix_polynomials(weights: torch.Tensor, neighbours: torch.Tensor, kind: str, history_length: int,
-                       dm_gain_model: float, controller_delay: int) -> tuple[list[sp.csr_matrix], list[sp.csr_matrix]]:
-    """``(D, N)`` as lists of sparse ``K x K`` coefficient matrices of ``z^0, z^-1, ...``."""
+                       dm_gain_model: float, controller_delay: float) -> tuple[list[sp.csr_matrix], list[sp.csr_matrix]]:
+    """``(D, N)`` as lists of sparse ``K x K`` coefficient matrices of ``z^0, z^-1, ...``.
+
+    An open-loop ``D`` is ``1 + g_model z^-d F W`` with ``F = (1 - f) + f z^-1`` for a fractional controller delay.
+    """
     k_act, m_slots = neighbours.shape
     p = history_length
     taps = weights.shape[1] // m_slots
@@ -47,9 +50,14 @@ def matrix_polynomials(weights: torch.Tensor, neighbours: torch.Tensor, kind: st
         n_list = [matrix(w[:, :, p + j]) for j in range(p)]
     else:
         n_list = [matrix(w[:, :, j]) for j in range(p)]
-        d_list = [eye] + [sp.csr_matrix((k_act, k_act)) for _ in range(controller_delay + p - 1)]
+        lag, fraction = math.floor(controller_delay), controller_delay - math.floor(controller_delay)
+        d_list = [eye] + [sp.csr_matrix((k_act, k_act)) for _ in range(lag + p - 1 + (1 if fraction else 0))]
         for j, f_j in enumerate(n_list):
-            d_list[controller_delay + j] = d_list[controller_delay + j] + dm_gain_model * f_j
+            if not fraction:
+                d_list[lag + j] = d_list[lag + j] + dm_gain_model * f_j
+            else:
+                d_list[lag + j] = d_list[lag + j] + (1 - fraction) * dm_gain_model * f_j
+                d_list[lag + j + 1] = d_list[lag + j + 1] + fraction * dm_gain_model * f_j
     return d_list, n_list
 
 

@@ -5,7 +5,8 @@ For each frame ``n`` the predictor computes the command ``y_pred(n)`` from the h
 POL reconstruction ``s_hat(n) = wfs(n) - DM_model(y(n))`` and the identified (or given) global gain ``g``: the
 training target of :mod:`eofnn.data.targets`. The error is reported on the wavefront, ``e(n) = g (y_pred(n) -
 y_need(n)) = g y_pred(n) + s_hat(n)`` in nm, beside the error the telemetry's own controller really left, the
-measured residual ``wfs(n)`` (``= g y(n) + s_hat(n)`` for a DM that is a pure gain).
+measured residual ``wfs(n)`` (``= g y(n) + s_hat(n)`` for a DM that is a pure gain). For a fractional delay
+``d + f`` each ``y`` in these is the frame's average ``(1 - f) y(n) + f y(n - 1)`` (recorded and predicted alike).
 
 What is comparable with a closed-loop run: for a DM that is a pure gain, ``e(n)`` is ``eps(n) = s(n) + g y(n)`` of
 a loop driven by the predictor, plus the WFS noise ``v(n)`` that ``s_hat(n)`` carries (the true residual does not):
@@ -126,15 +127,18 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
     params = list(network.parameters())
     dtype = params[0].dtype if params else torch.float64
     network.eval()
-    predicted, own = [], []
+    predicted, own, f = [], [], spec.delay_fraction
     for seq in sequences:
         window = slice(first - spec.first_frame, None)
         y, wfs = seq.y[window], seq.wfs[window]
         history = telemetry_history(wfs, y, spec, dm_response)
         y_pred = network(history.to(dtype)).to(torch.float64)
-        s_hat = pol_reconstruction(wfs, y, dm_response)[spec.first_frame:]
+        s_hat = pol_reconstruction(wfs, y, dm_response, f)[spec.first_frame:][:len(y_pred)]
+        measured = wfs[spec.first_frame:][:len(y_pred)]
+        if f:  # the DM shape over frame n averages the predicted commands of frames n and n - 1
+            y_pred, s_hat, measured = (1 - f) * y_pred[1:] + f * y_pred[:-1], s_hat[1:], measured[1:]
         predicted.append(s_hat + dm_gain * y_pred)
-        own.append(wfs[spec.first_frame:])
+        own.append(measured)
     segment = min(segment_frames, min(e.shape[0] for e in predicted))
     psd_pred, psd_own = WelchPSD(segment, rate), WelchPSD(segment, rate)
     result = ReplayResult(_stats(predicted, noise_nm, psd_pred), _stats(own, noise_nm, psd_own), noise_nm,

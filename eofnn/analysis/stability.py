@@ -62,9 +62,9 @@ class LoopSetup:
         WFS gain ``w`` (1 nominal).
     dm_gain_model : float
         DM gain the controller assumes in its pseudo-open-loop reconstruction (open loop only).
-    controller_delay_frames : int or None
-        Delay the controller was built for (the lag of ``y`` in its POL reconstruction); ``floor(delay_frames)``
-        if not given.
+    controller_delay_frames : float or None
+        Delay the controller was built for (in its POL reconstruction ``wfs(n) - g_model z^-d ((1 - f) + f z^-1)
+        y``, as eofnn's controllers do); ``delay_frames`` if not given.
     frame_rate_hz : float
         Loop rate in Hz, for frequencies.
     max_extra_delay_frames : int
@@ -75,7 +75,7 @@ class LoopSetup:
     dm_gain: float = 1.0
     wfs_gain: float = 1.0
     dm_gain_model: float = 1.0
-    controller_delay_frames: int | None = None
+    controller_delay_frames: float | None = None
     frame_rate_hz: float = 1000.0
     max_extra_delay_frames: int = 10
 
@@ -84,21 +84,22 @@ class LoopSetup:
         "dm_gain": FINITE,
         "wfs_gain": FINITE,
         "dm_gain_model": FINITE,
-        "controller_delay_frames": OrNone(Interval(1, 100, integer=True, unit="frames")),
+        "controller_delay_frames": OrNone(Interval(1, 100, unit="frames")),
         "frame_rate_hz": Interval(0, None, closed="neither", unit="Hz"),
         "max_extra_delay_frames": Interval(1, 100, integer=True, unit="frames"),
     }
 
     @classmethod
     def from_plant(cls, plant, frame_rate_hz: float = 1000.0, dm_gain_model: float = 1.0,
-                   controller_delay_frames: int | None = None, **kwargs) -> LoopSetup:
+                   controller_delay_frames: float | None = None, **kwargs) -> LoopSetup:
         """The setup of a :class:`~eofnn.sim.plant.Plant` (its delay, DM gain and WFS gain)."""
         return cls(plant.delay_frames, plant.dm_gain, plant.wfs_gain, dm_gain_model, controller_delay_frames,
                    frame_rate_hz, **kwargs)
 
     @property
-    def controller_delay(self) -> int:
-        return self.controller_delay_frames if self.controller_delay_frames is not None else math.floor(self.delay_frames)
+    def controller_delay(self) -> float:
+        """The delay of the controller's POL reconstruction: ``controller_delay_frames``, else ``delay_frames``."""
+        return self.controller_delay_frames if self.controller_delay_frames is not None else self.delay_frames
 
     def plant_polynomial(self, delay_frames: float | None = None) -> torch.Tensor:
         """``Q = w z^-d ((1 - f) + f z^-1)`` for this setup's delay (or ``delay_frames``)."""
@@ -204,15 +205,26 @@ def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
+def controller_delay_polynomial(controller_delay_frames: float) -> torch.Tensor:
+    """The DM response the controller's POL reconstruction assumes: ``z^-d``, or ``z^-d ((1 - f) + f z^-1)``."""
+    if float(controller_delay_frames).is_integer():
+        return poly.delay(int(controller_delay_frames))
+    return poly.fractional_delay(controller_delay_frames)
+
+
 def controller_polynomials(weights: torch.Tensor, kind: str, history_length: int, dm_gain_model: float = 1.0,
-                           controller_delay_frames: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(D, N)`` with ``D(z) y = N(z) u`` for per-group weights ``(groups, taps)`` of a ``kind`` history."""
+                           controller_delay_frames: float = 2) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(D, N)`` with ``D(z) y = N(z) u`` for per-group weights ``(groups, taps)`` of a ``kind`` history.
+
+    ``u(n) = wfs(n - d)`` is the reading the controller receives; an open-loop filter ``W`` reads the POL values
+    ``u - g_model z^-d F y`` (``F = (1 - f) + f z^-1``), so ``D = 1 + g_model z^-d F W`` and ``N = W``.
+    """
     p = history_length
     w = weights.detach().to(poly.DTYPE).cpu()
     ones = torch.ones(w.shape[0], 1, dtype=poly.DTYPE)
     if kind == "closed_loop":
         return torch.cat([ones, -w[:, :p]], 1), w[:, p:]
-    return poly.add(ones, dm_gain_model * poly.multiply(poly.delay(controller_delay_frames), w)), w
+    return poly.add(ones, dm_gain_model * poly.multiply(controller_delay_polynomial(controller_delay_frames), w)), w
 
 
 def integrator_weights(gain: float, leak: float = 0.0) -> torch.Tensor:

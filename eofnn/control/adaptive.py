@@ -92,6 +92,8 @@ class AdaptiveController(ABC):
                  dither_nm: float = 0.0, integrator_gain: float = 0.5, fallback_factor: float = 10.0,
                  fallback_patience: int | None = None, median_frames: int = 200, seed: int = 0) -> None:
         require(isinstance(spec, HistorySpec), f"spec must be a HistorySpec, got {type(spec).__name__}")
+        require(not spec.delay_fraction, f"delay_frames={spec.delay_frames} is invalid for an adaptive controller: "
+                "it supports integer delays only")
         check_value("dm_gain_model", dm_gain_model, FINITE)
         require(dm_gain_model != 0, "dm_gain_model=0 is invalid: it must be non-zero")
         check_value("dither_nm", dither_nm, Interval(0, None, unit="nm"))

@@ -6,6 +6,7 @@ import math
 
 import torch
 
+from eofnn.errors import require
 from eofnn.seeding import torch_generator
 from eofnn.sim.loop import LoopInput
 from eofnn.validation import Interval, check_value
@@ -22,7 +23,11 @@ class Uncorrected:
 
 
 class PseudoIntegrator:
-    """``y(n) = -s(n - d)``: perfect correction ``d`` frames late (the study's baseline; an oracle)."""
+    """``y(n) = -s(n - d)``: perfect correction ``d`` frames late (the study's baseline; an oracle).
+
+    ``d`` is the whole part of the delay: for a fractional delay ``d + f`` the DM then applies
+    ``-((1 - f) s(n - d) + f s(n - d - 1))`` over frame ``n``.
+    """
 
     def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
         pass
@@ -35,7 +40,9 @@ class Integrator:
     """Leaky integrator ``y(n) = (1 - leak) y(n-1) - gain * m(n - d)`` on the WFS measurement ``m``.
 
     For a delay of ``d`` frames and a nominal plant the loop is stable for ``gain < 2 sin(pi / (2 (2d - 1)))``
-    (1 for the two-frame delay) when ``leak = 0``; see :func:`critical_gain`.
+    (1 for the two-frame delay) when ``leak = 0``; see :func:`critical_gain`. It runs unchanged for a fractional
+    delay ``d + f`` (it reads ``m(n - d)``); its critical gain is then that of
+    :func:`eofnn.analysis.stability.analyse_integrator` (2 for 1.5 frames).
     """
 
     def __init__(self, gain: float = 0.5, leak: float = 0.0) -> None:
@@ -55,8 +62,11 @@ def critical_gain(delay_frames: int) -> float:
     """Integrator gain at which a loop with ``delay_frames`` of delay becomes unstable (nominal plant, no leak).
 
     The characteristic polynomial ``z**d - z**(d-1) + k`` has a root on the unit circle at
-    ``k = 2 sin(pi / (2 (2d - 1)))``.
+    ``k = 2 sin(pi / (2 (2d - 1)))``. Integer delays only: a fractional one has no such closed form
+    (use :func:`eofnn.analysis.stability.analyse_integrator`).
     """
+    require(float(delay_frames).is_integer() and delay_frames >= 1,
+            f"delay_frames={delay_frames!r} is invalid: the closed form needs an integer >= 1")
     return 2 * math.sin(math.pi / (2 * (2 * delay_frames - 1)))
 
 

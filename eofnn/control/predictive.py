@@ -74,15 +74,16 @@ class PredictiveController:
         # The loop runs where the turbulence is (CPU); a network on another device gets its input moved there.
         self._device = params[0].device if params else torch.device("cpu")
 
-    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
+    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
         if delay_frames != self.spec.delay_frames:
             raise ConfigError(f"predictor was trained for delay_frames={self.spec.delay_frames} but the plant has "
                               f"delay_frames={delay_frames}")
-        p, d = self.spec.history_length, self.spec.delay_frames
+        p, d = self.spec.history_length, self.spec.whole_delay
         shape = (batch, n_actuators)
         self._out_dtype = dtype
-        # Commands y(n-1), y(n-2), ...: the closed-loop taps and the POL reconstruction both read them.
-        self._y = HistoryRing(shape, max(p, d), dtype)
+        # Commands y(n-1), y(n-2), ...: the closed-loop taps and the POL reconstruction (y(n-d), and y(n-d-1)
+        # for a fractional delay) read them.
+        self._y = HistoryRing(shape, max(p, d + self.spec.target_lead), dtype)
         # Residuals (closed loop) or POL values (open loop) from frame n - d back.
         self._signal = HistoryRing(shape, p, dtype)
         self._frames_seen = 0
@@ -98,9 +99,10 @@ class PredictiveController:
 
     @torch.no_grad()
     def step(self, inp: LoopInput) -> torch.Tensor:
-        p, d = self.spec.history_length, self.spec.delay_frames
+        p, d, f = self.spec.history_length, self.spec.whole_delay, self.spec.delay_fraction
         if self.spec.kind == "open_loop":
-            self._signal.push(inp.wfs - self.dm_gain_model * self._y[d - 1])  # POL value of frame n - d
+            applied = self._y[d - 1] if not f else (1 - f) * self._y[d - 1] + f * self._y[d]  # DM over frame n - d
+            self._signal.push(inp.wfs - self.dm_gain_model * applied)  # POL value of frame n - d
         else:
             self._signal.push(inp.wfs)
         if self._frames_seen < self.spec.first_frame:

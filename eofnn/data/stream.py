@@ -127,7 +127,8 @@ class SimulatedTelemetry(IterableDataset):
         Records closed-loop data (required for closed-loop histories). A controller with a ``reseed(int)``
         method gets a seed of its own per sequence (its dither).
     target_dm_gain : float, optional
-        Targets are ``-s(n) / target_dm_gain``; by default the gain of the scenario's DM for closed-loop data
+        Targets are ``-s(n) / target_dm_gain`` (averaged over two frames for a fractional delay,
+        :func:`eofnn.data.history.targets`); by default the gain of the scenario's DM for closed-loop data
         (the command that really cancels the turbulence in the plant that recorded it) and 1 for open-loop data.
     """
 
@@ -137,9 +138,9 @@ class SimulatedTelemetry(IterableDataset):
         super().__init__()
         data = data or DataConfig()
         check_value("frames", frames, COUNT)
-        require(data.sequence_frames > spec.first_frame,
+        require(data.sequence_frames > spec.first_frame + spec.target_lead,
                 f"data.sequence_frames={data.sequence_frames!r} is invalid: it must exceed the history span "
-                f"{spec.first_frame}")
+                f"{spec.first_frame + spec.target_lead}")
         if spec.kind == "closed_loop":
             require(data_controller is not None, "closed-loop data needs a data_controller")
         require_training_memory(scenario, spec, data)
@@ -188,14 +189,14 @@ class SimulatedTelemetry(IterableDataset):
     def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         info = get_worker_info()
         worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
-        span, batch = self.spec.first_frame, self.data.batch_frames
+        span, batch, lead = self.spec.first_frame, self.data.batch_frames, self.spec.target_lead
         for index in range(worker, self.n_sequences, n_workers):
             arrays = self.telemetry(index)
             n_frames = arrays["s"].shape[1]
             # Histories are built one batch of frames at a time: a long sequence never needs its whole
-            # (frames x K x taps) history tensor in memory.
-            for first in range(span, n_frames, batch):
-                window = {k: v[:, first - span: first + batch] for k, v in arrays.items()}
+            # (frames x K x taps) history tensor in memory. A fractional delay's target reads `lead` frames ahead.
+            for first in range(span, n_frames - lead, batch):
+                window = {k: v[:, first - span: first + batch + lead] for k, v in arrays.items()}
                 x, t = self._history(window)
                 yield x.reshape(-1, *x.shape[2:]), t.reshape(-1, x.shape[-2])
 
@@ -222,7 +223,7 @@ class LoopDataModule(L.LightningDataModule):
         self.data_controller, self.target_dm_gain = data_controller, target_dm_gain
 
     def dataset(self, stream: str, frames: int) -> SimulatedTelemetry:
-        sequence_frames = min(self.data.sequence_frames, max(frames, self.spec.first_frame + 1))
+        sequence_frames = min(self.data.sequence_frames, max(frames, self.spec.first_frame + self.spec.target_lead + 1))
         data = replace(self.data, sequence_frames=sequence_frames)
         return SimulatedTelemetry(self.scenario, self.spec, frames, stream, data, self.data_controller,
                                   self.target_dm_gain)

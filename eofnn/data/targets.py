@@ -7,6 +7,8 @@ DM response ``DM_model`` identified from the dither (:func:`eofnn.training.ident
   right, since ``wfs(n) = s(n) + DM(y(n)) + noise``);
 - target of frame ``n``: the command that would have cancelled it, ``-s_hat(n) / g`` with the identified global
   gain ``g`` (the telemetry twin of the simulator-truth :func:`eofnn.data.history.targets` ``-s(n) / g``);
+- a fractional delay ``d + f`` (:mod:`eofnn.sim.delay`): the DM term is the average over the frame,
+  ``(1 - f) DM_model(y(n)) + f DM_model(y(n-1))``, and the target ``-((1 - f) s_hat(n) + f s_hat(n+1)) / g``;
 - open-loop histories from ``s_hat``; closed-loop histories from ``y`` and ``wfs`` as recorded (no model needed).
 
 The noise in ``s_hat(n)`` is independent of every history that predicts frame ``n`` (they use ``wfs`` up to
@@ -22,7 +24,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import IterableDataset
 
-from eofnn.data.history import HistorySpec, build_history, open_loop_history
+from eofnn.data.history import HistorySpec, applied_command, blended_target, build_history, open_loop_history
 from eofnn.errors import TelemetryError
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
@@ -31,21 +33,24 @@ from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 DMResponse = Callable[[torch.Tensor], torch.Tensor]
 
 
-def pol_reconstruction(wfs: torch.Tensor, y: torch.Tensor, dm_response: DMResponse) -> torch.Tensor:
-    """Pseudo-open-loop turbulence ``s_hat = wfs - DM_model(y)`` (nm), ``(..., frames, K)``."""
-    return wfs - dm_response(y)
+def pol_reconstruction(wfs: torch.Tensor, y: torch.Tensor, dm_response: DMResponse,
+                       delay_fraction: float = 0.0) -> torch.Tensor:
+    """Pseudo-open-loop turbulence ``s_hat = wfs - DM_model(y)`` (nm), ``(..., frames, K)``; for a fractional delay
+    the DM term is the frame's average ``(1 - f) DM_model(y(n)) + f DM_model(y(n-1))``."""
+    return wfs - applied_command(dm_response(y), delay_fraction)
 
 
 def telemetry_targets(wfs: torch.Tensor, y: torch.Tensor, spec: HistorySpec, dm_response: DMResponse,
                       dm_gain: float) -> torch.Tensor:
-    """``(..., samples, K)`` targets ``-s_hat(n) / dm_gain`` for frames ``n >= spec.first_frame``."""
-    return -pol_reconstruction(wfs, y, dm_response)[..., spec.first_frame:, :] / dm_gain
+    """``(..., samples, K)`` targets ``-s_hat(n) / dm_gain`` (fractional delay: ``s_hat`` averaged as in
+    :func:`eofnn.data.history.blended_target`) for frames ``first_frame <= n < frames - target_lead``."""
+    return -blended_target(pol_reconstruction(wfs, y, dm_response, spec.delay_fraction), spec) / dm_gain
 
 
 def telemetry_history(wfs: torch.Tensor, y: torch.Tensor, spec: HistorySpec, dm_response: DMResponse) -> torch.Tensor:
     """History tensor of ``spec`` from telemetry: POL values through ``dm_response`` (open loop) or ``y, wfs``."""
     if spec.kind == "open_loop":
-        return open_loop_history(pol_reconstruction(wfs, y, dm_response), spec)
+        return open_loop_history(pol_reconstruction(wfs, y, dm_response, spec.delay_fraction), spec)
     return build_history(spec, y=y, wfs=wfs)
 
 
@@ -69,7 +74,7 @@ def check_sequences(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpe
             raise TelemetryError(f"telemetry has delay_frames={sequences[0].delay_frames} but the history asks for "
                                  f"delay_frames={spec.delay_frames}")
         short = min(seq.y.shape[0] for seq in sequences)
-        if short <= spec.first_frame:
+        if short <= spec.first_frame + spec.target_lead:
             raise TelemetryError(f"telemetry has {short} frames: the history (length {spec.history_length}, delay "
                                  f"{spec.delay_frames}) needs more than {spec.first_frame}")
     return sequences
@@ -108,11 +113,11 @@ class TelemetryBatches(IterableDataset):
         self.batch_frames, self.first, self.stop = batch_frames, first, stop
 
     def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        span = self.spec.first_frame
+        span, lead = self.spec.first_frame, self.spec.target_lead
         for seq in self.sequences:
             stop = seq.y.shape[0] if self.stop is None else min(self.stop, seq.y.shape[0])
-            for start in range(max(self.first, span), stop, self.batch_frames):
-                window = slice(start - span, min(start + self.batch_frames, stop))
+            for start in range(max(self.first, span), stop - lead, self.batch_frames):
+                window = slice(start - span, min(start + self.batch_frames + lead, stop))
                 y, wfs = seq.y[window], seq.wfs[window]
                 yield (telemetry_history(wfs, y, self.spec, self.dm_response),
                        telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))

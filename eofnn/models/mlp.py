@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -42,15 +43,15 @@ class MLP(nn.Module):
         Active actuators (checked against the grid when a neighbourhood is used).
     history_kind : {"open_loop", "closed_loop"}
         Kind of history the network reads (set by eofnn from the history spec).
-    delay_frames : int
-        Loop delay (set by eofnn from the history spec).
+    delay_frames : int or float
+        Loop delay (set by eofnn from the history spec); the base reads its whole frames.
     scale_nm : float
         Typical magnitude of the features in nm.
     """
 
     def __init__(self, n_taps: int, hidden: Sequence[int] = (64, 64), activation: str = "gelu", radius: float = 0.0,
                  grid: dict | None = None, n_actuators: int | None = None, history_kind: str = "open_loop",
-                 delay_frames: int = 2, scale_nm: float = 10.0) -> None:
+                 delay_frames: int | float = 2, scale_nm: float = 10.0) -> None:
         super().__init__()
         check_value("activation", activation, OneOf(tuple(ACTIVATIONS)))
         check_value("scale_nm", scale_nm, POSITIVE)
@@ -59,8 +60,8 @@ class MLP(nn.Module):
         require(isinstance(hidden, Sequence) and all(COUNT.accepts(h) for h in hidden),
                 f"hidden={hidden!r} is invalid: it must be a list of layer widths >= 1")
         p = n_taps // 2 if history_kind == "closed_loop" else n_taps
-        require(history_kind == "open_loop" or delay_frames <= p,
-                f"a closed-loop MLP needs history_length >= delay_frames, got {p} < {delay_frames}")
+        require(history_kind == "open_loop" or math.floor(delay_frames) <= p,
+                f"a closed-loop MLP needs history_length >= delay_frames, got {p} < {math.floor(delay_frames)}")
         self.history_kind, self.delay_frames, self.history_length = history_kind, delay_frames, p
         self.scale_nm = scale_nm
         per_actuator = n_taps - 1 if history_kind == "open_loop" else n_taps
@@ -95,7 +96,8 @@ class MLP(nn.Module):
             base = -x[..., 0]
             features = x[..., :-1] - x[..., 1:]
         else:
-            p, d = self.history_length, self.delay_frames
+            # -s_hat(n - d) with the whole frames d of the delay (for a fractional one, the learnt part corrects it).
+            p, d = self.history_length, math.floor(self.delay_frames)
             base = x[..., d - 1] - x[..., p]
             features = x
         if features.shape[-1] == 0:

@@ -27,9 +27,10 @@ class LoopInput:
     frame : int
         The frame ``n`` the command is for.
     wfs : Tensor
-        ``(batch, n_actuators)`` WFS measurement of ``eps(n - delay)`` in nm (zeros before the first one).
+        ``(batch, n_actuators)`` WFS measurement of ``eps(n - d)`` in nm (zeros before the first one), ``d`` the
+        whole frames of the delay.
     turbulence : Tensor
-        ``(batch, n_actuators)`` true ``s(n - delay)`` in nm: only oracle baselines (the pseudo-integrator) may use it.
+        ``(batch, n_actuators)`` true ``s(n - d)`` in nm: only oracle baselines (the pseudo-integrator) may use it.
     """
 
     frame: int
@@ -41,8 +42,8 @@ class LoopInput:
 class Controller(Protocol):
     """Anything the runner can close the loop with."""
 
-    def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
-        """Clear internal state before a run."""
+    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
+        """Clear internal state before a run (``delay_frames``: the plant's, possibly fractional)."""
 
     def step(self, inp: LoopInput) -> torch.Tensor:
         """Return the command ``y(n)`` in nm, ``(batch, n_actuators)``."""
@@ -89,7 +90,9 @@ def run_loop(
     """Close the loop for ``n_frames`` frames.
 
     Per frame ``n``: the controller gets the WFS measurement of ``eps(n - d)`` and returns ``y(n)``; the DM applies
-    it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS measures ``eps(n)``.
+    it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS measures ``eps(n)``. For a fractional delay
+    ``d + f`` (:mod:`eofnn.sim.delay`) the DM term is the time average ``(1 - f) DM(y(n)) + f DM(y(n - 1))``:
+    telemetry's ``y`` is the command computed for frame ``n``, its ``eps`` and ``wfs`` include the averaged DM.
 
     Parameters
     ----------
@@ -119,10 +122,12 @@ def run_loop(
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
     grid = turbulence.grid
     model = PlantModel(plant, grid)
-    batch, n_act, delay = turbulence.n_realisations, grid.n_actuators, plant.delay_frames
+    batch, n_act = turbulence.n_realisations, grid.n_actuators
+    delay, fraction = plant.whole_delay_frames, plant.delay_fraction
     dtype = torch.float64
-    controller.reset(batch, n_act, delay, dtype)
+    controller.reset(batch, n_act, plant.delay_frames, dtype)
     generator = torch_generator(noise_seed, "wfs-noise")
+    dm_previous = torch.zeros(batch, n_act, dtype=dtype)  # DM(y(n - 1)), for a fractional delay
     # Ring buffers of the last `delay` measurements and turbulence frames: slot n % delay holds frame n - delay.
     wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
     turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
@@ -141,7 +146,10 @@ def run_loop(
                 n = first + i
                 slot = n % delay
                 y = controller.step(LoopInput(n, wfs_ring[slot], turb_ring[slot]))
-                eps = s_chunk[:, i] + model.apply_dm(y)
+                dm = model.apply_dm(y)
+                if fraction:  # the shape acting over frame n: the time average of the commands acting over it
+                    dm, dm_previous = (1 - fraction) * dm + fraction * dm_previous, dm
+                eps = s_chunk[:, i] + dm
                 wfs = model.measure(eps, generator)
                 wfs_ring[slot] = wfs
                 turb_ring[slot] = s_chunk[:, i]
@@ -167,7 +175,7 @@ def run_loop(
         bar.close()
     telemetry = Telemetry(
         **{name: torch.cat(kept[name], 1) for name in record},
-        delay_frames=delay,
+        delay_frames=plant.delay_frames,
         config={"plant": plant.to_dict()},
         positions_m=torch.as_tensor(grid.positions_m),
     )

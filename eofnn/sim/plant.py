@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from eofnn.errors import ConfigError
+from eofnn.sim.delay import DELAY, check_delay, split_delay
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.validation import Constraint, Interval, OneOf, validated
 
@@ -27,9 +28,11 @@ class Plant:
 
     Parameters
     ----------
-    delay_frames : int
-        Frames between a residual and the first command that may use it: ``y(n)`` uses ``eps`` up to
-        ``eps(n - delay_frames)`` (2 in the reference study).
+    delay_frames : int or float
+        Loop delay ``tau >= 1`` in frames (2 in the reference study). An integer ``d``: ``y(n)`` uses ``eps`` up to
+        ``eps(n - d)``. A fraction ``tau = d + f`` (Keck's 1.5 ms at 1 kHz: 1.5): ``y(n)`` still uses ``eps`` up to
+        ``eps(n - d)``, and the DM shape during frame ``n`` is the time average of the commands acting over it,
+        ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` (see :mod:`eofnn.sim.delay`).
     dm_gain : float
         The DM applies ``dm_gain * y`` (1 is nominal).
     misregistration_x, misregistration_y : float
@@ -45,7 +48,7 @@ class Plant:
         The WFS reports ``wfs_gain * eps`` (optical gain; 1 is nominal).
     """
 
-    delay_frames: int = 2
+    delay_frames: int | float = 2
     dm_gain: float = 1.0
     misregistration_x: float = 0.0
     misregistration_y: float = 0.0
@@ -55,7 +58,7 @@ class Plant:
     wfs_gain: float = 1.0
 
     _constraints: ClassVar[dict[str, Constraint]] = {
-        "delay_frames": Interval(1, 100, integer=True, unit="frames"),
+        "delay_frames": DELAY,
         "dm_gain": Interval(0, 100, closed="right"),
         "misregistration_x": Interval(-10, 10, unit="actuator pitches"),
         "misregistration_y": Interval(-10, 10, unit="actuator pitches"),
@@ -64,6 +67,19 @@ class Plant:
         "wfs_noise_nm": Interval(0, 1e6, unit="nm"),
         "wfs_gain": Interval(0, 100, closed="right"),
     }
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "delay_frames", check_delay(self.delay_frames))  # 2.0 -> 2: integers stay ints
+
+    @property
+    def whole_delay_frames(self) -> int:
+        """``d = floor(delay_frames)``: the lag of the WFS reading the controller receives."""
+        return split_delay(self.delay_frames)[0]
+
+    @property
+    def delay_fraction(self) -> float:
+        """``f = delay_frames - d``: the fraction of a frame that still sees the previous command."""
+        return split_delay(self.delay_frames)[1]
 
     @classmethod
     def model_error_names(cls) -> tuple[str, ...]:

@@ -55,8 +55,8 @@ class Scenario:
         object.__setattr__(self, "vibrations", build_vibrations(self.vibrations, self.frame_rate_hz))
 
     @property
-    def delay_frames(self) -> int:
-        """The loop delay in frames (the plant's)."""
+    def delay_frames(self) -> int | float:
+        """The loop delay in frames (the plant's; fractional allowed)."""
         return self.plant.delay_frames
 
     def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1) -> Turbulence:

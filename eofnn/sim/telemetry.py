@@ -3,8 +3,9 @@
 Arrays are ``(frames, n_actuators)`` or ``(batch, frames, n_actuators)``, in nm:
 
 - ``s``: turbulence (piston/tip/tilt removed),
-- ``y``: DM commands as the controller believes them,
-- ``eps``: true residual ``s + DM(y)``,
+- ``y``: DM commands as the controller believes them (the command computed for frame ``n``),
+- ``eps``: true residual ``s + DM(y)`` (for a fractional delay ``d + f``, the DM term is the average
+  ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` acting over the frame, :mod:`eofnn.sim.delay`),
 - ``wfs``: what the WFS reported of ``eps`` (equal to ``eps`` for a perfect sensor).
 
 Files from other simulators or a real-time computer need only ``y`` and ``wfs`` and the loop delay; the layout
@@ -22,8 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from eofnn.errors import TelemetryError
+from eofnn.errors import ConfigError, TelemetryError
 from eofnn.outputs import check_output_file
+from eofnn.sim.delay import check_delay
 
 ARRAYS = ("s", "y", "eps", "wfs")
 #: What training, identification and replay from telemetry alone need.
@@ -41,8 +43,9 @@ class Telemetry:
     ----------
     s, y, eps, wfs : Tensor or None
         ``(frames, K)`` or ``(batch, frames, K)`` float64 arrays in nm (see the module docstring).
-    delay_frames : int
-        Loop delay ``d``: ``y(n)`` may use ``wfs`` up to frame ``n - d``.
+    delay_frames : int or float
+        Loop delay ``tau = d + f``: ``y(n)`` may use ``wfs`` up to frame ``n - d``; a fraction ``f`` of each frame
+        still sees the previous command (:mod:`eofnn.sim.delay`).
     config : dict
         What made the run (eofnn writes the plant and scenario here).
     frame_rate_hz : float or None
@@ -55,7 +58,7 @@ class Telemetry:
     y: torch.Tensor | None = None
     eps: torch.Tensor | None = None
     wfs: torch.Tensor | None = None
-    delay_frames: int = 2
+    delay_frames: int | float = 2
     config: dict = field(default_factory=dict)
     frame_rate_hz: float | None = None
     positions_m: torch.Tensor | None = None
@@ -201,14 +204,14 @@ def _number(value, name: str) -> float:
     return float(value)
 
 
-def _delay(value, name: str) -> int:
-    """The loop delay as an int >= 1 (integral floats such as FITS ``2.0`` pass)."""
-    if isinstance(value, np.ndarray) and value.ndim == 0:
+def _delay(value, name: str) -> int | float:
+    """The loop delay in frames, a finite number in [1, 100]: an int when integral (FITS ``2.0`` -> 2)."""
+    if isinstance(value, (np.ndarray, np.generic)) and np.ndim(value) == 0:
         value = value.item()
-    numeric = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-    if not numeric or not float(value).is_integer() or value < 1:
-        raise TelemetryError(f"{name}={value!r} is invalid: it must be an integer >= 1 (frames)")
-    return int(value)
+    try:
+        return check_delay(value, name)
+    except ConfigError as err:
+        raise TelemetryError(str(err)) from None
 
 
 def _array(data, name: str) -> np.ndarray:

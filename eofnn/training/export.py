@@ -59,6 +59,9 @@ def export_filter(network: LinearFilter, spec: HistorySpec, path: str | Path, *,
 
     if not isinstance(network, LinearFilter):
         raise ConfigError(f"only linear filters can be exported, not {type(network).__name__}")
+    if spec.delay_fraction:
+        raise ConfigError(f"delay_frames={spec.delay_frames} is invalid for a filter export: eofnn.runtime supports "
+                          "integer delays only")
     if network.n_taps != spec.n_taps:
         raise ConfigError(f"network has {network.n_taps} taps but the history {spec.kind} of length "
                           f"{spec.history_length} has {spec.n_taps}")

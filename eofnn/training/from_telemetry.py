@@ -62,7 +62,7 @@ class TelemetryFit:
         return self.predictor.controller(self.dm_gain if self.spec.kind == "open_loop" else 1.0)
 
 
-def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int, grid: ActuatorGrid | None):
+def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int | float, grid: ActuatorGrid | None):
     """``(dm_response, dm_gain, model_errors, source)`` of an identified plant, model errors, or the nominal DM."""
     if isinstance(plant, IdentifiedPlant):
         return plant.dm_response("model"), float(plant.dm_gain or 0.0), plant.model_errors(), "identified"
@@ -120,9 +120,10 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     grid = telemetry_grid(first_item, grid)
     dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, grid)
     train_stop = (stop if stop is not None else n_frames) - val_frames
-    if train_stop <= spec.first_frame or (val_frames and val_frames <= spec.first_frame):
+    span = spec.first_frame + spec.target_lead
+    if train_stop <= span or (val_frames and val_frames <= span):
         raise TelemetryError(f"stop={stop}, val_frames={val_frames}: {n_frames} frames leave no training or "
-                             f"validation history (each needs more than {spec.first_frame} frames)")
+                             f"validation history (each needs more than {span} frames)")
     grid_dict = None if grid is None else {"diameter_m": grid.diameter_m, "n_across": grid.n_across,
                                            "obstruction": grid.obstruction}
     info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,

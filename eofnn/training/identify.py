@@ -209,6 +209,9 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
         raise TelemetryError("plant identification needs the actuator grid: put positions_m (POSITIONS) in the "
                              "telemetry or pass grid")
     n_act, delay = sequences[0].y.shape[-1], sequences[0].delay_frames
+    if not float(delay).is_integer():  # the lag search and the whitening assume whole frames
+        raise TelemetryError(f"telemetry has delay_frames={delay}: plant identification supports integer delays "
+                             "only (give the plant instead, e.g. fit --plant plant.json)")
     if grid.n_actuators != n_act:
         raise TelemetryError(f"telemetry has {n_act} actuators but the grid has {grid.n_actuators}")
     require(isinstance(nuisance_lags, int) and nuisance_lags >= max(1, delay - 1),
