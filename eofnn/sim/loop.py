@@ -118,7 +118,7 @@ def run_loop(
     unknown = set(record) - {"s", "y", "eps", "wfs"}
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
     grid = turbulence.grid
-    model = PlantModel(plant, grid)
+    model = PlantModel(plant, grid, frame_rate_hz=getattr(turbulence, "frame_rate_hz", None))
     batch, n_act, delay = turbulence.n_realisations, grid.n_actuators, plant.delay_frames
     dtype = torch.float64
     controller.reset(batch, n_act, delay, dtype)
@@ -141,7 +141,7 @@ def run_loop(
                 n = first + i
                 slot = n % delay
                 y = controller.step(LoopInput(n, wfs_ring[slot], turb_ring[slot]))
-                eps = s_chunk[:, i] + model.apply_dm(y)
+                eps = s_chunk[:, i] + model.apply_dm(y, n)
                 wfs = model.measure(eps, generator)
                 wfs_ring[slot] = wfs
                 turb_ring[slot] = s_chunk[:, i]
