@@ -158,6 +158,7 @@ def test_reconvergence_definition():
     assert out["fast"][0]["reconvergence_frames"] == 400 and out["fast"][0]["reconvergence_s"] == 0.4
     assert out["slow"][0]["reconvergence_frames"] == 200 and out["slow"][0]["median_rms_after_nm"] == pytest.approx(5.2)
     assert out["never"][0]["reconvergence_frames"] is None and out["never"][0]["median_rms_after_nm"] == 8.0
+    assert out["never"][0]["median_rms_before_nm"] == 5.0 and out["fast"][0]["median_rms_before_nm"] == 20.0
     assert out["gone"][0]["reconvergence_frames"] is None and out["gone"][0]["median_rms_after_nm"] is None
     assert "reconvergence" not in LoopMetrics(1.0, 1.0, 1.0, 1.0, False, None, 0, 10).summary()  # stationary runs
 

@@ -8,7 +8,9 @@ trained for them, when the config gives one as a checkpoint, or an adapted filte
 ``n`` frames after the change's end when the running median of its residual RMS over the last
 :data:`WINDOW_S` (its window wholly after the end) first comes within 10% of that level and stays there for
 :data:`HOLD_S` (or to the segment's end); ``n`` counts the frames of data since the end, so
-``WINDOW_S * frame_rate`` is the smallest value. The RMS is the realisations' mean at each frame.
+``WINDOW_S * frame_rate`` is the smallest value. For comparison, ``median_rms_before_nm`` is the median over the
+second half of the segment before the change (from the previous change's end, or frame 0, to this one's start).
+The RMS is the realisations' mean at each frame.
 """
 
 from __future__ import annotations
@@ -68,8 +70,8 @@ def reconvergence(rms_by_controller: dict[str, list[float] | None], changes: lis
     Returns
     -------
     dict
-        Controller name -> list of ``{change, end_s, reference, reference_rms_nm, median_rms_after_nm,
-        reconvergence_frames, reconvergence_s}`` (``None`` where it does not apply: a diverged controller, a
+        Controller name -> list of ``{change, end_s, reference, reference_rms_nm, median_rms_before_nm,
+        median_rms_after_nm, reconvergence_frames, reconvergence_s}`` (``None`` where it does not apply: a diverged controller, a
         segment shorter than the window, a controller that never re-converged).
     """
     window, hold = max(1, round(WINDOW_S * frame_rate_hz)), max(1, round(HOLD_S * frame_rate_hz))
@@ -86,6 +88,10 @@ def reconvergence(rms_by_controller: dict[str, list[float] | None], changes: lis
             end = len(rms) if stop is None else min(stop, len(rms))
             if end - change.end_frame >= window:
                 settled[name] = float(rms[(change.end_frame + end) // 2: end].median())
+        first = max([c.end_frame for c in changes[:j] if c.end_frame <= change.start_frame], default=0)
+        before = {name: float(rms[(first + change.start_frame) // 2: change.start_frame].median())
+                  for name, rms in series.items()
+                  if rms is not None and len(rms) >= change.start_frame > (first + change.start_frame) // 2}
         reference = min(settled, key=settled.get) if settled else None
         level = settled.get(reference)
         for name, rms in series.items():
@@ -103,6 +109,7 @@ def reconvergence(rms_by_controller: dict[str, list[float] | None], changes: lis
                 "end_s": change.end_frame / frame_rate_hz,
                 "reference": reference,
                 "reference_rms_nm": level,
+                "median_rms_before_nm": before.get(name),
                 "median_rms_after_nm": settled.get(name),
                 "reconvergence_frames": frames,
                 "reconvergence_s": None if frames is None else frames / frame_rate_hz,
