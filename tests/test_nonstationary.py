@@ -54,7 +54,8 @@ def test_strength_change_scales_the_same_screen_over_the_ramp():
     s = turbulence(atmosphere([change])).frames(0, 400)[0]
     stationary = turbulence(atmosphere()).frames(0, 400)[0]
     ratio = (s * stationary).sum(-1) / stationary.pow(2).sum(-1)
-    p = ((torch.arange(400, dtype=torch.float64) / RATE - 0.2) / 0.1).clamp(0, 1)
+    u = ((torch.arange(400, dtype=torch.float64) / RATE - 0.2) / 0.1).clamp(0, 1)
+    p = u * u * (3 - 2 * u)  # smoothstep
     torch.testing.assert_close(ratio, (1 + 3 * p).sqrt(), rtol=1e-9, atol=0)  # amplitude sqrt(c): 2 after the ramp
     torch.testing.assert_close(s, ratio[:, None] * stationary, rtol=0, atol=1e-9)
 
@@ -77,12 +78,13 @@ def test_any_chunking_and_any_start_give_the_same_frames():
 
 def test_wind_change_is_a_variance_preserving_cross_fade_to_the_new_screen():
     """Over the ramp: cos(pi/2 p) times the old layer plus sin(pi/2 p) times the new screen, which a change with
-    no ramp switches to at once (the same screen: its seed is the change's index)."""
+    no ramp switches to at once (the same screen: its seed is the change's index); p a smoothstep of time."""
     change = {"at_s": 0.3, "wind_direction_deg": 90.0}
     ramped = turbulence(atmosphere([dict(change, ramp_s=0.1)])).frames(0, 500)
     switched = turbulence(atmosphere([change])).frames(0, 500)
     stationary = turbulence(atmosphere()).frames(0, 500)
-    p = ((torch.arange(500, dtype=torch.float64) / RATE - 0.3) / 0.1).clamp(0, 1).view(1, -1, 1)
+    u = ((torch.arange(500, dtype=torch.float64) / RATE - 0.3) / 0.1).clamp(0, 1).view(1, -1, 1)
+    p = u * u * (3 - 2 * u)  # smoothstep: the weights' slope is continuous at both ends of the ramp
     expected = torch.cos(math.pi / 2 * p) * stationary + torch.sin(math.pi / 2 * p) * switched
     torch.testing.assert_close(ramped, expected, rtol=0, atol=1e-9)
     assert torch.equal(ramped[:, :301], stationary[:, :301]) and torch.equal(ramped[:, 400:], switched[:, 400:])

@@ -6,18 +6,21 @@ direction, or its strength, changes, at once or over ``ramp_s`` seconds.
 - **Wind** (speed and/or direction). The layer models evaluate one frozen screen along one straight path (the
   ``exact`` model a periodic Fourier screen along a lattice direction, with a fine grid tied to the speed), so a new
   wind cannot follow the same screen. The layer is *cross-faded* to an independent screen of the same layer with the
-  new wind: ``s = cos(pi/2 p) s_old + sin(pi/2 p) s_new`` with ``p`` rising linearly from 0 at ``at_s`` to 1 at
-  ``at_s + ramp_s``. The two screens are independent, so the weights keep the variance, the spatial covariance
-  and the PSD exactly (``cos² + sin² = 1``) at every frame; what the fade does not keep is the temporal structure
-  *during* the ramp: each frame-to-frame step gains ``(pi / 2) / ramp_frames`` of the layer's RMS from the
-  weights' change, in quadrature with the flow's own step (a 0.1 s ramp at 1 kHz: 1.6% of the RMS per frame,
-  against 4.3% for the flow itself at 5 m/s and 20 cm pitch, point kernel: measured, the step is then 4.6%). ``ramp_s: 0`` switches in one frame:
+  new wind: ``s = cos(pi/2 p) s_old + sin(pi/2 p) s_new`` with ``p`` rising from 0 at ``at_s`` to 1 at
+  ``at_s + ramp_s`` as a smoothstep of time (:meth:`AtmosphereChange.progress`). The two screens are independent,
+  so the weights keep the variance, the spatial covariance and the PSD exactly (``cos² + sin² = 1``) at every
+  frame; what the fade does not keep is the temporal structure *during* the ramp: each frame-to-frame step gains
+  up to ``1.5 (pi / 2) / ramp_frames`` of the layer's RMS from the weights' change (mid-ramp), in quadrature with
+  the flow's own step (a 0.1 s ramp at 1 kHz: 2.4% of the RMS per frame, against 4.3% for the flow itself at
+  5 m/s and 20 cm pitch, point kernel). With a *linear* ``p`` the weights' slope jumps at both ends of the ramp,
+  which a predictor cannot extrapolate: measured in ``experiments/adaptive/wind_turn.yaml``, every EOF's residual
+  spiked from 3.9 to 15 nm for a few frames at 5.0 and 5.1 s; with the smoothstep the largest is 4.6 nm. ``ramp_s: 0`` switches in one frame:
   the residual then jumps for as many frames as a predictor's history spans (the step itself is as large as the
   RMS). Frames after the ramp are the new screen alone, frozen flow with the new wind.
 - **Strength** (``cn2_scale``): the layer's Cn² becomes ``cn2_scale`` times its configured ``cn2_fraction`` (its
   r0 scales by ``cn2_scale^(-3/5)``; other layers are untouched, so the total r0 changes). The same screen is
-  scaled in amplitude by ``sqrt(c)``, ``c`` moving linearly from its previous value to ``cn2_scale`` over the ramp:
-  continuous, and the screen's shape is kept.
+  scaled in amplitude by ``sqrt(c)``, ``c`` moving from its previous value to ``cn2_scale`` as ``p`` over the
+  ramp: continuous, and the screen's shape is kept.
 
 Each new screen of a layer has a seed of its own (the layer's seed key plus the change's index), it is built when a
 frame first needs it (training sequences shorter than the change never build it) and it is evaluated at the
@@ -96,11 +99,13 @@ class AtmosphereChange:
         return self.wind_speed_mps is not None or self.wind_direction_deg is not None
 
     def progress(self, frames: torch.Tensor, frame_rate_hz: float) -> torch.Tensor:
-        """Fraction of the change done at each frame of ``frames``: 0 before ``at_s``, 1 after the ramp."""
+        """Fraction ``p`` of the change done at each frame of ``frames``: 0 before ``at_s``, 1 after the ramp, and
+        ``3 u² - 2 u³`` of the ramp's time fraction ``u`` in between (smoothstep: no kink at either end)."""
         t = frames.to(torch.float64) / frame_rate_hz
         if self.ramp_s == 0:
             return (t >= self.at_s).to(torch.float64)
-        return ((t - self.at_s) / self.ramp_s).clamp(0.0, 1.0)
+        u = ((t - self.at_s) / self.ramp_s).clamp(0.0, 1.0)
+        return u * u * (3 - 2 * u)
 
 
 def build_changes(changes: Any, layers: Sequence[Any]) -> list[AtmosphereChange]:
