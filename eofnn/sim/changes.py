@@ -14,9 +14,10 @@ direction, or its strength, changes, at once or over ``ramp_s`` seconds.
   the flow's own step (a 0.1 s ramp at 1 kHz: 2.4% of the RMS per frame, against 4.3% for the flow itself at
   5 m/s and 20 cm pitch, point kernel). With a *linear* ``p`` the weights' slope jumps at both ends of the ramp,
   which a predictor cannot extrapolate: measured in ``experiments/adaptive/wind_turn.yaml``, every EOF's residual
-  spiked from 3.9 to 15 nm for a few frames at 5.0 and 5.1 s; with the smoothstep the largest is 4.6 nm. ``ramp_s: 0`` switches in one frame:
-  the residual then jumps for as many frames as a predictor's history spans (the step itself is as large as the
-  RMS). Frames after the ramp are the new screen alone, frozen flow with the new wind.
+  spiked from 3.9 to 15 nm for a few frames at 5.0 and 5.1 s; with the smoothstep the largest is 4.6 nm.
+  ``ramp_s: 0`` switches from one frame to the next: a step of about sqrt(2) times the layer's RMS, which no
+  predictor follows (a hard splice triggered the adaptive fallback in the earlier splice experiments). Frames
+  after the ramp are the new screen alone, frozen flow with the new wind.
 - **Strength** (``cn2_scale``): the layer's Cn² becomes ``cn2_scale`` times its configured ``cn2_fraction`` (its
   r0 scales by ``cn2_scale^(-3/5)``; other layers are untouched, so the total r0 changes). The same screen is
   scaled in amplitude by ``sqrt(c)``, ``c`` moving from its previous value to ``cn2_scale`` as ``p`` over the

@@ -134,8 +134,9 @@ class Atmosphere:
         if self.model == "exact":
             require(math.isfinite(self.outer_scale_m),
                     f"outer_scale_m={self.outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
-            for lay in layers + [w for i, lay in enumerate(layers)
-                                 for w in layer_winds(lay, [c for c in self.changes if c.layer == i])]:
+            changed = [w for i, base in enumerate(layers)
+                       for w in layer_winds(base, [c for c in self.changes if c.layer == i])]
+            for lay in layers + changed:
                 require(lay.wind_speed_mps > 0,
                         f"wind_speed_mps={lay.wind_speed_mps!r} is invalid for model 'exact': it must be > 0 (m/s)")
                 lattice_direction(lay.wind_direction_deg)
