@@ -18,6 +18,7 @@ from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
+from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import require_memory, require_time
 from eofnn.seeding import int_seed
@@ -254,6 +255,12 @@ class Experiment:
                 if margins is not None:
                     stability[scenario_name][name] = margins
                 self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins)}")
+            changes = scenario_changes(self.scenarios[scenario_name])
+            if changes:
+                runs = {name: None if m.diverged else m.rms_nm for name, m in metrics[scenario_name].items()}
+                rate = self.scenarios[scenario_name].frame_rate_hz
+                for name, entries in reconvergence(runs, changes, rate).items():
+                    metrics[scenario_name][name].reconvergence = entries
         gains: dict[str, dict[str, dict]] = {}
         for (name, scenario_name), scan in self.gain_scans.items():
             gains.setdefault(scenario_name, {})[name] = scan

@@ -74,13 +74,18 @@ class LoopMetrics:
     contrast_separation_lod: list[float] = field(default_factory=list, repr=False)
     contrast: list[float] = field(default_factory=list, repr=False)
     contrast_at: dict[str, float | None] = field(default_factory=dict)
+    #: Non-stationary scenarios: per change, the re-convergence after it (:mod:`eofnn.evaluation.nonstationary`).
+    reconvergence: list[dict] | None = None
 
     def summary(self) -> dict:
-        """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back)."""
+        """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back, ``reconvergence``
+        only in a scenario with changes)."""
         out = {k: getattr(self, k) for k in ("median_rms_nm", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged",
                                              "diverged_frame", "settle_frames", "n_frames")}
         if self.fallback_frame is not None:
             out["fallback_frame"] = self.fallback_frame
+        if self.reconvergence is not None:
+            out["reconvergence"] = self.reconvergence
         return out
 
 

@@ -121,7 +121,7 @@ def run_loop(
     unknown = set(record) - {"s", "y", "eps", "wfs"}
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
     grid = turbulence.grid
-    model = PlantModel(plant, grid)
+    model = PlantModel(plant, grid, frame_rate_hz=getattr(turbulence, "frame_rate_hz", None))
     batch, n_act = turbulence.n_realisations, grid.n_actuators
     delay, fraction = plant.whole_delay_frames, plant.delay_fraction
     dtype = torch.float64
@@ -146,7 +146,7 @@ def run_loop(
                 n = first + i
                 slot = n % delay
                 y = controller.step(LoopInput(n, wfs_ring[slot], turb_ring[slot]))
-                dm = model.apply_dm(y)
+                dm = model.apply_dm(y, n)
                 if fraction:  # the shape acting over frame n: the time average of the commands acting over it
                     dm, dm_previous = (1 - fraction) * dm + fraction * dm_previous, dm
                 eps = s_chunk[:, i] + dm

@@ -13,7 +13,8 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from eofnn.errors import ConfigError
+from eofnn.errors import ConfigError, require
+from eofnn.sim.changes import DmGainDrift, build_drift
 from eofnn.sim.delay import DELAY, check_delay, split_delay
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.validation import Constraint, Interval, OneOf, validated
@@ -46,6 +47,9 @@ class Plant:
         RMS of white WFS noise per actuator and frame, in nm.
     wfs_gain : float
         The WFS reports ``wfs_gain * eps`` (optical gain; 1 is nominal).
+    dm_gain_drift : DmGainDrift, optional
+        ``{start_s, stop_s, to}``: the DM gain moves linearly from ``dm_gain`` to ``to`` between the two times
+        (:mod:`eofnn.sim.changes`); the stability analysis and the controllers' model keep the static ``dm_gain``.
     """
 
     delay_frames: int | float = 2
@@ -56,6 +60,7 @@ class Plant:
     nonlinearity_scale_nm: float = 1000.0
     wfs_noise_nm: float = 0.0
     wfs_gain: float = 1.0
+    dm_gain_drift: DmGainDrift | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "delay_frames": DELAY,
@@ -70,6 +75,7 @@ class Plant:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "delay_frames", check_delay(self.delay_frames))  # 2.0 -> 2: integers stay ints
+        object.__setattr__(self, "dm_gain_drift", build_drift(self.dm_gain_drift))
 
     @property
     def whole_delay_frames(self) -> int:
@@ -101,15 +107,18 @@ class Plant:
 class PlantModel:
     """A :class:`Plant` bound to an actuator grid, applying the DM and the WFS to torch tensors."""
 
-    def __init__(self, plant: Plant, grid: ActuatorGrid, dtype: torch.dtype = torch.float64) -> None:
+    def __init__(self, plant: Plant, grid: ActuatorGrid, dtype: torch.dtype = torch.float64,
+                 frame_rate_hz: float | None = None) -> None:
         self.plant = plant
         self.grid = grid
+        self.frame_rate_hz = frame_rate_hz
         self._shift = None
         if plant.misregistration_x or plant.misregistration_y:
             self._shift = _shift_operator(grid, plant.misregistration_x, plant.misregistration_y, dtype)
 
-    def apply_dm(self, y: torch.Tensor) -> torch.Tensor:
-        """Correction the DM really applies (nm) for commands ``y`` (nm), ``(..., n_actuators)``."""
+    def apply_dm(self, y: torch.Tensor, frame: int | None = None) -> torch.Tensor:
+        """Correction the DM really applies (nm) for commands ``y`` (nm), ``(..., n_actuators)``, at ``frame``
+        (the gain of a drifting DM at that frame; without a frame, the static ``dm_gain``)."""
         p = self.plant
         if self._shift is not None:
             index, weight = self._shift
@@ -119,7 +128,12 @@ class PlantModel:
             y = p.nonlinearity_scale_nm * torch.tanh(y / p.nonlinearity_scale_nm)
         elif p.nonlinearity == "quadratic":
             y = y + y * y / p.nonlinearity_scale_nm
-        return p.dm_gain * y if p.dm_gain != 1.0 else y
+        gain = p.dm_gain
+        if p.dm_gain_drift is not None and frame is not None:
+            require(self.frame_rate_hz is not None, "plant.dm_gain_drift needs the frame rate: give PlantModel a "
+                                                    "frame_rate_hz")
+            gain = p.dm_gain_drift.gain(frame / self.frame_rate_hz, p.dm_gain)
+        return gain * y if gain != 1.0 else y
 
     def measure(self, eps: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         """WFS measurement of residual ``eps`` (nm): gain plus white noise drawn from ``generator``."""

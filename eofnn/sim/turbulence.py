@@ -28,6 +28,7 @@ import torch
 from eofnn.errors import require
 from eofnn.seeding import stream_seed
 from eofnn.sim.disturbances import BoilingLayer, Vibration, VibrationSeries, sub_seed
+from eofnn.sim.changes import AtmosphereChange, build_changes, layer_winds, with_changes
 from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
@@ -101,6 +102,9 @@ class Atmosphere:
     screen_frames : int
         Frames one realisation of the ``exact`` model holds (frames ``0 .. screen_frames - 1``); memory and set-up
         time grow with it.
+    changes : list of AtmosphereChange
+        Layers' wind or strength changing at given times (:mod:`eofnn.sim.changes`), e.g.
+        ``[{at_s: 5.0, layer: 0, wind_speed_mps: 20.0, ramp_s: 0.1}]``; none by default (stationary).
     """
 
     r0_m: float = 0.083
@@ -113,6 +117,7 @@ class Atmosphere:
     model: str = "exact"
     kernel: str | None = None
     screen_frames: int = 10000
+    changes: list[AtmosphereChange] = field(default_factory=list)
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "model": OneOf(MODELS),
@@ -133,6 +138,7 @@ class Atmosphere:
         layers = [Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers]
         require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
         object.__setattr__(self, "layers", layers)
+        object.__setattr__(self, "changes", build_changes(self.changes, layers))
         require(self.model == "exact" or self.kernel in (None, "point"),
                 f"kernel={self.kernel!r} is invalid for model {self.model!r}: it samples points on the actuator-pitch "
                 "grid; use kernel 'point' or model 'exact'")
@@ -143,7 +149,9 @@ class Atmosphere:
         if self.model == "exact":
             require(math.isfinite(self.outer_scale_m),
                     f"outer_scale_m={self.outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
-            for lay in layers:
+            changed = [w for i, base in enumerate(layers)
+                       for w in layer_winds(base, [c for c in self.changes if c.layer == i])]
+            for lay in layers + changed:
                 require(lay.wind_speed_mps > 0,
                         f"wind_speed_mps={lay.wind_speed_mps!r} is invalid for model 'exact': it must be > 0 (m/s)")
                 lattice_direction(lay.wind_direction_deg)
@@ -198,9 +206,15 @@ class Turbulence:
         self.atmosphere = atmosphere
         self.grid = grid
         self.n_realisations = n_realisations
+        self.frame_rate_hz = frame_rate_hz
+
+        def layer(r: int, i: int, lay: Layer, *key: int):  # a changed wind is a new screen, seeded by its index
+            return _layer_generator(atmosphere, grid, lay, 1.0 / frame_rate_hz, stream_seed(seed, stream, r, i, *key))
+
         self._strips = [
-            [_layer_generator(atmosphere, grid, layer, 1.0 / frame_rate_hz, stream_seed(seed, stream, r, i))
-             for i, layer in enumerate(atmosphere.layers)]
+            [with_changes(layer(r, i, lay), lay, i, atmosphere.changes, frame_rate_hz,
+                          lambda new, k, r=r, i=i: layer(r, i, new, k))
+             for i, lay in enumerate(atmosphere.layers)]
             for r in range(n_realisations)
         ]
         self._ptt = torch.as_tensor(grid.ptt_basis())
