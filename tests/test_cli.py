@@ -195,10 +195,21 @@ def test_shipped_configs_parse(command, config, capsys):
 
 
 def test_tiny_compare_numbers_are_pinned(tiny_results):
-    """Refactors must not move a number: the tiny experiment's metrics, recorded before the 'House in order'
-    restructuring, are reproduced bit for bit (update the file only for a deliberate change of the physics)."""
+    """Refactors must not move a number: the tiny experiment's metrics are reproduced to 1e-9 (update the file only
+    for a deliberate change of the physics). Not bit for bit: library builds (BLAS, FFT) move the last digits."""
     pinned = json.loads((Path(__file__).parent / "conf" / "tiny_compare_pinned.json").read_text())
-    assert json.loads((tiny_results / "metrics.json").read_text())["scenarios"] == pinned
+    measured = json.loads((tiny_results / "metrics.json").read_text())["scenarios"]
+
+    def flat(tree, prefix=""):
+        if isinstance(tree, dict):
+            return {k: v for key, sub in tree.items() for k, v in flat(sub, f"{prefix}{key}/").items()}
+        return {prefix: tree}
+
+    measured, pinned = flat(measured), flat(pinned)
+    assert measured.keys() == pinned.keys()
+    numbers = {k for k, v in pinned.items() if isinstance(v, float)}
+    assert {k: measured[k] for k in numbers} == pytest.approx({k: pinned[k] for k in numbers}, rel=1e-9, abs=1e-12)
+    assert {k: measured[k] for k in pinned.keys() - numbers} == {k: pinned[k] for k in pinned.keys() - numbers}
 
 
 def test_compare_can_train_from_the_scenarios_telemetry_alone(tmp_path, capsys):

@@ -193,15 +193,15 @@ class Experiment:
     def _scan_gains(self, cfg: PredictorConfig, scenario: Scenario) -> dict:
         """Close the loop with each of ``cfg.gains`` on a stream of its own; the lowest median residual wins."""
         settle = min(self.evaluation.settle_frames, cfg.data.frames // 2)
-        scanned: dict[str, float | None] = {}
+        residuals: list[float | None] = []
         for gain in cfg.gains:
             result = run_loop(scenario.turbulence(cfg.data.seed, "gain-scan"), scenario.plant,
                               Integrator(gain, cfg.leak), cfg.data.frames, noise_seed=int_seed(cfg.data.seed, "gain-scan"),
                               record=(), divergence_factor=self.evaluation.divergence_factor, progress=False)
-            scanned[f"{gain:g}"] = None if result.diverged else float(result.residual_rms_nm[:, settle:].median())
-        finite = {g: v for g, v in zip(cfg.gains, scanned.values()) if v is not None}
-        require(bool(finite), f"every integrator gain of gains={cfg.gains!r} diverged in scenario: give smaller gains")
-        return {"gain": min(finite, key=finite.get), "scanned": scanned}
+            residuals.append(None if result.diverged else float(result.residual_rms_nm[:, settle:].median()))
+        finite = [(rms, gain) for gain, rms in zip(cfg.gains, residuals, strict=True) if rms is not None]
+        require(bool(finite), f"every integrator gain of gains={cfg.gains!r} diverged: give smaller gains")
+        return {"gain": min(finite)[1], "scanned": {f"{g:g}": rms for g, rms in zip(cfg.gains, residuals, strict=True)}}
 
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
