@@ -1,24 +1,43 @@
 #!/usr/bin/env bash
-# Regenerate the reproduction of the reference study: run configs/paper.yaml, the design-choice sweeps, and
-# rewrite experiments/README.md from their metrics. About 20 minutes on 2 cores. Run after scripts/setup.sh.
+# Regenerate experiments/: the study's reproduction and its design sweeps, the realistic comparison, the
+# closed-loop EOF study, the robustness maps, vibrations and online adaptation; then rewrite
+# experiments/README.md from their result files. About an hour on 2 cores. Run after scripts/setup.sh.
+# Every sweep is resumable: rerun this script after an interruption and finished points are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 eofnn=.venv/bin/eofnn
-$eofnn compare --config configs/paper.yaml --out experiments/paper --overwrite true
-# A 40 Hz tip vibration in the realistic telescope: integrator against open-loop EOF (about 2 minutes).
-$eofnn compare --config configs/vibrations.yaml --out experiments/vibrations --overwrite true
-# Design choices, open-loop EOF in the nominal scenario (see experiments/README.md).
-only_ol='{"uncorrected": {"controller": "uncorrected"}, "ol_eof": {"history_length": 4, "optimization": {"alpha": 1.0e-12}, "train_in": "nominal", "data": {"frames": 20000}}}'
-for alpha in 1.0e-6 1.0e-9 1.0e-12 1.0e-14; do
-  $eofnn compare --config configs/paper.yaml --scenarios '{"nominal": {}}' --predictors "$only_ol" \
-    --predictors.ol_eof.optimization.alpha $alpha --out experiments/sweeps/alpha_$alpha --overwrite true
+x=experiments
+# 1. The study's Figure 3 on its own turbulence (HCIPy pupil layer), and its design choices for open-loop EOF.
+$eofnn compare --config configs/paper.yaml --out $x/paper --overwrite true
+for grid in alpha history frames; do
+  $eofnn sweep --config $x/sweeps/base_ol_eof.yaml --grid $x/sweeps/grid_$grid.yaml --out $x/sweeps/$grid --workers 2
 done
-for p in 2 4 8 16; do
-  $eofnn compare --config configs/paper.yaml --scenarios '{"nominal": {}}' --predictors "$only_ol" \
-    --predictors.ol_eof.history_length $p --out experiments/sweeps/history_$p --overwrite true
+# 2. The realistic comparison: exact frozen flow through each subaperture, two layers, WFS noise 0, 1 and 3 nm.
+$eofnn compare --config configs/realistic_study.yaml --out $x/realistic --overwrite true
+# 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
+for kind in cl ol; do
+  $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \
+    --out $x/sweeps/realistic_${kind}_eof --workers 2
 done
-for frames in 2000 6000 20000; do
-  $eofnn compare --config configs/paper.yaml --scenarios '{"nominal": {}}' --predictors "$only_ol" \
-    --predictors.ol_eof.data.frames $frames --out experiments/sweeps/frames_$frames --overwrite true
+# 4. Robustness maps of the controllers made for the nominal plant, with their analytic margins.
+linear='{"integrator": {"controller": "integrator", "gains": [0.2, 0.3, 0.4, 0.5, 0.6, 0.7], "data": {"frames": 1500}},
+  "ol_eof": {"history_length": 4, "optimization": {"alpha": 1.0e-6}, "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000}},
+  "cl_eof": {"history": "closed_loop", "history_length": 5, "optimization": {"alpha": 1.0e-6},
+             "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000, "integrator_gain": 0.4, "dither_nm": 10.0}}}'
+gains='{"dm_gain": [0.5, 0.7, 0.9, 1.0, 1.1, 1.3, 1.5, 2.0, 3.0]}'
+$eofnn compare --config configs/realistic_small.yaml --scenarios '{"nominal": {}}' --predictors "$linear" \
+  --robustness "$gains" --out $x/robustness_realistic --overwrite true
+$eofnn compare --config configs/realistic_small.yaml --scenarios '{"nominal": {}}' --predictors "$linear" \
+  --robustness '{"misregistration_x": [0.0, 0.05, 0.1, 0.2, 0.3, 0.5]}' \
+  --out $x/robustness_realistic_misregistration --overwrite true
+$eofnn compare --config configs/paper_small.yaml --scenarios '{"nominal": {}}' --predictors "$linear" \
+  --predictors.ol_eof.optimization.alpha 1.0e-12 --predictors.cl_eof.optimization.alpha 1.0e-12 \
+  --robustness "$gains" --out $x/robustness_study --overwrite true
+# 5. Vibrations, and online adaptation under changing conditions (their pages: vibrations/, ADAPTIVE.md).
+$eofnn compare --config configs/vibrations.yaml --out $x/vibrations --overwrite true
+for run in wind_speed wind_turn dm_gain_drift; do
+  $eofnn compare --config $x/adaptive/$run.yaml --out $x/adaptive/$run --overwrite true
 done
-.venv/bin/python experiments/make_report.py
+$eofnn compare --config $x/adaptive/dm_gain_drift.yaml --scenario.plant.dm_gain_drift.to 2.0 \
+  --out $x/adaptive/dm_gain_drift_2.0 --overwrite true
+.venv/bin/python $x/make_report.py
