@@ -74,6 +74,8 @@ class LinearFilterStep:
         Loop shape.
     dtype : torch.dtype
         The loop's dtype.
+    spare : int
+        Extra ring slots (:class:`HistoryRing`): the newest frames are copied back once every ``spare`` steps.
     """
 
     def __init__(self, weight: torch.Tensor, spec: HistorySpec, dm_gain_model: float, batch: int,
