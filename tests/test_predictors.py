@@ -91,6 +91,43 @@ def test_predictive_controller_sees_the_same_histories_as_training(small_scenari
     assert controller is None or kind == "closed_loop"
 
 
+class _Forward(nn.Module):
+    """A LinearFilter behind a module that is not one: the controller's general path."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, history):
+        return self.net(history)
+
+
+@pytest.mark.parametrize("kind, structure, history_length, dm_gain", [
+    ("closed_loop", "per_actuator", 3, 1.0), ("closed_loop", "shared", 1, 1.0),
+    ("open_loop", "per_actuator", 4, 1.0), ("open_loop", "shared", 1, 1.5), ("open_loop", "per_actuator", 3, 1.5)])
+def test_linear_filter_fast_path_gives_the_commands_of_forward_bit_for_bit(small_scenario, kind, structure,
+                                                                           history_length, dm_gain):
+    """PredictiveController's LinearFilterStep and LinearFilter.forward on the general path: the same commands to
+    the last bit over 300 frames (a ring wrap), with noise, two realisations and a POL gain other than 1."""
+    sc = small_scenario.with_plant(dm_gain=dm_gain, wfs_noise_nm=2.0)
+    spec = HistorySpec(kind, history_length, sc.delay_frames)
+    net = LinearFilter(sc.grid.n_actuators, spec.n_taps, structure)
+    with torch.no_grad():
+        net.weight.normal_(0.0, 0.01, generator=torch.Generator().manual_seed(3))
+        net.weight[:, 0] += 1.0 if kind == "closed_loop" else -1.0 / dm_gain  # integrator / POL predictor
+        if kind == "closed_loop":
+            net.weight[:, history_length] -= 0.4
+    turbulence, runs = sc.turbulence(0, n_realisations=2), {}
+    for name, network in (("fast", net), ("general", _Forward(net))):
+        controller = PredictiveController(network, spec, dm_gain_model=dm_gain)
+        runs[name] = run_loop(turbulence, sc.plant, controller, 300, record=("s", "y"))
+        assert (controller._fast is not None) == (name == "fast")
+    assert torch.equal(runs["fast"].telemetry.s, runs["general"].telemetry.s)
+    assert not runs["fast"].diverged
+    assert runs["fast"].telemetry.y.abs().max() > 0
+    assert torch.equal(runs["fast"].telemetry.y, runs["general"].telemetry.y)
+
+
 @pytest.mark.parametrize("structure", ["per_actuator", "shared", "neighbourhood"])
 def test_streamed_closed_form_equals_direct_ridge(small_scenario, structure):
     noisy = small_scenario.with_plant(wfs_noise_nm=5.0)

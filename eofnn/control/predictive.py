@@ -17,31 +17,113 @@ class HistoryRing:
 
     Frames are written at decreasing positions of a buffer ``spare`` slots longer than the history; the history
     is a view of ``length`` consecutive slots. Only when the buffer's start is reached are the newest frames
-    copied back to its end, once every ``spare`` pushes.
+    copied back to its end, once every ``spare`` pushes. The views of every position are made once, so a push or
+    a read is a list lookup rather than a tensor indexing call.
     """
 
     def __init__(self, shape: tuple[int, ...], length: int, dtype: torch.dtype, spare: int = 256) -> None:
         self.length, self.spare = length, max(spare, length)
         self.buffer = torch.zeros(*shape, length + self.spare, dtype=dtype)
         self.pos = self.spare
+        self._slots = self.buffer.unbind(-1)
+        self._views = [self.buffer[..., i: i + length] for i in range(self.spare + 1)]
 
-    def push(self, frame: torch.Tensor) -> None:
+    def next_slot(self) -> torch.Tensor:
+        """Make room for a new frame and return its slot, ``(...)``: writing into it pushes the frame."""
         if self.pos == 0:
             keep = self.length - 1
             if keep:
                 self.buffer[..., self.spare + 1: self.spare + 1 + keep] = self.buffer[..., :keep]
             self.pos = self.spare + 1
         self.pos -= 1
-        self.buffer[..., self.pos] = frame
+        return self._slots[self.pos]
+
+    def push(self, frame: torch.Tensor) -> None:
+        self.next_slot().copy_(frame)
 
     @property
     def view(self) -> torch.Tensor:
         """``(..., length)`` history, most recent first."""
-        return self.buffer[..., self.pos: self.pos + self.length]
+        return self._views[self.pos]
 
     def __getitem__(self, lag: int) -> torch.Tensor:
         """The frame pushed ``lag`` pushes ago (0 is the newest)."""
-        return self.buffer[..., self.pos + lag]
+        return self._slots[self.pos + lag]
+
+
+class LinearFilterStep:
+    """The controller step of a per-actuator or shared :class:`~eofnn.models.linear.LinearFilter`, on buffers
+    allocated once: two small writes, one ``torch.mul`` and one ``torch.sum`` per step.
+
+    The arithmetic is ``LinearFilter.forward``'s (the same products summed by the same reduction over a contiguous
+    ``(batch, K, taps)`` block), so the commands are bit-identical to the general path's. What it saves is the
+    traffic around it: the closed-loop commands and residuals share one ring (``(batch, K, 2, p + spare)``: row 0
+    ``y(n-1), y(n-2), ...``, row 1 ``eps(n-d), ...`` at the same positions), so the filter reads the two histories
+    in place instead of concatenating them; the open-loop pseudo-open-loop value is computed straight into its ring
+    slot; past commands for it sit in a ``(d, batch, K)`` ring indexed by frame.
+
+    Parameters
+    ----------
+    weight : Tensor
+        The filter's ``(K, taps)`` or ``(1, taps)`` weights (detached), in ``dtype`` on the CPU.
+    spec : HistorySpec
+        The history the filter reads.
+    dm_gain_model : float
+        DM gain of the pseudo-open-loop reconstruction (open loop only).
+    batch, n_actuators : int
+        Loop shape.
+    dtype : torch.dtype
+        The loop's dtype.
+    spare : int
+        Extra ring slots (:class:`HistoryRing`): the newest frames are copied back once every ``spare`` steps.
+    """
+
+    def __init__(self, weight: torch.Tensor, spec: HistorySpec, dm_gain_model: float, batch: int,
+                 n_actuators: int, dtype: torch.dtype, spare: int = 256) -> None:
+        self.spec, self.dm_gain_model = spec, dm_gain_model
+        p, d = spec.history_length, spec.whole_delay
+        self._closed = spec.kind == "closed_loop"
+        self._products = torch.empty(batch, n_actuators, spec.n_taps, dtype=dtype)
+        if self._closed:
+            self._ring = HistoryRing((batch, n_actuators, 2), p, dtype, spare)
+            self._weight = weight.view(weight.shape[0], 2, p)
+            self._products_out = self._products.view(batch, n_actuators, 2, p)
+            slots = self._ring.buffer.unbind(-1)
+            self._y_slots, self._eps_slots = [s[..., 0] for s in slots], [s[..., 1] for s in slots]
+        else:
+            self._ring = HistoryRing((batch, n_actuators), p, dtype, spare)
+            self._weight = weight
+            self._products_out = self._products
+            self._y_past = torch.zeros(d, batch, n_actuators, dtype=dtype).unbind(0)  # slot n % d: y(n-d), then y(n)
+            self._scaled = torch.empty(batch, n_actuators, dtype=dtype)
+
+    def step(self, wfs: torch.Tensor, frame: int, active: bool) -> torch.Tensor:
+        """``y(n)`` for the measurement ``wfs`` of frame ``frame`` after the reset; zeros unless ``active``."""
+        ring = self._ring
+        if self._closed:
+            self._eps_slots[ring.pos].copy_(wfs)  # eps(n - d) beside y(n - 1), written at the end of the last step
+        else:
+            y_past = self._y_past[frame % self.spec.whole_delay]
+            self._pseudo_open_loop(ring.next_slot(), wfs, y_past)
+        if active:
+            torch.mul(ring.view, self._weight, out=self._products_out)
+            y = self._products.sum(-1)
+        else:
+            y = torch.zeros_like(wfs)
+        if self._closed:
+            ring.next_slot()
+            self._y_slots[ring.pos].copy_(y)
+        else:
+            y_past.copy_(y)
+        return y
+
+    def _pseudo_open_loop(self, out: torch.Tensor, wfs: torch.Tensor, y_old: torch.Tensor) -> None:
+        """``out = wfs - dm_gain_model * y(n - d)``, the POL value of frame ``n - d``, rounded as the general path."""
+        if self.dm_gain_model == 1.0:
+            torch.sub(wfs, y_old, out=out)
+        else:
+            torch.mul(y_old, self.dm_gain_model, out=self._scaled)
+            torch.sub(wfs, self._scaled, out=out)
 
 
 class PredictiveController:
@@ -52,10 +134,8 @@ class PredictiveController:
     reset) the command is zero, so that every history the network sees is a true one (``eps = s + DM(y)`` with
     the commands really applied) rather than one padded with zeros.
 
-    A per-actuator or shared :class:`~eofnn.models.linear.LinearFilter` whose weights live on the loop's device in
-    the loop's dtype runs on a fast path: the history is written into one preallocated buffer and the filter is
-    ``torch.mul`` and ``torch.sum`` into preallocated outputs, the same arithmetic as ``LinearFilter.forward``
-    (bit-identical commands) without the per-step allocations.
+    A per-actuator or shared :class:`~eofnn.models.linear.LinearFilter` whose weights live on the CPU in the
+    loop's dtype runs on :class:`LinearFilterStep` (bit-identical commands, fewer passes over the history).
 
     Parameters
     ----------
@@ -81,51 +161,44 @@ class PredictiveController:
         p, d = self.spec.history_length, self.spec.whole_delay
         shape = (batch, n_actuators)
         self._out_dtype = dtype
-        # Commands y(n-1), y(n-2), ...: the closed-loop taps and the POL reconstruction (y(n-d), and y(n-d-1)
-        # for a fractional delay) read them.
-        self._y = HistoryRing(shape, max(p, d + self.spec.target_lead), dtype)
-        # Residuals (closed loop) or POL values (open loop) from frame n - d back.
-        self._signal = HistoryRing(shape, p, dtype)
         self._frames_seen = 0
         self.network.eval()
         weight = getattr(self.network, "weight", None)
+        # The fast path's pseudo-open-loop ring holds y(n - d) only: a fractional delay also needs y(n - d - 1).
         fast = (isinstance(self.network, LinearFilter) and self.network.structure in ("per_actuator", "shared")
-                and weight.dtype == dtype and weight.device == self._device == torch.device("cpu"))
-        self._weight = weight.detach() if fast else None
-        if fast:
-            taps = self.spec.n_taps
-            self._history = torch.empty(batch, n_actuators, taps, dtype=dtype)
-            self._product = torch.empty(batch, n_actuators, taps, dtype=dtype)
+                and weight.dtype == dtype and weight.device == self._device == torch.device("cpu")
+                and (self.spec.kind == "closed_loop" or not self.spec.delay_fraction))
+        self._fast = (LinearFilterStep(weight.detach(), self.spec, self.dm_gain_model, batch, n_actuators, dtype)
+                      if fast else None)
+        if not fast:
+            # Commands y(n-1), y(n-2), ...: the closed-loop taps and the POL reconstruction (y(n-d), and y(n-d-1)
+            # for a fractional delay) read them.
+            self._y = HistoryRing(shape, max(p, d + self.spec.target_lead), dtype)
+            # Residuals (closed loop) or POL values (open loop) from frame n - d back.
+            self._signal = HistoryRing(shape, p, dtype)
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        n = self._frames_seen
+        self._frames_seen = n + 1
+        if self._fast is not None:
+            return self._fast.step(inp.wfs, n, n >= self.spec.first_frame)
+        return self._general_step(inp.wfs, n >= self.spec.first_frame)
 
     @torch.no_grad()
-    def step(self, inp: LoopInput) -> torch.Tensor:
+    def _general_step(self, wfs: torch.Tensor, active: bool) -> torch.Tensor:
         p, d, f = self.spec.history_length, self.spec.whole_delay, self.spec.delay_fraction
         if self.spec.kind == "open_loop":
             applied = self._y[d - 1] if not f else (1 - f) * self._y[d - 1] + f * self._y[d]  # DM over frame n - d
-            self._signal.push(inp.wfs - self.dm_gain_model * applied)  # POL value of frame n - d
+            self._signal.push(wfs - self.dm_gain_model * applied)  # POL value of frame n - d
         else:
-            self._signal.push(inp.wfs)
-        if self._frames_seen < self.spec.first_frame:
-            y = torch.zeros_like(inp.wfs)
-        elif self._weight is not None:
-            y = self._fast_filter(p)
+            self._signal.push(wfs)
+        if not active:
+            y = torch.zeros_like(wfs)
         else:
             if self.spec.kind == "open_loop":
                 history = self._signal.view
             else:
                 history = torch.cat([self._y.view[..., :p], self._signal.view], dim=-1)
-            y = self.network(history.to(self._device, self._dtype)).to(inp.wfs.device, self._out_dtype)
-        self._frames_seen += 1
+            y = self.network(history.to(self._device, self._dtype)).to(wfs.device, self._out_dtype)
         self._y.push(y)
         return y
-
-    def _fast_filter(self, p: int) -> torch.Tensor:
-        """``LinearFilter.forward`` of the current history, through the preallocated buffers."""
-        if self.spec.kind == "open_loop":
-            history = self._signal.view
-        else:
-            history = self._history
-            history[..., :p].copy_(self._y.view[..., :p])
-            history[..., p:].copy_(self._signal.view)
-        torch.mul(history, self._weight, out=self._product)
-        return self._product.sum(-1)

@@ -129,8 +129,11 @@ def run_loop(
     generator = torch_generator(noise_seed, "wfs-noise")
     dm_previous = torch.zeros(batch, n_act, dtype=dtype)  # DM(y(n - 1)), for a fractional delay
     # Ring buffers of the last `delay` measurements and turbulence frames: slot n % delay holds frame n - delay.
-    wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
-    turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype)
+    wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype).unbind(0)
+    turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype).unbind(0)
+    # Per-chunk arrays are allocated only for what leaves the loop; eps (for the RMS) otherwise reuses one buffer.
+    kept_arrays = set(record) | ({"y", "eps", "wfs"} if on_chunk is not None else set())
+    eps_scratch = None
     kept: dict[str, list[torch.Tensor]] = {name: [] for name in record}
     residual_rms, turbulence_rms = [], []
     diverged_frame = None
@@ -140,20 +143,30 @@ def run_loop(
     try:
         for first, s_chunk in turbulence.chunks(n_frames, chunk_frames):
             t = s_chunk.shape[1]
-            arrays = {name: torch.empty(batch, t, n_act, dtype=dtype) for name in ("y", "eps", "wfs")}
+            arrays = {name: torch.empty(batch, t, n_act, dtype=dtype) for name in ("y", "eps", "wfs")
+                      if name in kept_arrays}
+            if "eps" not in arrays:
+                if eps_scratch is None or eps_scratch.shape[1] < t:
+                    eps_scratch = torch.empty(batch, t, n_act, dtype=dtype)
+                arrays["eps"] = eps_scratch[:, :t]
+            y_out, eps_out, wfs_out = arrays.get("y"), arrays["eps"], arrays.get("wfs")
             arrays["s"] = s_chunk
             for i in range(t):
                 n = first + i
                 slot = n % delay
                 y = controller.step(LoopInput(n, wfs_ring[slot], turb_ring[slot]))
+                s_n = s_chunk[:, i]
                 dm = model.apply_dm(y, n)
                 if fraction:  # the shape acting over frame n: the time average of the commands acting over it
                     dm, dm_previous = (1 - fraction) * dm + fraction * dm_previous, dm
-                eps = s_chunk[:, i] + dm
+                eps = torch.add(s_n, dm, out=eps_out[:, i])
                 wfs = model.measure(eps, generator)
-                wfs_ring[slot] = wfs
-                turb_ring[slot] = s_chunk[:, i]
-                arrays["y"][:, i], arrays["eps"][:, i], arrays["wfs"][:, i] = y, eps, wfs
+                wfs_ring[slot].copy_(wfs)
+                turb_ring[slot].copy_(s_n)
+                if y_out is not None:
+                    y_out[:, i] = y
+                if wfs_out is not None:
+                    wfs_out[:, i] = wfs
             rms = arrays["eps"].pow(2).mean(-1).sqrt()
             turb = s_chunk.pow(2).mean(-1).sqrt()
             bad = ~torch.isfinite(rms) | (rms > divergence_factor * turb)
