@@ -20,10 +20,10 @@ for kind in cl ol; do
     --out $x/sweeps/realistic_${kind}_eof --workers 2
 done
 # 4. Robustness maps of the controllers made for the nominal plant, with their analytic margins.
-linear='{"integrator": {"controller": "integrator", "gains": [0.2, 0.3, 0.4, 0.5, 0.6, 0.7], "data": {"frames": 1500}},
+linear='{"integrator": {"controller": "integrator", "gains": [0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95], "data": {"frames": 1500}},
   "ol_eof": {"history_length": 4, "optimization": {"alpha": 1.0e-6}, "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000}},
   "cl_eof": {"history": "closed_loop", "history_length": 5, "optimization": {"alpha": 1.0e-6},
-             "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000, "integrator_gain": 0.4, "dither_nm": 10.0}}}'
+             "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000, "integrator_gain": 0.4, "dither_nm": 10.0, "refit_rounds": 1}}}'
 gains='{"dm_gain": [0.5, 0.7, 0.9, 1.0, 1.1, 1.3, 1.5, 2.0, 3.0]}'
 $eofnn compare --config configs/realistic_small.yaml --scenarios '{"nominal": {}}' --predictors "$linear" \
   --robustness "$gains" --out $x/robustness_realistic --overwrite true
