@@ -40,4 +40,6 @@ for run in wind_speed wind_turn dm_gain_drift; do
 done
 $eofnn compare --config $x/adaptive/dm_gain_drift.yaml --scenario.plant.dm_gain_drift.to 2.0 \
   --out $x/adaptive/dm_gain_drift_2.0 --overwrite true
+# 6. Learning from telemetry alone against simulator truth (its page: telemetry.md).
+.venv/bin/python $x/telemetry_training.py
 .venv/bin/python $x/make_report.py
