@@ -158,13 +158,25 @@ class IdentifiedPlant:
         return apply
 
 
-def _lagged(x: torch.Tensor, lags: range, start: int, stop: int) -> torch.Tensor:
-    """``(K, len(lags), stop - start)`` of ``x[:, n - lag]`` for a ``(K, frames)`` signal.
+class _Regressors:
+    """A ``(K, features, batch_frames)`` buffer, allocated once, that each batch's regressors are copied into.
 
     Regressors are laid out ``(groups, features, samples)``, samples contiguous: the normal equations get them as
-    a transposed view, so the Gram products run on contiguous rows without a copy.
+    a transposed view, so the Gram products run on contiguous rows without a copy; filling the buffer in place
+    (rather than stacking and concatenating fresh tensors per batch) halves the memory traffic of a batch.
     """
-    return torch.stack([x[:, start - lag: stop - lag] for lag in lags], dim=1)
+
+    def __init__(self, n_groups: int, n_features: int, batch_frames: int) -> None:
+        self.buffer = torch.empty(n_groups, n_features, batch_frames, dtype=torch.float64)
+
+    def nuisance(self, y: torch.Tensor, wfs: torch.Tensor, p: int, a: int, b: int, offset: int = 0) -> torch.Tensor:
+        """Rows ``offset ..`` get ``z(n) = [y(n-2..n-p-1), wfs(n-2..n-p-1)]``, the past that holds neither ``w(n)``
+        nor ``w(n-1)``; returns the filled ``(K, offset + 2p, b - a)`` view."""
+        out = self.buffer[..., : b - a]
+        for i, lag in enumerate(range(2, p + 2)):
+            out[:, offset + i].copy_(y[:, a - lag: b - lag])
+            out[:, offset + p + i].copy_(wfs[:, a - lag: b - lag])
+        return out[:, : offset + 2 * p]
 
 
 def _chunks(start: int, stop: int, size: int):
@@ -269,23 +281,19 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     return result
 
 
-def _nuisance(y: torch.Tensor, wfs: torch.Tensor, p: int, a: int, b: int) -> torch.Tensor:
-    """``z(n) = [y(n-2..n-p-1), wfs(n-2..n-p-1)]``: the past that holds neither ``w(n)`` nor ``w(n-1)``."""
-    return torch.cat([_lagged(y, range(2, p + 2), a, b), _lagged(wfs, range(2, p + 2), a, b)], 1)
-
-
 def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor]:
     """Step 1: ``u(n) = Dy(n) - fit(Dy(n) | z(n))`` per actuator, ``(K, frames)`` per sequence (0 before ``first``)."""
     whitening = NormalEquations()
+    regressors = _Regressors(signals[0][0].shape[0], 2 * p, batch_frames)
     for y, wfs in signals:
         for a, b in _chunks(first, y.shape[1], batch_frames):
-            whitening.update(_nuisance(y, wfs, p, a, b).transpose(1, 2), y[:, a:b] - y[:, a - 1:b - 1])
+            whitening.update(regressors.nuisance(y, wfs, p, a, b).transpose(1, 2), y[:, a:b] - y[:, a - 1:b - 1])
     beta = _solve(whitening)
     innovations = []
     for y, wfs in signals:
         u = torch.zeros_like(y)
         for a, b in _chunks(first, y.shape[1], batch_frames):
-            fit = torch.bmm(beta.unsqueeze(1), _nuisance(y, wfs, p, a, b)).squeeze(1)
+            fit = torch.bmm(beta.unsqueeze(1), regressors.nuisance(y, wfs, p, a, b)).squeeze(1)
             u[:, a:b] = y[:, a:b] - y[:, a - 1:b - 1] - fit
         innovations.append(u)
     return innovations
@@ -298,10 +306,13 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid,
     neighbours = grid.neighbours(radius)
     n_nb = neighbours.shape[1]
     regression = NormalEquations()
+    regressors = _Regressors(n_act, n_nb + 2 * p, batch_frames)
     for (y, wfs), u in zip(signals, innovations, strict=True):
         u_pad = torch.cat([u, torch.zeros_like(u[:1])], 0)  # a zero row for neighbour slots beyond the pupil edge
         for a, b in _chunks(first, y.shape[1], batch_frames):
-            features = torch.cat([u_pad[neighbours, a:b], _nuisance(y, wfs, p, a, b)], 1)
+            features = regressors.nuisance(y, wfs, p, a, b, offset=n_nb)
+            for j in range(n_nb):
+                features[:, j].copy_(u_pad[neighbours[:, j], a:b])
             regression.update(features.transpose(1, 2), wfs[:, a:b] - wfs[:, a - 1:b - 1])
     weights = _solve(regression)
     gram = regression.gram
