@@ -414,7 +414,7 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
     text = f"""# eofnn's experiments: the reference study reproduced, and what changes on realistic physics
 
-Regenerate everything on this page with one command (about an hour on 2 cores):
+Regenerate everything on this page with one command (about 40 minutes on 2 idle cores):
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Regenerate experiments/: the study's reproduction and its design sweeps, the realistic comparison, the
 # closed-loop EOF study, the robustness maps, vibrations and online adaptation; then rewrite
-# experiments/README.md from their result files. About an hour on 2 cores. Run after scripts/setup.sh.
+# experiments/README.md from their result files. About 40 minutes on 2 idle cores. Run after scripts/setup.sh.
 # Every sweep is resumable: rerun this script after an interruption and finished points are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -13,6 +13,12 @@ from pathlib import Path
 CONF = Path(__file__).parent / "conf"
 
 
+def _sigint_default() -> None:
+    """In the child: Ctrl-C's default disposition, even when the test runner ignores SIGINT (``nohup``, a
+    background job), so that Python installs its KeyboardInterrupt handler as it does for a user."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _earlier_result(folder: Path) -> dict[str, bytes]:
     folder.mkdir()
     files = {"metrics.json": b'{"scenarios": "the earlier result"}', "config.yaml": b"earlier: true\n",
@@ -29,7 +35,8 @@ def _contents(folder: Path) -> dict[str, bytes]:
 def _compare(out: Path) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "eofnn.main", "compare", "--config", str(CONF / "tiny_compare.yaml"),
-                             "--out", str(out), "--overwrite", "true"], stderr=subprocess.PIPE, text=True, env=env)
+                             "--out", str(out), "--overwrite", "true"], stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=_sigint_default)
 
 
 def test_ctrl_c_during_an_overwrite_leaves_the_earlier_result(tmp_path):
@@ -69,7 +76,7 @@ def test_ctrl_c_while_eofnn_is_still_importing_is_one_line_and_130(tmp_path):
     code = ("import sys; sys.argv = ['eofnn', 'compare', '--config', sys.argv[1], '--out', sys.argv[2]];"
             "from eofnn.console import console; console()")
     proc = subprocess.Popen([sys.executable, "-c", code, str(CONF / "tiny_compare.yaml"), str(tmp_path / "out")],
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default)
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)

@@ -113,7 +113,8 @@ def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp
     out = tmp_path / "s"
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
     proc = subprocess.Popen([sys.executable, "-m", "eofnn.main", "sweep", "--config", str(BASE), "--grid", str(grid),
-                             "--out", str(out)], env=env, stderr=subprocess.PIPE, text=True)
+                             "--out", str(out)], env=env, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # even under nohup
     deadline = time.monotonic() + 240
     while not list(out.glob("points/*/status.json")) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.1)
