@@ -20,6 +20,11 @@ def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(stream.encode()), *key))
 
 
+def sub_seed(seed: np.random.SeedSequence, *key: int) -> np.random.SeedSequence:
+    """The sub-stream ``key`` of ``seed`` (independent of it and of other keys, whatever else was drawn)."""
+    return np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, *key))
+
+
 def int_seed(seed: int, stream: str, *key: int) -> int:
     """One 32-bit integer seed drawn from :func:`stream_seed` (for APIs that take an ``int``)."""
     return int(stream_seed(seed, stream, *key).generate_state(1)[0])

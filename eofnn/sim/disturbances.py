@@ -36,6 +36,7 @@ import torch
 from scipy.signal import lfilter, lfiltic
 
 from eofnn.errors import require
+from eofnn.seeding import sub_seed
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.validation import Constraint, Interval, OneOf, validated
 
@@ -113,11 +114,6 @@ def mode_shape(grid: ActuatorGrid, mode: str) -> np.ndarray:
         [x, y]))), dtype=np.float64)
     shape = shape - shape.mean()
     return shape / np.sqrt(np.mean(shape**2))
-
-
-def sub_seed(seed: np.random.SeedSequence, *key: int) -> np.random.SeedSequence:
-    """The sub-stream ``key`` of ``seed`` (independent of it and of other keys, whatever else was drawn)."""
-    return np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, *key))
 
 
 def _child(seed: np.random.SeedSequence, *key: int) -> np.random.Generator:

@@ -26,9 +26,9 @@ import numpy as np
 import torch
 
 from eofnn.errors import require
-from eofnn.seeding import stream_seed
+from eofnn.seeding import stream_seed, sub_seed
 from eofnn.sim.changes import AtmosphereChange, build_changes, layer_winds, with_changes
-from eofnn.sim.disturbances import BoilingLayer, Vibration, VibrationSeries, sub_seed
+from eofnn.sim.disturbances import BoilingLayer, Vibration, VibrationSeries
 from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
