@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from eofnn.data.history import HistorySpec
+from eofnn.data.history import HistorySpec, applied_command
 from eofnn.data.targets import check_sequences, pol_reconstruction, telemetry_grid, telemetry_history
 from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
@@ -136,7 +136,7 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
         s_hat = pol_reconstruction(wfs, y, dm_response, f)[spec.first_frame:][:len(y_pred)]
         measured = wfs[spec.first_frame:][:len(y_pred)]
         if f:  # the DM shape over frame n averages the predicted commands of frames n and n - 1
-            y_pred, s_hat, measured = (1 - f) * y_pred[1:] + f * y_pred[:-1], s_hat[1:], measured[1:]
+            y_pred, s_hat, measured = applied_command(y_pred, f)[1:], s_hat[1:], measured[1:]
         predicted.append(s_hat + dm_gain * y_pred)
         own.append(measured)
     segment = min(segment_frames, min(e.shape[0] for e in predicted))
