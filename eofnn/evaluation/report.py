@@ -161,8 +161,9 @@ def _gains(result: ExperimentResult) -> str:
     for scenario, scans in result.integrator_gains.items():
         for name, scan in scans.items():
             lines.append(f"- {name} in {scenario}: gain {scan['gain']:g} (best of {', '.join(scan['scanned'])})")
-    return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n" \
-        if lines else ""
+    if not lines:
+        return ""
+    return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n"
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
