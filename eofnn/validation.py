@@ -123,6 +123,20 @@ class OrNone(Constraint):
         return f"null or {self.inner.describe()}"
 
 
+@dataclass(frozen=True)
+class Either(Constraint):
+    """A value that ``first`` or ``second`` accepts."""
+
+    first: Constraint
+    second: Constraint
+
+    def accepts(self, value: Any) -> bool:
+        return self.first.accepts(value) or self.second.accepts(value)
+
+    def describe(self) -> str:
+        return f"{self.first.describe()}, or {self.second.describe()}"
+
+
 POSITIVE = Interval(0, None, closed="neither")
 NON_NEGATIVE = Interval(0, None)
 FINITE = Interval()

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from eofnn.analysis.stability import LoopSetup, StabilityResult, analyse_filter, analyse_integrator
+import torch
+
+from eofnn.analysis.stability import LoopSetup, StabilityResult, analyse, analyse_filter, analyse_integrator
 from eofnn.control.registry import dm_gain_model_of
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.scenario import Scenario
@@ -33,3 +35,21 @@ def summary(result: StabilityResult) -> dict:
     """The scalars of a stability result (stable, DM gain interval, delay margin, ...), for ``metrics`` files."""
     full = result.to_dict()
     return {key: full[key] for key in SUMMARY_KEYS if key in full}
+
+
+
+def dm_gain_margin(frame_rate_hz: float = 1000.0):
+    """``margin(network, weights, spec, plant_dm_gain, dm_gain_model)``: the stable DM-gain interval, relative to
+    ``plant_dm_gain`` (the DM gain of the plant the filter is made for), of a linear filter shaped like ``network``
+    with other ``weights``, reading ``spec`` histories; ``None`` when that loop is unstable. What
+    ``optimization.select`` checks each alpha of the path with."""
+    def margin(network, weights: torch.Tensor, spec, plant_dm_gain: float, dm_gain_model: float):
+        setup = LoopSetup(spec.delay_frames, plant_dm_gain, 1.0, dm_gain_model, spec.delay_frames, frame_rate_hz)
+        result = analyse(weights, spec.kind, spec.history_length, setup, structure=network.structure,
+                         neighbours=getattr(network, "neighbours", None),
+                         frequencies_hz=torch.empty(0, dtype=torch.float64))
+        if not result.stable:
+            return None
+        low, high = result.gain_margin
+        return low / plant_dm_gain, high / plant_dm_gain
+    return margin

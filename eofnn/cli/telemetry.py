@@ -8,6 +8,7 @@ from pathlib import Path
 
 from jsonargparse import ActionConfigFile, ArgumentParser
 
+from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.replay import replay, replay_figure
 from eofnn.cli.common import log
 from eofnn.data.history import HistorySpec
@@ -96,7 +97,8 @@ def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
     return fit_from_telemetry(telemetry, spec, p.network, plant=plant, optimization=p.optimization,
                               batch_frames=p.data.batch_frames, val_frames=min(p.data.val_frames, frames // 5),
                               seed=p.data.seed, checkpoint_path=out, overwrite=cfg.overwrite,
-                              progress=bool(cfg.progress), info={"telemetry": _files(cfg.telemetry)})
+                              progress=bool(cfg.progress), info={"telemetry": _files(cfg.telemetry)},
+                              margin=dm_gain_margin() if p.optimization.select is not None else None)
 
 
 def add_replay_arguments(parser: ArgumentParser) -> None:

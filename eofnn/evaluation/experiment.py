@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Collection
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from eofnn.analysis.linear import controller_stability
+from eofnn.analysis.linear import controller_stability, dm_gain_margin
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.baselines import Integrator
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
@@ -17,7 +18,7 @@ from eofnn.data.stream import require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contrast import RawContrast
-from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
+from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import require_memory, require_time
@@ -33,13 +34,14 @@ def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: s
                     overwrite: bool = False, progress: bool = False) -> FitResult | TelemetryFit:
     """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``: against the simulator's truth,
     or (``data.truth: false``) from the telemetry alone, through the plant identified from its dither."""
+    margin = dm_gain_margin(scenario.frame_rate_hz) if cfg.optimization.select is not None else None
     if not cfg.data.truth:
         return fit_from_scenario_telemetry(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
                                            optimization=cfg.optimization, checkpoint_path=checkpoint_path,
-                                           overwrite=overwrite, progress=progress)
+                                           overwrite=overwrite, progress=progress, margin=margin)
     return fit_predictor(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
                          optimization=cfg.optimization, checkpoint_path=checkpoint_path, overwrite=overwrite,
-                         progress=progress)
+                         progress=progress, margin=margin)
 
 
 def build_scenarios(base: Scenario, scenarios: dict[str, dict[str, Any]]) -> dict[str, Scenario]:
@@ -122,6 +124,8 @@ class Experiment:
         self._loaded: dict[str, TrainedPredictor] = {}
         #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
         self.gain_scans: dict[tuple[str, str], dict] = {}
+        #: Ridge alphas chosen on validation data (``alpha: auto``): (controller, training scenario) -> choice.
+        self.alpha_choices: dict[tuple[str, str], dict] = {}
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
@@ -169,6 +173,13 @@ class Experiment:
                      f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
             result = fit_from_config(self.scenarios[train_in], cfg, path, overwrite=True, progress=bool(self.progress))
             self._trained[key] = result.predictor
+            choice = result.predictor.info.get("alpha_choice")
+            if choice is not None:
+                self.alpha_choices[key] = choice
+                where = "" if "dm_gain_interval" not in choice else (
+                    " (stable DM gain {:.3g} to {:.3g})".format(*choice["dm_gain_interval"]))
+                self.log(f"{train_in:>12s} {name:>18s}: ridge alpha {choice['alpha']:g} chosen on validation data "
+                         f"of {len(choice['path']['alpha'])} on the path{where}")
             if path is not None:
                 self.checkpoints[f"{name}/{train_in}"] = f"{path.parent.name}/{path.name}"
         return self._trained[key]
@@ -219,16 +230,21 @@ class Experiment:
         controller = self.controller(name, scenario_name)
         psd = WelchPSD(ev.psd_segment_frames, scenario.frame_rate_hz, ev.settle_frames)
         contrast = RawContrast(scenario.grid, ev.strehl_wavelength_m, ev.settle_frames)
+        growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
 
         def on_chunk(first: int, arrays: dict) -> None:
             psd(first, arrays)
             contrast(first, arrays)
+            growth(first, arrays)
 
         result = run_loop(scenario.turbulence(ev.seed, "test", ev.realisations), scenario.plant, controller,
                           ev.frames, noise_seed=ev.seed, record=(), divergence_factor=ev.divergence_factor,
                           progress=self.progress, on_chunk=on_chunk)
         metrics = loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
         metrics.fallback_frame = getattr(controller, "fallback_frame", None)
+        if not result.diverged:
+            metrics.growth = growth.result()
+            metrics.diverging = bool(metrics.growth and metrics.growth["diverging"])
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
@@ -254,7 +270,7 @@ class Experiment:
                 margins = self.stability(name, scenario_name)
                 if margins is not None:
                     stability[scenario_name][name] = margins
-                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins)}")
+                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins, self.scenarios[scenario_name])}")
             changes = scenario_changes(self.scenarios[scenario_name])
             if changes:
                 runs = {name: None if m.diverged else m.rms_nm for name, m in metrics[scenario_name].items()}
@@ -264,16 +280,28 @@ class Experiment:
         gains: dict[str, dict[str, dict]] = {}
         for (name, scenario_name), scan in self.gain_scans.items():
             gains.setdefault(scenario_name, {})[name] = scan
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains)
+        alphas: dict[str, dict[str, dict]] = {}
+        for (name, scenario_name), choice in self.alpha_choices.items():
+            alphas.setdefault(scenario_name, {})[name] = choice
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, alphas)
 
 
-def _describe(m: LoopMetrics, margins: dict | None) -> str:
-    """One progress line: the median RMS (or where it diverged) and, for a linear controller, its DM gain margin."""
-    text = f"median RMS {'diverged at frame ' + str(m.diverged_frame) if m.diverged else f'{m.median_rms_nm:.4g} nm'}"
+def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario) -> str:
+    """One progress line: the median RMS (or where it diverged, or that it is diverging) and, for a linear
+    controller, its analytic DM gain margin (with the growth rate its largest root implies when it is unstable)."""
+    if m.diverged:
+        text = f"median RMS diverged at frame {m.diverged_frame}"
+    else:
+        text = f"median RMS {m.median_rms_nm:.4g} nm"
+        if m.diverging:
+            text += f", diverging (amplitude grows {m.growth['growth_rate_per_s']:+.3g}/s)"
     if margins is None:
         return text
     low, high = margins["dm_gain_interval"]
-    text += "; analytic: " + ("stable" if margins["stable"] else "unstable")
+    text += "; linear analysis: " + ("stable" if margins["stable"] else "unstable")
     if margins["stable"] and low is not None and high is not None:
         text += f" for DM gain {max(low, 0.0) + 0.0:.3g} to {high:.3g}"
+    elif not margins["stable"]:
+        root = margins["max_root_modulus"]
+        text += f" (largest root {root:.5g}: {scenario.frame_rate_hz * math.log(root):+.3g}/s)"
     return text

@@ -52,6 +52,69 @@ class WelchPSD:
         return freqs.tolist(), (self._sum / self._count).tolist()
 
 
+class GrowthMonitor:
+    """Sees a loop that diverges slowly: a residual that keeps growing without (yet) exceeding any fixed multiple of
+    the turbulence, as a loop just past its stability margin does for thousands of frames.
+
+    The mean square of each actuator's residual is accumulated over blocks of ``block_frames`` after
+    ``settle_frames``; over the last half of the run (at least ``MIN_BLOCKS`` blocks), a straight line fitted to the
+    log of each actuator's block power gives its exponential growth rate. The loop is *diverging* when, for some
+    actuator, that growth is significant (t-statistic above :attr:`T_STAT`, a strict threshold since 1000s of
+    actuators are tested and blocks are correlated), at least doubles the amplitude over the window, and is
+    sustained: the mean log power rises in each of :attr:`SEGMENTS` consecutive segments (a step change, a new wind,
+    rises in one). Feed it through :func:`eofnn.sim.run_loop`'s ``on_chunk``.
+    """
+
+    MIN_BLOCKS = 12
+    T_STAT = 8.0
+    SEGMENTS = 4
+
+    def __init__(self, frame_rate_hz: float, settle_frames: int = 0, block_frames: int = 50) -> None:
+        self.rate, self.settle, self.block = frame_rate_hz, settle_frames, block_frames
+        self._blocks: list[torch.Tensor] = []
+        self._partial: torch.Tensor | None = None
+        self._filled = 0
+
+    def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
+        eps = arrays["eps"]
+        skip = max(0, self.settle - first_frame)
+        power = eps[:, skip:].pow(2).mean(0)  # (frames, K), pooled over realisations
+        while power.shape[0]:
+            take = min(self.block - self._filled, power.shape[0])
+            part = power[:take].sum(0)
+            self._partial = part if self._partial is None else self._partial + part
+            self._filled += take
+            power = power[take:]
+            if self._filled == self.block:
+                self._blocks.append(self._partial / self.block)
+                self._partial, self._filled = None, 0
+
+    def result(self) -> dict | None:
+        """``{"diverging", "growth_rate_per_s", "t_stat", "actuator", "window_s"}`` (amplitude growth rate of the
+        fastest-growing actuator, 1/s); ``None`` when the run is too short to judge."""
+        n = len(self._blocks) // 2
+        if n < self.MIN_BLOCKS:
+            return None
+        logs = torch.stack(self._blocks[-n:]).clamp(min=1e-300).log()  # (n, K)
+        t = (torch.arange(n, dtype=torch.float64) * self.block / self.rate).view(-1, 1)
+        tc = t - t.mean()
+        slope = (tc * (logs - logs.mean(0))).sum(0) / tc.pow(2).sum()
+        residual = logs - logs.mean(0) - slope * tc
+        stderr = (residual.pow(2).sum(0) / (n - 2)).sqrt() / tc.pow(2).sum().sqrt()
+        t_stat = slope / stderr.clamp(min=1e-300)
+        worst = int(torch.where(t_stat > self.T_STAT, slope, torch.full_like(slope, -math.inf)).argmax())
+        if not torch.isfinite(slope[worst]) or t_stat[worst] <= self.T_STAT:
+            worst = int(slope.argmax())
+        window = float(n * self.block / self.rate)
+        rate = float(slope[worst]) / 2  # of the amplitude: half that of the power
+        segments = logs[:, worst].tensor_split(self.SEGMENTS)
+        means = torch.stack([seg.mean() for seg in segments])
+        sustained = bool((means.diff() > 0.25 * float(slope[worst]) * window / self.SEGMENTS).all())
+        diverging = bool(t_stat[worst] > self.T_STAT and rate * window >= math.log(2) and sustained)
+        return {"diverging": diverging, "growth_rate_per_s": rate, "t_stat": float(t_stat[worst]),
+                "actuator": worst, "window_s": window}
+
+
 @dataclass
 class LoopMetrics:
     """Metrics of one closed-loop run (nm unless stated); statistics are ``None`` when the loop diverged."""
@@ -76,6 +139,9 @@ class LoopMetrics:
     contrast_at: dict[str, float | None] = field(default_factory=dict)
     #: Non-stationary scenarios: per change, the re-convergence after it (:mod:`eofnn.evaluation.nonstationary`).
     reconvergence: list[dict] | None = None
+    #: Slow divergence (:class:`GrowthMonitor`): whether the residual keeps growing, and how fast (amplitude, 1/s).
+    diverging: bool = False
+    growth: dict | None = None
 
     def summary(self) -> dict:
         """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back, ``reconvergence``
@@ -86,6 +152,9 @@ class LoopMetrics:
             out["fallback_frame"] = self.fallback_frame
         if self.reconvergence is not None:
             out["reconvergence"] = self.reconvergence
+        out["diverging"] = self.diverging
+        if self.growth is not None:
+            out["growth"] = self.growth
         return out
 
 

@@ -28,7 +28,8 @@ from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
-from eofnn.training.ridge import fit_closed_form, supports_closed_form
+from eofnn.training.alpha import MarginFunction
+from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
 DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
@@ -101,6 +102,7 @@ def fit_predictor(
     checkpoint_path: str | Path | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    margin: MarginFunction | None = None,
 ) -> FitResult:
     """Train a predictor on telemetry simulated in ``scenario``.
 
@@ -128,6 +130,9 @@ def fit_predictor(
         Where to write the Lightning checkpoint; an existing file is kept unless ``overwrite``.
     progress : bool
         Lightning's progress bar.
+    margin : callable, optional
+        :data:`~eofnn.training.alpha.MarginFunction`, for an ``optimization.select`` constraint on ``alpha: auto``
+        (built by the caller, which knows the stability analysis).
     """
     data = data or DataConfig()
     optimization = optimization or OptimizationConfig()
@@ -156,9 +161,14 @@ def fit_predictor(
         trainer = make_trainer(optimization, progress)
         try:
             if optimization.fit_method == "closed_form":
-                solved = fit_closed_form(net, datamodule.train_dataloader(), optimization.alpha,
-                                         optimization.alpha_relative)
-                metrics = {"train_loss": solved.train_loss, "condition": solved.condition}
+                # The loop the filter is made for: closed-loop EOF learns this plant's DM; open-loop EOF believes 1.
+                plant_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
+                solved = solve_closed_form(net, datamodule.train_dataloader(), datamodule.val_dataloader(),
+                                           optimization, bind_margin(margin, net, spec, plant_gain, 1.0))
+                metrics = {"train_loss": solved.train_loss, "condition": solved.condition, "alpha": solved.alpha}
+                if solved.choice is not None:
+                    info["alpha_choice"] = solved.choice.summary()
+                    task.hparams["info"] = info
                 metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
                                                 weights_only=True)[0])
             else:
@@ -175,6 +185,24 @@ def fit_predictor(
             trainer.save_checkpoint(partial)
     last = rounds[-1]
     return FitResult(predictor, last.get("train_loss"), last.get("val_loss"), rounds, checkpoint_path)
+
+
+def solve_closed_form(network: nn.Module, train, validation, optimization: OptimizationConfig,
+                      margin: MarginFunction | None = None) -> ClosedFormFit:
+    """The closed-form fit of ``optimization``: its fixed alpha, or (``alpha: auto``) the alpha chosen on
+    ``validation`` under its ``select`` constraint (checked with ``margin``)."""
+    alpha = optimization.alpha_for(validation is not None)
+    return fit_closed_form(network, train, alpha, optimization.alpha_relative,
+                           validation=validation if alpha == "auto" else None, alpha_path=optimization.alpha_path,
+                           interval=optimization.dm_gain_interval, margin=margin)
+
+
+def bind_margin(margin: MarginFunction | None, network: nn.Module, spec: HistorySpec, plant_dm_gain: float,
+                dm_gain_model: float):
+    """``weights -> interval``: ``margin`` for this network, history and loop (``None`` when no margin is given)."""
+    if margin is None:
+        return None
+    return lambda weights: margin(network, weights, spec, plant_dm_gain, dm_gain_model)
 
 
 def make_trainer(optimization: OptimizationConfig, progress: bool) -> L.Trainer:

@@ -29,9 +29,9 @@ from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry import Telemetry
-from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, make_trainer
+from eofnn.training.alpha import MarginFunction
+from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, bind_margin, make_trainer, solve_closed_form
 from eofnn.training.identify import IdentifiedPlant, identify_plant
-from eofnn.training.ridge import fit_closed_form
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
 
@@ -79,7 +79,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
                        *, plant: IdentifiedPlant | dict | None = None, grid: ActuatorGrid | None = None,
                        optimization: OptimizationConfig | None = None, batch_frames: int = 1024, stop: int | None = None,
                        val_frames: int = 0, seed: int = 0, checkpoint_path: str | Path | None = None,
-                       overwrite: bool = False, progress: bool = False, info: dict | None = None) -> TelemetryFit:
+                       overwrite: bool = False, progress: bool = False, info: dict | None = None,
+                       margin: MarginFunction | None = None) -> TelemetryFit:
     """Train a predictor on telemetry alone (the telemetry twin of :func:`eofnn.training.fit.fit_predictor`).
 
     Parameters
@@ -110,6 +111,9 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
         Where to write a checkpoint that :func:`eofnn.training.checkpoint.load_predictor` reads.
     info : dict, optional
         Provenance recorded in the checkpoint (e.g. the telemetry files).
+    margin : callable, optional
+        :data:`~eofnn.training.alpha.MarginFunction`, for an ``optimization.select`` constraint (checked in the
+        loop the fit believes in: the identified or given DM gain).
     """
     sequences = check_sequences(telemetry, spec)
     optimization = optimization or OptimizationConfig()
@@ -137,7 +141,16 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     trainer = make_trainer(optimization, progress) if needs_trainer else None
     train_loss = val_loss = None
     if optimization.fit_method == "closed_form":
-        train_loss = fit_closed_form(task.network, train, optimization.alpha, optimization.alpha_relative).train_loss
+        if optimization.alpha_for(val is not None) == "auto" and val is None:
+            raise ConfigError("optimization.alpha: auto chooses alpha on held-out telemetry: give val_frames > 0 "
+                              "(or a fixed optimization.alpha)")
+        solved = solve_closed_form(task.network, train, val, optimization,
+                                   bind_margin(margin, task.network, spec, dm_gain or 1.0, dm_gain or 1.0))
+        train_loss = solved.train_loss
+        info["alpha"] = solved.alpha
+        if solved.choice is not None:
+            info["alpha_choice"] = solved.choice.summary()
+        task.hparams["info"] = info
         if val is not None or checkpoint_path is not None:  # validating also attaches the trainer that saves
             metrics = trainer.validate(task, dataloaders=DataLoader(val or train, batch_size=None), verbose=False)[0]
             val_loss = metrics["val_loss"] if val is not None else None
@@ -159,7 +172,7 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
                                 network: dict | None = None, *, data: DataConfig | None = None,
                                 optimization: OptimizationConfig | None = None,
                                 checkpoint_path: str | Path | None = None, overwrite: bool = False,
-                                progress: bool = False) -> TelemetryFit:
+                                progress: bool = False, margin: MarginFunction | None = None) -> TelemetryFit:
     """What an observatory would do in ``scenario``: record telemetry, identify the plant, fit from telemetry alone.
 
     The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
@@ -186,6 +199,6 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
     plant.require_identified()
     return fit_from_telemetry(result.telemetry, spec, network, plant=plant, optimization=optimization,
                               batch_frames=data.batch_frames, val_frames=data.val_frames, seed=data.seed,
-                              checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress,
+                              checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress, margin=margin,
                               info={"scenario": scenario.to_dict(), "data": asdict(data),
                                     "identified_plant": plant.model_errors()})

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from eofnn.errors import CollinearityWarning, require
+from eofnn.training.alpha import AlphaChoice, MarginFunction, RidgePath, check_alpha_path
 from eofnn.validation import NON_NEGATIVE, check_value
 
 
@@ -92,12 +93,7 @@ class NormalEquations:
         require(self._gram is not None, "no data accumulated: call update() before solve()")
         check_value("alpha", alpha, NON_NEGATIVE)
         n_features = self._gram.shape[-1]
-        diagonal = self._gram.diagonal(dim1=1, dim2=2)
-        # Features that are zero in every sample (neighbourhood slots beyond the pupil edge) get zero weight:
-        # a unit on their diagonal makes the system regular without touching the other weights.
-        structural = diagonal == 0
-        gram = self._gram + torch.diag_embed(structural.to(torch.float64) * diagonal.mean(-1, keepdim=True))
-        scale = diagonal.mean(-1) if relative else torch.ones_like(diagonal[:, 0])
+        gram, scale = self.regular_gram(relative)
         absolute = alpha * scale
         eig = torch.linalg.eigvalsh(gram)
         condition = float((eig[:, -1] / eig[:, 0].clamp(min=torch.finfo(torch.float64).tiny)).max())
@@ -113,6 +109,17 @@ class NormalEquations:
             weights = (torch.linalg.pinv(regularised, hermitian=True) @ self._cross).squeeze(-1)
         return RidgeSolution(weights, condition)
 
+    def regular_gram(self, relative: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(D D^T, scale)``: the Gram matrix made regular where features are structurally zero, and the unit of a
+        relative alpha per group (the mean of its diagonal; ones when ``relative`` is false)."""
+        diagonal = self._gram.diagonal(dim1=1, dim2=2)
+        # Features that are zero in every sample (neighbourhood slots beyond the pupil edge) get zero weight:
+        # a unit on their diagonal makes the system regular without touching the other weights.
+        structural = diagonal == 0
+        gram = self._gram + torch.diag_embed(structural.to(torch.float64) * diagonal.mean(-1, keepdim=True))
+        scale = diagonal.mean(-1) if relative else torch.ones_like(diagonal[:, 0])
+        return gram, scale
+
     def loss(self, weights: torch.Tensor) -> float:
         """Mean squared error of ``weights`` on the accumulated data, from the sufficient statistics."""
         w = weights.to(torch.float64)
@@ -127,27 +134,50 @@ def supports_closed_form(network: nn.Module | type) -> bool:
 
 @dataclass
 class ClosedFormFit:
-    """Outcome of :func:`fit_closed_form`: the training loss (nm²) and the conditioning of the problem."""
+    """Outcome of :func:`fit_closed_form`: the training loss (nm²), the conditioning of the problem, the alpha
+    used and, when it was chosen on validation data (``alpha: auto``), the choice with its validation curve."""
 
     train_loss: float
     condition: float
+    alpha: float | None = None
+    choice: AlphaChoice | None = None
+
+
+def _accumulate(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]]) -> NormalEquations:
+    equations = NormalEquations()
+    for history, target in batches:
+        equations.update(network.features(history), network.group_targets(target))
+    return equations
 
 
 @torch.no_grad()
-def fit_closed_form(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], alpha: float,
-                    alpha_relative: bool = True) -> ClosedFormFit:
+def fit_closed_form(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], alpha: float | str,
+                    alpha_relative: bool = True, *, validation: Iterable[tuple[torch.Tensor, torch.Tensor]] | None = None,
+                    alpha_path: Sequence[float] | None = None, interval: tuple[float, float] | None = None,
+                    margin: MarginFunction | None = None) -> ClosedFormFit:
     """Fit a linear network in one streamed pass: accumulate its normal equations over ``batches``, solve, load.
 
     The network's fitted state is overwritten. ``batches`` yields ``(history, target)`` pairs (a DataLoader of
     :class:`~eofnn.data.stream.SimulatedTelemetry`, or recorded telemetry cut into histories).
+
+    ``alpha: "auto"`` chooses the ridge alpha on the ``validation`` batches (never the training ones) along
+    ``alpha_path`` (:data:`~eofnn.training.alpha.DEFAULT_ALPHA_PATH` by default), from one eigendecomposition
+    (:class:`~eofnn.training.alpha.RidgePath`); with ``interval`` the least-error alpha whose stable DM-gain
+    interval (``margin(weights)``) contains it.
     """
     require(supports_closed_form(network),
             f"fit_method='closed_form' needs a linear network; {type(network).__name__} has no features()/"
             "load_solution(): use fit_method: sgd")
-    equations = NormalEquations()
-    for history, target in batches:
-        equations.update(network.features(history), network.group_targets(target))
+    equations = _accumulate(network, batches)
     require(equations.gram is not None, "no training data: the training stream yielded no batch")
+    if alpha == "auto":
+        require(validation is not None, "alpha: auto needs validation data (data.val_frames > 0)")
+        path = RidgePath.compute(equations, _accumulate(network, validation), check_alpha_path(alpha_path),
+                                 alpha_relative)
+        choice = path.select(interval, margin)
+        weights = path.weights(choice.alpha)
+        network.load_solution(weights.to(network.weight.dtype))
+        return ClosedFormFit(equations.loss(weights), path.condition, choice.alpha, choice)
     solution = equations.solve(alpha, alpha_relative)
     network.load_solution(solution.weights.to(network.weight.dtype))
-    return ClosedFormFit(equations.loss(solution.weights), solution.condition)
+    return ClosedFormFit(equations.loss(solution.weights), solution.condition, float(alpha))

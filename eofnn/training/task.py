@@ -14,10 +14,14 @@ import lightning as L
 import torch
 
 from eofnn.data.history import HistorySpec
+from eofnn.errors import ConfigError
 from eofnn.models.build import build_network, input_dtype
-from eofnn.validation import NON_NEGATIVE, Constraint, Interval, IsBool, OneOf, validated
+from eofnn.training.alpha import check_alpha_path, check_select
+from eofnn.validation import NON_NEGATIVE, Constraint, Either, Interval, IsBool, OneOf, OrNone, validated
 
 FIT_METHODS = ("closed_form", "sgd")
+#: The relative ridge alpha of a closed-form fit with no validation data to choose one on (``alpha`` unset).
+FALLBACK_ALPHA = 1e-9
 OPTIMIZERS = ("adam", "sgd", "lbfgs")
 ACCELERATORS = ("auto", "cpu", "cuda", "gpu", "mps")
 
@@ -31,10 +35,17 @@ class OptimizationConfig:
     ----------
     fit_method : {"closed_form", "sgd"}
         ``closed_form``: one streamed pass of ridge regression (linear networks); ``sgd``: gradient descent.
-    alpha : float
-        Ridge parameter of the closed-form fit.
+    alpha : float or "auto", optional
+        Ridge parameter of the closed-form fit. ``auto`` (and unset, for a closed-form fit) chooses it on the
+        validation frames along ``alpha_path`` (:mod:`eofnn.training.alpha`): the least validation error, or under
+        ``select`` the least-error alpha that meets the robustness constraint. A number means that number.
     alpha_relative : bool
         ``alpha`` in units of the mean diagonal of ``D D^T`` (per group) rather than absolute.
+    alpha_path : list of float, optional
+        Alphas searched by ``alpha: auto``, strictly increasing; unset, 1e-14 to 1e-2 with two per decade.
+    select : dict, optional
+        A robustness constraint on the ``auto`` choice: ``{dm_gain_interval: [low, high]}`` keeps the best alpha
+        whose analytic stable DM-gain interval contains ``[low, high]`` (which must contain 1).
     optimizer : {"adam", "sgd", "lbfgs"}
         Gradient optimiser (``fit_method: sgd``).
     lr : float
@@ -48,8 +59,10 @@ class OptimizationConfig:
     """
 
     fit_method: str = "closed_form"
-    alpha: float = 1e-9
+    alpha: float | str | None = None
     alpha_relative: bool = True
+    alpha_path: list[float] | None = None
+    select: dict | None = None
     optimizer: str = "adam"
     lr: float = 1e-3
     weight_decay: float = 0.0
@@ -58,7 +71,7 @@ class OptimizationConfig:
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "fit_method": OneOf(FIT_METHODS),
-        "alpha": Interval(0, 1e12),
+        "alpha": OrNone(Either(Interval(0, 1e12), OneOf(("auto",)))),
         "alpha_relative": IsBool(),
         "optimizer": OneOf(OPTIMIZERS),
         "lr": Interval(0, 1e3, closed="right"),
@@ -67,6 +80,36 @@ class OptimizationConfig:
         "accelerator": OneOf(ACCELERATORS),
     }
     _where: ClassVar[str] = "optimization."
+
+    def __post_init__(self) -> None:
+        if self.fit_method == "sgd" and self.alpha == "auto":
+            raise ConfigError("optimization.alpha='auto' is invalid with fit_method: sgd: the ridge alpha belongs to "
+                              "the closed-form fit (give fit_method: closed_form, or leave alpha unset)")
+        if self.fit_method == "sgd" and self.select is not None:
+            raise ConfigError("optimization.select is invalid with fit_method: sgd: it constrains the closed-form "
+                              "fit's alpha: auto")
+        check_alpha_path(self.alpha_path)
+        check_select(self.select)
+        if self.select is not None and self.ridge_alpha != "auto":
+            raise ConfigError(f"optimization.select needs alpha: auto, not alpha={self.alpha!r}: the constraint "
+                              "chooses among the alphas of the path")
+
+    @property
+    def ridge_alpha(self) -> float | str:
+        """The alpha of a closed-form fit: the number given, or ``"auto"`` (also when unset)."""
+        return "auto" if self.alpha is None else self.alpha
+
+    def alpha_for(self, has_validation: bool) -> float | str:
+        """The alpha of a fit with or without validation data: unset, ``auto`` when there is validation data to
+        choose it on and :data:`FALLBACK_ALPHA` otherwise (an explicit ``auto`` needs validation data)."""
+        if self.alpha is None and not has_validation:
+            return FALLBACK_ALPHA
+        return self.ridge_alpha
+
+    @property
+    def dm_gain_interval(self) -> tuple[float, float] | None:
+        """The DM-gain interval ``select`` asks the chosen alpha to keep stable (``None``: no constraint)."""
+        return check_select(self.select)
 
 
 class PredictorTask(L.LightningModule):
