@@ -11,6 +11,7 @@ from typing import Any
 
 from eofnn.analysis.linear import controller_stability, dm_gain_margin
 from eofnn.analysis.linear import summary as stability_summary
+from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.data.history import HistorySpec
@@ -160,6 +161,9 @@ class Experiment:
                     scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
                                                          f"(data.frames + data.val_frames = {n})")
 
+    #: Rounds of refinement of the best-gain integrator's scan (two new gains each, beside the best).
+    REFINE_ROUNDS = 2
+
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
         if name in self._loaded:
@@ -197,22 +201,54 @@ class Experiment:
         if key not in self.gain_scans:
             self.gain_scans[key] = self._scan_gains(cfg, self.scenarios[scenario_name])
             scan = self.gain_scans[key]
+            edge = (f" — at the edge of the gains tried (critical gain {scan['critical_gain']:.3g}): extend gains"
+                    if scan["at_edge"] else "")
             self.log(f"{scenario_name:>12s} {name:>18s}: best integrator gain {scan['gain']:g} of "
-                     f"{', '.join(f'{g:g}' for g in cfg.gains)}")
+                     f"{', '.join(f'{g:g}' for g in cfg.gains)}, refined with {', '.join(f'{g:g}' for g in scan['refined'])}"
+                     f"{edge}")
         return replace(cfg, gains=None, gain=self.gain_scans[key]["gain"])
 
     def _scan_gains(self, cfg: PredictorConfig, scenario: Scenario) -> dict:
-        """Close the loop with each of ``cfg.gains`` on a stream of its own; the lowest median residual wins."""
+        """Close the loop with each of ``cfg.gains`` on a stream of its own; the lowest median residual wins, after
+        :attr:`REFINE_ROUNDS` rounds of refinement between the best gain and its neighbours (past the grid's top
+        up to the analytic critical gain, below its bottom down to 0), so the choice is never an edge of the grid
+        unless it is the edge of what is stable (then ``at_edge`` says so)."""
         settle = min(self.evaluation.settle_frames, cfg.data.frames // 2)
-        residuals: list[float | None] = []
-        for gain in cfg.gains:
+        # The critical integrator gain: the loop gain at which an integrator goes unstable in a nominal plant of
+        # this delay (a small gain's DM-gain margin times that gain), over this plant's DM and WFS gains.
+        nominal = LoopSetup(scenario.plant.delay_frames, frame_rate_hz=scenario.frame_rate_hz)
+        critical = (0.01 * float(analyse_integrator(0.01, cfg.leak, nominal).gain_margin[1])
+                    / (scenario.plant.dm_gain * scenario.plant.wfs_gain))
+        scanned: dict[float, float | None] = {}
+
+        def run(gain: float) -> None:
             result = run_loop(scenario.turbulence(cfg.data.seed, "gain-scan"), scenario.plant,
                               Integrator(gain, cfg.leak), cfg.data.frames, noise_seed=int_seed(cfg.data.seed, "gain-scan"),
                               record=(), divergence_factor=self.evaluation.divergence_factor, progress=False)
-            residuals.append(None if result.diverged else float(result.residual_rms_nm[:, settle:].median()))
-        finite = [(rms, gain) for gain, rms in zip(cfg.gains, residuals, strict=True) if rms is not None]
-        require(bool(finite), f"every integrator gain of gains={cfg.gains!r} diverged: give smaller gains")
-        return {"gain": min(finite)[1], "scanned": {f"{g:g}": rms for g, rms in zip(cfg.gains, residuals, strict=True)}}
+            scanned[gain] = None if result.diverged else float(result.residual_rms_nm[:, settle:].median())
+
+        for gain in cfg.gains:
+            run(gain)
+        require(any(v is not None for v in scanned.values()),
+                f"every integrator gain of gains={cfg.gains!r} diverged: give smaller gains")
+        refined = []
+        for _ in range(self.REFINE_ROUNDS):
+            gains = sorted(scanned)
+            best = min((rms, g) for g, rms in scanned.items() if rms is not None)[1]
+            i = gains.index(best)
+            left = gains[i - 1] if i > 0 else 0.0
+            right = min(gains[i + 1] if i + 1 < len(gains) else critical, 0.99 * critical)
+            for candidate in ((left + best) / 2, (best + right) / 2):
+                candidate = float(f"{candidate:.4g}")
+                if candidate > 0 and candidate not in scanned and candidate < critical:
+                    run(candidate)
+                    refined.append(candidate)
+        finite = sorted((rms, g) for g, rms in scanned.items() if rms is not None)
+        best = finite[0][1]
+        gains = sorted(scanned)
+        at_edge = best == gains[-1] or best == gains[0]
+        return {"gain": best, "scanned": {f"{g:g}": scanned[g] for g in gains}, "refined": refined,
+                "critical_gain": critical, "at_edge": at_edge}
 
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""

@@ -162,10 +162,27 @@ def _gains(result: ExperimentResult) -> str:
     lines = []
     for scenario, scans in result.integrator_gains.items():
         for name, scan in scans.items():
-            lines.append(f"- {name} in {scenario}: gain {scan['gain']:g} (best of {', '.join(scan['scanned'])})")
+            edge = (f"; at the edge of what was tried (critical gain {scan['critical_gain']:.3g})"
+                    if scan.get("at_edge") else "")
+            lines.append(f"- {name} in {scenario}: gain {scan['gain']:g} (best of {', '.join(scan['scanned'])}{edge})")
     if not lines:
         return ""
     return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n"
+
+
+def _alphas(result: ExperimentResult) -> str:
+    """A line per ridge alpha chosen on validation data (``alpha: auto``)."""
+    lines = []
+    for scenario, choices in result.ridge_alphas.items():
+        for name, choice in choices.items():
+            where = ("" if "dm_gain_interval" not in choice
+                     else "; stable for DM gain {:.3g} to {:.3g}".format(*choice["dm_gain_interval"]))
+            lines.append(f"- {name} trained in {scenario}: alpha {choice['alpha']:g} (least validation error of "
+                         f"{len(choice['path']['alpha'])} from {choice['path']['alpha'][0]:g} to "
+                         f"{choice['path']['alpha'][-1]:g}{where})")
+    if not lines:
+        return ""
+    return "\nRidge alphas (chosen on validation data, not the test stream):\n" + "\n".join(lines) + "\n"
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
@@ -173,7 +190,7 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
     table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _gains(result)
-                     + _caveat(result))
+                     + _alphas(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])
