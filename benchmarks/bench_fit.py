@@ -7,6 +7,7 @@ import torch
 from benchmarks.common import Row, Skipped, synchronizer, time_interleaved
 from eofnn.data.stream import DataConfig
 from eofnn.models.linear import LinearFilter
+from eofnn.training.alpha import DEFAULT_ALPHA_PATH, RidgePath
 from eofnn.training.ridge import NormalEquations, fit_closed_form
 
 
@@ -87,4 +88,27 @@ def bench_fit(n_frames: int = 60000, n_actuators: int = 1264, n_taps: int = 12,
                   "data_GB": x.numel() * 8 / 1e9, "max_relative_weight_difference": agreement,
                   "threads": torch.get_num_threads()},
         ))
+    rows.append(alpha_path_row(x, t, repeat, alpha, device, sync))
     return rows, []
+
+
+def alpha_path_row(x: torch.Tensor, t: torch.Tensor, repeat: int, alpha: float, device: str, sync) -> Row:
+    """``fit/alpha_path``: choosing alpha on validation data along the default 25-value path
+    (:class:`RidgePath`: one eigendecomposition, every alpha's validation error, the chosen weights) against one
+    solve at a fixed alpha, both from the same accumulated normal equations (the data pass is the same for both
+    and not timed: a fifth of the frames are the validation stream). Goal: within 1.5x."""
+    n_val = x.shape[1] // 5
+    train, val = NormalEquations(), NormalEquations()
+    train.update(x[:, n_val:], t[:, n_val:])
+    val.update(x[:, :n_val], t[:, :n_val])
+
+    def path() -> torch.Tensor:
+        ridge = RidgePath.compute(train, val, DEFAULT_ALPHA_PATH)
+        return ridge.weights(ridge.select().alpha)
+
+    timings = time_interleaved({"path": (path, 1), "solve": (lambda: train.solve(alpha).weights, 1)},
+                               repeat=max(repeat, 5), warmup=1, sync=sync)
+    return Row("fit", "fit/alpha_path", "s/solve", timings["path"], timings["solve"], "one solve at a fixed alpha",
+               goal_ratio=1 / 1.5, goal_label=">= 0.67 (within 1.5x)", device=device,
+               info={"n_actuators": x.shape[0], "n_taps": x.shape[-1], "alphas": len(DEFAULT_ALPHA_PATH),
+                     "threads": torch.get_num_threads()})

@@ -9,6 +9,7 @@ from jsonargparse import ArgumentParser
 from eofnn.cli.common import add_common, add_evaluation, log
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import Experiment
+from eofnn.evaluation.pareto import pareto, plot_pareto
 from eofnn.evaluation.report import write_report
 from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
 from eofnn.evaluation.robustness import check_grid, plot_robustness, robustness_map
@@ -30,6 +31,10 @@ def add_compare_arguments(parser: ArgumentParser) -> None:
                         help="Plant field -> values, e.g. {dm_gain: [0.5, 1, 1.5, 2, 3]} (one or two fields): every "
                              "controller, as made for the first scenario, runs in each plant; writes robustness.json "
                              "and robustness.png with the analytic stability bounds.")
+    parser.add_argument("--pareto", type=bool, default=False,
+                        help="Also draw every linear controller family along its tuning path (ridge alphas of alpha: "
+                             "auto, integrator gains) in the first scenario, median RMS on a stream of its own "
+                             "against the width of the stable DM-gain interval: pareto.png, pareto.md, pareto.json.")
 
 
 def add_evaluate_arguments(parser: ArgumentParser) -> None:
@@ -55,6 +60,11 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
             robustness = robustness_map(experiment, grid)
             (staging / "robustness.json").write_text(robustness.to_json())
             plot_robustness(robustness, staging / "robustness.png")
+        if getattr(cfg, "pareto", False):
+            points = pareto(experiment)
+            (staging / "pareto.json").write_text(points.to_json())
+            (staging / "pareto.md").write_text(points.markdown())
+            plot_pareto(points, staging / "pareto.png")
         save_timeseries(result, staging / "timeseries.npz")
         write_metrics(result, staging / "metrics.json")
     log(f"results in {Path(out)}/ (metrics.json, results.md, figures)")

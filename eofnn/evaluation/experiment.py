@@ -161,8 +161,10 @@ class Experiment:
                     scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
                                                          f"(data.frames + data.val_frames = {n})")
 
-    #: Rounds of refinement of the best-gain integrator's scan (two new gains each, beside the best).
+    #: Rounds of refinement of the best-gain integrator's scan (two new gains each, beside the best), and the most
+    #: rounds while the best is still the highest gain tried, climbing towards the critical gain.
     REFINE_ROUNDS = 2
+    MAX_REFINE_ROUNDS = 6
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
@@ -203,6 +205,8 @@ class Experiment:
             scan = self.gain_scans[key]
             edge = (f" — at the edge of the gains tried (critical gain {scan['critical_gain']:.3g}): extend gains"
                     if scan["at_edge"] else "")
+            if not scan["at_edge"] and scan["gain"] >= 0.98 * scan["critical_gain"]:
+                edge = f" — within 2% of the critical gain {scan['critical_gain']:.3g}: little stability margin"
             self.log(f"{scenario_name:>12s} {name:>18s}: best integrator gain {scan['gain']:g} of "
                      f"{', '.join(f'{g:g}' for g in cfg.gains)}, refined with {', '.join(f'{g:g}' for g in scan['refined'])}"
                      f"{edge}")
@@ -232,12 +236,15 @@ class Experiment:
         require(any(v is not None for v in scanned.values()),
                 f"every integrator gain of gains={cfg.gains!r} diverged: give smaller gains")
         refined = []
-        for _ in range(self.REFINE_ROUNDS):
+        for round_index in range(self.MAX_REFINE_ROUNDS):
             gains = sorted(scanned)
             best = min((rms, g) for g, rms in scanned.items() if rms is not None)[1]
             i = gains.index(best)
+            top = i + 1 == len(gains)
+            if round_index >= self.REFINE_ROUNDS and not (top and best < 0.98 * critical):
+                break  # refined enough, and not still climbing towards the critical gain
             left = gains[i - 1] if i > 0 else 0.0
-            right = min(gains[i + 1] if i + 1 < len(gains) else critical, 0.99 * critical)
+            right = min(gains[i + 1] if not top else critical, 0.99 * critical)
             for candidate in ((left + best) / 2, (best + right) / 2):
                 candidate = float(f"{candidate:.4g}")
                 if candidate > 0 and candidate not in scanned and candidate < critical:
@@ -246,7 +253,7 @@ class Experiment:
         finite = sorted((rms, g) for g, rms in scanned.items() if rms is not None)
         best = finite[0][1]
         gains = sorted(scanned)
-        at_edge = best == gains[-1] or best == gains[0]
+        at_edge = best == gains[0] or (best == gains[-1] and best < 0.98 * critical)
         return {"gain": best, "scanned": {f"{g:g}": scanned[g] for g in gains}, "refined": refined,
                 "critical_gain": critical, "at_edge": at_edge}
 

@@ -164,6 +164,8 @@ def _gains(result: ExperimentResult) -> str:
         for name, scan in scans.items():
             edge = (f"; at the edge of what was tried (critical gain {scan['critical_gain']:.3g})"
                     if scan.get("at_edge") else "")
+            if not edge and "critical_gain" in scan and scan["gain"] >= 0.98 * scan["critical_gain"]:
+                edge = f"; within 2% of the critical gain {scan['critical_gain']:.3g}"
             lines.append(f"- {name} in {scenario}: gain {scan['gain']:g} (best of {', '.join(scan['scanned'])}{edge})")
     if not lines:
         return ""

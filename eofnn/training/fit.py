@@ -28,7 +28,7 @@ from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
-from eofnn.training.alpha import MarginFunction
+from eofnn.training.alpha import MarginFunction, RidgePath
 from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
@@ -44,6 +44,9 @@ class TrainedPredictor:
     network_config: dict
     n_actuators: int
     info: dict = field(default_factory=dict)
+    #: The ridge path this predictor's alpha was chosen on (``alpha: auto``; not saved in checkpoints): the filter
+    #: at any other alpha of it, for performance-robustness curves.
+    ridge_path: RidgePath | None = field(default=None, repr=False)
 
     @property
     def dm_gain_model(self) -> float:
@@ -152,7 +155,7 @@ def fit_predictor(
                           "features()/load_solution(): use optimization.fit_method: sgd")
     data_controller = recording_controller(spec, data)
     rounds = []
-    trainer = None
+    trainer = ridge_path = None
     for round_index in range(data.refit_rounds + 1):
         if round_index > 0:
             data_controller = Dithered(PredictiveController(copy.deepcopy(net), spec), data.dither_nm,
@@ -169,6 +172,7 @@ def fit_predictor(
                 if solved.choice is not None:
                     info["alpha_choice"] = solved.choice.summary()
                     task.hparams["info"] = info
+                ridge_path = solved.choice.path if solved.choice is not None else None
                 metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
                                                 weights_only=True)[0])
             else:
@@ -179,7 +183,7 @@ def fit_predictor(
             raise KeyboardInterrupt from None
         rounds.append({"round": round_index, **metrics})
     net.eval()
-    predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info)
+    predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info, ridge_path)
     if checkpoint_path is not None:
         with staged_file(checkpoint_path, overwrite) as partial:
             trainer.save_checkpoint(partial)

@@ -139,7 +139,7 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
                            stop=train_stop + val_frames) if val_frames else None
     needs_trainer = optimization.fit_method != "closed_form" or val is not None or checkpoint_path is not None
     trainer = make_trainer(optimization, progress) if needs_trainer else None
-    train_loss = val_loss = None
+    train_loss = val_loss = ridge_path = None
     if optimization.fit_method == "closed_form":
         if optimization.alpha_for(val is not None) == "auto" and val is None:
             raise ConfigError("optimization.alpha: auto chooses alpha on held-out telemetry: give val_frames > 0 "
@@ -150,6 +150,7 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
         info["alpha"] = solved.alpha
         if solved.choice is not None:
             info["alpha_choice"] = solved.choice.summary()
+            ridge_path = solved.choice.path
         task.hparams["info"] = info
         if val is not None or checkpoint_path is not None:  # validating also attaches the trainer that saves
             metrics = trainer.validate(task, dataloaders=DataLoader(val or train, batch_size=None), verbose=False)[0]
@@ -160,7 +161,7 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
         train_loss, val_loss = metrics.get("train_loss"), metrics.get("val_loss")
     network_config = task.hparams.network
-    predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info)
+    predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info, ridge_path)
     if checkpoint_path is not None:
         with staged_file(checkpoint_path, overwrite) as partial:
             trainer.save_checkpoint(partial)
