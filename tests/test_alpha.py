@@ -116,3 +116,34 @@ def test_bad_tuning_options_on_the_command_line(capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "strictly increasing" in err[0], err
     assert not out.exists()
+
+
+def test_a_budgeted_search_keeps_the_best_trial_and_reports_its_budget(small_scenario):
+    """SGD's twin of alpha: auto: learning rate x width with early stopping, chosen on validation data."""
+    from eofnn.training.search import check_search
+
+    scenario = small_scenario.with_plant(wfs_noise_nm=1.0)
+    search = {"lr": [1e-4, 3e-3], "width": [4, 16], "patience": 1}
+    opt = OptimizationConfig(fit_method="sgd", epochs=2, search=search)
+    data = DataConfig(frames=400, val_frames=200, sequence_frames=400, batch_frames=100, seed=2)
+    network = {"class_path": "eofnn.models.mlp.MLP", "init_args": {"hidden": [8, 8]}}
+    result = fit_predictor(scenario, "open_loop", 3, network, data=data, optimization=opt)
+    searched = result.predictor.info["search"]
+    assert len(searched["trials"]) == 4
+    losses = [t["val_loss"] for t in searched["trials"]]
+    assert searched["chosen"]["val_loss"] == min(losses)
+    assert result.predictor.network_config["init_args"]["hidden"] == [searched["chosen"]["width"]] * 2
+    budget = searched["budget"]
+    assert budget["epochs"] == sum(t["epochs"] for t in searched["trials"]) and budget["frames"] == 400 * budget["epochs"]
+    assert all(1 <= t["best_epoch"] <= t["epochs"] <= 2 for t in searched["trials"])
+    # The chosen network is the one restored at its best epoch: its validation loss is the one reported.
+    module = LoopDataModule(scenario, HistorySpec.from_scenario("open_loop", 3, scenario), data)
+    with torch.no_grad():
+        sq = [(result.predictor.network(x.float()).double() - t).pow(2).mean().item() * len(x)
+              for x, t in module.val_dataloader()]
+    n = sum(len(x) for x, _ in module.val_dataloader())
+    assert sum(sq) / n == pytest.approx(searched["chosen"]["val_loss"], rel=1e-3)
+    with pytest.raises(ConfigError, match="search.lr"):
+        check_search({"lr": []}, 1e-3)
+    with pytest.raises(ConfigError, match="is for fit_method: sgd"):
+        OptimizationConfig(search={"lr": [1e-3]})

@@ -127,6 +127,8 @@ class Experiment:
         self.gain_scans: dict[tuple[str, str], dict] = {}
         #: Ridge alphas chosen on validation data (``alpha: auto``): (controller, training scenario) -> choice.
         self.alpha_choices: dict[tuple[str, str], dict] = {}
+        #: Budgeted searches of networks trained by SGD: (controller, training scenario) -> trials, choice, budget.
+        self.searches: dict[tuple[str, str], dict] = {}
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
@@ -179,6 +181,14 @@ class Experiment:
                      f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
             result = fit_from_config(self.scenarios[train_in], cfg, path, overwrite=True, progress=bool(self.progress))
             self._trained[key] = result.predictor
+            searched = result.predictor.info.get("search")
+            if searched is not None:
+                self.searches[key] = searched
+                chosen, budget = searched["chosen"], searched["budget"]
+                self.log(f"{train_in:>12s} {name:>18s}: lr {chosen['lr']:g}"
+                         + ("" if chosen["width"] is None else f", width {chosen['width']}")
+                         + f" chosen on validation data (best epoch {chosen['best_epoch']}); budget {budget['trials']} "
+                         f"trials, {budget['epochs']} epochs, {budget['frames']} frames")
             choice = result.predictor.info.get("alpha_choice")
             if choice is not None:
                 self.alpha_choices[key] = choice
@@ -326,7 +336,10 @@ class Experiment:
         alphas: dict[str, dict[str, dict]] = {}
         for (name, scenario_name), choice in self.alpha_choices.items():
             alphas.setdefault(scenario_name, {})[name] = choice
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, alphas)
+        searches: dict[str, dict[str, dict]] = {}
+        for (name, scenario_name), searched in self.searches.items():
+            searches.setdefault(scenario_name, {})[name] = searched
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, alphas, searches)
 
 
 def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario) -> str:

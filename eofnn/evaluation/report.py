@@ -182,9 +182,17 @@ def _alphas(result: ExperimentResult) -> str:
             lines.append(f"- {name} trained in {scenario}: alpha {choice['alpha']:g} (least validation error of "
                          f"{len(choice['path']['alpha'])} from {choice['path']['alpha'][0]:g} to "
                          f"{choice['path']['alpha'][-1]:g}{where})")
+    for scenario, searches in result.searches.items():
+        for name, searched in searches.items():
+            chosen, budget = searched["chosen"], searched["budget"]
+            width = "" if chosen["width"] is None else f", width {chosen['width']}"
+            lines.append(f"- {name} trained in {scenario}: lr {chosen['lr']:g}{width}, best epoch {chosen['best_epoch']} "
+                         f"(least validation loss of {budget['trials']} trials; budget {budget['epochs']} epochs, "
+                         f"{budget['frames']} frames)")
     if not lines:
         return ""
-    return "\nRidge alphas (chosen on validation data, not the test stream):\n" + "\n".join(lines) + "\n"
+    return ("\nTuning (ridge alphas and network searches, chosen on validation data, not the test stream):\n"
+            + "\n".join(lines) + "\n")
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,

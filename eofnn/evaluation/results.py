@@ -24,6 +24,8 @@ class ExperimentResult:
     integrator_gains: dict[str, dict[str, dict]] = field(default_factory=dict)
     #: Ridge alphas chosen on validation data: training scenario -> controller -> {"alpha", "val_loss", "path"}.
     ridge_alphas: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: Budgeted searches of SGD-trained networks: training scenario -> controller -> {"trials", "chosen", "budget"}.
+    searches: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -31,6 +33,7 @@ class ExperimentResult:
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,
             "ridge_alphas": self.ridge_alphas,
+            "searches": self.searches,
             "raw_contrast": {s: {p: m.contrast_at for p, m in preds.items() if m.contrast_at}
                              for s, preds in self.metrics.items()},
             "checkpoints": self.checkpoints,

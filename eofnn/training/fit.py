@@ -30,6 +30,7 @@ from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction, RidgePath
 from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
+from eofnn.training.search import check_search, run_search
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
 DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
@@ -175,6 +176,17 @@ def fit_predictor(
                 ridge_path = solved.choice.path if solved.choice is not None else None
                 metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
                                                 weights_only=True)[0])
+            elif optimization.search is not None:
+                task, trainer, searched = run_search(
+                    check_search(optimization.search, optimization.lr), network_config, optimization,
+                    lambda net_cfg, opt: PredictorTask(net_cfg, scenario.grid.n_actuators, spec.to_dict(), grid,
+                                                       asdict(opt), info),
+                    lambda t, tr, dm=datamodule: tr.fit(t, datamodule=dm, weights_only=True),
+                    lambda opt, callbacks: make_trainer(opt, progress, callbacks), data.seed, data.frames)
+                net, network_config = task.network, task.hparams.network
+                info["search"] = searched
+                task.hparams["info"] = info
+                metrics = {"val_loss": searched["chosen"]["val_loss"], "lr": searched["chosen"]["lr"]}
             else:
                 trainer.fit(task, datamodule=datamodule, weights_only=True)
                 metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
@@ -209,9 +221,9 @@ def bind_margin(margin: MarginFunction | None, network: nn.Module, spec: History
     return lambda weights: margin(network, weights, spec, plant_dm_gain, dm_gain_model)
 
 
-def make_trainer(optimization: OptimizationConfig, progress: bool) -> L.Trainer:
+def make_trainer(optimization: OptimizationConfig, progress: bool, callbacks: list | None = None) -> L.Trainer:
     """The Lightning trainer of a fit: one epoch for a closed-form fit (validation only), no logger of its own."""
     epochs = 1 if optimization.fit_method == "closed_form" else optimization.epochs
     return L.Trainer(max_epochs=epochs, accelerator=optimization.accelerator, devices=1, logger=False,
                      enable_checkpointing=False, enable_progress_bar=progress, enable_model_summary=False,
-                     num_sanity_val_steps=0, deterministic=True)
+                     num_sanity_val_steps=0, deterministic=True, callbacks=callbacks)

@@ -32,6 +32,7 @@ from eofnn.sim.telemetry import Telemetry
 from eofnn.training.alpha import MarginFunction
 from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, bind_margin, make_trainer, solve_closed_form
 from eofnn.training.identify import IdentifiedPlant, identify_plant
+from eofnn.training.search import check_search, run_search
 from eofnn.training.task import OptimizationConfig, PredictorTask
 
 
@@ -155,6 +156,18 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
         if val is not None or checkpoint_path is not None:  # validating also attaches the trainer that saves
             metrics = trainer.validate(task, dataloaders=DataLoader(val or train, batch_size=None), verbose=False)[0]
             val_loss = metrics["val_loss"] if val is not None else None
+    elif optimization.search is not None:
+        if val is None:
+            raise ConfigError("optimization.search chooses on held-out telemetry: give val_frames > 0")
+        task, trainer, searched = run_search(
+            check_search(optimization.search, optimization.lr), network or DEFAULT_NETWORK, optimization,
+            lambda net_cfg, opt: PredictorTask(net_cfg, n_act, spec.to_dict(), grid_dict, asdict(opt), info),
+            lambda t, tr: tr.fit(t, train_dataloaders=DataLoader(train, batch_size=None),
+                                 val_dataloaders=DataLoader(val, batch_size=None)),
+            lambda opt, callbacks: make_trainer(opt, progress, callbacks), seed, train_stop * len(sequences))
+        info["search"] = searched
+        task.hparams["info"] = info
+        val_loss = searched["chosen"]["val_loss"]
     else:
         trainer.fit(task, train_dataloaders=DataLoader(train, batch_size=None),
                     val_dataloaders=DataLoader(val, batch_size=None) if val is not None else None)

@@ -17,6 +17,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.models.build import build_network, input_dtype
 from eofnn.training.alpha import check_alpha_path, check_select
+from eofnn.training.search import check_search
 from eofnn.validation import NON_NEGATIVE, Constraint, Either, Interval, IsBool, OneOf, OrNone, validated
 
 FIT_METHODS = ("closed_form", "sgd")
@@ -43,6 +44,10 @@ class OptimizationConfig:
         ``alpha`` in units of the mean diagonal of ``D D^T`` (per group) rather than absolute.
     alpha_path : list of float, optional
         Alphas searched by ``alpha: auto``, strictly increasing; unset, 1e-14 to 1e-2 with two per decade.
+    search : dict, optional
+        A budgeted search for ``fit_method: sgd`` (:mod:`eofnn.training.search`): ``{lr: [...], width: [...],
+        patience: 2}`` trains one network per learning rate x hidden width, each with early stopping on the
+        validation loss, and keeps the best; the budget used goes beside the result.
     select : dict, optional
         A robustness constraint on the ``auto`` choice: ``{dm_gain_interval: [low, high]}`` keeps the best alpha
         whose analytic stable DM-gain interval contains ``[low, high]`` (which must contain 1).
@@ -63,6 +68,7 @@ class OptimizationConfig:
     alpha_relative: bool = True
     alpha_path: list[float] | None = None
     select: dict | None = None
+    search: dict | None = None
     optimizer: str = "adam"
     lr: float = 1e-3
     weight_decay: float = 0.0
@@ -88,6 +94,9 @@ class OptimizationConfig:
         if self.fit_method == "sgd" and self.select is not None:
             raise ConfigError("optimization.select is invalid with fit_method: sgd: it constrains the closed-form "
                               "fit's alpha: auto")
+        if self.search is not None and self.fit_method != "sgd":
+            raise ConfigError("optimization.search is for fit_method: sgd (a closed-form fit tunes alpha: auto)")
+        check_search(self.search, self.lr)
         check_alpha_path(self.alpha_path)
         check_select(self.select)
         if self.select is not None and self.ridge_alpha != "auto":
