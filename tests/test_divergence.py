@@ -73,3 +73,22 @@ def test_open_loop_eof_just_past_its_analytic_bound_is_diverging(small_scenario)
     assert past.growth["growth_rate_per_s"] == pytest.approx(RATE * math.log(1.001), rel=0.25)
     nominal = experiment.evaluate("ol_eof", "nominal")
     assert not nominal.diverging and not nominal.diverged
+
+
+def test_simulated_margins_bracket_the_analytic_interval(small_scenario):
+    """The simulation route (for networks) checked where the answer is known: a linear filter's analytic interval."""
+    from eofnn.evaluation.margins import simulated_dm_gain_interval
+
+    scenario = small_scenario.with_plant(wfs_noise_nm=1.0)
+    predictors = {"ol_eof": {"history_length": 4, "optimization": {"alpha": 1e-6},
+                             "data": {"frames": 3000, "val_frames": 1000, "sequence_frames": 1000}}}
+    experiment = Experiment(scenario, {"nominal": {}}, predictors, EvaluationConfig(frames=3000, settle_frames=300),
+                            log=lambda _: None)
+    low, high = experiment.stability("ol_eof", "nominal")["dm_gain_interval"]
+    found = simulated_dm_gain_interval(experiment, "ol_eof", "nominal", tolerance=0.05)
+    (lower_bad, lower_ok), (upper_ok, upper_bad) = found["bracket"]
+    assert upper_bad - upper_ok <= 0.05 and lower_ok - lower_bad <= 0.05
+    # A root just past the unit circle grows too slowly to be seen in a short run: simulation may only overstate
+    # the interval a little, never cut into it.
+    assert upper_ok <= high * 1.03 + 0.05 and upper_bad >= high
+    assert lower_bad <= low and lower_ok >= low * 0.97 - 0.05

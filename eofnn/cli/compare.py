@@ -7,8 +7,10 @@ from pathlib import Path
 from jsonargparse import ArgumentParser
 
 from eofnn.cli.common import add_common, add_evaluation, log
+from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import Experiment
+from eofnn.evaluation.margins import simulated_dm_gain_interval
 from eofnn.evaluation.pareto import pareto, plot_pareto
 from eofnn.evaluation.report import write_report
 from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
@@ -31,6 +33,10 @@ def add_compare_arguments(parser: ArgumentParser) -> None:
                         help="Plant field -> values, e.g. {dm_gain: [0.5, 1, 1.5, 2, 3]} (one or two fields): every "
                              "controller, as made for the first scenario, runs in each plant; writes robustness.json "
                              "and robustness.png with the analytic stability bounds.")
+    parser.add_argument("--simulated_margins", type=list[str], default=[],
+                        help="Scenarios in which the DM-gain interval of every controller without a linear model "
+                             "(networks) is measured by closed-loop simulation, each bound bracketed within 5%% "
+                             "(metrics.json: simulated_stability; results.md).")
     parser.add_argument("--pareto", type=bool, default=False,
                         help="Also draw every linear controller family along its tuning path (ridge alphas of alpha: "
                              "auto, integrator gains) in the first scenario, median RMS on a stream of its own "
@@ -49,12 +55,23 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
     """Validate everything and check the output folder, then run and write the results in one move."""
     out = check_output_folder(cfg.out, cfg.overwrite)
     grid = check_grid(getattr(cfg, "robustness", None))
+    for scenario_name in getattr(cfg, "simulated_margins", []):
+        if scenario_name not in cfg.scenarios:
+            raise ConfigError(f"simulated_margins: {scenario_name!r} is not a scenario: allowed are "
+                              f"{', '.join(cfg.scenarios)}")
     experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
                             trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
     with staged_folder(out, cfg.overwrite) as staging:
         experiment.checkpoint_dir = staging / "checkpoints"
         (staging / "config.yaml").write_text(config_dump)
         result = experiment.run()
+        for scenario_name in getattr(cfg, "simulated_margins", []):
+            for name in experiment.predictors:
+                if name not in result.stability.get(scenario_name, {}) and name not in ("uncorrected",
+                                                                                       "pseudo_integrator"):
+                    log(f"{scenario_name:>12s} {name:>18s}: DM-gain interval by simulation ...")
+                    result.simulated_stability.setdefault(scenario_name, {})[name] = simulated_dm_gain_interval(
+                        experiment, name, scenario_name)
         write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference)
         if grid:
             robustness = robustness_map(experiment, grid)

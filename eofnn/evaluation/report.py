@@ -195,12 +195,37 @@ def _alphas(result: ExperimentResult) -> str:
             + "\n".join(lines) + "\n")
 
 
+def _margins(result: ExperimentResult) -> str:
+    """The stable DM-gain interval of every controller in every scenario: analytic (linear controllers) or measured
+    by simulation (networks, where asked)."""
+    lines = []
+    for scenario, preds in result.metrics.items():
+        for name in preds:
+            analytic = result.stability.get(scenario, {}).get(name)
+            simulated = result.simulated_stability.get(scenario, {}).get(name)
+            if analytic is not None:
+                low, high = analytic["dm_gain_interval"]
+                text = ("unstable" if not analytic["stable"] else
+                        f"{max(low or 0.0, 0.0) + 0.0:.3g} to {'∞' if high is None else f'{high:.3g}'} (linear analysis)")
+            elif simulated is not None:
+                interval = simulated["dm_gain_interval"]
+                text = ("unstable in simulation" if interval is None else
+                        f"{interval[0]:.3g} to {'beyond 8' if interval[1] is None else f'{interval[1]:.3g}'} "
+                        f"(simulation, bounds within {simulated['tolerance']:g})")
+            else:
+                continue
+            lines.append(f"- {name} in {scenario}: stable for DM gain {text}")
+    if not lines:
+        return ""
+    return "\nStable DM-gain intervals (the DM applying g times the command):\n" + "\n".join(lines) + "\n"
+
+
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                  reference: dict[str, dict[str, float]] | None = None) -> list[Path]:
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
     table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _gains(result)
-                     + _alphas(result) + _caveat(result))
+                     + _alphas(result) + _margins(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])

@@ -26,6 +26,8 @@ class ExperimentResult:
     ridge_alphas: dict[str, dict[str, dict]] = field(default_factory=dict)
     #: Budgeted searches of SGD-trained networks: training scenario -> controller -> {"trials", "chosen", "budget"}.
     searches: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: DM-gain intervals of controllers without a linear model, by simulation: scenario -> controller -> result.
+    simulated_stability: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -34,6 +36,7 @@ class ExperimentResult:
             "integrator_gains": self.integrator_gains,
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
+            "simulated_stability": self.simulated_stability,
             "raw_contrast": {s: {p: m.contrast_at for p, m in preds.items() if m.contrast_at}
                              for s, preds in self.metrics.items()},
             "checkpoints": self.checkpoints,

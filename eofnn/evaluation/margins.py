@@ -1,0 +1,78 @@
+"""Stability margins of controllers that have no linear model (networks), measured by closed-loop simulation.
+
+The DM-gain interval of a linear controller is analytic (:mod:`eofnn.analysis.stability`); a network's is found
+the way a careful user would: close the loop with the DM applying ``g`` times the command, on a stream of its own
+(``"margin"``, never the test stream), and call ``g`` unstable when the run diverges or is diverging
+(:class:`~eofnn.evaluation.metrics.GrowthMonitor`). Each bound is bracketed by doubling (halving) out of the
+nominal gain and then bisected until the bracket is narrower than ``tolerance`` (relative to the nominal gain).
+"""
+
+from __future__ import annotations
+
+from eofnn.evaluation.experiment import Experiment
+from eofnn.evaluation.metrics import GrowthMonitor
+from eofnn.seeding import int_seed
+from eofnn.sim.loop import run_loop
+
+#: Probes beyond which a bound is reported as "beyond the range searched".
+HIGHEST_GAIN, LOWEST_GAIN = 8.0, 1.0 / 16
+
+
+def simulated_dm_gain_interval(experiment: Experiment, name: str, scenario_name: str,
+                               tolerance: float = 0.05) -> dict:
+    """``{"dm_gain_interval": [low, high], "bracket": [[a, b], [c, d]], "probes": {gain: stable}}``: the DM gains
+    (relative to the scenario's) between which controller ``name``, as made for ``scenario_name``, stays stable,
+    each bound bracketed within ``tolerance``. ``low`` is 0 when even :data:`LOWEST_GAIN` is stable, ``high`` is
+    ``None`` when even :data:`HIGHEST_GAIN` is."""
+    scenario = experiment.scenarios[scenario_name]
+    ev = experiment.evaluation
+    nominal = scenario.plant.dm_gain
+    probes: dict[float, bool] = {}
+
+    def stable(relative: float) -> bool:
+        if relative not in probes:
+            plant = scenario.plant.with_errors(dm_gain=relative * nominal)
+            growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
+            result = run_loop(scenario.turbulence(ev.seed, "margin", ev.realisations), plant,
+                              experiment.controller(name, scenario_name), ev.frames,
+                              noise_seed=int_seed(ev.seed, "margin"), record=(), progress=False,
+                              divergence_factor=ev.divergence_factor,
+                              on_chunk=lambda first, arrays: growth(first, arrays))
+            judged = None if result.diverged else growth.result()
+            probes[relative] = not result.diverged and not (judged is not None and judged["diverging"])
+        return probes[relative]
+
+    if not stable(1.0):
+        return {"dm_gain_interval": None, "bracket": None, "probes": _probes(probes), "tolerance": tolerance}
+    # Upper bound: double out of 1 until unstable, then bisect.
+    low_ok, high_bad = 1.0, 2.0
+    while stable(high_bad):
+        low_ok, high_bad = high_bad, 2 * high_bad
+        if high_bad > HIGHEST_GAIN:
+            high_bad = None
+            break
+    if high_bad is not None:
+        while high_bad - low_ok > tolerance:
+            middle = (low_ok + high_bad) / 2
+            low_ok, high_bad = (middle, high_bad) if stable(middle) else (low_ok, middle)
+    upper = (low_ok, high_bad)
+    # Lower bound: halve out of 1 until unstable, then bisect.
+    high_ok, low_bad = 1.0, 0.5
+    while stable(low_bad):
+        high_ok, low_bad = low_bad, low_bad / 2
+        if low_bad < LOWEST_GAIN:
+            low_bad = None
+            break
+    if low_bad is not None:
+        while high_ok - low_bad > tolerance:
+            middle = (low_bad + high_ok) / 2
+            low_bad, high_ok = (low_bad, middle) if stable(middle) else (middle, high_ok)
+    lower = (low_bad, high_ok)
+    interval = [0.0 if lower[0] is None else (lower[0] + lower[1]) / 2,
+                None if upper[1] is None else (upper[0] + upper[1]) / 2]
+    return {"dm_gain_interval": interval, "bracket": [list(lower), list(upper)], "probes": _probes(probes),
+            "tolerance": tolerance}
+
+
+def _probes(probes: dict[float, bool]) -> dict[str, bool]:
+    return {f"{g:.4g}": ok for g, ok in sorted(probes.items())}
