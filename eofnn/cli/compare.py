@@ -37,10 +37,11 @@ def add_compare_arguments(parser: ArgumentParser) -> None:
                         help="Scenarios in which the DM-gain interval of every controller without a linear model "
                              "(networks) is measured by closed-loop simulation, each bound bracketed within 5%% "
                              "(metrics.json: simulated_stability; results.md).")
-    parser.add_argument("--pareto", type=bool, default=False,
+    parser.add_argument("--pareto", type=bool | str, default=False,
                         help="Also draw every linear controller family along its tuning path (ridge alphas of alpha: "
-                             "auto, integrator gains) in the first scenario, median RMS on a stream of its own "
-                             "against the width of the stable DM-gain interval: pareto.png, pareto.md, pareto.json.")
+                             "auto, integrator gains) in the first scenario (true) or the one named, median RMS on a "
+                             "stream of its own against the width of the stable DM-gain interval: pareto.png, "
+                             "pareto.md, pareto.json.")
 
 
 def add_evaluate_arguments(parser: ArgumentParser) -> None:
@@ -55,10 +56,14 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
     """Validate everything and check the output folder, then run and write the results in one move."""
     out = check_output_folder(cfg.out, cfg.overwrite)
     grid = check_grid(getattr(cfg, "robustness", None))
-    for scenario_name in getattr(cfg, "simulated_margins", []):
+    pareto_scenario = getattr(cfg, "pareto", False)
+    if pareto_scenario is True:
+        pareto_scenario = next(iter(cfg.scenarios))
+    for scenario_name in getattr(cfg, "simulated_margins", []) + ([pareto_scenario] if pareto_scenario else []):
         if scenario_name not in cfg.scenarios:
-            raise ConfigError(f"simulated_margins: {scenario_name!r} is not a scenario: allowed are "
+            raise ConfigError(f"simulated_margins or pareto: {scenario_name!r} is not a scenario: allowed are "
                               f"{', '.join(cfg.scenarios)}")
+    pareto_scenario = pareto_scenario or None
     experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
                             trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
     with staged_folder(out, cfg.overwrite) as staging:
@@ -77,8 +82,8 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
             robustness = robustness_map(experiment, grid)
             (staging / "robustness.json").write_text(robustness.to_json())
             plot_robustness(robustness, staging / "robustness.png")
-        if getattr(cfg, "pareto", False):
-            points = pareto(experiment)
+        if pareto_scenario is not None:
+            points = pareto(experiment, pareto_scenario)
             (staging / "pareto.json").write_text(points.to_json())
             (staging / "pareto.md").write_text(points.markdown())
             plot_pareto(points, staging / "pareto.png")

@@ -4,9 +4,9 @@ its stable DM-gain interval.
 A predictor whose ridge alpha was chosen on validation data (``alpha: auto``) is redrawn at alphas along its path
 (the same fit, other alphas: :meth:`~eofnn.training.alpha.RidgePath.weights`); a best-gain integrator at every gain
 its scan tried; any other linear controller is one point. Every point closes the loop on a stream of its own
-(``"pareto"``: never the test stream, so a user may choose from it), in the experiment's first scenario, and its
-analytic stable DM-gain interval is relative to that scenario's DM gain. Nonlinear controllers have no analytic
-interval and are left out.
+(``"pareto"``: never the test stream, so a user may choose from it), in the experiment's first scenario (or the
+one named), and its analytic stable DM-gain interval is relative to that scenario's DM gain. Nonlinear
+controllers have no analytic interval and are left out.
 """
 
 from __future__ import annotations
@@ -72,9 +72,10 @@ def _path_alphas(alphas: tuple[float, ...], val_loss: list[float], chosen: float
     return sorted(set(finite[::step]) | {chosen})
 
 
-def pareto(experiment: Experiment) -> ParetoResult:
-    """The performance-robustness points of every linear controller family of ``experiment`` (first scenario)."""
-    scenario_name = next(iter(experiment.scenarios))
+def pareto(experiment: Experiment, scenario_name: str | None = None) -> ParetoResult:
+    """The performance-robustness points of every linear controller family of ``experiment`` in ``scenario_name``
+    (the first scenario by default)."""
+    scenario_name = scenario_name or next(iter(experiment.scenarios))
     scenario = experiment.scenarios[scenario_name]
     ev = experiment.evaluation
     plant_gain = scenario.plant.dm_gain
