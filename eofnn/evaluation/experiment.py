@@ -11,7 +11,8 @@ from typing import Any
 from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.baselines import Integrator
-from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
+from eofnn.control.modal import require_telemetry
+from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
@@ -122,6 +123,8 @@ class Experiment:
         self._loaded: dict[str, TrainedPredictor] = {}
         #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
         self.gain_scans: dict[tuple[str, str], dict] = {}
+        #: Classical models built from telemetry (modal integrator, LQG): (controller, scenario) -> model.
+        self.classical_models: dict[tuple[str, str], Any] = {}
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
@@ -151,6 +154,10 @@ class Experiment:
                 if cfg.gains is not None:
                     scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
                                                          f"{cfg.data.frames} (the gain scan)")
+                elif cfg.controller in FROM_TELEMETRY:
+                    require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
+                    scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
+                                                         f"{cfg.data.frames} (its telemetry)")
                 elif cfg.trains and not cfg.data.truth:
                     n = cfg.data.frames + cfg.data.val_frames
                     scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
@@ -174,7 +181,15 @@ class Experiment:
         return self._trained[key]
 
     def _predictor_if_any(self, name: str, scenario_name: str) -> TrainedPredictor | None:
-        """The trained predictor of controller ``name`` if it runs one (baselines run none)."""
+        """The trained predictor of controller ``name`` if it runs one (baselines run none), or the model a classical
+        controller builds from telemetry recorded in the scenario (on a stream of its own, like the gain scan)."""
+        if self.predictors[name].controller in FROM_TELEMETRY:
+            key = (name, scenario_name)
+            if key not in self.classical_models:
+                cfg = self.predictors[name]
+                self.classical_models[key] = FROM_TELEMETRY[cfg.controller](cfg, self.scenarios[scenario_name])
+                self.log(f"{scenario_name:>12s} {name:>18s}: built from {cfg.data.frames} frames of telemetry")
+            return self.classical_models[key]
         return self.predictor(name, scenario_name) if self.predictors[name].controller in NEEDS_PREDICTOR else None
 
     def config(self, name: str, scenario_name: str) -> PredictorConfig:
@@ -264,7 +279,10 @@ class Experiment:
         gains: dict[str, dict[str, dict]] = {}
         for (name, scenario_name), scan in self.gain_scans.items():
             gains.setdefault(scenario_name, {})[name] = scan
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains)
+        models: dict[str, dict[str, dict]] = {}
+        for (name, scenario_name), model in self.classical_models.items():
+            models.setdefault(scenario_name, {})[name] = model.info
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, models)
 
 
 def _describe(m: LoopMetrics, margins: dict | None) -> str:

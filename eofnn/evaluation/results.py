@@ -22,12 +22,15 @@ class ExperimentResult:
     stability: dict[str, dict[str, dict]] = field(default_factory=dict)
     #: Best-gain integrators: scenario -> controller -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
     integrator_gains: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: Classical models built from telemetry: scenario -> controller -> what was identified (modes, gains, AR(2)).
+    classical_models: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,
+            "classical_models": self.classical_models,
             "raw_contrast": {s: {p: m.contrast_at for p, m in preds.items() if m.contrast_at}
                              for s, preds in self.metrics.items()},
             "checkpoints": self.checkpoints,
