@@ -289,3 +289,31 @@ def test_history_spec_of_the_extrapolator():
     network, spec = extrapolator_filter(2, 1.5, dm_gain_model=2.0)
     assert spec == HistorySpec("open_loop", 3, 1.5)
     torch.testing.assert_close(network.weight[0], -extrapolation_weights(2, 1.5) / 2.0)
+
+
+@pytest.mark.parametrize("delay", [2, 1.5, 3])
+def test_lqg_polynomials_are_the_controller_it_runs(delay):
+    """The impulse response of ``N / D`` (what the analysis sees) is the command sequence the controller computes
+    from a unit WFS reading, with its POL coupling to its own past commands, for integer and fractional delays."""
+    from eofnn.control.classical import ModalLQG
+    from eofnn.sim.loop import LoopInput
+
+    ar = torch.tensor([[1.7, -0.75], [0.3, 0.1]], dtype=F64)
+    q, r = torch.tensor([1.0, 2.0], dtype=F64), torch.tensor([0.5, 1.0], dtype=F64)
+    gain, _ = kalman_gain(ar, q, r)
+    modes = torch.tensor([[0.6, 0.8], [-0.8, 0.6]], dtype=F64)
+    model = ModalLQG(modes, ar, q, r, gain, delay, dm_gain_model=1.3)
+    d_poly, n_poly = model.polynomials()
+    model.reset(1, 2, delay, F64)
+    frames = 30
+    commands = []
+    for n in range(frames):
+        wfs = modes[:, 0].unsqueeze(0) if n == 0 else torch.zeros(1, 2, dtype=F64)  # a unit reading on mode 0
+        commands.append(model.step(LoopInput(n, wfs, torch.zeros(1, 2, dtype=F64)))[0] @ modes[:, 0])
+    expected = torch.zeros(frames, dtype=F64)  # D y = N u with u = delta: y(n) = N_n - sum_j D_j y(n - j)
+    for n in range(frames):
+        acc = n_poly[0, n] if n < n_poly.shape[1] else 0.0
+        for j in range(1, min(n, d_poly.shape[1] - 1) + 1):
+            acc = acc - d_poly[0, j] * expected[n - j]
+        expected[n] = acc
+    torch.testing.assert_close(torch.stack(commands), expected, rtol=1e-9, atol=1e-12)
