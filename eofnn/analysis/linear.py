@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import torch
 
-from eofnn.analysis.stability import LoopSetup, StabilityResult, analyse, analyse_filter, analyse_integrator
-from eofnn.control.registry import dm_gain_model_of
+from eofnn.analysis.stability import (
+    LoopSetup,
+    StabilityResult,
+    analyse,
+    analyse_filter,
+    analyse_integrator,
+    analyse_polynomials,
+    default_frequencies_hz,
+)
+from eofnn.control.classical import ModalLQG, extrapolator_filter
+from eofnn.control.registry import FROM_TELEMETRY, dm_gain_model_of
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.scenario import Scenario
 
@@ -18,11 +28,18 @@ SUMMARY_KEYS = ("kind", "structure", "history_length", "stable", "max_root_modul
 
 
 def controller_stability(config: Any, predictor: Any, scenario: Scenario) -> StabilityResult | None:
-    """The analysis of a controller in ``scenario``: an integrator, or a predictor whose network is a
-    :class:`~eofnn.models.linear.LinearFilter`; ``None`` for anything else (no linear model to analyse)."""
+    """The analysis of a controller in ``scenario``: an integrator, a classical baseline (the extrapolator as its
+    open-loop filter; the modal integrator and LQG, whose model is passed as ``predictor``, per mode), or a
+    predictor whose network is a :class:`~eofnn.models.linear.LinearFilter`; ``None`` for anything else (no
+    linear model to analyse)."""
     setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
     if config.controller == "integrator":
         return analyse_integrator(config.gain, config.leak, setup)
+    if config.controller == "extrapolator":
+        network, spec = extrapolator_filter(config.order, scenario.plant.delay_frames, setup.dm_gain_model)
+        return analyse_filter(network, spec, setup)
+    if config.controller in FROM_TELEMETRY and hasattr(predictor, "polynomials"):
+        return modal_stability(predictor, setup)
     adaptation = getattr(config, "adaptation", None)
     if adaptation is not None and adaptation.method != "none":
         return None  # a filter that changes every frame has no fixed characteristic polynomial
@@ -31,11 +48,26 @@ def controller_stability(config: Any, predictor: Any, scenario: Scenario) -> Sta
     return None
 
 
+def modal_stability(model: Any, setup: LoopSetup) -> StabilityResult:
+    """A modal controller (``model.polynomials()``: per-mode ``D(z), N(z)``) analysed with the modes as groups.
+
+    The modes decouple the loop when the DM acts as ``g`` times the command on every mode (no misregistration),
+    as the per-actuator analysis of a filter assumes for actuators.
+    """
+    start = time.perf_counter()
+    d_poly, n_poly = model.polynomials()
+    kind, length = ("open_loop", 2) if isinstance(model, ModalLQG) else ("closed_loop", 1)
+    result = analyse_polynomials(d_poly, n_poly, setup, default_frequencies_hz(setup.frame_rate_hz), kind=kind,
+                                 structure="modal", history_length=length)
+    result.analysis_seconds = time.perf_counter() - start
+    result.notes.append("groups are the controller's modes")
+    return result
+
+
 def summary(result: StabilityResult) -> dict:
     """The scalars of a stability result (stable, DM gain interval, delay margin, ...), for ``metrics`` files."""
     full = result.to_dict()
     return {key: full[key] for key in SUMMARY_KEYS if key in full}
-
 
 
 def dm_gain_margin(frame_rate_hz: float = 1000.0):

@@ -8,9 +8,12 @@ decorated function; nothing else dispatches on the name.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 from eofnn.control.baselines import Dithered, Integrator, PseudoIntegrator, Uncorrected
+from eofnn.control.classical import Extrapolator
+from eofnn.control.modal import build_lqg, build_modal_integrator
 from eofnn.control.predictive import PredictiveController
 from eofnn.errors import ConfigError
 from eofnn.sim.loop import Controller
@@ -19,14 +22,22 @@ ControllerBuilder = Callable[[Any, Any], Controller]
 _BUILDERS: dict[str, ControllerBuilder] = {}
 #: Controllers that run a trained network (they need a predictor to be built).
 NEEDS_PREDICTOR: set[str] = set()
+#: Controllers whose model is built from telemetry recorded in each scenario: name -> ``model(config, scenario)``.
+#: The experiment passes that model to the builder in place of a predictor.
+FROM_TELEMETRY: dict[str, Callable[[Any, Any], Any]] = {}
 
 
-def register_controller(name: str, needs_predictor: bool = False) -> Callable[[ControllerBuilder], ControllerBuilder]:
-    """Decorator: ``builder(config, predictor)`` builds the controller called ``name``."""
+def register_controller(name: str, needs_predictor: bool = False,
+                        from_telemetry: Callable[[Any, Any], Any] | None = None,
+                        ) -> Callable[[ControllerBuilder], ControllerBuilder]:
+    """Decorator: ``builder(config, predictor)`` builds the controller called ``name``; ``from_telemetry(config,
+    scenario)``, if given, builds the model (passed as ``predictor``) from telemetry recorded in a scenario."""
     def decorate(builder: ControllerBuilder) -> ControllerBuilder:
         _BUILDERS[name] = builder
         if needs_predictor:
             NEEDS_PREDICTOR.add(name)
+        if from_telemetry is not None:
+            FROM_TELEMETRY[name] = from_telemetry
         return builder
     return decorate
 
@@ -43,6 +54,9 @@ def build_controller(config: Any, predictor: Any = None) -> Controller:
         raise ConfigError(f"controller={config.controller!r} is invalid: it must be one of {', '.join(_BUILDERS)}")
     if config.controller in NEEDS_PREDICTOR and predictor is None:
         raise ConfigError(f"controller={config.controller!r} needs a trained predictor or a checkpoint")
+    if config.controller in FROM_TELEMETRY and predictor is None:
+        raise ConfigError(f"controller={config.controller!r} needs its model built from telemetry (compare builds it "
+                          "in each scenario)")
     return builder(config, predictor)
 
 
@@ -81,3 +95,26 @@ def _predictor(config: Any, predictor: Any) -> Controller:
     if adaptation is not None and adaptation.method != "none":
         return adaptation.build(predictor, dm_gain_model_of(config, predictor))
     return PredictiveController(predictor.network, predictor.spec, dm_gain_model_of(config, predictor))
+
+
+@register_controller("extrapolator")
+def _extrapolator(config: Any, predictor: Any) -> Controller:
+    """Polynomial extrapolation (``order``) of the POL signal over the plant's delay; nothing to train."""
+    return Extrapolator(config.order, dm_gain_model_of(config, None))
+
+
+def _modal_from_telemetry(build: Callable) -> Callable[[Any, Any], Any]:
+    """``model(config, scenario)``: record ``config.data`` telemetry in the scenario and build the modal model."""
+    return lambda config, scenario: build(scenario, config.data, config.modes, dm_gain_model_of(config, None))
+
+
+@register_controller("modal_integrator", from_telemetry=_modal_from_telemetry(build_modal_integrator))
+def _modal_integrator(config: Any, predictor: Any) -> Controller:
+    """One optimal integrator gain per KL mode (:func:`eofnn.control.modal.build_modal_integrator`)."""
+    return replace(predictor)
+
+
+@register_controller("lqg", from_telemetry=_modal_from_telemetry(build_lqg))
+def _lqg(config: Any, predictor: Any) -> Controller:
+    """Kalman filter + LQG command, AR(2) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
+    return replace(predictor)

@@ -7,7 +7,8 @@ from typing import Any, ClassVar
 
 from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
-from eofnn.control.registry import NEEDS_PREDICTOR, controller_names
+from eofnn.control.classical import EXTRAPOLATION_ORDERS
+from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_names
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
 from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
@@ -28,7 +29,8 @@ class PredictorConfig:
     Parameters
     ----------
     controller : str
-        ``uncorrected``, ``pseudo_integrator``, ``integrator`` or ``predictor``.
+        ``uncorrected``, ``pseudo_integrator``, ``integrator``, ``dithered_integrator``, ``predictor``, or a classical
+        baseline: ``extrapolator``, ``modal_integrator``, ``lqg`` (:mod:`eofnn.control.classical`).
     history : str, optional
         ``open_loop`` (pseudo-open-loop values) or ``closed_loop`` (commands and residuals); unset, ``open_loop``
         for a predictor to train and the checkpoint's own for a checkpoint (set, it must match the checkpoint).
@@ -61,6 +63,15 @@ class PredictorConfig:
     dm_gain_model : float, optional
         DM gain the controller believes, for the pseudo-open-loop reconstruction; unset, the predictor's own: the
         gain identified from telemetry for a predictor trained on telemetry, 1 (the nominal DM) otherwise.
+    order : int
+        Degree of the polynomial that ``controller: extrapolator`` extrapolates the POL signal with over the loop
+        delay: 1 (linear, ``y(n) = -(3 s_hat(n-2) - 2 s_hat(n-3))`` at a two-frame delay) or 2 (quadratic); 0 is a
+        POL zero-order hold.
+    modes : int, optional
+        ``controller: modal_integrator`` or ``lqg``: the first ``modes`` KL modes get a gain (or an AR(2) model) of
+        their own, the others share the one best for them together; unset, every mode has its own. Their model
+        is built in each scenario from ``data.frames`` frames of telemetry recorded with an integrator
+        (``data.integrator_gain``) plus ``data.dither_nm`` of dither, seed ``data.seed`` (never the test stream).
     """
 
     controller: str = "predictor"
@@ -76,6 +87,8 @@ class PredictorConfig:
     leak: float = 0.0
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     dm_gain_model: float | None = None
+    order: int = 1
+    modes: int | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -84,6 +97,8 @@ class PredictorConfig:
         "train_in": OrNone(IsString()),
         "checkpoint": OrNone(IsString()),
         "dm_gain_model": OrNone(Interval(0, 100, closed="right")),
+        "order": Interval(min(EXTRAPOLATION_ORDERS), max(EXTRAPOLATION_ORDERS), integer=True),
+        "modes": OrNone(Interval(1, 1_000_000, integer=True)),
     }
 
     def __post_init__(self) -> None:
@@ -101,6 +116,9 @@ class PredictorConfig:
                               f"{self.checkpoint!r} is for controller: predictor")
         if self.controller == "integrator":
             Integrator(self.gain, self.leak)  # validates gain and leak
+        if self.modes is not None and self.controller not in FROM_TELEMETRY:
+            raise ConfigError(f"modes={self.modes!r} is for controller: {' or '.join(FROM_TELEMETRY)}, not "
+                              f"{self.controller!r}")
         if self.gains is not None:
             if self.controller != "integrator":
                 raise ConfigError(f"gains={self.gains!r} is for controller: integrator, not {self.controller!r}")

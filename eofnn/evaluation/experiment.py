@@ -13,7 +13,8 @@ from eofnn.analysis.linear import controller_stability, dm_gain_margin
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
-from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
+from eofnn.control.modal import require_telemetry
+from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
@@ -129,6 +130,8 @@ class Experiment:
         self.alpha_choices: dict[tuple[str, str], dict] = {}
         #: Budgeted searches of networks trained by SGD: (controller, training scenario) -> trials, choice, budget.
         self.searches: dict[tuple[str, str], dict] = {}
+        #: Classical models built from telemetry (modal integrator, LQG): (controller, scenario) -> model.
+        self.classical_models: dict[tuple[str, str], Any] = {}
         self.checkpoints: dict[str, str] = {}
         trusted = trusted_class_paths(self.predictors, trusted_networks)
         for name, cfg in self.predictors.items():
@@ -158,6 +161,10 @@ class Experiment:
                 if cfg.gains is not None:
                     scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
                                                          f"{cfg.data.frames} (the gain scan)")
+                elif cfg.controller in FROM_TELEMETRY:
+                    require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
+                    scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
+                                                         f"{cfg.data.frames} (its telemetry)")
                 elif cfg.trains and not cfg.data.truth:
                     n = cfg.data.frames + cfg.data.val_frames
                     scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
@@ -201,7 +208,15 @@ class Experiment:
         return self._trained[key]
 
     def _predictor_if_any(self, name: str, scenario_name: str) -> TrainedPredictor | None:
-        """The trained predictor of controller ``name`` if it runs one (baselines run none)."""
+        """The trained predictor of controller ``name`` if it runs one (baselines run none), or the model a classical
+        controller builds from telemetry recorded in the scenario (on a stream of its own, like the gain scan)."""
+        if self.predictors[name].controller in FROM_TELEMETRY:
+            key = (name, scenario_name)
+            if key not in self.classical_models:
+                cfg = self.predictors[name]
+                self.classical_models[key] = FROM_TELEMETRY[cfg.controller](cfg, self.scenarios[scenario_name])
+                self.log(f"{scenario_name:>12s} {name:>18s}: built from {cfg.data.frames} frames of telemetry")
+            return self.classical_models[key]
         return self.predictor(name, scenario_name) if self.predictors[name].controller in NEEDS_PREDICTOR else None
 
     def config(self, name: str, scenario_name: str) -> PredictorConfig:
@@ -339,7 +354,11 @@ class Experiment:
         searches: dict[str, dict[str, dict]] = {}
         for (name, scenario_name), searched in self.searches.items():
             searches.setdefault(scenario_name, {})[name] = searched
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, alphas, searches)
+        models: dict[str, dict[str, dict]] = {}
+        for (name, scenario_name), model in self.classical_models.items():
+            models.setdefault(scenario_name, {})[name] = model.info
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, alphas, searches,
+                                classical_models=models)
 
 
 def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario) -> str:

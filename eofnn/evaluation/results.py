@@ -28,6 +28,8 @@ class ExperimentResult:
     searches: dict[str, dict[str, dict]] = field(default_factory=dict)
     #: DM-gain intervals of controllers without a linear model, by simulation: scenario -> controller -> result.
     simulated_stability: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: Classical models built from telemetry: scenario -> controller -> what was identified (modes, gains, AR(2)).
+    classical_models: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -37,6 +39,7 @@ class ExperimentResult:
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
             "simulated_stability": self.simulated_stability,
+            "classical_models": self.classical_models,
             "raw_contrast": {s: {p: m.contrast_at for p, m in preds.items() if m.contrast_at}
                              for s, preds in self.metrics.items()},
             "checkpoints": self.checkpoints,
