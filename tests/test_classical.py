@@ -317,3 +317,19 @@ def test_lqg_polynomials_are_the_controller_it_runs(delay):
             acc = acc - d_poly[0, j] * expected[n - j]
         expected[n] = acc
     torch.testing.assert_close(torch.stack(commands), expected, rtol=1e-9, atol=1e-12)
+
+
+def test_classical_models_use_the_dm_gain_their_dither_measures(lqg_model):
+    """Built from telemetry, the LQG believes the plant it identified: a DM applying 2x the command is learnt, not
+    assumed away (a dm_gain_model given in the config is kept instead)."""
+    scenario, nominal = lqg_model
+    doubled = scenario.with_plant(dm_gain=2.0)
+    model = build_lqg(doubled, DataConfig(frames=2048, dither_nm=5.0, integrator_gain=0.2))
+    assert model.dm_gain_model == pytest.approx(2.0, rel=0.03)
+    assert model.info["dm_gain_model_source"] == "measured from the dither"
+    run = run_loop(doubled.turbulence(1, "test"), doubled.plant, model, 1500, noise_seed=1, record=())
+    base = run_loop(scenario.turbulence(1, "test"), scenario.plant, nominal, 1500, noise_seed=1, record=())
+    assert not run.diverged
+    assert float(run.residual_rms_nm[:, 300:].median()) < 1.2 * float(base.residual_rms_nm[:, 300:].median())
+    given = build_lqg(doubled, DataConfig(frames=2048, dither_nm=5.0, integrator_gain=0.2), dm_gain_model=1.0)
+    assert given.dm_gain_model == 1.0 and given.info["warnings"]

@@ -75,9 +75,11 @@ def require_telemetry(data, n_actuators: int, modes: int | None, what: str) -> N
                           f"{MIN_SEGMENTS} PSD segments of {SEGMENT_FRAMES})")
 
 
-def record_pol_telemetry(scenario: Scenario, data, dm_gain_model: float = 1.0) -> tuple[torch.Tensor, dict]:
+def record_pol_telemetry(scenario: Scenario, data, dm_gain_model: float | None = None) -> tuple[torch.Tensor, dict]:
     """``(pol, info)``: ``(realisations, frames, K)`` POL values (nm) from a dithered integrator loop, and the DM
-    gain check (module docstring, step 1)."""
+    gain check (module docstring, step 1). ``dm_gain_model`` ``None`` (a config's unset ``dm_gain_model``) uses
+    the DM x WFS gain the dither measures, as a telescope that identified its plant would; a number given is
+    kept, and checked against the measurement."""
     n_act = scenario.grid.n_actuators
     require_telemetry(data, n_act, None, "modal telemetry")
     scenario.require_stream_frames(data.frames, f"modal telemetry (data.frames={data.frames})")
@@ -100,9 +102,12 @@ def record_pol_telemetry(scenario: Scenario, data, dm_gain_model: float = 1.0) -
     power = (1 - f) * dither.pow(2).sum()
     gain = float((wfs * dither).sum() / power)
     gain_se = float((wfs - gain * (1 - f) * dither).std() * dither.pow(2).sum().sqrt() / power)
+    source = "given"
+    if dm_gain_model is None:
+        dm_gain_model, source = gain, "measured from the dither"
     info = {"frames": data.frames, "dither_nm": data.dither_nm, "integrator_gain": data.integrator_gain,
-            "dm_gain_model": dm_gain_model, "dm_gain_from_dither": gain, "dm_gain_from_dither_se": gain_se,
-            "warnings": []}
+            "dm_gain_model": dm_gain_model, "dm_gain_model_source": source, "dm_gain_from_dither": gain,
+            "dm_gain_from_dither_se": gain_se, "warnings": []}
     if abs(gain - dm_gain_model) > max(3 * gain_se, 0.05 * dm_gain_model):
         message = (f"the dither sees a DM x WFS gain of {gain:.3f} +- {gain_se:.3f} but the POL reconstruction "
                    f"assumes dm_gain_model={dm_gain_model:g}: the modal model is built from biased POL values")
@@ -379,10 +384,11 @@ def _quantiles(values: torch.Tensor) -> list[float]:
 
 
 def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
-                           dm_gain_model: float = 1.0) -> ModalIntegrator:
+                           dm_gain_model: float | None = None) -> ModalIntegrator:
     """Record telemetry in ``scenario`` and choose one optimal integrator gain per KL mode
     (:func:`optimal_gains`); modes past ``modes`` share the gain best for them together."""
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
+    dm_gain_model = info["dm_gain_model"]
     stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
     gains, residual, k_crit = optimal_gains(stats, scenario.plant.delay_frames, dm_gain_model)
     info = _summary(stats, info)
@@ -392,10 +398,11 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
     return ModalIntegrator(stats.modes, gains, scenario.plant.delay_frames, dm_gain_model, info)
 
 
-def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model: float = 1.0) -> ModalLQG:
+def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model: float | None = None) -> ModalLQG:
     """Record telemetry in ``scenario``, fit an AR(2) per KL mode (:func:`fit_ar2`) and its stationary Kalman
     filter (:func:`kalman_gain`); modes past ``modes`` share one AR(2) model fitted on their pooled statistics."""
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
+    dm_gain_model = info["dm_gain_model"]
     stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
     ar, q = fit_ar2(stats.autocovariance, stats.noise_variance)
     r = stats.noise_variance

@@ -104,8 +104,9 @@ def _extrapolator(config: Any, predictor: Any) -> Controller:
 
 
 def _modal_from_telemetry(build: Callable) -> Callable[[Any, Any], Any]:
-    """``model(config, scenario)``: record ``config.data`` telemetry in the scenario and build the modal model."""
-    return lambda config, scenario: build(scenario, config.data, config.modes, dm_gain_model_of(config, None))
+    """``model(config, scenario)``: record ``config.data`` telemetry in the scenario and build the modal model, with
+    the config's ``dm_gain_model`` or (unset) the DM gain the recording's dither measures."""
+    return lambda config, scenario: build(scenario, config.data, config.modes, getattr(config, "dm_gain_model", None))
 
 
 @register_controller("modal_integrator", from_telemetry=_modal_from_telemetry(build_modal_integrator))
