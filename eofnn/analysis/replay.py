@@ -33,6 +33,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import ActuatorLayout
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.from_telemetry import resolve_plant
 from eofnn.training.identify import IdentifiedPlant
@@ -147,8 +148,9 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
     return result
 
 
-def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | None = None) -> Path:
-    """RMS per frame, the predictor's error map per actuator (needs ``grid``) and the temporal PSDs, in one PNG."""
+def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | ActuatorLayout | None = None) -> Path:
+    """RMS per frame, the predictor's error map per actuator (needs ``grid``: an image on eofnn's grid, a scatter
+    at the positions of another layout) and the temporal PSDs, in one PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -164,11 +166,16 @@ def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | N
     axes[1].set(xlabel="frequency (Hz)", ylabel="PSD (nm²/Hz)", title="temporal PSD")
     for ax in axes[:2]:
         ax.legend(fontsize=8)
-    if grid is not None:
+    if isinstance(grid, ActuatorGrid):
         image = grid.to_map(torch.tensor(result.predictor.map_rms_nm)).numpy()
         shown = axes[2].imshow(image, origin="lower")
         fig.colorbar(shown, ax=axes[2], label="RMS error (nm)")
         axes[2].set(title="predictor error per actuator", xlabel="x (actuators)", ylabel="y (actuators)")
+    elif grid is not None:
+        x, y = grid.positions_m.T
+        shown = axes[2].scatter(x, y, c=result.predictor.map_rms_nm, s=12)
+        fig.colorbar(shown, ax=axes[2], label="RMS error (nm)")
+        axes[2].set(title="predictor error per actuator", xlabel="x (m)", ylabel="y (m)", aspect="equal")
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=100)

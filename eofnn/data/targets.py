@@ -27,6 +27,7 @@ from torch.utils.data import IterableDataset
 from eofnn.data.history import HistorySpec, applied_command, blended_target, build_history, open_loop_history
 from eofnn.errors import TelemetryError
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import ActuatorLayout, layout_from_positions
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 
 #: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
@@ -131,12 +132,14 @@ def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
     return [Telemetry.load(path, required=TELEMETRY_REQUIRED) for path in paths]
 
 
-def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | None = None) -> ActuatorGrid | None:
-    """The actuator grid of ``telemetry``: ``grid`` if given, else its positions, else its eofnn scenario, else None."""
+def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | ActuatorLayout | None = None
+                   ) -> ActuatorGrid | ActuatorLayout | None:
+    """The actuator layout of ``telemetry``: ``grid`` if given, else its positions (eofnn's own grid when they are
+    one, else an :class:`~eofnn.sim.layout.ActuatorLayout`), else its eofnn scenario's grid, else None."""
     if grid is not None:
         return grid
     if telemetry.positions_m is not None:
-        return ActuatorGrid.from_positions(telemetry.positions_m)
+        return layout_from_positions(telemetry.positions_m)
     scenario = telemetry.config.get("scenario") or telemetry.config.get("eofnn", {}).get("scenario")
     if isinstance(scenario, dict) and isinstance(scenario.get("grid"), dict):
         return ActuatorGrid(**scenario["grid"])

@@ -26,6 +26,7 @@ import torch
 from eofnn.errors import ConfigError, TelemetryError
 from eofnn.outputs import check_output_file
 from eofnn.sim.delay import check_delay
+from eofnn.sim.layout import check_positions
 
 ARRAYS = ("s", "y", "eps", "wfs")
 #: What training, identification and replay from telemetry alone need.
@@ -92,6 +93,7 @@ class Telemetry:
                     n_act is not None and self.positions_m.shape[0] != n_act):
                 raise TelemetryError(f"telemetry positions_m has shape {tuple(self.positions_m.shape)}: expected "
                                      f"({n_act if n_act is not None else 'actuators'}, 2) actuator (x, y) in metres")
+            check_positions(self.positions_m)  # duplicates, fewer than 4
 
     def arrays(self) -> dict[str, torch.Tensor]:
         """The arrays present, by name."""
