@@ -13,8 +13,8 @@ gives what the telemetry side needs:
   layout hold ``K`` (one past the end, read as zero);
 - a *shift model* (:meth:`ActuatorLayout.shift_operator`): the applied shape at actuator ``k`` is the commanded
   shape interpolated at ``p_k - shift``: bilinear on a square lattice (as the simulator's misregistration), linear
-  on the Delaunay triangles otherwise (what :class:`scipy.interpolate.LinearNDInterpolator` does); points outside
-  the layout's hull read zero.
+  on the Delaunay triangles otherwise (what :class:`scipy.interpolate.LinearNDInterpolator` does; points outside
+  the layout's hull take the clipped weights of a triangle at the actuator).
 
 :func:`layout_from_dict` rebuilds either kind from the ``grid`` dict that networks and ``plant.json`` store:
 ``{"diameter_m", "n_across", "obstruction"}`` for eofnn's grid, ``{"positions_m": [[x, y], ...]}`` for a layout.
@@ -80,8 +80,8 @@ class ActuatorLayout:
 
     @property
     def kind(self) -> str:
-        """``"square"`` (a subset of a square lattice, either convention) or ``"irregular"``."""
-        return "square" if self.lattice_indices is not None else "irregular"
+        """``"square"`` (a subset of a square lattice, either convention: bilinear shifts) or ``"triangulated"``."""
+        return "square" if self.lattice_indices is not None else "triangulated"
 
     def ptt_basis(self) -> np.ndarray:
         """Orthonormal ``(K, 3)`` basis of piston, tip and tilt over the actuators."""
@@ -152,38 +152,45 @@ class ActuatorLayout:
     def shift_operator(self, dx: float, dy: float) -> tuple[torch.Tensor, torch.Tensor]:
         """``(index, weight)``, each ``(K, 3 or 4)``: the applied shape at ``k`` is ``sum_m weight[k, m] *
         y[index[k, m]]``, the commanded shape interpolated at ``p_k - (dx, dy) * pitch`` (``index == K`` reads
-        zero). Bilinear on a square lattice, linear on Delaunay triangles otherwise; zero outside the hull."""
+        zero). Bilinear on a square lattice, linear on Delaunay triangles otherwise (outside the hull: a triangle at
+        the actuator, weights clipped to >= 0 and renormalised)."""
         if self.lattice_indices is not None:
             return _bilinear(self.lattice_indices, dx, dy)
+        tri = self._delaunay
+        query = self.positions_m - np.array([dx, dy]) * self.pitch_m
+        found = tri.find_simplex(query)
+        # Outside the hull: a triangle at the actuator itself, weights clipped to >= 0 and renormalised (the
+        # identity at zero shift; no extrapolation, which thin hull triangles would blow up).
+        simplex = np.where(found >= 0, found, tri.vertex_to_simplex)
+        transform = tri.transform[simplex]
+        bary = np.einsum("kij,kj->ki", transform[:, :2], query - transform[:, 2])
+        weight = np.concatenate([bary, 1 - bary.sum(1, keepdims=True)], 1)
+        clipped = weight.clip(min=0)
+        weight = np.where((found >= 0)[:, None], weight, clipped / clipped.sum(1, keepdims=True))
+        return torch.as_tensor(tri.simplices[simplex].astype(np.int64)), torch.as_tensor(weight)
+
+    @cached_property
+    def _delaunay(self):
         from scipy.spatial import Delaunay
 
-        tri = Delaunay(self.positions_m)
-        query = self.positions_m - np.array([dx, dy]) * self.pitch_m
-        simplex = tri.find_simplex(query)
-        inside = simplex >= 0
-        transform = tri.transform[np.where(inside, simplex, 0)]
-        bary = np.einsum("kij,kj->ki", transform[:, :2], query - transform[:, 2])
-        weight = np.where(inside[:, None], np.concatenate([bary, 1 - bary.sum(1, keepdims=True)], 1), 0.0)
-        index = np.where(inside[:, None], tri.simplices[np.where(inside, simplex, 0)], self.n_actuators)
-        return torch.as_tensor(index.astype(np.int64)), torch.as_tensor(weight)
+        return Delaunay(self.positions_m)
 
     def stencil_inside(self, radius: float) -> np.ndarray:
         """``(K,)`` bool: actuators whose shift-model stencil (the 3 x 3 lattice block, or their Delaunay
-        neighbours, for shifts below one pitch) lies inside the layout and within ``radius`` pitches."""
+        triangles that hold the points a quarter and half a pitch away in 8 directions, for shifts up to half a pitch) lies inside
+        the layout and within ``radius`` pitches."""
         pos, tol = self.positions_m, 1 + 1e-9
         if self.lattice_indices is not None:
             count = np.array([len(nb) for nb in self._tree.query_ball_point(pos, 1.5 * self.pitch_m)])
             return (count == 9) & (radius * tol >= np.sqrt(2))
-        from scipy.spatial import Delaunay
-
-        tri = Delaunay(pos)
-        inside = np.ones(self.n_actuators, dtype=bool)
-        inside[np.unique(tri.convex_hull)] = False
-        start, members = tri.vertex_neighbor_vertices
-        for k in np.flatnonzero(inside):
-            far = np.hypot(*(pos[members[start[k]:start[k + 1]]] - pos[k]).T).max()
-            inside[k] = far <= radius * self.pitch_m * tol
-        return inside
+        tri = self._delaunay
+        angles = np.arange(8) * np.pi / 4
+        ring = np.stack([np.cos(angles), np.sin(angles)], 1)
+        probes = pos[:, None, :] + self.pitch_m * np.concatenate([0.25 * ring, 0.5 * ring])[None]
+        simplex = tri.find_simplex(probes.reshape(-1, 2)).reshape(len(pos), 16)
+        stencil = np.where(simplex[..., None] >= 0, tri.simplices[simplex], -1).reshape(len(pos), -1)
+        distance = np.hypot(*(pos[stencil] - pos[:, None, :]).transpose(2, 0, 1))
+        return (simplex >= 0).all(1) & (distance <= radius * self.pitch_m * tol).all(1)
 
     def shift_model_note(self) -> str:
         """How :meth:`shift_operator` interpolates, for logs and ``plant.json``."""
@@ -233,14 +240,14 @@ def check_positions(positions_m, n_actuators: int | None = None) -> np.ndarray:
                              f"{int(np.argmax(bad))}: every position must be a finite (x, y) in metres")
     from scipy.spatial import cKDTree
 
-    dist, index = cKDTree(pos).query(pos, k=2)
-    pitch = float(np.median(dist[:, 1]))
-    close = dist[:, 1] <= OFFSET_TOLERANCE * pitch
-    if close.any() or pitch == 0:
-        i = int(np.argmax(close))
-        raise TelemetryError(f"actuator positions hold duplicates: rows {i} and {int(index[i, 1])} are "
-                             f"{dist[i, 1]:.3g} m apart at {pos[i].round(6).tolist()} m; allowed: distinct positions, "
-                             f"more than {OFFSET_TOLERANCE} pitch ({pitch:.4g} m) apart")
+    tree = cKDTree(pos)
+    pitch = float(np.median(tree.query(pos, k=2)[0][:, 1]))
+    pairs = tree.query_pairs(OFFSET_TOLERANCE * pitch, output_type="ndarray")
+    if len(pairs) or pitch == 0:
+        i, j = sorted(pairs[np.lexsort(pairs.T[::-1])][0].tolist()) if len(pairs) else (0, 1)
+        raise TelemetryError(f"actuator positions hold duplicates: rows {i} and {j} are "
+                             f"{np.hypot(*(pos[i] - pos[j])):.3g} m apart at {pos[i].round(6).tolist()} m; allowed: "
+                             f"distinct positions, more than {OFFSET_TOLERANCE} pitch ({pitch:.4g} m) apart")
     return pos
 
 
