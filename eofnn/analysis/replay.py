@@ -15,6 +15,10 @@ histories come from the recording controller's loop, not the predictor's: for an
 does not matter when the DM model is right; a closed-loop predictor is replayed faithfully only on telemetry it
 recorded itself (with dither), since its history includes its own commands. Under misregistration the loop residual
 also holds the shape the DM cannot apply and what feedback does about it, which the replay does not see.
+
+Modal telemetry (``modal_basis`` ``B``): the predictor runs in modes and both errors are mapped to the actuators,
+``B @ e`` (nm per actuator), before the statistics; the noise correction removes the identified per-mode noise as
+if it were per actuator (right for a square orthonormal basis, approximate otherwise).
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from eofnn.evaluation.metrics import WelchPSD
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout
+from eofnn.sim.spaces import modal_to_actuators
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.from_telemetry import resolve_plant
 from eofnn.training.identify import IdentifiedPlant
@@ -138,7 +143,10 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
         measured = wfs[spec.first_frame:][:len(y_pred)]
         if f:  # the DM shape over frame n averages the predicted commands of frames n and n - 1
             y_pred, s_hat, measured = applied_command(y_pred, f)[1:], s_hat[1:], measured[1:]
-        predicted.append(s_hat + dm_gain * y_pred)
+        error = s_hat + dm_gain * y_pred
+        if seq.modal_basis is not None:  # modal telemetry: errors are reported on the actuators, B @ e
+            error, measured = modal_to_actuators(error, seq.modal_basis), modal_to_actuators(measured, seq.modal_basis)
+        predicted.append(error)
         own.append(measured)
     segment = min(segment_frames, min(e.shape[0] for e in predicted))
     psd_pred, psd_own = WelchPSD(segment, rate), WelchPSD(segment, rate)

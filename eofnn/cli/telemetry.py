@@ -64,15 +64,29 @@ def _files(value: str | list[str]) -> list[str]:
     return [value] if isinstance(value, str) else list(value)
 
 
+def _load(paths: str | list[str]) -> list[Telemetry]:
+    """Read the telemetry files and say how each residual was formed when it was not recorded as one."""
+    telemetry = load_telemetry(paths)
+    for path, item in zip(_files(paths), telemetry, strict=True):
+        if item.measurement:
+            log(f"telemetry {path}: {item.measurement}")
+        if item.modal_basis is not None:
+            log(f"telemetry {path}: modal, {item.y.shape[-1]} modes of a {tuple(item.modal_basis.shape)} basis: "
+                "predictors run in modes, actuator commands are modal_basis @ y")
+    return telemetry
+
+
 def run_identify(cfg, config_dump: str) -> dict:
     out = check_output_file(cfg.out, cfg.overwrite)
-    telemetry = load_telemetry(cfg.telemetry)
+    telemetry = _load(cfg.telemetry)
     plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag)
     plant.settings["telemetry"] = _files(cfg.telemetry)
     plant.to_json(out, overwrite=cfg.overwrite)
     keys = ("identified", "dm_gain", "dm_gain_se", "misregistration_x", "misregistration_x_se", "misregistration_y",
             "misregistration_y_se", "lag_frames", "wfs_noise_nm", "wfs_noise_nm_se")
     summary = {"plant": str(out), **{k: getattr(plant, k) for k in keys}}
+    for warning in plant.warnings if plant.identified else []:  # an undithered file has warned already
+        log(f"identify: {warning}")
     log(json.dumps(summary))
     return summary
 
@@ -87,7 +101,7 @@ def add_fit_telemetry_arguments(parser: ArgumentParser) -> None:
 
 def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
     p: PredictorConfig = cfg.predictor
-    telemetry = load_telemetry(cfg.telemetry)
+    telemetry = _load(cfg.telemetry)
     spec = HistorySpec(p.history, p.history_length, telemetry[0].delay_frames)
     plant = resolve_plant_option(cfg.plant, telemetry)
     frames = min(seq.y.shape[0] for t in telemetry for seq in t.sequences())
@@ -112,7 +126,7 @@ def add_replay_arguments(parser: ArgumentParser) -> None:
 def run_replay(cfg, config_dump: str) -> dict:
     out = check_output_folder(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint, trusted_networks=cfg.trusted_networks)
-    telemetry = load_telemetry(cfg.telemetry)
+    telemetry = _load(cfg.telemetry)
     plant = resolve_plant_option(cfg.plant, telemetry)
     result = replay(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
                     settle_frames=cfg.settle_frames)

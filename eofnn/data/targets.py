@@ -134,10 +134,13 @@ def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
 
 def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | ActuatorLayout | None = None
                    ) -> ActuatorGrid | ActuatorLayout | None:
-    """The actuator layout of ``telemetry``: ``grid`` if given, else its positions (eofnn's own grid when they are
-    one, else an :class:`~eofnn.sim.layout.ActuatorLayout`), else its eofnn scenario's grid, else None."""
+    """The actuator layout of ``telemetry``: ``grid`` if given, else None for modal telemetry, else its positions
+    (eofnn's own grid when they are one, else an :class:`~eofnn.sim.layout.ActuatorLayout`), else its eofnn
+    scenario's grid, else None."""
     if grid is not None:
         return grid
+    if telemetry.modal_basis is not None:  # predictors run in modes: no actuator neighbourhoods, no shift model
+        return None
     if telemetry.positions_m is not None:
         return layout_from_positions(telemetry.positions_m)
     scenario = telemetry.config.get("scenario") or telemetry.config.get("eofnn", {}).get("scenario")

@@ -273,7 +273,8 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     response /= norm
     lag = int(response.abs().argmax())
     if lag > 0:  # wfs recorded `lag` frames late: realign to the documented convention and identify again
-        shifted = [Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=delay) for seq in sequences]
+        shifted = [Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=delay, modal_basis=seq.modal_basis)
+                   for seq in sequences]
         again = identify_plant(shifted, grid, radius=radius, nuisance_lags=nuisance_lags, max_lag=max_lag,
                                batch_frames=batch_frames, min_excitation=min_excitation)
         again.lag_frames, again.lag_response = lag, response.tolist()
@@ -282,7 +283,8 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
             "and was realigned for identification; realign it (wfs[lag:], y[:-lag]) before training"] + again.warnings
         return again
     result.lag_frames, result.lag_response = lag, response.tolist()
-    _response(result, signals, innovations, grid, radius, nuisance_lags, first, batch_frames)
+    _response(result, signals, innovations, grid, radius, nuisance_lags, first, batch_frames,
+              modal=first_item.modal_basis is not None)
     result.wfs_noise_nm, result.wfs_noise_nm_se = _noise(signals, result.dm_response("model"), first)
     return result
 
@@ -306,7 +308,7 @@ def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor
 
 
 def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid | ActuatorLayout | None,
-              radius: float, p: int, first: int, batch_frames: int) -> None:
+              radius: float, p: int, first: int, batch_frames: int, modal: bool = False) -> None:
     """Step 2 and what follows from it: coupling, gains, misregistration, their standard errors (into ``result``)."""
     n_act = signals[0][0].shape[0]
     # Without positions each actuator's own dither is its only regressor: the gain needs no geometry.
@@ -337,7 +339,7 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid 
     result.coupling, result.coupling_se = coupling.tolist(), coupling_cov.diagonal(dim1=1, dim2=2).sqrt().tolist()
     result.neighbours = neighbours.tolist()
 
-    offsets, interior, why = _stencils(grid, neighbours, radius)
+    offsets, interior, why = _stencils(grid, neighbours, radius, modal)
     if why:
         result.warnings.append(why)
     pooled = interior if interior.any() else torch.ones(n_act, dtype=torch.bool)
@@ -369,21 +371,27 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid 
     if interior.any():
         result.misregistration_x, result.misregistration_x_se = dx, se_x
         result.misregistration_y, result.misregistration_y_se = dy, se_y
+    if gain < 0:
+        result.warnings.append(f"negative DM gain {gain:.3g}: wfs has the opposite sign of the documented convention "
+                               "(eps = s + DM(y)); a reconstructor that gives the correction (R @ IM = -I) must be "
+                               "negated")
     if result.dm_gain_se > 0.05 * abs(gain):
         result.warnings.append(f"weak excitation: the DM gain {gain:.3g} has a standard error of "
                                f"{result.dm_gain_se:.2g}; record longer or with a larger dither")
 
 
-def _stencils(grid, neighbours: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor, str]:
+def _stencils(grid, neighbours: torch.Tensor, radius: float, modal: bool = False
+              ) -> tuple[torch.Tensor, torch.Tensor, str]:
     """Offsets (row, column) = (y, x) in pitches of the coupling slots (``(M, 2)`` on a lattice, ``(K, M, 2)``
     otherwise, 0 in empty slots), which actuators have the whole stencil of the layout's shift model within their
     neighbourhood (the misregistration is pooled over them), and, if none has, one line saying why it is skipped."""
     n_act, n_nb = neighbours.shape
     if grid is None:
+        why = ("the telemetry is modal (y and wfs are coefficients of its modal_basis), so the DM gain is each "
+               "mode's response to its own dither" if modal else "the telemetry has no actuator positions "
+               "(POSITIONS), so the DM gain is each actuator's response to its own dither")
         return (torch.zeros(1, 2, dtype=torch.float64), torch.zeros(n_act, dtype=torch.bool),
-                "misregistration not identified: the telemetry has no actuator positions (POSITIONS), so no shift "
-                "model exists; the DM gain is each actuator's response to its own dither (a misregistration would "
-                "lower it)")
+                f"misregistration not identified: no shift model exists ({why}; a misregistration would lower it)")
     complete = (neighbours < n_act).all(1)
     if isinstance(grid, ActuatorGrid):
         k0 = int(complete.nonzero()[0]) if complete.any() else 0
