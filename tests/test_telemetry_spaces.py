@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from astropy.io import fits
 from layout_telemetry import PITCH_M, fried_positions, record
 
 from eofnn.analysis.replay import replay
@@ -14,6 +15,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.main import main
 from eofnn.sim.spaces import max_unseen
 from eofnn.sim.telemetry import Telemetry
+from eofnn.training.checkpoint import load_predictor
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
 
@@ -64,17 +66,27 @@ def test_a_fried_shack_hartmann_loses_piston_and_waffle_only(fried, tmp_path, ca
     pos, tel, _ = fried
     im = fried_shack_hartmann(pos)
     assert np.linalg.matrix_rank(im) == len(pos) - 2
-    path = tmp_path / "sh.npz"
-    np.savez(path, y=tel.y.numpy(), slopes=tel.wfs.numpy() @ im.T, interaction_matrix=im, positions_m=pos,
-             delay_frames=2)
+    # The worked example of docs/telemetry.md: a FITS file written with astropy alone.
+    primary = fits.PrimaryHDU()
+    primary.header["DELAY"] = 2
+    primary.header["RCOND"] = 1e-3
+    path = tmp_path / "sh.fits"
+    fits.HDUList([primary, fits.ImageHDU(tel.y.numpy(), name="Y"), fits.ImageHDU(tel.wfs.numpy() @ im.T, name="SLOPES"),
+                  fits.ImageHDU(im, name="INTERACTION_MATRIX"), fits.ImageHDU(pos, name="POSITIONS")]).writeto(path)
     assert main(["identify", "--telemetry", str(path), "--out", str(tmp_path / "plant.json")]) == 0
     err = capsys.readouterr().err
     assert "2 mode(s) with singular values below rcond=0.001" in err
     plant = json.loads((tmp_path / "plant.json").read_text())
     assert abs(plant["dm_gain"] / 2 - 1) < 0.02 and abs(plant["misregistration_x"]) < 0.01
+    # The interaction matrix in its own file, beside slopes-only telemetry: the same plant.
+    np.save(tmp_path / "im.npy", im)
+    np.savez(tmp_path / "slopes.npz", y=tel.y.numpy(), slopes=tel.wfs.numpy() @ im.T, positions_m=pos, delay_frames=2)
+    assert main(["identify", "--telemetry", str(tmp_path / "slopes.npz"), "--interaction_matrix",
+                 str(tmp_path / "im.npy"), "--out", str(tmp_path / "plant2.json")]) == 0
+    assert json.loads((tmp_path / "plant2.json").read_text())["dm_gain"] == pytest.approx(plant["dm_gain"], rel=1e-9)
 
 
-def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried):
+def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried, tmp_path, capsys):
     pos, tel, held_out = fried
     # 60 smooth modes: the leading eigenvectors of a Gaussian covariance over the actuators.
     d2 = ((pos[:, None] - pos[None]) ** 2).sum(-1)
@@ -95,6 +107,15 @@ def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried):
     result = replay(fit.network, spec, test, plant=plant, start=100)
     assert len(result.predictor.map_rms_nm) == len(pos)  # errors on the actuators, B @ e
     assert result.predictor.median_rms_nm < 0.5 * result.own_controller.median_rms_nm
+    # The command line: identify and a closed-loop fit in modes from an npz file.
+    np.savez(tmp_path / "modal.npz", y=train.y.numpy(), wfs=train.wfs.numpy(), modal_basis=basis, positions_m=pos,
+             delay_frames=2)
+    assert main(["identify", "--telemetry", str(tmp_path / "modal.npz"), "--out", str(tmp_path / "plant.json")]) == 0
+    assert main(["fit", "--telemetry", str(tmp_path / "modal.npz"), "--plant", str(tmp_path / "plant.json"),
+                 "--predictor.history", "closed_loop", "--out", str(tmp_path / "cl.ckpt")]) == 0
+    err = capsys.readouterr().err
+    assert "modal, 60 modes of a (100, 60) basis" in err and "identify: misregistration not identified" in err
+    assert load_predictor(tmp_path / "cl.ckpt").network.weight.shape[0] == 60
 
 
 def _one_error(capsys, path, out) -> str:

@@ -28,6 +28,7 @@ from eofnn.data.history import HistorySpec, applied_command, blended_target, bui
 from eofnn.errors import TelemetryError
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, layout_from_positions
+from eofnn.sim.spaces import read_matrix
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 
 #: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
@@ -124,12 +125,16 @@ class TelemetryBatches(IterableDataset):
                        telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))
 
 
-def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
-    """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs``."""
+def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | None = None) -> list[Telemetry]:
+    """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs`` (or ``slopes``);
+    ``matrices`` (``interaction_matrix``, ``reconstructor``, ``modal_basis``: arrays or files) apply to every file
+    and replace what the files hold."""
     paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
     if not paths:
         raise TelemetryError("no telemetry file given")
-    return [Telemetry.load(path, required=TELEMETRY_REQUIRED) for path in paths]
+    space = {name: read_matrix(value, name) if isinstance(value, (str, Path)) else value
+             for name, value in (matrices or {}).items() if value is not None}
+    return [Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space) for path in paths]
 
 
 def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | ActuatorLayout | None = None

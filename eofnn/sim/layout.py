@@ -322,3 +322,36 @@ def apply_shift(y: torch.Tensor, operator: tuple[torch.Tensor, torch.Tensor]) ->
     index, weight = operator
     padded = torch.cat([y, torch.zeros_like(y[..., :1])], dim=-1)
     return (padded[..., index] * weight.to(y.dtype)).sum(-1)
+
+
+def coupling_stencils(grid: ActuatorGrid | ActuatorLayout | None, neighbours: torch.Tensor, radius: float,
+                      modal: bool = False) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """For plant identification (:mod:`eofnn.training.identify`) over the ``neighbours`` table of ``grid``:
+    offsets (row, column) = (y, x) in pitches of the coupling slots (``(M, 2)`` on a lattice, ``(K, M, 2)``
+    otherwise, 0 in empty slots), which actuators have the whole stencil of the layout's shift model within their
+    neighbourhood (the misregistration is pooled over them), and, if none has, one line saying why it is skipped."""
+    n_act, n_nb = neighbours.shape
+    if grid is None:
+        why = ("the telemetry is modal (y and wfs are coefficients of its modal_basis), so the DM gain is each "
+               "mode's response to its own dither" if modal else "the telemetry has no actuator positions "
+               "(POSITIONS), so the DM gain is each actuator's response to its own dither")
+        return (torch.zeros(1, 2, dtype=torch.float64), torch.zeros(n_act, dtype=torch.bool),
+                f"misregistration not identified: no shift model exists ({why}; a misregistration would lower it)")
+    complete = (neighbours < n_act).all(1)
+    if isinstance(grid, ActuatorGrid):
+        k0 = int(complete.nonzero()[0]) if complete.any() else 0
+        indices = torch.as_tensor(grid.indices)
+        offsets = (indices[neighbours[k0]] - indices[k0]).to(torch.float64)
+        interior = complete
+    else:
+        per_actuator = torch.as_tensor(grid.neighbour_offsets(radius)[..., ::-1].copy()).nan_to_num(0.0)
+        interior = torch.as_tensor(grid.stencil_inside(radius))
+        offsets = per_actuator[int(complete.nonzero()[0])] if grid.is_regular(radius) and complete.any() \
+            else per_actuator
+        if offsets.ndim == 2:
+            interior = interior & complete
+    if interior.any():
+        return offsets, interior, ""
+    return (offsets, interior, f"misregistration not identified: no actuator has the stencil of the shift model "
+            f"within radius {radius:g} pitches (the layout is too small or too sparse for a shift model); the DM "
+            "gain is pooled over all actuators")

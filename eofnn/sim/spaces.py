@@ -132,6 +132,44 @@ def check_modal_basis(basis, n_modes: int) -> torch.Tensor:
     return torch.as_tensor(b)
 
 
+def read_matrix(path, name: str) -> torch.Tensor:
+    """A matrix from its own file (``--interaction_matrix FILE``): ``.npy``, ``.npz`` (the array ``name``, or its
+    only array) or ``.fits`` (the HDU ``name``, or the first with data); one :class:`TelemetryError` line if not."""
+    from pathlib import Path
+
+    path = Path(path)
+    where = f"{name} file {str(path)!r}"
+    if not path.exists():
+        raise TelemetryError(f"{where} does not exist")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            value = np.load(path, allow_pickle=False)
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                keys = [name] if name in data.files else data.files
+                if len(keys) != 1:
+                    raise TelemetryError(f"{where} holds arrays {data.files}: name one {name!r} or keep only one")
+                value = data[keys[0]]
+        elif suffix in (".fits", ".fit"):
+            from astropy.io import fits
+
+            with fits.open(path, memmap=False) as hdul:
+                names = [hdu.name for hdu in hdul]
+                hdu = hdul[name.upper()] if name.upper() in names else next((h for h in hdul if h.data is not None),
+                                                                            None)
+                if hdu is None:
+                    raise TelemetryError(f"{where} holds no image")
+                value = np.array(hdu.data)
+        else:
+            raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .npy, .npz, .fits")
+    except (OSError, ValueError, KeyError, EOFError) as err:
+        if isinstance(err, TelemetryError):
+            raise
+        raise TelemetryError(f"{where} is not readable ({type(err).__name__})") from None
+    return torch.as_tensor(_matrix(value, name))
+
+
 def modal_to_actuators(values: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
     """``(..., M)`` modal coefficients to ``(..., K)`` actuator values (nm): ``B @ values``."""
     return values.to(torch.float64) @ basis.T

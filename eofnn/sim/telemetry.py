@@ -184,7 +184,7 @@ class Telemetry:
         return path
 
     @classmethod
-    def load(cls, path: str | Path, required: tuple[str, ...] = ARRAYS) -> Telemetry:
+    def load(cls, path: str | Path, required: tuple[str, ...] = ARRAYS, space: dict | None = None) -> Telemetry:
         """Read a telemetry file in the layout of ``docs/telemetry.md`` (what :meth:`save` writes is one).
 
         Missing ``required`` arrays, bad shapes, NaNs, complex or text arrays, a missing or non-integer delay and
@@ -198,12 +198,13 @@ class Telemetry:
         if suffix not in (".fits", ".fit", ".npz"):
             raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .fits, .npz")
         try:
-            arrays, positions, delay, rate, meta, space = (_read_fits if suffix != ".npz" else _read_npz)(path)
+            arrays, positions, delay, rate, meta, found = (_read_fits if suffix != ".npz" else _read_npz)(path)
         except TelemetryError:
             raise
         except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as err:
             raise TelemetryError(f"{where} is not readable as {suffix[1:]} telemetry "
                                  f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        space = {**found, **(space or {})}  # matrices given beside the file replace the file's own
         measurement = ""
         if "slopes" in space and "wfs" not in arrays:
             if "y" not in arrays:

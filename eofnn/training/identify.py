@@ -63,7 +63,7 @@ from eofnn.data.targets import check_sequences, telemetry_grid
 from eofnn.errors import CollinearityWarning, ConfigError, TelemetryError, require
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.layout import ActuatorLayout, dm_model, layout_from_dict, layout_to_dict
+from eofnn.sim.layout import ActuatorLayout, coupling_stencils, dm_model, layout_from_dict, layout_to_dict
 from eofnn.sim.plant import Plant
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.ridge import NormalEquations
@@ -339,7 +339,7 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid 
     result.coupling, result.coupling_se = coupling.tolist(), coupling_cov.diagonal(dim1=1, dim2=2).sqrt().tolist()
     result.neighbours = neighbours.tolist()
 
-    offsets, interior, why = _stencils(grid, neighbours, radius, modal)
+    offsets, interior, why = coupling_stencils(grid, neighbours, radius, modal)
     if why:
         result.warnings.append(why)
     pooled = interior if interior.any() else torch.ones(n_act, dtype=torch.bool)
@@ -378,38 +378,6 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid 
     if result.dm_gain_se > 0.05 * abs(gain):
         result.warnings.append(f"weak excitation: the DM gain {gain:.3g} has a standard error of "
                                f"{result.dm_gain_se:.2g}; record longer or with a larger dither")
-
-
-def _stencils(grid, neighbours: torch.Tensor, radius: float, modal: bool = False
-              ) -> tuple[torch.Tensor, torch.Tensor, str]:
-    """Offsets (row, column) = (y, x) in pitches of the coupling slots (``(M, 2)`` on a lattice, ``(K, M, 2)``
-    otherwise, 0 in empty slots), which actuators have the whole stencil of the layout's shift model within their
-    neighbourhood (the misregistration is pooled over them), and, if none has, one line saying why it is skipped."""
-    n_act, n_nb = neighbours.shape
-    if grid is None:
-        why = ("the telemetry is modal (y and wfs are coefficients of its modal_basis), so the DM gain is each "
-               "mode's response to its own dither" if modal else "the telemetry has no actuator positions "
-               "(POSITIONS), so the DM gain is each actuator's response to its own dither")
-        return (torch.zeros(1, 2, dtype=torch.float64), torch.zeros(n_act, dtype=torch.bool),
-                f"misregistration not identified: no shift model exists ({why}; a misregistration would lower it)")
-    complete = (neighbours < n_act).all(1)
-    if isinstance(grid, ActuatorGrid):
-        k0 = int(complete.nonzero()[0]) if complete.any() else 0
-        indices = torch.as_tensor(grid.indices)
-        offsets = (indices[neighbours[k0]] - indices[k0]).to(torch.float64)
-        interior = complete
-    else:
-        per_actuator = torch.as_tensor(grid.neighbour_offsets(radius)[..., ::-1].copy()).nan_to_num(0.0)
-        interior = torch.as_tensor(grid.stencil_inside(radius))
-        offsets = per_actuator[int(complete.nonzero()[0])] if grid.is_regular(radius) and complete.any() \
-            else per_actuator
-        if offsets.ndim == 2:
-            interior = interior & complete
-    if interior.any():
-        return offsets, interior, ""
-    return (offsets, interior, f"misregistration not identified: no actuator has the stencil of the shift model "
-            f"within radius {radius:g} pitches (the layout is too small or too sparse for a shift model); the DM "
-            "gain is pooled over all actuators")
 
 
 def _noise(signals, dm_response, first: int) -> tuple[float, float]:
