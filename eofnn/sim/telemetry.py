@@ -133,9 +133,10 @@ class Telemetry:
 
     def realisation(self, index: int) -> Telemetry:
         """One realisation of batched telemetry as ``(frames, actuators)`` arrays."""
-        return Telemetry(**{k: v[index] for k, v in self.arrays().items()}, delay_frames=self.delay_frames,
-                         config=self.config, frame_rate_hz=self.frame_rate_hz, positions_m=self.positions_m,
-                         modal_basis=self.modal_basis, measurement=self.measurement)
+        one = Telemetry(**{k: v[index] for k, v in self.arrays().items()}, delay_frames=self.delay_frames,
+                        config=self.config, frame_rate_hz=self.frame_rate_hz, measurement=self.measurement)
+        one.positions_m, one.modal_basis = self.positions_m, self.modal_basis  # checked already (the basis by an SVD)
+        return one
 
     def sequences(self) -> list[Telemetry]:
         """The independent sequences of this telemetry: its realisations, each ``(frames, K)``."""

@@ -130,6 +130,10 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     grid_dict = None if grid is None else layout_to_dict(grid)
     info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
             "n_sequences": len(sequences), **(info or {})}
+    if first_item.modal_basis is not None:  # a modal predictor: actuator commands are modal_basis @ y
+        info["modal_basis_shape"] = list(first_item.modal_basis.shape)
+    if first_item.measurement:
+        info["measurement"] = first_item.measurement
     L.seed_everything(seed, workers=True, verbose=False)
     task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict, asdict(optimization), info)
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
