@@ -215,11 +215,13 @@ def layout_to_dict(layout: ActuatorGrid | ActuatorLayout) -> dict:
 
 def layout_from_positions(positions_m) -> ActuatorGrid | ActuatorLayout:
     """eofnn's own grid when the positions are one (same tables and numbers as before), else a layout."""
-    pos = check_positions(positions_m)
+    layout = ActuatorLayout(positions_m)
+    if layout.lattice_indices is None:  # not even a square lattice: not eofnn's grid
+        return layout
     try:
-        return ActuatorGrid.from_positions(pos)
+        return ActuatorGrid.from_positions(layout.positions_m)
     except TelemetryError:
-        return ActuatorLayout(pos)
+        return layout
 
 
 def check_positions(positions_m, n_actuators: int | None = None) -> np.ndarray:
