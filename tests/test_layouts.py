@@ -142,3 +142,12 @@ def test_bad_positions_and_sparse_layouts(tmp_path, capsys):
     line = _one_error(capsys, ["fit", "--telemetry", path, "--plant", "nominal", "--predictor.network",
                                json.dumps(NEIGHBOURHOOD), "--out", tmp_path / "sparse.ckpt"])
     assert "too sparse" in line and not (tmp_path / "sparse.ckpt").exists()
+
+
+def test_lag_is_found_on_a_layout_and_without_positions():
+    """A file whose wfs is logged one frame late: the lag (and then the gain) needs no geometry."""
+    pos = hex_positions()
+    tel = record(pos, 3000, noise_nm=1.0)
+    for positions in (pos, None):
+        late = identify_plant(Telemetry(y=tel.y[1:], wfs=tel.wfs[:-1], delay_frames=2, positions_m=positions))
+        assert late.lag_frames == 1 and abs(late.dm_gain / 2 - 1) < 0.02 and "1 frame(s) behind" in late.warnings[0]
