@@ -107,8 +107,11 @@ def test_no_dither_is_flagged():
 
 def test_bad_input(telemetry):
     tel = telemetry["gain"]
-    with pytest.raises(TelemetryError, match="needs the actuator grid"):
-        identify_plant(Telemetry(y=tel.y, wfs=tel.wfs, delay_frames=2))
+    # Without positions the gain and lag are identified (they need no geometry), the misregistration is skipped.
+    bare = identify_plant(Telemetry(y=tel.y, wfs=tel.wfs, delay_frames=2))
+    assert bare.identified and abs(bare.dm_gain / 2 - 1) < 0.02 and bare.lag_frames == 0 and bare.grid == {}
+    assert bare.misregistration_x is None and "no actuator positions" in bare.warnings[0]
+    assert bare.model_errors() == {"dm_gain": bare.dm_gain}
     with pytest.raises(TelemetryError, match="frames"):
         identify_plant(Telemetry(y=tel.y[:100], wfs=tel.wfs[:100], delay_frames=2, positions_m=tel.positions_m))
     with pytest.raises(TelemetryError, match="actuators"):

@@ -15,6 +15,10 @@ histories come from the recording controller's loop, not the predictor's: for an
 does not matter when the DM model is right; a closed-loop predictor is replayed faithfully only on telemetry it
 recorded itself (with dither), since its history includes its own commands. Under misregistration the loop residual
 also holds the shape the DM cannot apply and what feedback does about it, which the replay does not see.
+
+Modal telemetry (``modal_basis`` ``B``): the predictor runs in modes and both errors are mapped to the actuators,
+``B @ e`` (nm per actuator), before the statistics; the noise correction removes the identified per-mode noise as
+if it were per actuator (right for a square orthonormal basis, approximate otherwise).
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import ActuatorLayout
+from eofnn.sim.spaces import modal_to_actuators
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.from_telemetry import resolve_plant
 from eofnn.training.identify import IdentifiedPlant
@@ -137,7 +143,10 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
         measured = wfs[spec.first_frame:][:len(y_pred)]
         if f:  # the DM shape over frame n averages the predicted commands of frames n and n - 1
             y_pred, s_hat, measured = applied_command(y_pred, f)[1:], s_hat[1:], measured[1:]
-        predicted.append(s_hat + dm_gain * y_pred)
+        error = s_hat + dm_gain * y_pred
+        if seq.modal_basis is not None:  # modal telemetry: errors are reported on the actuators, B @ e
+            error, measured = modal_to_actuators(error, seq.modal_basis), modal_to_actuators(measured, seq.modal_basis)
+        predicted.append(error)
         own.append(measured)
     segment = min(segment_frames, min(e.shape[0] for e in predicted))
     psd_pred, psd_own = WelchPSD(segment, rate), WelchPSD(segment, rate)
@@ -147,8 +156,9 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
     return result
 
 
-def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | None = None) -> Path:
-    """RMS per frame, the predictor's error map per actuator (needs ``grid``) and the temporal PSDs, in one PNG."""
+def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | ActuatorLayout | None = None) -> Path:
+    """RMS per frame, the predictor's error map per actuator (needs ``grid``: an image on eofnn's grid, a scatter
+    at the positions of another layout) and the temporal PSDs, in one PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -164,11 +174,16 @@ def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | N
     axes[1].set(xlabel="frequency (Hz)", ylabel="PSD (nm²/Hz)", title="temporal PSD")
     for ax in axes[:2]:
         ax.legend(fontsize=8)
-    if grid is not None:
+    if isinstance(grid, ActuatorGrid):
         image = grid.to_map(torch.tensor(result.predictor.map_rms_nm)).numpy()
         shown = axes[2].imshow(image, origin="lower")
         fig.colorbar(shown, ax=axes[2], label="RMS error (nm)")
         axes[2].set(title="predictor error per actuator", xlabel="x (actuators)", ylabel="y (actuators)")
+    elif grid is not None:
+        x, y = grid.positions_m.T
+        shown = axes[2].scatter(x, y, c=result.predictor.map_rms_nm, s=12)
+        fig.colorbar(shown, ax=axes[2], label="RMS error (nm)")
+        axes[2].set(title="predictor error per actuator", xlabel="x (m)", ylabel="y (m)", aspect="equal")
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=100)

@@ -34,6 +34,20 @@ PLANT_HELP = ("DM model for POL values and targets: 'identify' (from this teleme
               "the study's assumption) or a plant.json written by eofnn identify.")
 
 
+MATRICES = ("interaction_matrix", "reconstructor", "modal_basis")
+
+
+def add_matrix_arguments(parser: ArgumentParser) -> None:
+    """Matrices that real-time computers keep beside their telemetry (docs/telemetry.md)."""
+    parser.add_argument("--interaction_matrix", type=str | None, default=None,
+                        help="File (.npy, .npz, .fits) of the (S, K) interaction matrix, slopes = IM @ y, for telemetry "
+                             "recorded as slopes; replaces one in the telemetry file.")
+    parser.add_argument("--reconstructor", type=str | None, default=None,
+                        help="File of the (K, S) reconstructor, wfs = R @ slopes (used as given).")
+    parser.add_argument("--modal_basis", type=str | None, default=None,
+                        help="File of the (actuators, M) modal basis when y and wfs are modal coefficients.")
+
+
 def _base(parser: ArgumentParser, out_help: str) -> None:
     parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
     parser.add_argument("--telemetry", type=str | list[str], required=True,
@@ -41,6 +55,7 @@ def _base(parser: ArgumentParser, out_help: str) -> None:
                              "of one plant.")
     parser.add_argument("--out", type=str, required=True, help=out_help)
     parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
+    add_matrix_arguments(parser)
 
 
 def resolve_plant_option(plant: str, telemetry: list[Telemetry]) -> IdentifiedPlant | None:
@@ -65,15 +80,31 @@ def _files(value: str | list[str]) -> list[str]:
     return [value] if isinstance(value, str) else list(value)
 
 
+def _load(cfg) -> list[Telemetry]:
+    """Read the telemetry files (with matrices given beside them) and say how each residual was formed when it was
+    not recorded as one."""
+    paths = cfg.telemetry
+    telemetry = load_telemetry(paths, {name: getattr(cfg, name, None) for name in MATRICES})
+    for path, item in zip(_files(paths), telemetry, strict=True):
+        if item.measurement:
+            log(f"telemetry {path}: {item.measurement}")
+        if item.modal_basis is not None:
+            log(f"telemetry {path}: modal, {item.y.shape[-1]} modes of a {tuple(item.modal_basis.shape)} basis: "
+                "predictors run in modes, actuator commands are modal_basis @ y")
+    return telemetry
+
+
 def run_identify(cfg, config_dump: str) -> dict:
     out = check_output_file(cfg.out, cfg.overwrite)
-    telemetry = load_telemetry(cfg.telemetry)
+    telemetry = _load(cfg)
     plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag)
     plant.settings["telemetry"] = _files(cfg.telemetry)
     plant.to_json(out, overwrite=cfg.overwrite)
     keys = ("identified", "dm_gain", "dm_gain_se", "misregistration_x", "misregistration_x_se", "misregistration_y",
             "misregistration_y_se", "lag_frames", "wfs_noise_nm", "wfs_noise_nm_se")
     summary = {"plant": str(out), **{k: getattr(plant, k) for k in keys}}
+    for warning in plant.warnings if plant.identified else []:  # an undithered file has warned already
+        log(f"identify: {warning}")
     log(json.dumps(summary))
     return summary
 
@@ -84,11 +115,12 @@ def add_fit_telemetry_arguments(parser: ArgumentParser) -> None:
                         help="Train from these telemetry files alone (y, wfs) instead of simulating the scenario; the "
                              "last predictor.data.val_frames frames (at most a fifth) are held out for validation.")
     parser.add_argument("--plant", type=str, default="identify", help=f"With --telemetry: {PLANT_HELP}")
+    add_matrix_arguments(parser)
 
 
 def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
     p: PredictorConfig = cfg.predictor
-    telemetry = load_telemetry(cfg.telemetry)
+    telemetry = _load(cfg)
     spec = HistorySpec(p.history, p.history_length, telemetry[0].delay_frames)
     plant = resolve_plant_option(cfg.plant, telemetry)
     frames = min(seq.y.shape[0] for t in telemetry for seq in t.sequences())
@@ -114,7 +146,7 @@ def add_replay_arguments(parser: ArgumentParser) -> None:
 def run_replay(cfg, config_dump: str) -> dict:
     out = check_output_folder(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint, trusted_networks=cfg.trusted_networks)
-    telemetry = load_telemetry(cfg.telemetry)
+    telemetry = _load(cfg)
     plant = resolve_plant_option(cfg.plant, telemetry)
     result = replay(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
                     settle_frames=cfg.settle_frames)

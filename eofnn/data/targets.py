@@ -27,6 +27,8 @@ from torch.utils.data import IterableDataset
 from eofnn.data.history import HistorySpec, applied_command, blended_target, build_history, open_loop_history
 from eofnn.errors import TelemetryError
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import ActuatorLayout, layout_from_positions
+from eofnn.sim.spaces import read_matrix
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 
 #: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
@@ -123,20 +125,29 @@ class TelemetryBatches(IterableDataset):
                        telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))
 
 
-def load_telemetry(paths: str | Path | Sequence[str | Path]) -> list[Telemetry]:
-    """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs``."""
+def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | None = None) -> list[Telemetry]:
+    """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs`` (or ``slopes``);
+    ``matrices`` (``interaction_matrix``, ``reconstructor``, ``modal_basis``: arrays or files) apply to every file
+    and replace what the files hold."""
     paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
     if not paths:
         raise TelemetryError("no telemetry file given")
-    return [Telemetry.load(path, required=TELEMETRY_REQUIRED) for path in paths]
+    space = {name: read_matrix(value, name) if isinstance(value, (str, Path)) else value
+             for name, value in (matrices or {}).items() if value is not None}
+    return [Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space) for path in paths]
 
 
-def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | None = None) -> ActuatorGrid | None:
-    """The actuator grid of ``telemetry``: ``grid`` if given, else its positions, else its eofnn scenario, else None."""
+def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | ActuatorLayout | None = None
+                   ) -> ActuatorGrid | ActuatorLayout | None:
+    """The actuator layout of ``telemetry``: ``grid`` if given, else None for modal telemetry, else its positions
+    (eofnn's own grid when they are one, else an :class:`~eofnn.sim.layout.ActuatorLayout`), else its eofnn
+    scenario's grid, else None."""
     if grid is not None:
         return grid
+    if telemetry.modal_basis is not None:  # predictors run in modes: no actuator neighbourhoods, no shift model
+        return None
     if telemetry.positions_m is not None:
-        return ActuatorGrid.from_positions(telemetry.positions_m)
+        return layout_from_positions(telemetry.positions_m)
     scenario = telemetry.config.get("scenario") or telemetry.config.get("eofnn", {}).get("scenario")
     if isinstance(scenario, dict) and isinstance(scenario.get("grid"), dict):
         return ActuatorGrid(**scenario["grid"])

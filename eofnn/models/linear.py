@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from eofnn.errors import require
-from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import layout_from_dict
 from eofnn.validation import COUNT, Interval, OneOf, check_value
 
 STRUCTURES = ("per_actuator", "shared", "neighbourhood")
@@ -26,7 +26,8 @@ STRUCTURES = ("per_actuator", "shared", "neighbourhood")
 def gather_neighbourhood(x: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
     """``(batch, K, M * taps)``: each actuator's ``(batch, K, taps)`` history beside its ``M`` neighbours'.
 
-    ``neighbours`` is :meth:`ActuatorGrid.neighbours`; its off-pupil slots (index ``K``) read zeros.
+    ``neighbours`` is :meth:`ActuatorGrid.neighbours` or :meth:`ActuatorLayout.neighbours`; its off-pupil slots
+    (index ``K``) read zeros.
     """
     padded = torch.cat([x, torch.zeros_like(x[:, :1])], dim=1)
     return padded[:, neighbours].flatten(-2)
@@ -46,7 +47,9 @@ class LinearFilter(nn.Module):
     radius : float
         Neighbourhood radius in pitches (``neighbourhood`` only).
     grid : dict, optional
-        The :class:`ActuatorGrid` fields (``diameter_m``, ``n_across``, ``obstruction``); needed for ``neighbourhood``.
+        The layout, needed for ``neighbourhood``: the :class:`~eofnn.sim.grid.ActuatorGrid` fields (``diameter_m``,
+        ``n_across``, ``obstruction``) or ``{"positions_m": [[x, y], ...]}`` (metres, any layout: neighbours by
+        distance, :class:`~eofnn.sim.layout.ActuatorLayout`).
     """
 
     def __init__(self, n_actuators: int, n_taps: int, structure: str = "per_actuator", radius: float = 1.0,
@@ -59,7 +62,7 @@ class LinearFilter(nn.Module):
         self.n_actuators, self.n_taps, self.structure, self.radius = n_actuators, n_taps, structure, radius
         if structure == "neighbourhood":
             require(grid is not None, "structure='neighbourhood' needs the actuator grid")
-            neighbours = ActuatorGrid(**grid).neighbours(radius)
+            neighbours = layout_from_dict(grid).neighbours(radius)
             require(neighbours.shape[0] == n_actuators,
                     f"grid has {neighbours.shape[0]} actuators but n_actuators={n_actuators}")
             self.register_buffer("neighbours", neighbours)

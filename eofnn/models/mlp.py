@@ -10,7 +10,7 @@ from torch import nn
 
 from eofnn.errors import require
 from eofnn.models.linear import gather_neighbourhood
-from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import layout_from_dict
 from eofnn.validation import COUNT, POSITIVE, Interval, OneOf, check_value
 
 ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "tanh": nn.Tanh, "silu": nn.SiLU}
@@ -69,7 +69,7 @@ class MLP(nn.Module):
         self.neighbours = None
         if radius > 0:
             require(grid is not None, "an MLP with radius > 0 needs the actuator grid")
-            neighbours = ActuatorGrid(**grid).neighbours(radius)
+            neighbours = layout_from_dict(grid).neighbours(radius)
             if n_actuators is not None:
                 require(neighbours.shape[0] == n_actuators,
                         f"grid has {neighbours.shape[0]} actuators but n_actuators={n_actuators}")

@@ -63,7 +63,10 @@ class ActuatorGrid:
         pos = np.asarray(positions_m, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) < 4:
             raise TelemetryError(f"actuator positions have shape {pos.shape}: expected (actuators >= 4, 2) in metres")
-        gaps = np.abs(pos[:, None, :] - pos[None, :, :]).max(-1)
+        from scipy.spatial import cKDTree
+
+        # The smallest Chebyshev spacing, by KD-tree: a (K, K) table of gaps would need gigabytes for an ELT's DM.
+        gaps = cKDTree(pos).query(pos, k=min(len(pos), 3), p=np.inf)[0][:, 1:]
         pitch = float(gaps[gaps > 0].min())
         centre = (pos.max(0) + pos.min(0)) / 2
         n_across = int(round(float((pos.max(0) - pos.min(0)).max()) / pitch)) + 1

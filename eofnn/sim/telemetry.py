@@ -8,8 +8,9 @@ Arrays are ``(frames, n_actuators)`` or ``(batch, frames, n_actuators)``, in nm:
   ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` acting over the frame, :mod:`eofnn.sim.delay`),
 - ``wfs``: what the WFS reported of ``eps`` (equal to ``eps`` for a perfect sensor).
 
-Files from other simulators or a real-time computer need only ``y`` and ``wfs`` and the loop delay; the layout
-(HDU names, header keys, npz keys) is documented in ``docs/telemetry.md``.
+Files from other simulators or a real-time computer need only ``y`` and ``wfs`` (or ``slopes`` with an interaction
+matrix or a reconstructor, :mod:`eofnn.sim.spaces`) and the loop delay; ``y`` and ``wfs`` may be modal coefficients
+of a ``modal_basis``. The layout (HDU names, header keys, npz keys) is documented in ``docs/telemetry.md``.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ import torch
 from eofnn.errors import ConfigError, TelemetryError
 from eofnn.outputs import check_output_file
 from eofnn.sim.delay import check_delay
+from eofnn.sim.layout import check_positions
+from eofnn.sim.spaces import RCOND, check_modal_basis, residual_from_slopes
 
 ARRAYS = ("s", "y", "eps", "wfs")
 #: What training, identification and replay from telemetry alone need.
@@ -33,6 +36,8 @@ TELEMETRY_REQUIRED = ("y", "wfs")
 #: FITS primary-header keywords (8-character standard ones first, HIERARCH long names accepted too).
 DELAY_KEYS = ("DELAY", "DELAY_FRAMES")
 FRAME_RATE_KEYS = ("FRATE", "FRAME_RATE_HZ")
+#: Arrays of the spaces real loops record (docs/telemetry.md): slopes and the matrices that bring them to ``wfs``.
+SPACE_ARRAYS = ("slopes", "interaction_matrix", "reconstructor", "modal_basis")
 
 
 @dataclass
@@ -52,6 +57,11 @@ class Telemetry:
         Loop frame rate in Hz, when known.
     positions_m : Tensor or None
         ``(K, 2)`` actuator (x, y) positions in metres, when known (neighbourhood filters need them).
+    modal_basis : Tensor or None
+        ``(K, M)``: ``y`` and ``wfs`` are coefficients of these ``M`` modes (actuator commands ``B @ y``); None for
+        actuator-space telemetry.
+    measurement : str
+        How ``wfs`` was formed when it was not recorded as such (e.g. from slopes); empty otherwise.
     """
 
     s: torch.Tensor | None = None
@@ -62,6 +72,8 @@ class Telemetry:
     config: dict = field(default_factory=dict)
     frame_rate_hz: float | None = None
     positions_m: torch.Tensor | None = None
+    modal_basis: torch.Tensor | None = None
+    measurement: str = ""
 
     def __post_init__(self) -> None:
         shape = None
@@ -85,13 +97,30 @@ class Telemetry:
             if not rate > 0:
                 raise TelemetryError(f"telemetry frame_rate_hz={self.frame_rate_hz!r} is invalid: it must be > 0 (Hz)")
             self.frame_rate_hz = rate
+        if self.modal_basis is not None:
+            self.modal_basis = check_modal_basis(self.modal_basis, shape[-1] if shape else np.shape(self.modal_basis)[1])
         if self.positions_m is not None:
             self.positions_m = _real_tensor(self.positions_m, "positions_m")
-            n_act = None if shape is None else shape[-1]
+            n_act = self.modal_basis.shape[0] if self.modal_basis is not None else None if shape is None else shape[-1]
             if self.positions_m.ndim != 2 or self.positions_m.shape[1] != 2 or (
                     n_act is not None and self.positions_m.shape[0] != n_act):
                 raise TelemetryError(f"telemetry positions_m has shape {tuple(self.positions_m.shape)}: expected "
                                      f"({n_act if n_act is not None else 'actuators'}, 2) actuator (x, y) in metres")
+            check_positions(self.positions_m)  # duplicates, fewer than 4
+
+    @classmethod
+    def from_slopes(cls, y, slopes, *, interaction_matrix=None, reconstructor=None, rcond: float = RCOND,
+                    **fields) -> Telemetry:
+        """Telemetry whose ``wfs`` is formed from ``slopes`` (``(..., frames, S)``) with an interaction matrix
+        ``(S, K)`` or a reconstructor ``(K, S)`` (:func:`eofnn.sim.spaces.residual_from_slopes`); ``fields`` are the
+        other attributes (``delay_frames``, ``positions_m``, ``modal_basis``, ...)."""
+        y = _real_tensor(y, "y")
+        slopes = _real_tensor(slopes, "slopes")
+        if slopes.shape[:-1] != y.shape[:-1]:
+            raise TelemetryError(f"telemetry slopes have shape {tuple(slopes.shape)} but y {tuple(y.shape)}: expected "
+                                 "the same frames (and batch), one row of slopes per frame")
+        wfs, note, seen = residual_from_slopes(slopes, y.shape[-1], interaction_matrix, reconstructor, rcond)
+        return cls(y=y if seen is None else y @ seen, wfs=wfs, measurement=note, **fields)
 
     def arrays(self) -> dict[str, torch.Tensor]:
         """The arrays present, by name."""
@@ -104,8 +133,10 @@ class Telemetry:
 
     def realisation(self, index: int) -> Telemetry:
         """One realisation of batched telemetry as ``(frames, actuators)`` arrays."""
-        return Telemetry(**{k: v[index] for k, v in self.arrays().items()}, delay_frames=self.delay_frames,
-                         config=self.config, frame_rate_hz=self.frame_rate_hz, positions_m=self.positions_m)
+        one = Telemetry(**{k: v[index] for k, v in self.arrays().items()}, delay_frames=self.delay_frames,
+                        config=self.config, frame_rate_hz=self.frame_rate_hz, measurement=self.measurement)
+        one.positions_m, one.modal_basis = self.positions_m, self.modal_basis  # checked already (the basis by an SVD)
+        return one
 
     def sequences(self) -> list[Telemetry]:
         """The independent sequences of this telemetry: its realisations, each ``(frames, K)``."""
@@ -135,6 +166,8 @@ class Telemetry:
                 hdus.append(fits.ImageHDU(value.numpy().astype(dtype), name=name.upper()))
             if self.positions_m is not None:
                 hdus.append(fits.ImageHDU(self.positions_m.numpy(), name="POSITIONS"))
+            if self.modal_basis is not None:
+                hdus.append(fits.ImageHDU(self.modal_basis.numpy(), name="MODAL_BASIS"))
             hdus.append(fits.BinTableHDU.from_columns(
                 [fits.Column(name="json", format=f"{max(len(meta), 1)}A", array=np.array([meta]))], name="CONFIG"))
             fits.HDUList(hdus).writeto(path, overwrite=overwrite)
@@ -144,13 +177,15 @@ class Telemetry:
                 extra["frame_rate_hz"] = np.array(self.frame_rate_hz)
             if self.positions_m is not None:
                 extra["positions_m"] = self.positions_m.numpy()
+            if self.modal_basis is not None:
+                extra["modal_basis"] = self.modal_basis.numpy()
             np.savez(path, meta=np.array(meta), **extra, **{k: v.numpy().astype(dtype) for k, v in self.arrays().items()})
         else:
             raise TelemetryError(f"telemetry file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits, .npz")
         return path
 
     @classmethod
-    def load(cls, path: str | Path, required: tuple[str, ...] = ARRAYS) -> Telemetry:
+    def load(cls, path: str | Path, required: tuple[str, ...] = ARRAYS, space: dict | None = None) -> Telemetry:
         """Read a telemetry file in the layout of ``docs/telemetry.md`` (what :meth:`save` writes is one).
 
         Missing ``required`` arrays, bad shapes, NaNs, complex or text arrays, a missing or non-integer delay and
@@ -164,20 +199,37 @@ class Telemetry:
         if suffix not in (".fits", ".fit", ".npz"):
             raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .fits, .npz")
         try:
-            arrays, positions, delay, rate, meta = (_read_fits if suffix != ".npz" else _read_npz)(path)
+            arrays, positions, delay, rate, meta, found = (_read_fits if suffix != ".npz" else _read_npz)(path)
         except TelemetryError:
             raise
         except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as err:
             raise TelemetryError(f"{where} is not readable as {suffix[1:]} telemetry "
                                  f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        space = {**found, **(space or {})}  # matrices given beside the file replace the file's own
+        measurement = ""
+        if "slopes" in space and "wfs" not in arrays:
+            if "y" not in arrays:
+                raise TelemetryError(f"{where} lacks array(s) y")
+            if space["slopes"].shape[:-1] != arrays["y"].shape[:-1]:
+                raise TelemetryError(f"{where}: slopes have shape {tuple(space['slopes'].shape)} but y "
+                                     f"{tuple(arrays['y'].shape)}: expected the same frames (and batch), one row of "
+                                     "slopes per frame")
+            arrays["wfs"], measurement, seen = residual_from_slopes(
+                space["slopes"], arrays["y"].shape[-1], space.get("interaction_matrix"), space.get("reconstructor"),
+                float(space.get("rcond", RCOND)))
+            if seen is not None:
+                arrays["y"] = arrays["y"] @ seen
         missing = [name for name in required if name not in arrays]
         if missing:
-            raise TelemetryError(f"{where} lacks array(s) {', '.join(missing)}")
+            raise TelemetryError(f"{where} lacks array(s) {', '.join(missing)}"
+                                 + (" (or slopes with an interaction_matrix or reconstructor)" if "wfs" in missing
+                                    else ""))
         if delay is None:
             delay = meta.get("delay_frames")
         # Arrays are checked first (shapes, values), then the delay: a file with both wrong names its arrays.
         telemetry = cls(**arrays, delay_frames=1 if delay is None else _delay(delay, f"{where}: delay_frames"),
-                        config=meta.get("config", {}), frame_rate_hz=rate, positions_m=positions)
+                        config=meta.get("config", {}), frame_rate_hz=rate, positions_m=positions,
+                        modal_basis=space.get("modal_basis"), measurement=measurement)
         if delay is None:
             raise TelemetryError(f"{where} lacks the loop delay: set header key DELAY (FITS) or array delay_frames "
                                  "(npz) to an integer >= 1 (frames)")
@@ -224,7 +276,7 @@ def _array(data, name: str) -> np.ndarray:
 def _read_fits(path: Path):
     from astropy.io import fits
 
-    arrays, positions, delay, rate, meta = {}, None, None, None, {}
+    arrays, positions, delay, rate, meta, space = {}, None, None, None, {}, {}
     # astropy only warns about truncated or corrupt files and returns what it could read: make that an error.
     with warnings.catch_warnings(record=True) as caught, fits.open(path, memmap=False) as hdul:
         warnings.simplefilter("always")
@@ -235,6 +287,11 @@ def _read_fits(path: Path):
                 arrays[name] = torch.from_numpy(_array(hdul[name.upper()].data, name))
         if "POSITIONS" in names:
             positions = torch.from_numpy(_array(hdul["POSITIONS"].data, "positions_m"))
+        for name in SPACE_ARRAYS:
+            if name.upper() in names and hdul[name.upper()].data is not None:
+                space[name] = torch.from_numpy(_array(hdul[name.upper()].data, name))
+        if "RCOND" in header:
+            space["rcond"] = _number(header["RCOND"], "rcond")
         delay = next((header[k] for k in DELAY_KEYS if k in header), None)
         rate = next((header[k] for k in FRAME_RATE_KEYS if k in header), None)
         if "CONFIG" in names:
@@ -242,21 +299,26 @@ def _read_fits(path: Path):
     problems = [str(w.message).splitlines()[0] for w in caught if "astropy" in type(w.message).__module__]
     if problems:
         raise TelemetryError(f"telemetry file {str(path)!r} is truncated or corrupt ({problems[0]})")
-    return arrays, positions, delay, rate, meta
+    return arrays, positions, delay, rate, meta, space
 
 
 def _read_npz(path: Path):
-    arrays, positions, delay, rate, meta = {}, None, None, None, {}
+    arrays, positions, delay, rate, meta, space = {}, None, None, None, {}, {}
     with np.load(path, allow_pickle=False) as data:
         for name in ARRAYS:
             if name in data.files:
                 arrays[name] = torch.from_numpy(_array(data[name], name))
         if "positions_m" in data.files:
             positions = torch.from_numpy(_array(data["positions_m"], "positions_m"))
+        for name in SPACE_ARRAYS:
+            if name in data.files:
+                space[name] = torch.from_numpy(_array(data[name], name))
+        if "rcond" in data.files:
+            space["rcond"] = _number(data["rcond"].item(), "rcond")
         if "delay_frames" in data.files:
             delay = data["delay_frames"]
         if "frame_rate_hz" in data.files:
             rate = data["frame_rate_hz"].item() if data["frame_rate_hz"].ndim == 0 else data["frame_rate_hz"]
         if "meta" in data.files:
             meta = json.loads(str(data["meta"]))
-    return arrays, positions, delay, rate, meta
+    return arrays, positions, delay, rate, meta, space

@@ -25,6 +25,7 @@ from eofnn.errors import ConfigError, DivergedError, TelemetryError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.seeding import int_seed
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.layout import ActuatorLayout, dm_model, layout_to_dict
 from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
@@ -63,16 +64,18 @@ class TelemetryFit:
         return self.predictor.controller(self.dm_gain if self.spec.kind == "open_loop" else 1.0)
 
 
-def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int | float, grid: ActuatorGrid | None):
+def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int | float,
+                  grid: ActuatorGrid | ActuatorLayout | None):
     """``(dm_response, dm_gain, model_errors, source)`` of an identified plant, model errors, or the nominal DM."""
     if isinstance(plant, IdentifiedPlant):
         return plant.dm_response("model"), float(plant.dm_gain or 0.0), plant.model_errors(), "identified"
     errors = dict(plant or {})
     model = Plant(delay_frames=delay_frames).with_errors(**errors)
     if model.misregistration_x or model.misregistration_y:
-        if grid is None:
-            raise TelemetryError("a misregistered DM model needs the actuator grid: put positions_m in the telemetry")
-        return PlantModel(model, grid).apply_dm, model.dm_gain, errors, "given"
+        if isinstance(grid, ActuatorGrid):
+            return PlantModel(model, grid).apply_dm, model.dm_gain, errors, "given"
+        return dm_model(grid, model.dm_gain, model.misregistration_x, model.misregistration_y), model.dm_gain, \
+            errors, "given"
     return (lambda y: model.dm_gain * y), model.dm_gain, errors, "given" if errors else "nominal"
 
 
@@ -95,8 +98,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     plant : IdentifiedPlant, dict or None
         The DM model for POL values and targets: an identification result, a dict of model errors
         (``dm_gain``, ``misregistration_x``, ``misregistration_y``), or None for the nominal ``DM(y) = y``.
-    grid : ActuatorGrid, optional
-        The actuator grid, when the telemetry holds no positions (neighbourhood filters and misregistered DM models
+    grid : ActuatorGrid or ActuatorLayout, optional
+        The actuator layout, when the telemetry holds no positions (neighbourhood filters and misregistered DM models
         need it).
     optimization : OptimizationConfig
         Closed form (linear networks, one streamed pass) or SGD (any network, e.g. the MLP).
@@ -129,10 +132,13 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     if train_stop <= span or (val_frames and val_frames <= span):
         raise TelemetryError(f"stop={stop}, val_frames={val_frames}: {n_frames} frames leave no training or "
                              f"validation history (each needs more than {span} frames)")
-    grid_dict = None if grid is None else {"diameter_m": grid.diameter_m, "n_across": grid.n_across,
-                                           "obstruction": grid.obstruction}
+    grid_dict = None if grid is None else layout_to_dict(grid)
     info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
             "n_sequences": len(sequences), **(info or {})}
+    if first_item.modal_basis is not None:  # a modal predictor: actuator commands are modal_basis @ y
+        info["modal_basis_shape"] = list(first_item.modal_basis.shape)
+    if first_item.measurement:
+        info["measurement"] = first_item.measurement
     L.seed_everything(seed, workers=True, verbose=False)
     task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict, asdict(optimization), info)
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)

@@ -63,7 +63,8 @@ from eofnn.data.targets import check_sequences, telemetry_grid
 from eofnn.errors import CollinearityWarning, ConfigError, TelemetryError, require
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.layout import ActuatorLayout, coupling_stencils, dm_model, layout_from_dict, layout_to_dict
+from eofnn.sim.plant import Plant
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.ridge import NormalEquations
 
@@ -77,10 +78,12 @@ class IdentifiedPlant:
     """What :func:`identify_plant` found, with standard errors (``*_se``); ``None`` where nothing was identified.
 
     Gains are dimensionless (nm applied per nm commanded), misregistrations in actuator pitches (x = columns,
-    y = rows of :class:`~eofnn.sim.grid.ActuatorGrid`), noise in nm RMS per actuator and frame, lags in frames.
-    ``coupling[k][m]`` is the response of actuator ``k``'s measurement to a command on actuator
-    ``neighbours[k][m]`` (``n_actuators`` marks a slot beyond the pupil edge); ``offsets[m]`` is that slot's
-    (row, column) offset.
+    y = rows of :class:`~eofnn.sim.grid.ActuatorGrid`, or x and y of a layout's positions), noise in nm RMS per
+    actuator and frame, lags in frames. ``coupling[k][m]`` is the response of actuator ``k``'s measurement to a
+    command on actuator ``neighbours[k][m]`` (``n_actuators`` marks a slot beyond the pupil edge); ``offsets[m]`` is
+    that slot's (row, column) = (y, x) offset in pitches when every actuator's slot ``m`` is the same offset (a
+    lattice), else empty. ``grid`` is the layout (:func:`eofnn.sim.layout.layout_from_dict`), ``{}`` without
+    positions; misregistrations are None where no shift model was possible (``warnings`` says why).
     """
 
     identified: bool
@@ -135,8 +138,11 @@ class IdentifiedPlant:
             raise TelemetryError("the plant was not identified (the telemetry holds no dither): give a plant instead")
 
     def model_errors(self) -> dict[str, float]:
-        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`."""
+        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`
+        (without the misregistrations where none was identified)."""
         self.require_identified()
+        if self.misregistration_x is None:
+            return {"dm_gain": self.dm_gain}
         return {"dm_gain": self.dm_gain, "misregistration_x": self.misregistration_x,
                 "misregistration_y": self.misregistration_y}
 
@@ -149,7 +155,9 @@ class IdentifiedPlant:
         self.require_identified()
         require(kind in ("model", "sparse"), f"dm_response kind={kind!r} is invalid: allowed are model, sparse")
         if kind == "model":
-            return PlantModel(self.plant(), ActuatorGrid(**self.grid)).apply_dm
+            errors = self.model_errors()
+            return dm_model(layout_from_dict(self.grid) if self.grid else None, self.dm_gain,
+                            errors.get("misregistration_x", 0.0), errors.get("misregistration_y", 0.0))
         index, weight = torch.as_tensor(self.neighbours), torch.as_tensor(self.coupling, dtype=torch.float64)
 
         def apply(y: torch.Tensor) -> torch.Tensor:
@@ -190,7 +198,7 @@ def _solve(ne: NormalEquations) -> torch.Tensor:
         return ne.solve(0.0, relative=False).weights
 
 
-def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGrid | None = None, *,
+def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGrid | ActuatorLayout | None = None, *,
                    radius: float = 1.5, nuisance_lags: int = 2, max_lag: int | None = None, batch_frames: int = 1024,
                    min_excitation: float = 1e-6) -> IdentifiedPlant:
     """Identify DM response, WFS lag and noise from dithered closed-loop telemetry (method: module docstring).
@@ -199,11 +207,13 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     ----------
     telemetry : Telemetry or sequence of Telemetry
         Recorded ``y`` and ``wfs`` (nm); several files or batches are independent sequences of one plant.
-    grid : ActuatorGrid, optional
-        The actuator grid; by default from the telemetry's ``positions_m`` or its eofnn scenario.
+    grid : ActuatorGrid or ActuatorLayout, optional
+        The actuator layout; by default from the telemetry's ``positions_m`` or its eofnn scenario. Without one the
+        DM gain and the lag are still identified (from each actuator's response to its own dither), the
+        misregistration is not (no shift model without positions).
     radius : float
-        Neighbourhood radius in pitches over which coupling is fitted (1.5: the 3 x 3 neighbours, enough for
-        misregistrations below one pitch).
+        Neighbourhood radius in pitches over which coupling is fitted (1.5: the 3 x 3 neighbours on a square
+        lattice, the 6 nearest on a hexagonal one; enough for misregistrations below one pitch).
     nuisance_lags : int
         ``p``: frames ``n-2 .. n-p-1`` of ``y`` and ``wfs`` in the nuisance regressors; must reach the data
         controller's input ``wfs(n - delay)`` (``p >= delay - 1``).
@@ -217,14 +227,11 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     sequences = check_sequences(telemetry)
     first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
     grid = telemetry_grid(first_item, grid)
-    if grid is None:
-        raise TelemetryError("plant identification needs the actuator grid: put positions_m (POSITIONS) in the "
-                             "telemetry or pass grid")
     n_act, delay = sequences[0].y.shape[-1], sequences[0].delay_frames
     if not float(delay).is_integer():  # the lag search and the whitening assume whole frames
         raise TelemetryError(f"telemetry has delay_frames={delay}: plant identification supports integer delays "
                              "only (give the plant instead, e.g. fit --plant plant.json)")
-    if grid.n_actuators != n_act:
+    if grid is not None and grid.n_actuators != n_act:
         raise TelemetryError(f"telemetry has {n_act} actuators but the grid has {grid.n_actuators}")
     require(isinstance(nuisance_lags, int) and nuisance_lags >= max(1, delay - 1),
             f"nuisance_lags={nuisance_lags!r} is invalid: it must be an integer >= max(1, delay_frames - 1) = "
@@ -236,8 +243,7 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     short = min(seq.y.shape[0] for seq in sequences)
     if short < first + 200:
         raise TelemetryError(f"telemetry has {short} frames: identification needs at least {first + 200}")
-    result = IdentifiedPlant(False, delay, {"diameter_m": grid.diameter_m, "n_across": grid.n_across,
-                                            "obstruction": grid.obstruction},
+    result = IdentifiedPlant(False, delay, {} if grid is None else layout_to_dict(grid),
                              n_frames=sum(seq.y.shape[0] for seq in sequences), n_sequences=len(sequences),
                              settings=settings)
     if delay < 2:
@@ -267,7 +273,8 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     response /= norm
     lag = int(response.abs().argmax())
     if lag > 0:  # wfs recorded `lag` frames late: realign to the documented convention and identify again
-        shifted = [Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=delay) for seq in sequences]
+        shifted = [Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=delay, modal_basis=seq.modal_basis)
+                   for seq in sequences]
         again = identify_plant(shifted, grid, radius=radius, nuisance_lags=nuisance_lags, max_lag=max_lag,
                                batch_frames=batch_frames, min_excitation=min_excitation)
         again.lag_frames, again.lag_response = lag, response.tolist()
@@ -276,7 +283,8 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
             "and was realigned for identification; realign it (wfs[lag:], y[:-lag]) before training"] + again.warnings
         return again
     result.lag_frames, result.lag_response = lag, response.tolist()
-    _response(result, signals, innovations, grid, radius, nuisance_lags, first, batch_frames)
+    _response(result, signals, innovations, grid, radius, nuisance_lags, first, batch_frames,
+              modal=first_item.modal_basis is not None)
     result.wfs_noise_nm, result.wfs_noise_nm_se = _noise(signals, result.dm_response("model"), first)
     return result
 
@@ -299,11 +307,12 @@ def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor
     return innovations
 
 
-def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid, radius: float, p: int, first: int,
-              batch_frames: int) -> None:
+def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid | ActuatorLayout | None,
+              radius: float, p: int, first: int, batch_frames: int, modal: bool = False) -> None:
     """Step 2 and what follows from it: coupling, gains, misregistration, their standard errors (into ``result``)."""
-    n_act = grid.n_actuators
-    neighbours = grid.neighbours(radius)
+    n_act = signals[0][0].shape[0]
+    # Without positions each actuator's own dither is its only regressor: the gain needs no geometry.
+    neighbours = torch.arange(n_act).unsqueeze(1) if grid is None else grid.neighbours(radius)
     n_nb = neighbours.shape[1]
     regression = NormalEquations()
     regressors = _Regressors(n_act, n_nb + 2 * p, batch_frames)
@@ -323,30 +332,49 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid,
     covariance = residual_var.view(-1, 1, 1) * torch.linalg.pinv(gram, hermitian=True)
     coupling, coupling_cov = weights[:, :n_nb], covariance[:, :n_nb, :n_nb]
     result.residual_rms_nm = float(residual_var.mean().sqrt())
-
-    interior = (neighbours < n_act).all(1)
-    if not interior.any():
-        raise TelemetryError(f"no actuator has all {n_nb} neighbours within radius {radius}: the grid is too small")
-    pattern = coupling[interior].mean(0)
-    pattern_cov = coupling_cov[interior].sum(0) / int(interior.sum()) ** 2
-    k0 = int(interior.nonzero()[0])
-    indices = torch.as_tensor(grid.indices)
-    offsets = (indices[neighbours[k0]] - indices[k0]).to(torch.float64)  # (row, column) = (y, x)
-    gain = float(pattern.sum())
-    dx, dy = float(-(offsets[:, 1] @ pattern) / gain), float(-(offsets[:, 0] @ pattern) / gain)
-
-    def se(gradient: torch.Tensor) -> float:
-        return float((gradient @ pattern_cov @ gradient).clamp(min=0).sqrt())
-
     ones = torch.ones(n_nb, dtype=torch.float64)
     result.identified = True
-    result.dm_gain, result.dm_gain_se = gain, se(ones)
-    result.misregistration_x, result.misregistration_x_se = dx, se(-(offsets[:, 1] + dx) / gain)
-    result.misregistration_y, result.misregistration_y_se = dy, se(-(offsets[:, 0] + dy) / gain)
     result.actuator_gains = coupling.sum(-1).tolist()
     result.actuator_gains_se = (ones @ coupling_cov @ ones).clamp(min=0).sqrt().tolist()
     result.coupling, result.coupling_se = coupling.tolist(), coupling_cov.diagonal(dim1=1, dim2=2).sqrt().tolist()
-    result.neighbours, result.offsets = neighbours.tolist(), offsets.to(torch.int64).tolist()
+    result.neighbours = neighbours.tolist()
+
+    offsets, interior, why = coupling_stencils(grid, neighbours, radius, modal)
+    if why:
+        result.warnings.append(why)
+    pooled = interior if interior.any() else torch.ones(n_act, dtype=torch.bool)
+    if offsets.ndim == 2:  # a lattice: slot m is the same offset for every actuator, so pool the pattern
+        pattern = coupling[pooled].mean(0)
+        pattern_cov = coupling_cov[pooled].sum(0) / int(pooled.sum()) ** 2
+        gain = float(pattern.sum())
+        dx, dy = float(-(offsets[:, 1] @ pattern) / gain), float(-(offsets[:, 0] @ pattern) / gain)
+
+        def se(gradient: torch.Tensor) -> float:
+            return float((gradient @ pattern_cov @ gradient).clamp(min=0).sqrt())
+
+        se_x, se_y = se(-(offsets[:, 1] + dx) / gain), se(-(offsets[:, 0] + dy) / gain)
+        result.dm_gain, result.dm_gain_se = gain, se(ones)
+        result.offsets = offsets.tolist() if offsets.dtype.is_floating_point and (offsets != offsets.round()).any() \
+            else offsets.to(torch.int64).tolist()
+    else:  # irregular: each actuator's first moments over its own offsets, pooled (delta-method errors)
+        c, cov, o = coupling[pooled], coupling_cov[pooled], offsets[pooled]
+        n = int(pooled.sum())
+        gain = float(c.sum(-1).mean())
+        moment = (o * c.unsqueeze(-1)).sum(1).mean(0)  # (row, column) = (y, x)
+        dy, dx = float(-moment[0] / gain), float(-moment[1] / gain)
+
+        def se_of(gradient: torch.Tensor) -> float:  # gradient (n, M): d estimate / d coupling of each actuator
+            return float(torch.einsum("km,kmj,kj->", gradient, cov, gradient).clamp(min=0).sqrt())
+
+        se_x, se_y = se_of(-(o[..., 1] + dx) / gain / n), se_of(-(o[..., 0] + dy) / gain / n)
+        result.dm_gain, result.dm_gain_se = gain, se_of(torch.ones_like(c) / n)
+    if interior.any():
+        result.misregistration_x, result.misregistration_x_se = dx, se_x
+        result.misregistration_y, result.misregistration_y_se = dy, se_y
+    if gain < 0:
+        result.warnings.append(f"negative DM gain {gain:.3g}: wfs has the opposite sign of the documented convention "
+                               "(eps = s + DM(y)); a reconstructor that gives the correction (R @ IM = -I) must be "
+                               "negated")
     if result.dm_gain_se > 0.05 * abs(gain):
         result.warnings.append(f"weak excitation: the DM gain {gain:.3g} has a standard error of "
                                f"{result.dm_gain_se:.2g}; record longer or with a larger dither")
