@@ -12,15 +12,19 @@ $eofnn compare --config configs/paper.yaml --out $x/paper --overwrite true
 for grid in alpha history frames; do
   $eofnn sweep --config $x/sweeps/base_ol_eof.yaml --grid $x/sweeps/grid_$grid.yaml --out $x/sweeps/$grid --workers 2
 done
-# 2. The realistic comparison: exact frozen flow through each subaperture, two layers, WFS noise 0, 1 and 3 nm.
-$eofnn compare --config configs/realistic_study.yaml --out $x/realistic --overwrite true
+# 2. The fair contest: exact frozen flow through each subaperture, two layers, WFS noise 0, 1 and 3 nm; every
+#    contender tuned on validation data, classical baselines beside the predictors, performance beside robustness;
+#    and alpha: auto against the best fixed alpha on the test stream.
+$eofnn compare --config configs/realistic_study.yaml --out $x/realistic --overwrite true --pareto noise_1 \
+  --simulated_margins '[noise_1]'
+$eofnn compare --config $x/fair/alpha_auto.yaml --out $x/fair/alpha_auto --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \
     --out $x/sweeps/realistic_${kind}_eof --workers 2
 done
 # 4. Robustness maps of the controllers made for the nominal plant, with their analytic margins.
-linear='{"integrator": {"controller": "integrator", "gains": [0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95], "data": {"frames": 1500}},
+linear='{"integrator": {"controller": "integrator", "gains": [0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95], "refine_rounds": 0, "data": {"frames": 1500}},
   "ol_eof": {"history_length": 4, "optimization": {"alpha": 1.0e-6}, "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000}},
   "cl_eof": {"history": "closed_loop", "history_length": 5, "optimization": {"alpha": 1.0e-6},
              "data": {"frames": 6000, "val_frames": 1000, "sequence_frames": 6000, "integrator_gain": 0.4, "dither_nm": 10.0, "refit_rounds": 1}}}'

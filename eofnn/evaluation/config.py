@@ -56,6 +56,10 @@ class PredictorConfig:
         loop with each on a stream of its own (``data.frames`` frames, seed ``data.seed``, never the test stream)
         and keeps the one with the lowest median residual, the best-gain integrator a fair comparison needs;
         ``gain`` is then not used. The gains tried, their residuals and the choice go to ``metrics.json``.
+    refine_rounds : int
+        Rounds of refinement of a ``gains`` scan: each tries the gains halfway between the best and its neighbours
+        (down to 0, up to the analytic critical gain), and rounds go on while the best is still the highest gain
+        tried (at most 6); 0 keeps the grid as given.
     leak : float
         Integrator leak (``controller: integrator``).
     adaptation : AdaptationConfig
@@ -84,6 +88,7 @@ class PredictorConfig:
     checkpoint: str | None = None
     gain: float = 0.5
     gains: list[float] | None = None
+    refine_rounds: int = 2
     leak: float = 0.0
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     dm_gain_model: float | None = None
@@ -94,6 +99,7 @@ class PredictorConfig:
         "controller": OneOf(controller_names()),
         "history": OrNone(OneOf(HISTORY_KINDS)),
         "history_length": OrNone(Interval(1, MAX_HISTORY_LENGTH, integer=True, unit="frames")),
+        "refine_rounds": Interval(0, 6, integer=True),
         "train_in": OrNone(IsString()),
         "checkpoint": OrNone(IsString()),
         "dm_gain_model": OrNone(Interval(0, 100, closed="right")),

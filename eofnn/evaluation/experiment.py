@@ -170,9 +170,8 @@ class Experiment:
                     scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
                                                          f"(data.frames + data.val_frames = {n})")
 
-    #: Rounds of refinement of the best-gain integrator's scan (two new gains each, beside the best), and the most
-    #: rounds while the best is still the highest gain tried, climbing towards the critical gain.
-    REFINE_ROUNDS = 2
+    #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
+    #: tried, climbing towards the critical gain).
     MAX_REFINE_ROUNDS = 6
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
@@ -239,7 +238,7 @@ class Experiment:
 
     def _scan_gains(self, cfg: PredictorConfig, scenario: Scenario) -> dict:
         """Close the loop with each of ``cfg.gains`` on a stream of its own; the lowest median residual wins, after
-        :attr:`REFINE_ROUNDS` rounds of refinement between the best gain and its neighbours (past the grid's top
+        ``cfg.refine_rounds`` rounds of refinement between the best gain and its neighbours (past the grid's top
         up to the analytic critical gain, below its bottom down to 0), so the choice is never an edge of the grid
         unless it is the edge of what is stable (then ``at_edge`` says so)."""
         settle = min(self.evaluation.settle_frames, cfg.data.frames // 2)
@@ -261,12 +260,12 @@ class Experiment:
         require(any(v is not None for v in scanned.values()),
                 f"every integrator gain of gains={cfg.gains!r} diverged: give smaller gains")
         refined = []
-        for round_index in range(self.MAX_REFINE_ROUNDS):
+        for round_index in range(self.MAX_REFINE_ROUNDS if cfg.refine_rounds else 0):
             gains = sorted(scanned)
             best = min((rms, g) for g, rms in scanned.items() if rms is not None)[1]
             i = gains.index(best)
             top = i + 1 == len(gains)
-            if round_index >= self.REFINE_ROUNDS and not (top and best < 0.98 * critical):
+            if round_index >= cfg.refine_rounds and not (top and best < 0.98 * critical):
                 break  # refined enough, and not still climbing towards the critical gain
             left = gains[i - 1] if i > 0 else 0.0
             right = min(gains[i + 1] if not top else critical, 0.99 * critical)
