@@ -282,3 +282,16 @@ def test_batches_are_windows_of_the_whole_sequence(small_scenario, kind):
     history, target = dataset.sequence(0)
     x, t = all_batches(dataset)
     assert torch.equal(x, history[0]) and torch.equal(t, target[0])
+
+
+def test_an_mlp_with_a_neighbourhood_trains_and_reloads(small_scenario, tmp_path):
+    """The neighbourhood MLP (radius > 0) of the fair contest's structure x nonlinearity table."""
+    network = {"class_path": "eofnn.models.mlp.MLP", "init_args": {"hidden": [8], "radius": 1.5}}
+    result = fit(small_scenario, "open_loop", 3, network, checkpoint_path=tmp_path / "mlp.ckpt", fit_method="sgd",
+                 epochs=1, frames=600, val_frames=200, sequence_frames=600, batch_frames=100)
+    net = result.predictor.network
+    assert net.neighbours.shape == (small_scenario.grid.n_actuators, 9)
+    loaded = load_predictor(tmp_path / "mlp.ckpt")
+    x = torch.randn(5, small_scenario.grid.n_actuators, 3, dtype=torch.float64)
+    with torch.no_grad():
+        assert torch.equal(loaded.network(x.float()), net(x.float()))

@@ -66,7 +66,7 @@ class MLP(nn.Module):
         self.scale_nm = scale_nm
         per_actuator = n_taps - 1 if history_kind == "open_loop" else n_taps
         n_inputs = per_actuator
-        self.neighbours = None
+        self.register_buffer("neighbours", None)  # a buffer from the start, so a neighbourhood can replace it
         if radius > 0:
             require(grid is not None, "an MLP with radius > 0 needs the actuator grid")
             neighbours = layout_from_dict(grid).neighbours(radius)
