@@ -333,3 +333,18 @@ def test_classical_models_use_the_dm_gain_their_dither_measures(lqg_model):
     assert float(run.residual_rms_nm[:, 300:].median()) < 1.2 * float(base.residual_rms_nm[:, 300:].median())
     given = build_lqg(doubled, DataConfig(frames=2048, dither_nm=5.0, integrator_gain=0.2), dm_gain_model=1.0)
     assert given.dm_gain_model == 1.0 and given.info["warnings"]
+
+
+def test_eofnn_stability_analyses_classical_controllers(tmp_path, capsys):
+    out = tmp_path / "stab"
+    assert main(["stability", "--scenario", str(TINY_SCENARIO), "--controller", "{controller: extrapolator, order: 1}",
+                 "--out", str(out)]) == 0
+    result = json.loads((out / "stability.json").read_text())
+    low, high = result["dm_gain_interval"]
+    assert result["stable"] and low == pytest.approx(0.8, abs=0.01) and high == pytest.approx(1.25, abs=0.01)
+    assert (out / "stability.png").stat().st_size > 0
+    capsys.readouterr()
+    for args in ([], ["--controller", "{controller: integrator}", "--checkpoint", "x.ckpt"]):
+        code = main(["stability", "--scenario", str(TINY_SCENARIO), "--out", str(tmp_path / "bad"), *args])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and "either --checkpoint" in err[0] and not (tmp_path / "bad").exists()

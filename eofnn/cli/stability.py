@@ -3,26 +3,35 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 from jsonargparse import ArgumentParser
 
 from eofnn.analysis.figures import plot_stability
 from eofnn.analysis.linear import controller_stability, summary
 from eofnn.cli.common import add_common, log
+from eofnn.control.registry import NEEDS_PREDICTOR
 from eofnn.errors import ConfigError
-from eofnn.evaluation.config import PredictorConfig
+from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.experiment import Experiment
 from eofnn.outputs import check_output_folder, staged_folder
 from eofnn.training.checkpoint import load_predictor
 from eofnn.validation import Interval, OrNone, check_value
 
-DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator, shared or neighbourhood) in the "
-               "scenario's plant: stable or not, the interval of DM gain that keeps it stable, the delay margin, and "
-               "the rejection and noise transfer functions. Writes stability.json and stability.png into --out.")
+DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator, shared or neighbourhood), or of a "
+               "classical controller (--controller: integrator, extrapolator, modal_integrator, lqg; the last two "
+               "built from telemetry recorded in the scenario), in the scenario's plant: stable or not, the interval "
+               "of DM gain that keeps it stable, the delay margin, and the rejection and noise transfer functions. "
+               "Writes stability.json and stability.png into --out.")
 
 
 def add_arguments(parser: ArgumentParser) -> None:
     add_common(parser, "Output folder (must be empty unless --overwrite true).")
-    parser.add_argument("--checkpoint", type=str, required=True, help="Checkpoint of a linear predictor (.ckpt).")
+    parser.add_argument("--checkpoint", type=str | None, default=None,
+                        help="Checkpoint of a linear predictor (.ckpt); or give --controller.")
+    parser.add_argument("--controller", type=PredictorConfig | None, default=None,
+                        help="A classical controller to analyse instead of a checkpoint, e.g. {controller: lqg, data: "
+                             "{frames: 10000}} (modal_integrator and lqg record their telemetry in the scenario).")
     parser.add_argument("--dm_gain_model", type=float | None, default=None,
                         help="DM gain the controller believes (its pseudo-open-loop reconstruction); unset, the "
                              "checkpoint's own (identified from telemetry, or 1).")
@@ -30,17 +39,41 @@ def add_arguments(parser: ArgumentParser) -> None:
 
 def run(cfg, config_dump: str) -> dict:
     check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
+    if (cfg.checkpoint is None) == (getattr(cfg, "controller", None) is None):
+        raise ConfigError("give either --checkpoint (a trained linear predictor) or --controller (a classical "
+                          "controller), not both or neither")
     out = check_output_folder(cfg.out, cfg.overwrite)
-    predictor = load_predictor(cfg.checkpoint, cfg.scenario, trusted_networks=cfg.trusted_networks)
-    config = PredictorConfig(checkpoint=cfg.checkpoint, dm_gain_model=cfg.dm_gain_model)
-    result = controller_stability(config, predictor, cfg.scenario)
-    if result is None:
-        raise ConfigError(f"checkpoint {cfg.checkpoint!r} holds a {type(predictor.network).__name__}: the analytic "
-                          "stability analysis needs a linear filter (eofnn.models.linear.LinearFilter)")
+    if cfg.checkpoint is not None:
+        predictor = load_predictor(cfg.checkpoint, cfg.scenario, trusted_networks=cfg.trusted_networks)
+        config = PredictorConfig(checkpoint=cfg.checkpoint, dm_gain_model=cfg.dm_gain_model)
+        what = cfg.checkpoint
+        result = controller_stability(config, predictor, cfg.scenario)
+        if result is None:
+            raise ConfigError(f"checkpoint {cfg.checkpoint!r} holds a {type(predictor.network).__name__}: the analytic "
+                              "stability analysis needs a linear filter (eofnn.models.linear.LinearFilter)")
+    else:
+        result, what = classical_stability(cfg.controller, cfg.scenario, cfg.dm_gain_model), cfg.controller.controller
     with staged_folder(out, cfg.overwrite) as staging:
         (staging / "stability.json").write_text(result.to_json())
         (staging / "config.yaml").write_text(config_dump)
-        plot_stability(result, staging / "stability.png", f"{cfg.checkpoint}")
+        plot_stability(result, staging / "stability.png", f"{what}")
     line = summary(result)
     log(json.dumps({k: line[k] for k in ("stable", "dm_gain_interval", "delay_margin_frames", "max_root_modulus")}))
     return line
+
+
+def classical_stability(controller: PredictorConfig, scenario, dm_gain_model: float | None):
+    """The analysis of a classical controller as ``compare`` would make it in ``scenario`` (a best-gain integrator's
+    scan and a modal model's telemetry on streams of their own)."""
+    if controller.controller in NEEDS_PREDICTOR:
+        raise ConfigError(f"--controller.controller={controller.controller!r} runs a trained network: give its "
+                          "--checkpoint instead")
+    if dm_gain_model is not None:
+        controller = replace(controller, dm_gain_model=dm_gain_model)
+    experiment = Experiment(scenario, {"nominal": {}}, {"controller": controller}, EvaluationConfig(),
+                            log=log)
+    result = controller_stability(experiment.config("controller", "nominal"),
+                                  experiment._predictor_if_any("controller", "nominal"), scenario)
+    if result is None:
+        raise ConfigError(f"controller={controller.controller!r} has no linear model to analyse")
+    return result
