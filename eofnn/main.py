@@ -9,6 +9,7 @@ Every value of a config can be overridden on the command line with its dotted ke
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import warnings
@@ -21,7 +22,7 @@ from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
 from eofnn.cli import compare, fit, simulate, stability, sweep, telemetry
-from eofnn.cli.configfile import check_config_file
+from eofnn.cli.configfile import check_config_file, resolve_config_references
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
 DESCRIPTION = """\
@@ -90,11 +91,35 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
+_NOISE = ("Problem with given class_path",)
+_UNION = "Does not validate against any of the Union subtypes"
+_UNION_NOISE = (_UNION, "Subtypes:", "Errors:", "Given value type:", "Expected a <class 'NoneType'>")
+
+
+def _user_error(err: BaseException) -> BaseException | None:
+    """The error of eofnn's own checks behind an error jsonargparse raised while instantiating, if any."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, USER_ERRORS):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
+
+
 def one_line(err: BaseException) -> str:
-    """Collapse jsonargparse's nested messages into one line."""
-    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-    lines = [line for line in lines if not line.startswith("Problem with given class_path")]
-    return ": ".join(lines).replace('Parser key "', "").replace('":', ":")
+    """Collapse jsonargparse's nested messages into one line, each message once."""
+    lines = [line.strip().removeprefix("- ") for line in str(err).splitlines() if line.strip()]
+    lines = [line for line in lines if not line.startswith(_NOISE)]
+    if any(line.strip().startswith(_UNION) for line in str(err).splitlines()):
+        # An optional nested config (X | None): the reason it is not an X is the message, not the union's listing.
+        lines = [line for line in lines if not line.startswith(_UNION_NOISE)]
+    kept: list[str] = []
+    for line in lines:  # jsonargparse repeats a nested error at each level: keep its first statement
+        plain = line.replace('"', "'").replace('Parser key ', "")
+        if not any(plain.split(": ", 1)[-1] in seen.replace('"', "'") for seen in kept):
+            kept.append(line)
+    return ": ".join(kept).replace('Parser key "', "").replace('":', ":").replace("::", ":")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -102,18 +127,33 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"eofnn: warning: {message}", file=sys.stderr)
 
 
-def _config_files(args: list[str]) -> list[str]:
-    return [value for flag, value in zip(args, args[1:], strict=False) if flag == "--config"]
+def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
+    """Check every ``--config`` file before jsonargparse reads it, and add its folder to ``folders`` (put on the
+    Python path while the command runs, so a user's module beside their config (``class_path: my_net.Net``)
+    imports without PYTHONPATH tricks).
+
+    Returns ``args`` with the configs' references to eofnn's own configs resolved (``scenario: realistic.yaml``
+    in a config copied out of ``configs/``; see :func:`~eofnn.cli.configfile.resolve_config_references`).
+    """
+    resolved = list(args)
+    for index, value in enumerate(args):
+        if index > 0 and args[index - 1] == "--config":
+            check_config_file(value)
+            folders.append(str(Path(value).resolve().parent))
+            if args[0] != "sweep":  # sweep's --config is the base of a compare, resolved by the sweep
+                resolved[index] = resolve_config_references(value)
+    return resolved
 
 
-def _prepare_config_files(args: list[str]) -> None:
-    """Check every ``--config`` file before jsonargparse reads it, and put its folder on the Python path, so a
-    user's module beside their config (``class_path: my_net.Net``) imports without PYTHONPATH tricks."""
-    for value in _config_files(args):
-        check_config_file(value)
-        folder = str(Path(value).resolve().parent)
-        if folder not in sys.path:
-            sys.path.insert(0, folder)
+@contextlib.contextmanager
+def _on_python_path(folders: list[str]):
+    """``folders`` first on ``sys.path`` while the command runs, and the path as it was afterwards."""
+    before = list(sys.path)
+    sys.path[:0] = [f for f in dict.fromkeys(folders) if f not in sys.path]
+    try:
+        yield
+    finally:
+        sys.path[:] = before
 
 
 def main(args: list[str] | None = None) -> int:
@@ -129,12 +169,21 @@ def main(args: list[str] | None = None) -> int:
             warnings.filterwarnings("ignore", message=".*does not have many workers.*")
             # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
             warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
-            _prepare_config_files(args)
-            cfg = parser.parse_args(args)
-            command = cfg.command
-            dump = yaml.safe_load(parser.dump(cfg))[command]
-            sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
-            status = COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
+            folders: list[str] = []
+            args = _prepare_config_files(args, folders)
+            with _on_python_path(folders):
+                cfg = parser.parse_args(args)
+                command = cfg.command
+                dump = yaml.safe_load(parser.dump(cfg))[command]
+                sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
+                try:
+                    init = parser.instantiate(cfg)[command]
+                except (ValueError, TypeError) as err:  # a nested config's own check, wrapped by jsonargparse
+                    cause = _user_error(err)
+                    if cause is None:
+                        raise
+                    raise cause from None
+                status = COMMANDS[command].run(init, sub_dump)
     except USER_ERRORS as err:
         print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
         return 2

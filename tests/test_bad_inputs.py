@@ -180,3 +180,14 @@ def test_simulate_never_runs_something_else(capsys, tmp_path, args, expected):
 def test_a_psd_segment_longer_than_the_settled_frames(capsys, tmp_path):
     run_bad(capsys, ["compare", "--config", TINY, "--evaluation.psd_segment_frames", "4096", "--out", tmp_path / "o"],
             "psd_segment_frames=4096", tmp_path / "o")
+
+
+@pytest.mark.parametrize("drift, expected", [
+    ("{start_s: 2, stop_s: 1, to: 2}", "plant.dm_gain_drift.stop_s=1.0 is invalid: it must be at least start_s"),
+    ("{start_s: 0, stop_s: 1e9, to: 2}", "plant.dm_gain_drift.stop_s=1000000000.0 is invalid"),
+    ("{start_s: 0, stop_s: 1, to_gain: 2}", "scenario.plant.dm_gain_drift: Option 'to_gain' is not accepted"),
+])
+def test_a_nested_optional_config_names_its_field_and_rule(tmp_path, capsys, drift, expected):
+    line = run_bad(capsys, ["compare", "--config", TINY, "--scenario.plant.dm_gain_drift", drift,
+                            "--out", tmp_path / "o"], expected, tmp_path / "o")
+    assert "Union subtypes" not in line and "NoneType" not in line
