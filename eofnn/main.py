@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import logging
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate, stability, sweep, telemetry
+from eofnn import __version__
 from eofnn.cli.configfile import check_config_file, resolve_config_references
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
@@ -48,32 +49,53 @@ USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, Json
 
 @dataclass(frozen=True)
 class Command:
-    """One subcommand: its one-line help, its description, how it adds its arguments and how it runs."""
+    """One subcommand: its one-line help, and where its description, arguments and run function live.
+
+    The module is imported only when the subcommand is used, so ``eofnn --help`` and ``eofnn --version`` answer
+    without torch, Lightning or HCIPy (seconds of imports), and ``eofnn sweep --help`` without the others'.
+    """
 
     help: str
-    description: str
-    add_arguments: Callable[[ArgumentParser], None]
-    run: Callable[..., object]
+    module: str
+    description_name: str
+    add_arguments_name: str
+    run_name: str
+
+    def _get(self, name: str):
+        return getattr(importlib.import_module(self.module), name)
+
+    @property
+    def description(self) -> str:
+        return self._get(self.description_name)
+
+    @property
+    def add_arguments(self) -> Callable[[ArgumentParser], None]:
+        return self._get(self.add_arguments_name)
+
+    @property
+    def run(self) -> Callable[..., object]:
+        return self._get(self.run_name)
 
 
 COMMANDS: dict[str, Command] = {
-    "compare": Command("Scenarios x controllers: train, evaluate, report.", compare.COMPARE,
-                       compare.add_compare_arguments, compare.run_compare),
-    "fit": Command("Train one predictor and write a checkpoint.", fit.DESCRIPTION, fit.add_arguments, fit.run),
-    "evaluate": Command("Run saved checkpoints under any plant.", compare.EVALUATE, compare.add_evaluate_arguments,
-                        compare.run_evaluate),
-    "simulate": Command("Simulate one controller and save telemetry.", simulate.DESCRIPTION, simulate.add_arguments,
-                        simulate.run),
-    "stability": Command("Stability margins of a linear predictor in a plant.", stability.DESCRIPTION,
-                         stability.add_arguments, stability.run),
-    "sweep": Command("A grid of compare runs: resumable, local or on Ray.", sweep.DESCRIPTION, sweep.add_arguments,
-                     sweep.run),
-    "identify": Command("Identify the plant from dithered telemetry.", telemetry.IDENTIFY,
-                        telemetry.add_identify_arguments, telemetry.run_identify),
-    "replay": Command("Replay a checkpoint on held-out telemetry.", telemetry.REPLAY, telemetry.add_replay_arguments,
-                      telemetry.run_replay),
-    "export": Command("Export a linear predictor as filter FITS.", telemetry.EXPORT, telemetry.add_export_arguments,
-                      telemetry.run_export),
+    "compare": Command("Scenarios x controllers: train, evaluate, report.", "eofnn.cli.compare", "COMPARE",
+                       "add_compare_arguments", "run_compare"),
+    "fit": Command("Train one predictor and write a checkpoint.", "eofnn.cli.fit", "DESCRIPTION", "add_arguments",
+                   "run"),
+    "evaluate": Command("Run saved checkpoints under any plant.", "eofnn.cli.compare", "EVALUATE",
+                        "add_evaluate_arguments", "run_evaluate"),
+    "simulate": Command("Simulate one controller and save telemetry.", "eofnn.cli.simulate", "DESCRIPTION",
+                        "add_arguments", "run"),
+    "stability": Command("Stability margins of a linear predictor in a plant.", "eofnn.cli.stability", "DESCRIPTION",
+                         "add_arguments", "run"),
+    "sweep": Command("A grid of compare runs: resumable, local or on Ray.", "eofnn.cli.sweep", "DESCRIPTION",
+                     "add_arguments", "run"),
+    "identify": Command("Identify the plant from dithered telemetry.", "eofnn.cli.telemetry", "IDENTIFY",
+                        "add_identify_arguments", "run_identify"),
+    "replay": Command("Replay a checkpoint on held-out telemetry.", "eofnn.cli.telemetry", "REPLAY",
+                      "add_replay_arguments", "run_replay"),
+    "export": Command("Export a linear predictor as filter FITS.", "eofnn.cli.telemetry", "EXPORT",
+                      "add_export_arguments", "run_export"),
 }
 
 
@@ -81,12 +103,19 @@ class _HelpFormatter(DefaultHelpFormatter, argparse.RawDescriptionHelpFormatter)
     """Keeps the examples in the descriptions laid out as written."""
 
 
-def build_parser() -> ArgumentParser:
+def build_parser(commands: Iterable[str] | None = None) -> ArgumentParser:
+    """The ``eofnn`` parser; only the subcommands in ``commands`` (default: all) get their arguments (and import
+    their modules): the others are listed with their one-line help, enough for ``eofnn --help``."""
+    full = set(COMMANDS if commands is None else commands)
     parser = ArgumentParser(prog="eofnn", description=DESCRIPTION, exit_on_error=False, formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"eofnn {__version__}", help="Print the version and exit.")
     sub = parser.add_subcommands(dest="command")
     for name, command in COMMANDS.items():
-        child = ArgumentParser(description=command.description, exit_on_error=False)
-        command.add_arguments(child)
+        if name in full:
+            child = ArgumentParser(description=command.description, exit_on_error=False)
+            command.add_arguments(child)
+        else:
+            child = ArgumentParser(description=command.help, exit_on_error=False)
         sub.add_subcommand(name, child, help=command.help)
     return parser
 
@@ -161,7 +190,8 @@ def main(args: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if args is None else args)
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    parser = build_parser()
+    # Only the subcommand asked for is built (and imported): ``eofnn --help`` lists them all without importing any.
+    parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning

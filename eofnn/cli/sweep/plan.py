@@ -43,7 +43,7 @@ def _compare_parser():
     # Imported here: eofnn.main registers the sweep subcommand, so it imports this package first.
     from eofnn.main import build_parser
 
-    return build_parser()
+    return build_parser(["compare"])
 
 
 def one_line(err: BaseException) -> str:
