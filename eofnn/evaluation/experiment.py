@@ -26,7 +26,7 @@ from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor
-from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry
+from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry, telemetry_sequences
 
 
 def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: str | Path | None = None,
@@ -152,9 +152,10 @@ class Experiment:
                     scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
                                                          f"{cfg.data.frames} (the gain scan)")
                 elif cfg.trains and not cfg.data.truth:
-                    n = cfg.data.frames + cfg.data.val_frames
-                    scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
-                                                         f"(data.frames + data.val_frames = {n})")
+                    n_sequences, n, _ = telemetry_sequences(cfg.data)
+                    scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training ({n_sequences} "
+                                                         f"sequence(s) of {n} frames, data.sequence_frames="
+                                                         f"{cfg.data.sequence_frames})")
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""

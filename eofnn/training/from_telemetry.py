@@ -155,6 +155,20 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
                         checkpoint_path, info)
 
 
+def telemetry_sequences(data: DataConfig) -> tuple[int, int, int]:
+    """``(sequences, frames per sequence, validation frames per sequence)`` of telemetry recorded for training.
+
+    Like the simulator-truth streams, telemetry longer than ``data.sequence_frames`` is recorded as several
+    independent sequences (an observatory's separate telemetry runs, each on its own turbulence realisation): one
+    turbulence screen need not hold ``frames + val_frames``, and each sequence holds out its own last
+    ``ceil(val_frames / sequences)`` frames. Up to ``data.sequence_frames``, one sequence, as before.
+    """
+    total = data.frames + data.val_frames
+    n_sequences = max(1, -(-total // data.sequence_frames))
+    val_frames = -(-data.val_frames // n_sequences)
+    return n_sequences, -(-data.frames // n_sequences) + val_frames, val_frames
+
+
 def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", history_length: int = 4,
                                 network: dict | None = None, *, data: DataConfig | None = None,
                                 optimization: OptimizationConfig | None = None,
@@ -164,9 +178,11 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
 
     The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
     does not learn from simulator truth): ``data.frames + data.val_frames`` frames per realisation are recorded
-    with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white dither in the scenario's plant;
+    (in independent sequences of at most ``data.sequence_frames``, as the simulator-truth path streams them; see
+    :func:`telemetry_sequences`) with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white dither in the scenario's plant;
     the plant is identified from that dither, and the predictor is fitted from ``y`` and ``wfs`` alone, the last
-    ``data.val_frames`` frames held out for validation. The learner never sees ``s`` or the plant.
+    ``data.val_frames`` frames (split evenly over the sequences) held out for validation. The learner never sees
+    ``s`` or the plant.
     """
     data = data or DataConfig()
     spec = HistorySpec.from_scenario(history, history_length, scenario)
@@ -174,18 +190,18 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
         raise ConfigError(f"data.dither_nm={data.dither_nm!r} is invalid for telemetry training: the plant is "
                           "identified from the dither, so it must be > 0 (nm)")
     recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
-    n_frames = data.frames + data.val_frames
-    scenario.require_stream_frames(n_frames, f"telemetry training (data.frames + data.val_frames = {n_frames})")
-    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", data.realisations), scenario.plant, recorder,
-                      n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"), record=("y", "wfs"),
-                      progress=progress)
+    n_sequences, n_frames, val_frames = telemetry_sequences(data)
+    scenario.require_stream_frames(n_frames, f"telemetry training ({n_sequences} sequence(s) of {n_frames} frames)")
+    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", n_sequences * data.realisations),
+                      scenario.plant, recorder, n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"),
+                      record=("y", "wfs"), progress=progress)
     if result.diverged:
         raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame} in the scenario's "
                             "plant: lower data.integrator_gain or data.dither_nm")
     plant = identify_plant(result.telemetry)
     plant.require_identified()
     return fit_from_telemetry(result.telemetry, spec, network, plant=plant, optimization=optimization,
-                              batch_frames=data.batch_frames, val_frames=data.val_frames, seed=data.seed,
+                              batch_frames=data.batch_frames, val_frames=val_frames, seed=data.seed,
                               checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress,
                               info={"scenario": scenario.to_dict(), "data": asdict(data),
                                     "identified_plant": plant.model_errors()})
