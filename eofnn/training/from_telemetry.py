@@ -179,8 +179,9 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
     The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
     does not learn from simulator truth): ``data.frames + data.val_frames`` frames per realisation are recorded
     (in independent sequences of at most ``data.sequence_frames``, as the simulator-truth path streams them; see
-    :func:`telemetry_sequences`) with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white dither in the scenario's plant;
-    the plant is identified from that dither, and the predictor is fitted from ``y`` and ``wfs`` alone, the last
+    :func:`telemetry_sequences`) with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white
+    dither in the scenario's plant; the plant is identified from that dither, and the predictor is fitted from
+    ``y`` and ``wfs`` alone, the last
     ``data.val_frames`` frames (split evenly over the sequences) held out for validation. The learner never sees
     ``s`` or the plant.
     """
