@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import importlib
 import logging
+import re
 import sys
 import warnings
 from collections.abc import Callable, Iterable
@@ -99,8 +100,31 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+_ROLE = re.compile(r":(?:class|func|meth|mod|attr|data|obj|exc|ref):`~?([^`]+)`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def plain_text(text: str) -> str:
+    """Help text without Sphinx markup: ``:class:`~a.b.C``` -> ``C``, ````x```` -> ``x``."""
+    def role(match: re.Match) -> str:
+        target = match.group(1)
+        return target.rsplit(".", 1)[-1] if match.group(0).split("`")[1].startswith("~") else target
+
+    return _LITERAL.sub(r"\1", _ROLE.sub(role, text))
+
+
 class _HelpFormatter(DefaultHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Keeps the examples in the descriptions laid out as written."""
+    """Keeps the examples in the descriptions laid out as written; help texts taken from docstrings lose their
+    Sphinx markup (``:class:``, double back-ticks), which a terminal shows raw."""
+
+    def _expand_help(self, action) -> str:
+        return plain_text(super()._expand_help(action))
+
+    def _format_text(self, text: str) -> str:
+        return super()._format_text(plain_text(text))
+
+    def start_section(self, heading) -> None:
+        super().start_section(plain_text(heading) if heading else heading)
 
 
 def build_parser(commands: Iterable[str] | None = None) -> ArgumentParser:
@@ -112,10 +136,11 @@ def build_parser(commands: Iterable[str] | None = None) -> ArgumentParser:
     sub = parser.add_subcommands(dest="command")
     for name, command in COMMANDS.items():
         if name in full:
-            child = ArgumentParser(description=command.description, exit_on_error=False)
+            child = ArgumentParser(description=command.description, exit_on_error=False,
+                                   formatter_class=_HelpFormatter)
             command.add_arguments(child)
         else:
-            child = ArgumentParser(description=command.help, exit_on_error=False)
+            child = ArgumentParser(description=command.help, exit_on_error=False, formatter_class=_HelpFormatter)
         sub.add_subcommand(name, child, help=command.help)
     return parser
 

@@ -47,3 +47,48 @@ def test_version_prints_the_package_version():
     proc = subprocess.run([sys.executable, "-m", "eofnn.main", "--version"], cwd=ROOT, capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == f"eofnn {eofnn.__version__}"
+
+
+@pytest.fixture(scope="module")
+def fit_help() -> str:
+    from eofnn.main import build_parser
+
+    return build_parser(["fit"])._subcommands_action.choices["fit"].format_help()
+
+
+def option_help(text: str, option: str) -> str:
+    """The help paragraph of one option in a ``--help`` text, on one line."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.strip().startswith(option + " "))
+    body = []
+    for line in lines[start + 1:]:
+        if line.strip().startswith("--") or not line.startswith(" " * 8):
+            break
+        body.append(line.strip())
+    return " ".join(body)
+
+
+def test_controller_help_lists_every_registered_controller(fit_help):
+    from eofnn.control.registry import controller_names
+
+    text = option_help(fit_help, "--predictor.controller")
+    assert all(name in text for name in controller_names()), text
+    assert "dithered_integrator" in text
+
+
+def test_units_and_values_are_in_the_help(fit_help):
+    from eofnn.sim.turbulence import MODELS
+
+    assert "actuator pitches" in option_help(fit_help, "--scenario.plant.misregistration_x")
+    assert "actuator pitches" in option_help(fit_help, "--scenario.plant.misregistration_y")
+    model = option_help(fit_help, "--scenario.atmosphere.model")
+    assert all(name in model for name in MODELS), model
+
+
+def test_help_shows_no_sphinx_markup(fit_help):
+    from eofnn.main import plain_text
+
+    assert plain_text("a :class:`~eofnn.sim.disturbances.Vibration` or :mod:`eofnn.sim.changes`, ``x``") == (
+        "a Vibration or eofnn.sim.changes, x")
+    for markup in (":class:", ":mod:", ":attr:", ":func:", "``"):
+        assert markup not in fit_help, markup
