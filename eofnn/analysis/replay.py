@@ -44,10 +44,12 @@ class ErrorStats:
 
     median_rms_nm: float
     mean_rms_nm: float
-    median_rms_noise_corrected_nm: float
+    median_rms_noise_corrected_nm: float | None
     rms_nm: list[float] = field(repr=False)
     map_rms_nm: list[float] = field(repr=False)
     psd_nm2_per_hz: list[float] = field(repr=False)
+    #: What the noise-corrected value is, or why it could not be estimated (then it is ``None``).
+    noise_correction: str = ""
 
 
 @dataclass
@@ -65,7 +67,7 @@ class ReplayResult:
 
     def summary(self) -> dict:
         """The JSON-ready scalars."""
-        pick = ("median_rms_nm", "mean_rms_nm", "median_rms_noise_corrected_nm")
+        pick = ("median_rms_nm", "mean_rms_nm", "median_rms_noise_corrected_nm", "noise_correction")
         return {"predictor": {k: getattr(self.predictor, k) for k in pick},
                 "own_controller": {k: getattr(self.own_controller, k) for k in pick},
                 "noise_nm": self.noise_nm, "n_frames": self.n_frames, "plant": self.plant}
@@ -80,11 +82,20 @@ class ReplayResult:
 def _stats(error: list[torch.Tensor], noise_nm: float, psd: WelchPSD) -> ErrorStats:
     rms = torch.cat([e.pow(2).mean(-1) for e in error]).sqrt()
     per_actuator = torch.cat(error).pow(2).mean(0).sqrt()
-    corrected = (rms.pow(2) - noise_nm ** 2).clamp(min=0).sqrt()
+    median = float(rms.median())
+    if noise_nm <= 0:
+        corrected, note = median, "no WFS noise estimate (plant not identified): equal to the raw median RMS"
+    elif median <= noise_nm:
+        # Removing more noise than the error holds would print 0 nm, which no predictor reaches: say so instead.
+        corrected, note = None, (f"cannot be estimated: the median RMS ({median:.3g} nm) is within the WFS noise "
+                                 f"({noise_nm:.3g} nm) that the POL values carry")
+    else:
+        corrected = float((rms.pow(2) - noise_nm ** 2).clamp(min=0).sqrt().median())
+        note = f"median RMS with {noise_nm:.3g} nm of WFS noise removed in quadrature"
     for e in error:
         psd(0, {"eps": e.unsqueeze(0)})
-    return ErrorStats(float(rms.median()), float(rms.mean()), float(corrected.median()), rms.tolist(),
-                      per_actuator.tolist(), psd.result()[1])
+    return ErrorStats(median, float(rms.mean()), corrected, rms.tolist(), per_actuator.tolist(), psd.result()[1],
+                      note)
 
 
 @torch.no_grad()

@@ -50,7 +50,8 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
         experiment.checkpoint_dir = staging / "checkpoints"
         (staging / "config.yaml").write_text(config_dump)
         result = experiment.run()
-        write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference)
+        write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference,
+                     cfg.evaluation.strehl_wavelength_m)
         if grid:
             robustness = robustness_map(experiment, grid)
             (staging / "robustness.json").write_text(robustness.to_json())

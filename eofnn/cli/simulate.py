@@ -73,4 +73,5 @@ def run(cfg, config_dump: str) -> None:
         telemetry.save(partial, overwrite=True, dtype=cfg.dtype)
     with staged_file(plot, cfg.overwrite) as partial:
         plot_rms_vs_time(ExperimentResult({"scenario": {p.controller: metrics}}), scenario.frame_rate_hz, partial)
-    log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary()}))
+    log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary(),
+                    "strehl_wavelength_m": EvaluationConfig().strehl_wavelength_m}))

@@ -269,12 +269,16 @@ class Experiment:
 
 
 def _describe(m: LoopMetrics, margins: dict | None) -> str:
-    """One progress line: the median RMS (or where it diverged) and, for a linear controller, its DM gain margin."""
+    """One progress line: the median RMS (or where it diverged) and, for a linear controller, its DM gain margin.
+
+    The margins come from the linear loop model (DM gain, delay, misregistration; no saturation or other
+    nonlinearity): the line says "linear analysis", so a nonlinear plant diverging where it says stable reads right.
+    """
     text = f"median RMS {'diverged at frame ' + str(m.diverged_frame) if m.diverged else f'{m.median_rms_nm:.4g} nm'}"
     if margins is None:
         return text
     low, high = margins["dm_gain_interval"]
-    text += "; analytic: " + ("stable" if margins["stable"] else "unstable")
+    text += "; linear analysis: " + ("stable" if margins["stable"] else "unstable")
     if margins["stable"] and low is not None and high is not None:
         text += f" for DM gain {max(low, 0.0) + 0.0:.3g} to {high:.3g}"
     return text

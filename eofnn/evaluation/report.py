@@ -19,14 +19,20 @@ def _cell(m) -> str:
     return f"{m.median_rms_nm:.3g}"
 
 
-def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, float]] | None = None) -> str:
+def strehl_label(wavelength_m: float | None) -> str:
+    """``Strehl at 1.65 um``: a Strehl ratio means nothing without its wavelength."""
+    return "Strehl" if wavelength_m is None else f"Strehl at {wavelength_m * 1e6:.3g} um"
+
+
+def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, float]] | None = None,
+                   strehl_wavelength_m: float | None = None) -> str:
     """Median RMS (nm) per predictor (rows) and scenario (columns); ``reference`` adds the study's numbers."""
     scenarios = list(result.metrics)
     predictors = list(next(iter(result.metrics.values())))
     header = ["predictor"] + [f"{s} median RMS (nm)" for s in scenarios]
     if reference:
         header += [f"{s} study (nm)" for s in scenarios]
-    header += [f"{s} p95 (nm)" for s in scenarios] + [f"{s} Strehl" for s in scenarios]
+    header += [f"{s} p95 (nm)" for s in scenarios] + [f"{s} {strehl_label(strehl_wavelength_m)}" for s in scenarios]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for p in predictors:
         row = [p] + [_cell(result.metrics[s][p]) for s in scenarios]
@@ -167,10 +173,12 @@ def _gains(result: ExperimentResult) -> str:
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
-                 reference: dict[str, dict[str, float]] | None = None) -> list[Path]:
+                 reference: dict[str, dict[str, float]] | None = None,
+                 strehl_wavelength_m: float | None = None) -> list[Path]:
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
-    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _gains(result)
+    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference, strehl_wavelength_m)
+                     + _gains(result)
                      + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
