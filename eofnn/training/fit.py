@@ -29,7 +29,7 @@ from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.ridge import fit_closed_form, supports_closed_form
-from eofnn.training.task import OptimizationConfig, PredictorTask
+from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
 
 DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
 
@@ -140,7 +140,8 @@ def fit_predictor(
     # Network initialisation and SGD draw from torch's global generator: seed it, so a fit is reproducible.
     L.seed_everything(data.seed, workers=True, verbose=False)
     info = {"scenario": scenario.to_dict(), "data": asdict(data)}
-    task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid, asdict(optimization), info)
+    task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid,
+                         resolve_normalize(network_config, asdict(optimization)), info)
     net = task.network
     if optimization.fit_method == "closed_form" and not supports_closed_form(net):
         raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {type(net).__name__} has no "
@@ -168,12 +169,14 @@ def fit_predictor(
             # Lightning answers Ctrl-C inside fit/validate with its own shutdown and sys.exit(1): it is an interruption.
             raise KeyboardInterrupt from None
         rounds.append({"round": round_index, **metrics})
+    last = rounds[-1]
+    sgd = optimization.fit_method != "closed_form"
+    check_fit(task, last.get("train_loss"), last.get("val_loss"), datamodule.val_dataloader() if sgd else None)
     net.eval()
     predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info)
     if checkpoint_path is not None:
         with staged_file(checkpoint_path, overwrite) as partial:
             trainer.save_checkpoint(partial)
-    last = rounds[-1]
     return FitResult(predictor, last.get("train_loss"), last.get("val_loss"), rounds, checkpoint_path)
 
 

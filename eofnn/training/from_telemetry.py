@@ -32,7 +32,7 @@ from eofnn.sim.telemetry import Telemetry
 from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, make_trainer
 from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.training.ridge import fit_closed_form
-from eofnn.training.task import OptimizationConfig, PredictorTask
+from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
 
 
 @dataclass
@@ -129,7 +129,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
             "n_sequences": len(sequences), **(info or {})}
     L.seed_everything(seed, workers=True, verbose=False)
-    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict, asdict(optimization), info)
+    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict,
+                         resolve_normalize(network or DEFAULT_NETWORK, asdict(optimization)), info)
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
                            stop=train_stop + val_frames) if val_frames else None
@@ -146,6 +147,9 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
                     val_dataloaders=DataLoader(val, batch_size=None) if val is not None else None)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
         train_loss, val_loss = metrics.get("train_loss"), metrics.get("val_loss")
+    sgd = optimization.fit_method != "closed_form"
+    check_fit(task, train_loss, None if val_loss is None else float(val_loss),
+              DataLoader(val, batch_size=None) if sgd and val is not None else None)
     network_config = task.hparams.network
     predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info)
     if checkpoint_path is not None:
