@@ -191,3 +191,36 @@ def test_a_nested_optional_config_names_its_field_and_rule(tmp_path, capsys, dri
     line = run_bad(capsys, ["compare", "--config", TINY, "--scenario.plant.dm_gain_drift", drift,
                             "--out", tmp_path / "o"], expected, tmp_path / "o")
     assert "Union subtypes" not in line and "NoneType" not in line
+
+
+def test_overwrite_keeps_the_files_eofnn_did_not_write(tmp_path, capsys):
+    import warnings
+
+    from eofnn.outputs import MANIFEST, staged_folder
+
+    out = tmp_path / "results"
+    with staged_folder(out) as folder:
+        (folder / "metrics.json").write_text("old")
+        (folder / "old_figure.png").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    (out / "mine").mkdir()
+    (out / "mine" / "data.csv").write_text("mine too")
+    with warnings.catch_warnings(record=True) as caught, staged_folder(out, overwrite=True) as folder:
+        warnings.simplefilter("always")
+        (folder / "metrics.json").write_text("new")
+    assert (out / "notes.txt").read_text() == "mine" and (out / "mine" / "data.csv").read_text() == "mine too"
+    assert (out / "metrics.json").read_text() == "new" and not (out / "old_figure.png").exists()  # eofnn's: replaced
+    assert "kept 2 file(s)" in str(caught[-1].message) and "notes.txt" in str(caught[-1].message)
+    assert (out / MANIFEST).read_text().split() == ["metrics.json"]
+
+
+def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_does_not_replace(tmp_path):
+    from eofnn.outputs import staged_folder
+
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "metrics.json").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    with staged_folder(out, overwrite=True) as folder:
+        (folder / "metrics.json").write_text("new")
+    assert (out / "notes.txt").read_text() == "mine" and (out / "metrics.json").read_text() == "new"

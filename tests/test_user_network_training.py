@@ -3,8 +3,6 @@ predictors, and one line naming it when it misbehaves (wrong shape, raising, no 
 
 from __future__ import annotations
 
-import warnings
-
 import pytest
 
 from eofnn.data.stream import DataConfig

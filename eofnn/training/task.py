@@ -217,7 +217,8 @@ def check_fit(task: PredictorTask, train_loss: float | None, val_loss: float | N
     trivial = trivial_losses(val_batches, task.spec.kind)
     if trivial and val_loss >= min(trivial.values()):
         others = ", ".join(f"{k} {v:.4g}" for k, v in trivial.items())
-        hint = "" if task.hparams.optimization.get("normalize") else "optimization.normalize: true, "
+        own = resolve_class_path(name) in OWN_NETWORKS if name != "None" else True
+        hint = "" if own or task.hparams.optimization.get("normalize") else "optimization.normalize: true, "
         warnings.warn(f"network {name} does not beat the trivial predictors on validation data (loss {val_loss:.4g} "
                       f"nm^2; {others} nm^2): it learnt nothing useful; try {hint}more epochs or another lr",
                       stacklevel=2)
