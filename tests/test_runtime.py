@@ -126,3 +126,15 @@ def test_bad_filters(small_scenario, tmp_path):
     runtime = PredictiveFilter.from_file(path)
     with pytest.raises(ValueError, match="shape"):
         runtime.step(np.zeros(3))
+
+
+@pytest.mark.parametrize("args, message", [
+    (([[1.0]], [("pol", 10**9)], 2), "lag 1000000000) is invalid: lags are at most 10000"),
+    (([[np.nan, np.nan]], [("pol", 2), ("pol", 3)], 2), "2 non-finite value(s)"),
+    (([[1.0]], [("pol", 2)], 2, -1.0), "dm_gain_model=-1.0 is invalid"),
+    ((np.ones((2, 2, 1)), [("pol", 2)], 2, 1.0, [[0, 1], [1, 7]]), "NEIGHBOURS holds actuator indices from 0 to 7"),
+])
+def test_filters_that_cannot_run_are_refused_before_anything_is_allocated(args, message):
+    with pytest.raises(FilterFileError) as info:
+        PredictiveFilter(*args)
+    assert message in str(info.value)
