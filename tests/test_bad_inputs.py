@@ -224,3 +224,16 @@ def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_d
     with staged_folder(out, overwrite=True) as folder:
         (folder / "metrics.json").write_text("new")
     assert (out / "notes.txt").read_text() == "mine" and (out / "metrics.json").read_text() == "new"
+
+
+@pytest.mark.parametrize("override, expected", [
+    (["--scenario.plant.dm_gain_drift", "{start_s: 100, stop_s: 101, to: 2}"],
+     "plant.dm_gain_drift starts at 100 s (frame 100000), after the run of"),
+    (["--scenario.atmosphere.changes", "[{at_s: 50, layer: 0, wind_speed_mps: 20}]"],
+     "atmosphere.changes[0] starts at 50 s"),
+    (["--scenario.vibrations", "[{mode: tip, frequency_hz: 40, amplitude_nm: 1e300}]"], "amplitude_nm=1e+300"),
+    (["--scenario.plant.misregistration_x", "9.5", "--scenario.grid.n_across", "8"],
+     "plant.misregistration_x=9.5 is invalid: it shifts the DM by more than the grid's 8 actuators across"),
+])
+def test_values_that_cannot_mean_what_they_say(tmp_path, capsys, override, expected):
+    run_bad(capsys, ["compare", "--config", TINY, *override, "--out", tmp_path / "o"], expected, tmp_path / "o")

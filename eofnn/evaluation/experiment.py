@@ -18,7 +18,7 @@ from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import LoopMetrics, WelchPSD, loop_metrics
-from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
+from eofnn.evaluation.nonstationary import reconvergence, require_changes_within, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import require_memory, require_time
 from eofnn.seeding import int_seed
@@ -145,8 +145,9 @@ class Experiment:
         require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
                      f"{n_act} actuators)", allow_long)
         # Streams the exact turbulence screen must hold (training sequences are checked with their memory).
-        for scenario_value in self.scenarios.values():
+        for scenario_name, scenario_value in self.scenarios.items():
             scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}")
+            require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
             for name, cfg in self.predictors.items():
                 if cfg.gains is not None:
                     scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
