@@ -237,3 +237,14 @@ def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_d
 ])
 def test_values_that_cannot_mean_what_they_say(tmp_path, capsys, override, expected):
     run_bad(capsys, ["compare", "--config", TINY, *override, "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+def test_a_neighbourhood_table_is_counted_before_it_is_built():
+    from eofnn.errors import ConfigError
+    from eofnn.sim.grid import ActuatorGrid
+
+    assert ActuatorGrid(2.0, 10).neighbours(1.5).shape[1] == 9  # the count matches the table
+    assert ActuatorGrid(2.0, 10).neighbours(2.0).shape[1] == 13
+    with pytest.raises(ConfigError, match=r"a neighbourhood of radius 64 pitches \(12869 actuators each\) on \d+ "
+                                          r"actuators needs about"):
+        ActuatorGrid(8.0, 512).neighbours(64)

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from eofnn.errors import ConfigError, TelemetryError
+from eofnn.resources import require_memory
 from eofnn.validation import Constraint, Interval, check_value, validated
 
 #: Largest grid accepted: 512 x 512 actuators already needs ~1.6 GB per 1000 float64 frames of telemetry.
@@ -123,6 +124,12 @@ class ActuatorGrid:
         """
         check_value("neighbourhood radius", radius, Interval(0, self.n_across, unit="pitches"))
         r = int(np.floor(radius))
+        # Count before building: the table is n_actuators x (about pi r^2) indices, and the filter's weights and
+        # gathered histories are that times the taps.
+        n_offsets = sum(2 * int(np.floor(np.sqrt(max(radius * radius + 1e-9 - dr * dr, 0.0)))) + 1
+                        for dr in range(-r, r + 1))
+        require_memory(8.0 * self.n_actuators * n_offsets * 4, f"a neighbourhood of radius {radius:g} pitches "
+                       f"({n_offsets} actuators each) on {self.n_actuators} actuators")
         offsets = [
             (dr, dc)
             for dr in range(-r, r + 1)
