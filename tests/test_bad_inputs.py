@@ -245,6 +245,6 @@ def test_a_neighbourhood_table_is_counted_before_it_is_built():
 
     assert ActuatorGrid(2.0, 10).neighbours(1.5).shape[1] == 9  # the count matches the table
     assert ActuatorGrid(2.0, 10).neighbours(2.0).shape[1] == 13
-    with pytest.raises(ConfigError, match=r"a neighbourhood of radius 64 pitches \(12869 actuators each\) on \d+ "
+    with pytest.raises(ConfigError, match=r"a neighbourhood of radius 64 pitches \(12853 actuators each\) on \d+ "
                                           r"actuators needs about"):
         ActuatorGrid(8.0, 512).neighbours(64)
