@@ -90,13 +90,28 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
     """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
 
     def draw(ax, preds, styles):
+        # The y range follows the loops that held: a diverged one is drawn until it diverged, clipped at the top,
+        # and marked where it diverged (an X, or a triangle at the top edge when that point is off the scale).
+        held = [np.asarray(m.rms_nm, dtype=float) for m in preds.values() if not m.diverged and len(m.rms_nm)]
+        finite = np.concatenate([r[np.isfinite(r)] for r in held]) if held else np.array([])
+        top = 10 * finite.max() if finite.size else None
         for name, m in preds.items():
-            rms = np.asarray(m.rms_nm)
+            rms = np.asarray(m.rms_nm, dtype=float)
             if rms.size == 0:
                 continue
+            if m.diverged and m.diverged_frame is not None:
+                rms = rms[:max(1, min(m.diverged_frame + 1, rms.size))]
             t = np.arange(rms.size) / frame_rate_hz
-            label = name + (f" (diverged at {m.diverged_frame / frame_rate_hz:.3g} s)" if m.diverged else "")
-            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label, **styles[name])
+            label = name + (f" (diverged at {m.diverged_frame / frame_rate_hz:.3g} s, marked)" if m.diverged else "")
+            shown = np.maximum(np.nan_to_num(rms, nan=np.inf, posinf=np.inf), 1e-6)
+            ax.semilogy(t, shown, lw=0.8, label=label, **styles[name])
+            if m.diverged:
+                last = shown[np.isfinite(shown)][-1] if np.isfinite(shown).any() else np.inf
+                off_scale = top is not None and last > top
+                ax.plot(t[-1], top / 1.3 if off_scale else last, marker="^" if off_scale else "X", ms=9,
+                        color=styles[name]["color"], markeredgecolor="k", linestyle="none", zorder=5)
+        if top is not None:
+            ax.set_ylim(top=top)
         settle_s = next(iter(preds.values())).settle_frames / frame_rate_hz
         if settle_s > 0:
             ax.axvspan(0, settle_s, color="0.9", zorder=0, label="settling (not in the statistics)")
