@@ -167,18 +167,30 @@ def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | N
 
     panels = 3 if grid is not None else 2
     fig, axes = plt.subplots(1, panels, figsize=(5 * panels, 4))
-    for stats, label in ((result.predictor, "predictor"), (result.own_controller, "telemetry's controller")):
-        axes[0].plot(stats.rms_nm, lw=0.6, label=f"{label} (median {stats.median_rms_nm:.3g} nm)")
+    curves = ((result.predictor, "predictor", "-"), (result.own_controller, "telemetry's controller", "--"))
+    for stats, label, style in curves:  # distinct styles: the two may lie on top of each other
+        axes[0].plot(stats.rms_nm, style, lw=0.6, label=f"{label} (median {stats.median_rms_nm:.3g} nm)")
         if stats.psd_nm2_per_hz:
-            axes[1].loglog(result.psd_freq_hz[1:], stats.psd_nm2_per_hz[1:], label=label)
+            axes[1].loglog(result.psd_freq_hz[1:], stats.psd_nm2_per_hz[1:], style, label=label)
     axes[0].set(xlabel="replayed frame", ylabel="RMS error (nm)", title="prediction error per frame")
     axes[1].set(xlabel="frequency (Hz)", ylabel="PSD (nm²/Hz)", title="temporal PSD")
     for ax in axes[:2]:
         ax.legend(fontsize=8)
     if grid is not None:
-        image = grid.to_map(torch.tensor(result.predictor.map_rms_nm)).numpy()
-        shown = axes[2].imshow(image, origin="lower")
-        fig.colorbar(shown, ax=axes[2], label="RMS error (nm)")
+        values = torch.tensor(result.predictor.map_rms_nm, dtype=torch.float64)
+        image = grid.to_map(values).numpy()
+        # A robust colour range: a few edge actuators (extruded columns, rims) would otherwise swamp the scale.
+        # From the 1st percentile to the 99th, or to median + 6 MAD (sigma-equivalent) when that is lower.
+        finite = values[values.isfinite()]
+        low, high = (float(q) for q in torch.quantile(finite, torch.tensor([0.01, 0.99], dtype=torch.float64)))
+        median = float(finite.median())
+        spread = 1.4826 * float((finite - median).abs().median())
+        if spread > 0:
+            high = min(high, median + 6 * spread)
+        shown = axes[2].imshow(image, origin="lower", vmin=low, vmax=max(high, low + 1e-12))
+        above = int((finite > high).sum())
+        fig.colorbar(shown, ax=axes[2], extend="max" if above else "neither",
+                     label=f"RMS error (nm); robust colour range\n({above} actuators above {high:.3g} nm)")
         axes[2].set(title="predictor error per actuator", xlabel="x (actuators)", ylabel="y (actuators)")
     fig.tight_layout()
     path = Path(path)
