@@ -248,3 +248,32 @@ def test_a_neighbourhood_table_is_counted_before_it_is_built():
     with pytest.raises(ConfigError, match=r"a neighbourhood of radius 64 pitches \(12853 actuators each\) on \d+ "
                                           r"actuators needs about"):
         ActuatorGrid(8.0, 512).neighbours(64)
+
+
+def test_positions_at_one_point_or_repeated_are_one_line():
+    import numpy as np
+
+    from eofnn.errors import TelemetryError
+    from eofnn.sim.grid import ActuatorGrid
+
+    with pytest.raises(TelemetryError, match="all lie at one point"):
+        ActuatorGrid.from_positions(np.zeros((10, 2)))
+    positions = np.array(ActuatorGrid(2.0, 10).positions_m)
+    positions[1] = positions[0]
+    with pytest.raises(TelemetryError, match="repeat"):
+        ActuatorGrid.from_positions(positions)
+
+
+def test_all_zero_telemetry_is_refused_before_a_fit(tmp_path):
+    import torch
+
+    from eofnn.data.history import HistorySpec
+    from eofnn.errors import TelemetryError
+    from eofnn.sim.telemetry import Telemetry
+    from eofnn.training.from_telemetry import fit_from_telemetry
+
+    zeros = torch.zeros(500, 80, dtype=torch.float64)
+    telemetry = Telemetry(y=zeros, wfs=zeros.clone(), delay_frames=2)
+    with pytest.raises(TelemetryError, match="telemetry holds no signal"):
+        fit_from_telemetry(telemetry, HistorySpec("open_loop", 3, 2), checkpoint_path=tmp_path / "z.ckpt")
+    assert not (tmp_path / "z.ckpt").exists()

@@ -64,8 +64,16 @@ class ActuatorGrid:
         pos = np.asarray(positions_m, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) < 4:
             raise TelemetryError(f"actuator positions have shape {pos.shape}: expected (actuators >= 4, 2) in metres")
+        if not np.isfinite(pos).all():
+            raise TelemetryError("actuator positions hold non-finite values (NaN or inf)")
         gaps = np.abs(pos[:, None, :] - pos[None, :, :]).max(-1)
-        pitch = float(gaps[gaps > 0].min())
+        np.fill_diagonal(gaps, np.inf)
+        if not (gaps > 0).all():
+            same = int((gaps == 0).any(1).sum())
+            where = "all lie at one point" if np.isinf(gaps).all() or same == len(pos) else f"repeat ({same} share a place)"
+            raise TelemetryError(f"actuator positions ({len(pos)} actuators) {where}: each actuator needs a place of "
+                                 "its own on the grid")
+        pitch = float(gaps.min())
         centre = (pos.max(0) + pos.min(0)) / 2
         n_across = int(round(float((pos.max(0) - pos.min(0)).max()) / pitch)) + 1
         radius = np.hypot(*(pos - centre).T)
