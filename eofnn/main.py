@@ -215,9 +215,10 @@ def main(args: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if args is None else args)
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    # Only the subcommand asked for is built (and imported): ``eofnn --help`` lists them all without importing any.
-    parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
     try:
+        # Only the subcommand asked for is built (and imported: seconds, inside the Ctrl-C handling below);
+        # ``eofnn --help`` lists them all without importing any.
+        parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
