@@ -138,3 +138,16 @@ def test_filters_that_cannot_run_are_refused_before_anything_is_allocated(args, 
     with pytest.raises(FilterFileError) as info:
         PredictiveFilter(*args)
     assert message in str(info.value)
+
+
+def test_a_filter_that_cannot_run_is_not_exported(small_scenario, tmp_path):
+    spec = HistorySpec("open_loop", 2, 2)
+    net = random_filter(small_scenario.grid, spec, "per_actuator")
+    with torch.no_grad():
+        net.weight.fill_(float("nan"))
+    with pytest.raises(ConfigError, match="non-finite coefficient"):
+        export_filter(net, spec, tmp_path / "nan.fits")
+    with pytest.raises(ConfigError, match="dm_gain_model=-1.0 is invalid"):
+        export_filter(random_filter(small_scenario.grid, spec, "per_actuator"), spec, tmp_path / "g.fits",
+                      dm_gain_model=-1.0)
+    assert not list(tmp_path.glob("*.fits"))
