@@ -221,7 +221,7 @@ def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_d
     out.mkdir()
     (out / "metrics.json").write_text("old")
     (out / "notes.txt").write_text("mine")
-    with staged_folder(out, overwrite=True) as folder:
+    with pytest.warns(UserWarning, match=r"kept 1 file\(s\) .*: notes.txt"), staged_folder(out, overwrite=True) as folder:
         (folder / "metrics.json").write_text("new")
     assert (out / "notes.txt").read_text() == "mine" and (out / "metrics.json").read_text() == "new"
 
