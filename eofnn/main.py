@@ -9,10 +9,13 @@ Every value of a config can be overridden on the command line with its dotted ke
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
 import logging
+import re
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,8 +23,8 @@ import yaml
 from jsonargparse import ArgumentError as JsonArgError
 from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
-from eofnn.cli import compare, fit, simulate, stability, sweep, telemetry
-from eofnn.cli.configfile import check_config_file
+from eofnn import __version__
+from eofnn.cli.configfile import check_config_file, resolve_config_references
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
 DESCRIPTION = """\
@@ -47,54 +50,130 @@ USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, Json
 
 @dataclass(frozen=True)
 class Command:
-    """One subcommand: its one-line help, its description, how it adds its arguments and how it runs."""
+    """One subcommand: its one-line help, and where its description, arguments and run function live.
+
+    The module is imported only when the subcommand is used, so ``eofnn --help`` and ``eofnn --version`` answer
+    without torch, Lightning or HCIPy (seconds of imports), and ``eofnn sweep --help`` without the others'.
+    """
 
     help: str
-    description: str
-    add_arguments: Callable[[ArgumentParser], None]
-    run: Callable[..., object]
+    module: str
+    description_name: str
+    add_arguments_name: str
+    run_name: str
+
+    def _get(self, name: str):
+        return getattr(importlib.import_module(self.module), name)
+
+    @property
+    def description(self) -> str:
+        return self._get(self.description_name)
+
+    @property
+    def add_arguments(self) -> Callable[[ArgumentParser], None]:
+        return self._get(self.add_arguments_name)
+
+    @property
+    def run(self) -> Callable[..., object]:
+        return self._get(self.run_name)
 
 
 COMMANDS: dict[str, Command] = {
-    "compare": Command("Scenarios x controllers: train, evaluate, report.", compare.COMPARE,
-                       compare.add_compare_arguments, compare.run_compare),
-    "fit": Command("Train one predictor and write a checkpoint.", fit.DESCRIPTION, fit.add_arguments, fit.run),
-    "evaluate": Command("Run saved checkpoints under any plant.", compare.EVALUATE, compare.add_evaluate_arguments,
-                        compare.run_evaluate),
-    "simulate": Command("Simulate one controller and save telemetry.", simulate.DESCRIPTION, simulate.add_arguments,
-                        simulate.run),
-    "stability": Command("Stability margins of a linear predictor in a plant.", stability.DESCRIPTION,
-                         stability.add_arguments, stability.run),
-    "sweep": Command("A grid of compare runs: resumable, local or on Ray.", sweep.DESCRIPTION, sweep.add_arguments,
-                     sweep.run),
-    "identify": Command("Identify the plant from dithered telemetry.", telemetry.IDENTIFY,
-                        telemetry.add_identify_arguments, telemetry.run_identify),
-    "replay": Command("Replay a checkpoint on held-out telemetry.", telemetry.REPLAY, telemetry.add_replay_arguments,
-                      telemetry.run_replay),
-    "export": Command("Export a linear predictor as filter FITS.", telemetry.EXPORT, telemetry.add_export_arguments,
-                      telemetry.run_export),
+    "compare": Command("Scenarios x controllers: train, evaluate, report.", "eofnn.cli.compare", "COMPARE",
+                       "add_compare_arguments", "run_compare"),
+    "fit": Command("Train one predictor and write a checkpoint.", "eofnn.cli.fit", "DESCRIPTION", "add_arguments",
+                   "run"),
+    "evaluate": Command("Run saved checkpoints under any plant.", "eofnn.cli.compare", "EVALUATE",
+                        "add_evaluate_arguments", "run_evaluate"),
+    "simulate": Command("Simulate one controller and save telemetry.", "eofnn.cli.simulate", "DESCRIPTION",
+                        "add_arguments", "run"),
+    "stability": Command("Stability margins of a linear predictor in a plant.", "eofnn.cli.stability", "DESCRIPTION",
+                         "add_arguments", "run"),
+    "sweep": Command("A grid of compare runs: resumable, local or on Ray.", "eofnn.cli.sweep", "DESCRIPTION",
+                     "add_arguments", "run"),
+    "identify": Command("Identify the plant from dithered telemetry.", "eofnn.cli.telemetry", "IDENTIFY",
+                        "add_identify_arguments", "run_identify"),
+    "replay": Command("Replay a checkpoint on held-out telemetry.", "eofnn.cli.telemetry", "REPLAY",
+                      "add_replay_arguments", "run_replay"),
+    "export": Command("Export a linear predictor as filter FITS.", "eofnn.cli.telemetry", "EXPORT",
+                      "add_export_arguments", "run_export"),
 }
 
 
+_ROLE = re.compile(r":(?:class|func|meth|mod|attr|data|obj|exc|ref):`~?([^`]+)`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def plain_text(text: str) -> str:
+    """Help text without Sphinx markup: ``:class:`~a.b.C``` -> ``C``, ````x```` -> ``x``."""
+    def role(match: re.Match) -> str:
+        target = match.group(1)
+        return target.rsplit(".", 1)[-1] if match.group(0).split("`")[1].startswith("~") else target
+
+    return _LITERAL.sub(r"\1", _ROLE.sub(role, text))
+
+
 class _HelpFormatter(DefaultHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Keeps the examples in the descriptions laid out as written."""
+    """Keeps the examples in the descriptions laid out as written; help texts taken from docstrings lose their
+    Sphinx markup (``:class:``, double back-ticks), which a terminal shows raw."""
+
+    def _expand_help(self, action) -> str:
+        return plain_text(super()._expand_help(action))
+
+    def _format_text(self, text: str) -> str:
+        return super()._format_text(plain_text(text))
+
+    def start_section(self, heading) -> None:
+        super().start_section(plain_text(heading) if heading else heading)
 
 
-def build_parser() -> ArgumentParser:
+def build_parser(commands: Iterable[str] | None = None) -> ArgumentParser:
+    """The ``eofnn`` parser; only the subcommands in ``commands`` (default: all) get their arguments (and import
+    their modules): the others are listed with their one-line help, enough for ``eofnn --help``."""
+    full = set(COMMANDS if commands is None else commands)
     parser = ArgumentParser(prog="eofnn", description=DESCRIPTION, exit_on_error=False, formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"eofnn {__version__}", help="Print the version and exit.")
     sub = parser.add_subcommands(dest="command")
     for name, command in COMMANDS.items():
-        child = ArgumentParser(description=command.description, exit_on_error=False)
-        command.add_arguments(child)
+        if name in full:
+            child = ArgumentParser(description=command.description, exit_on_error=False,
+                                   formatter_class=_HelpFormatter)
+            command.add_arguments(child)
+        else:
+            child = ArgumentParser(description=command.help, exit_on_error=False, formatter_class=_HelpFormatter)
         sub.add_subcommand(name, child, help=command.help)
     return parser
 
 
+_NOISE = ("Problem with given class_path",)
+_UNION = "Does not validate against any of the Union subtypes"
+_UNION_NOISE = (_UNION, "Subtypes:", "Errors:", "Given value type:", "Expected a <class 'NoneType'>")
+
+
+def _user_error(err: BaseException) -> BaseException | None:
+    """The error of eofnn's own checks behind an error jsonargparse raised while instantiating, if any."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, USER_ERRORS):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
+
+
 def one_line(err: BaseException) -> str:
-    """Collapse jsonargparse's nested messages into one line."""
-    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-    lines = [line for line in lines if not line.startswith("Problem with given class_path")]
-    return ": ".join(lines).replace('Parser key "', "").replace('":', ":")
+    """Collapse jsonargparse's nested messages into one line, each message once."""
+    lines = [line.strip().removeprefix("- ") for line in str(err).splitlines() if line.strip()]
+    lines = [line for line in lines if not line.startswith(_NOISE)]
+    if any(line.strip().startswith(_UNION) for line in str(err).splitlines()):
+        # An optional nested config (X | None): the reason it is not an X is the message, not the union's listing.
+        lines = [line for line in lines if not line.startswith(_UNION_NOISE)]
+    kept: list[str] = []
+    for line in lines:  # jsonargparse repeats a nested error at each level: keep its first statement
+        plain = line.replace('"', "'").replace('Parser key ', "")
+        if not any(plain.split(": ", 1)[-1] in seen.replace('"', "'") for seen in kept):
+            kept.append(line)
+    return ": ".join(kept).replace('Parser key "', "").replace('":', ":").replace("::", ":")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -102,18 +181,33 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"eofnn: warning: {message}", file=sys.stderr)
 
 
-def _config_files(args: list[str]) -> list[str]:
-    return [value for flag, value in zip(args, args[1:], strict=False) if flag == "--config"]
+def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
+    """Check every ``--config`` file before jsonargparse reads it, and add its folder to ``folders`` (put on the
+    Python path while the command runs, so a user's module beside their config (``class_path: my_net.Net``)
+    imports without PYTHONPATH tricks).
+
+    Returns ``args`` with the configs' references to eofnn's own configs resolved (``scenario: realistic.yaml``
+    in a config copied out of ``configs/``; see :func:`~eofnn.cli.configfile.resolve_config_references`).
+    """
+    resolved = list(args)
+    for index, value in enumerate(args):
+        if index > 0 and args[index - 1] == "--config":
+            check_config_file(value)
+            folders.append(str(Path(value).resolve().parent))
+            if args[0] != "sweep":  # sweep's --config is the base of a compare, resolved by the sweep
+                resolved[index] = resolve_config_references(value)
+    return resolved
 
 
-def _prepare_config_files(args: list[str]) -> None:
-    """Check every ``--config`` file before jsonargparse reads it, and put its folder on the Python path, so a
-    user's module beside their config (``class_path: my_net.Net``) imports without PYTHONPATH tricks."""
-    for value in _config_files(args):
-        check_config_file(value)
-        folder = str(Path(value).resolve().parent)
-        if folder not in sys.path:
-            sys.path.insert(0, folder)
+@contextlib.contextmanager
+def _on_python_path(folders: list[str]):
+    """``folders`` first on ``sys.path`` while the command runs, and the path as it was afterwards."""
+    before = list(sys.path)
+    sys.path[:0] = [f for f in dict.fromkeys(folders) if f not in sys.path]
+    try:
+        yield
+    finally:
+        sys.path[:] = before
 
 
 def main(args: list[str] | None = None) -> int:
@@ -121,20 +215,31 @@ def main(args: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if args is None else args)
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    parser = build_parser()
     try:
+        # Only the subcommand asked for is built (and imported: seconds, inside the Ctrl-C handling below);
+        # ``eofnn --help`` lists them all without importing any.
+        parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
             warnings.filterwarnings("ignore", message=".*does not have many workers.*")
             # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
             warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
-            _prepare_config_files(args)
-            cfg = parser.parse_args(args)
-            command = cfg.command
-            dump = yaml.safe_load(parser.dump(cfg))[command]
-            sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
-            status = COMMANDS[command].run(parser.instantiate(cfg)[command], sub_dump)
+            folders: list[str] = []
+            args = _prepare_config_files(args, folders)
+            with _on_python_path(folders):
+                cfg = parser.parse_args(args)
+                command = cfg.command
+                dump = yaml.safe_load(parser.dump(cfg))[command]
+                sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
+                try:
+                    init = parser.instantiate(cfg)[command]
+                except (ValueError, TypeError) as err:  # a nested config's own check, wrapped by jsonargparse
+                    cause = _user_error(err)
+                    if cause is None:
+                        raise
+                    raise cause from None
+                status = COMMANDS[command].run(init, sub_dump)
     except USER_ERRORS as err:
         print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
         return 2

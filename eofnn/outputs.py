@@ -11,6 +11,7 @@ import shutil
 import signal
 import tempfile
 import threading
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -73,9 +74,48 @@ def _partial_name(path: Path, tag: str) -> Path:
     return path.with_name(f".{path.name}.{tag}-{os.getpid()}")
 
 
+#: The list of the files eofnn wrote into an output folder, so that ``--overwrite`` replaces only those.
+MANIFEST = ".eofnn-outputs"
+
+
+def _files(folder: Path) -> list[Path]:
+    return sorted(p.relative_to(folder) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
+
+
+def _written_before(folder: Path) -> set[Path] | None:
+    try:
+        return {Path(line) for line in (folder / MANIFEST).read_text().splitlines() if line}
+    except OSError:
+        return None
+
+
+def _keep_foreign_files(old: Path, new: Path) -> list[str]:
+    """Copy into ``new`` every file of ``old`` that eofnn did not write (per ``old``'s manifest; without one, every
+    file whose name the new output does not use), so replacing ``old`` deletes nothing of the user's."""
+    written = _written_before(old)
+    kept = []
+    for rel in _files(old):
+        if rel == Path(MANIFEST) or (written is not None and rel in written):
+            continue
+        target = new / rel
+        if target.exists() or target.is_symlink():
+            if written is None:
+                continue  # a name the new output writes: an earlier output of eofnn (written before manifests)
+            target = target.with_name(target.name + ".yours")  # the user's file under an output's name: keep both
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(old / rel, target, follow_symlinks=False)
+        kept.append(str(rel))
+    return kept
+
+
 @contextmanager
 def staged_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary folder beside ``path``; on success it replaces ``path`` whole, on failure it is removed."""
+    """Yield a temporary folder beside ``path``; on success it replaces ``path``, on failure it is removed.
+
+    Only what eofnn wrote is replaced: files a user put into an earlier output folder are carried over (copied
+    before the swap, so an interruption loses nothing) and named in a warning; the new folder lists its own files
+    in :data:`MANIFEST`.
+    """
     path = check_output_folder(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = _partial_name(path, "partial")
@@ -86,6 +126,11 @@ def staged_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
+    (partial / MANIFEST).write_text("".join(f"{rel}\n" for rel in _files(partial)))
+    kept = _keep_foreign_files(path, partial) if path.is_dir() else []
+    if kept:
+        warnings.warn(f"kept {len(kept)} file(s) in {str(path)!r} that eofnn did not write: "
+                      f"{', '.join(kept[:5])}{' ...' if len(kept) > 5 else ''}", stacklevel=3)
     old = _partial_name(path, "old")
     with _signals_deferred():
         if path.exists():

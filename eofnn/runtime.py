@@ -30,6 +30,10 @@ class FilterFileError(ValueError):
     """A filter file is missing, unreadable or inconsistent; the message says what and where."""
 
 
+#: Longest lag a filter may read, in frames (buffers hold this many frames per actuator).
+MAX_LAG = 10_000
+
+
 class PredictiveFilter:
     """A linear predictive filter with its own history buffers.
 
@@ -55,7 +59,17 @@ class PredictiveFilter:
         if not float(delay_frames).is_integer() or delay_frames < 1:  # a fractional delay is not truncated silently
             raise FilterFileError(f"delay_frames={delay_frames!r} is invalid: it must be an integer >= 1")
         self.delay_frames, self.dm_gain_model = int(delay_frames), float(dm_gain_model)
+        if not (np.isfinite(self.dm_gain_model) and 0 < self.dm_gain_model <= 100):
+            raise FilterFileError(f"dm_gain_model={dm_gain_model!r} is invalid: it must be a number in (0, 100]")
+        if not np.isfinite(self.coefficients).all():
+            bad = int((~np.isfinite(self.coefficients)).sum())
+            raise FilterFileError(f"coefficients hold {bad} non-finite value(s) (NaN or inf) of "
+                                  f"{self.coefficients.size}: the filter would command NaN")
+        if self.delay_frames > MAX_LAG:
+            raise FilterFileError(f"delay_frames={self.delay_frames} is invalid: at most {MAX_LAG} frames")
         for signal, lag in self.taps:
+            if lag > MAX_LAG:  # buffers are sized by the largest lag: count before allocating
+                raise FilterFileError(f"tap ({signal!r}, lag {lag}) is invalid: lags are at most {MAX_LAG} frames")
             if signal not in SIGNALS:
                 raise FilterFileError(f"tap signal {signal!r} is invalid: allowed are {', '.join(SIGNALS)}")
             if lag < (1 if signal == "y" else self.delay_frames):
@@ -71,6 +85,9 @@ class PredictiveFilter:
                 raise FilterFileError(f"a neighbourhood filter {self.coefficients.shape} needs a NEIGHBOURS index of "
                                       f"shape {self.coefficients.shape[:2]}")
             index = np.asarray(neighbours, dtype=np.int64)
+            if index.size and (index.max() >= self.n_actuators or index.min() < -1):
+                raise FilterFileError(f"NEIGHBOURS holds actuator indices from {int(index.min())} to "
+                                      f"{int(index.max())}: they must be in 0 .. {self.n_actuators - 1} (or -1 for none)")
             self.neighbours = np.where(index < 0, self.n_actuators, index)  # the pad row reads zeros
         elif self.coefficients.ndim != 2:
             raise FilterFileError(f"coefficients have shape {self.coefficients.shape}: expected (K, taps) or "

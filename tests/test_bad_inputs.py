@@ -181,3 +181,100 @@ def test_simulate_never_runs_something_else(capsys, tmp_path, args, expected):
 def test_a_psd_segment_longer_than_the_settled_frames(capsys, tmp_path):
     run_bad(capsys, ["compare", "--config", TINY, "--evaluation.psd_segment_frames", "4096", "--out", tmp_path / "o"],
             "psd_segment_frames=4096", tmp_path / "o")
+
+
+@pytest.mark.parametrize("drift, expected", [
+    ("{start_s: 2, stop_s: 1, to: 2}", "plant.dm_gain_drift.stop_s=1.0 is invalid: it must be at least start_s"),
+    ("{start_s: 0, stop_s: 1e9, to: 2}", "plant.dm_gain_drift.stop_s=1000000000.0 is invalid"),
+    ("{start_s: 0, stop_s: 1, to_gain: 2}", "scenario.plant.dm_gain_drift: Option 'to_gain' is not accepted"),
+])
+def test_a_nested_optional_config_names_its_field_and_rule(tmp_path, capsys, drift, expected):
+    line = run_bad(capsys, ["compare", "--config", TINY, "--scenario.plant.dm_gain_drift", drift,
+                            "--out", tmp_path / "o"], expected, tmp_path / "o")
+    assert "Union subtypes" not in line and "NoneType" not in line
+
+
+def test_overwrite_keeps_the_files_eofnn_did_not_write(tmp_path, capsys):
+    import warnings
+
+    from eofnn.outputs import MANIFEST, staged_folder
+
+    out = tmp_path / "results"
+    with staged_folder(out) as folder:
+        (folder / "metrics.json").write_text("old")
+        (folder / "old_figure.png").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    (out / "mine").mkdir()
+    (out / "mine" / "data.csv").write_text("mine too")
+    with warnings.catch_warnings(record=True) as caught, staged_folder(out, overwrite=True) as folder:
+        warnings.simplefilter("always")
+        (folder / "metrics.json").write_text("new")
+    assert (out / "notes.txt").read_text() == "mine" and (out / "mine" / "data.csv").read_text() == "mine too"
+    assert (out / "metrics.json").read_text() == "new" and not (out / "old_figure.png").exists()  # eofnn's: replaced
+    assert "kept 2 file(s)" in str(caught[-1].message) and "notes.txt" in str(caught[-1].message)
+    assert (out / MANIFEST).read_text().split() == ["metrics.json"]
+
+
+def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_does_not_replace(tmp_path):
+    from eofnn.outputs import staged_folder
+
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "metrics.json").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    with pytest.warns(UserWarning, match=r"kept 1 file\(s\) .*: notes.txt"), staged_folder(out, overwrite=True) as folder:
+        (folder / "metrics.json").write_text("new")
+    assert (out / "notes.txt").read_text() == "mine" and (out / "metrics.json").read_text() == "new"
+
+
+@pytest.mark.parametrize("override, expected", [
+    (["--scenario.plant.dm_gain_drift", "{start_s: 100, stop_s: 101, to: 2}"],
+     "plant.dm_gain_drift starts at 100 s (frame 100000), after the run of"),
+    (["--scenario.atmosphere.changes", "[{at_s: 50, layer: 0, wind_speed_mps: 20}]"],
+     "atmosphere.changes[0] starts at 50 s"),
+    (["--scenario.vibrations", "[{mode: tip, frequency_hz: 40, amplitude_nm: 1e300}]"], "amplitude_nm=1e+300"),
+    (["--scenario.plant.misregistration_x", "9.5", "--scenario.grid.n_across", "8"],
+     "plant.misregistration_x=9.5 is invalid: it shifts the DM by more than the grid's 8 actuators across"),
+])
+def test_values_that_cannot_mean_what_they_say(tmp_path, capsys, override, expected):
+    run_bad(capsys, ["compare", "--config", TINY, *override, "--out", tmp_path / "o"], expected, tmp_path / "o")
+
+
+def test_a_neighbourhood_table_is_counted_before_it_is_built():
+    from eofnn.errors import ConfigError
+    from eofnn.sim.grid import ActuatorGrid
+
+    assert ActuatorGrid(2.0, 10).neighbours(1.5).shape[1] == 9  # the count matches the table
+    assert ActuatorGrid(2.0, 10).neighbours(2.0).shape[1] == 13
+    with pytest.raises(ConfigError, match=r"a neighbourhood of radius 64 pitches \(12853 actuators each\) on \d+ "
+                                          r"actuators needs about"):
+        ActuatorGrid(8.0, 512).neighbours(64)
+
+
+def test_positions_at_one_point_or_repeated_are_one_line():
+    import numpy as np
+
+    from eofnn.errors import TelemetryError
+    from eofnn.sim.grid import ActuatorGrid
+
+    with pytest.raises(TelemetryError, match="all lie at one point"):
+        ActuatorGrid.from_positions(np.zeros((10, 2)))
+    positions = np.array(ActuatorGrid(2.0, 10).positions_m)
+    positions[1] = positions[0]
+    with pytest.raises(TelemetryError, match="repeat"):
+        ActuatorGrid.from_positions(positions)
+
+
+def test_all_zero_telemetry_is_refused_before_a_fit(tmp_path):
+    import torch
+
+    from eofnn.data.history import HistorySpec
+    from eofnn.errors import TelemetryError
+    from eofnn.sim.telemetry import Telemetry
+    from eofnn.training.from_telemetry import fit_from_telemetry
+
+    zeros = torch.zeros(500, 80, dtype=torch.float64)
+    telemetry = Telemetry(y=zeros, wfs=zeros.clone(), delay_frames=2)
+    with pytest.raises(TelemetryError, match="telemetry holds no signal"):
+        fit_from_telemetry(telemetry, HistorySpec("open_loop", 3, 2), checkpoint_path=tmp_path / "z.ckpt")
+    assert not (tmp_path / "z.ckpt").exists()

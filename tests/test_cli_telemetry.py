@@ -55,6 +55,26 @@ def test_identify_fit_replay_export(tmp_path, capsys):
     code, err = run(capsys, "fit", "--telemetry", f"[{recorded}]", "--out", tmp_path / "ol.ckpt")
     assert code == 2 and "exists" in err
 
+    # Values that cannot mean what they say, and artefacts that do not fit each other: one line each.
+    other = tmp_path / "other.npz"  # another system: 9 actuators across
+    code, err = run(capsys, "simulate", "--scenario", TINY_SCENARIO, "--scenario.grid.n_across", "9", "--frames",
+                    "400", "--out", other)
+    assert code == 0, err
+    for args, message in [
+        (("replay", "--checkpoint", tmp_path / "ol.ckpt", "--telemetry", held_out, "--start", "-50", "--out",
+          tmp_path / "r1"), "start=-50 is invalid"),
+        (("export", "--checkpoint", tmp_path / "ol.ckpt", "--dm_gain_model", "-1", "--out", tmp_path / "f1.fits"),
+         "dm_gain_model=-1.0 is invalid"),
+        (("replay", "--checkpoint", tmp_path / "ol.ckpt", "--telemetry", other, "--plant", "nominal", "--out",
+          tmp_path / "r2"), "was trained for 80 actuators but the telemetry has 69"),
+        (("fit", "--telemetry", other, "--plant", tmp_path / "plant.json", "--out", tmp_path / "o.ckpt"),
+         "was identified for 80 actuators but the telemetry has 69"),
+    ]:
+        code, err = run(capsys, *args)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("eofnn: error:") and message in lines[0], err
+        assert not Path(args[-1]).exists()
+
 
 def test_undithered_telemetry_and_bad_files(tmp_path, capsys):
     quiet = tmp_path / "quiet.fits"

@@ -69,3 +69,37 @@ def test_float32_telemetry_is_half_the_size_and_fits_and_npz_keep_their_own_plot
     assert (full.eps - half.eps).abs().max() < 1e-4 * full.eps.abs().max()
     summary = json.loads(capsys.readouterr().err.strip().splitlines()[-1])
     assert summary["settle_frames"] == 150  # statistics leave the start-up transient out
+
+
+def test_a_config_copied_out_of_configs_finds_eofnns_own_scenario(tmp_path, capsys):
+    root = Path(__file__).resolve().parent.parent
+    copy = tmp_path / "mine.yaml"
+    copy.write_text((root / "configs" / "realistic_small.yaml").read_text())  # names scenario: realistic.yaml
+    try:
+        main(["compare", "--config", str(copy), "--out", str(tmp_path / "o"), "--print_config"])
+    except SystemExit as stop:
+        assert stop.code == 0
+    printed = capsys.readouterr().out
+    assert "n_across: 40" in printed and "wind_speed_mps:" in printed  # realistic.yaml's scenario, loaded
+
+
+def test_a_scenario_found_nowhere_lists_the_folders_searched_once(tmp_path, capsys):
+    config = tmp_path / "mine.yaml"
+    config.write_text("scenario: nowhere.yaml\n")
+    assert main(["compare", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "scenario='nowhere.yaml'" in err and err.count("nowhere.yaml") == 1, err
+    assert f"{tmp_path} (beside the config)" in err and "(eofnn's configs)" in err
+
+
+def test_the_python_path_is_left_as_it_was(tmp_path):
+    import sys
+
+    config = tmp_path / "c.yaml"
+    config.write_text("predictors: {u: {controller: uncorrected}}\n")
+    before = list(sys.path)
+    try:
+        main(["compare", "--config", str(config), "--out", str(tmp_path / "o"), "--print_config"])
+    except SystemExit:
+        pass
+    assert sys.path == before

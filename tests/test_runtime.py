@@ -126,3 +126,28 @@ def test_bad_filters(small_scenario, tmp_path):
     runtime = PredictiveFilter.from_file(path)
     with pytest.raises(ValueError, match="shape"):
         runtime.step(np.zeros(3))
+
+
+@pytest.mark.parametrize("args, message", [
+    (([[1.0]], [("pol", 10**9)], 2), "lag 1000000000) is invalid: lags are at most 10000"),
+    (([[np.nan, np.nan]], [("pol", 2), ("pol", 3)], 2), "2 non-finite value(s)"),
+    (([[1.0]], [("pol", 2)], 2, -1.0), "dm_gain_model=-1.0 is invalid"),
+    ((np.ones((2, 2, 1)), [("pol", 2)], 2, 1.0, [[0, 1], [1, 7]]), "NEIGHBOURS holds actuator indices from 0 to 7"),
+])
+def test_filters_that_cannot_run_are_refused_before_anything_is_allocated(args, message):
+    with pytest.raises(FilterFileError) as info:
+        PredictiveFilter(*args)
+    assert message in str(info.value)
+
+
+def test_a_filter_that_cannot_run_is_not_exported(small_scenario, tmp_path):
+    spec = HistorySpec("open_loop", 2, 2)
+    net = random_filter(small_scenario.grid, spec, "per_actuator")
+    with torch.no_grad():
+        net.weight.fill_(float("nan"))
+    with pytest.raises(ConfigError, match="non-finite coefficient"):
+        export_filter(net, spec, tmp_path / "nan.fits")
+    with pytest.raises(ConfigError, match="dm_gain_model=-1.0 is invalid"):
+        export_filter(random_filter(small_scenario.grid, spec, "per_actuator"), spec, tmp_path / "g.fits",
+                      dm_gain_model=-1.0)
+    assert not list(tmp_path.glob("*.fits"))

@@ -168,3 +168,12 @@ def test_bad_inputs_are_one_line_errors(call, match):
     with pytest.raises(ConfigError, match=match) as info:
         call()
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("value, match", [(1e30, "weights reach 1e\\+30"), (1e150, "weights reach 1e\\+150"),
+                                          (float("nan"), "non-finite")])
+def test_weights_that_cannot_be_a_predictor_are_refused(value, match):
+    weights = torch.zeros(3, 4, dtype=torch.float64)
+    weights[1, 0] = value
+    with pytest.raises(ConfigError, match=match):
+        analyse(weights, "open_loop", 4)

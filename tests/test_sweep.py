@@ -162,7 +162,36 @@ def test_a_folder_holding_something_else_or_another_configuration_is_refused(in_
     other.write_text(BASE.read_text().replace("frames: 300", "frames: 320"))
     code = real_main(["sweep", "--config", str(other), "--grid", str(write_grid(tmp_path, HISTORY_GRID)),
                       "--out", str(in_process)])
-    assert code == 2 and "was run with another configuration" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert code == 2 and "was run with another configuration" in err, err
+    assert "evaluation.frames 300 -> 320" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_rerunning_a_finished_sweep_is_a_no_op_that_rewrites_nothing(in_process, tmp_path, capsys):
+    files = [p for p in in_process.rglob("*") if p.is_file()]
+    stamps = {p: p.stat().st_mtime_ns for p in files}
+    capsys.readouterr()
+    assert sweep(tmp_path, HISTORY_GRID, str(in_process)) == 0
+    err = capsys.readouterr().err
+    assert "all 2 points done" in err and "Traceback" not in err, err
+    assert {p: p.stat().st_mtime_ns for p in in_process.rglob("*") if p.is_file()} == stamps
+
+
+@pytest.mark.parametrize("grid, message", [
+    ({f"predictors.ol_eof.k{i}": list(range(10)) for i in range(10)}, "has 10000000000 points (10 x 10"),
+    ({"predictors.ol_eof.optimization.alpha": {"log_range": [1e-9, 1e-3, 10**9]}}, "count=1000000000 values, at most"),
+])
+def test_grid_sizes_are_counted_before_they_are_built(tmp_path, capsys, grid, message):
+    assert sweep(tmp_path, grid, "s") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("eofnn: error: ") and len(err.splitlines()) == 1 and message in err, err
+
+
+def test_an_unwritable_sweep_folder_is_one_line(tmp_path, capsys):
+    (tmp_path / "a_file").write_text("not a folder")  # unwritable even for root, unlike a chmod 500 folder
+    assert sweep(tmp_path, HISTORY_GRID, "a_file/s") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("eofnn: error: out=") and "cannot be created" in err and len(err.splitlines()) == 1, err
 
 
 def test_grid_expansion_log_range_and_stable_ids():

@@ -15,8 +15,9 @@ from eofnn.analysis.stability import StabilityResult  # noqa: E402
 def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -> Path:
     """|rejection| and |noise transfer| against frequency for the worst and the median group, with margins.
 
-    Dotted vertical lines mark the frequencies at which a pole leaves the unit circle at either end of the worst
-    group's DM gain interval; the interval and the delay margin are in the title.
+    Dotted (lower) and dash-dotted (upper) vertical lines mark the frequencies at which a pole leaves the unit circle
+    at either end of the DM gain interval, each for the group that sets that end; the interval (every group stable
+    within it) and the delay margin are in the title.
     """
     path = Path(path)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True)
@@ -27,12 +28,18 @@ def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -
         for group, label, style in ((worst, f"worst (group {worst})", "-"), (median, f"median (group {median})", "--")):
             axes[0].loglog(freqs, result.rejection[group].abs().numpy(), style, label=label)
             axes[1].loglog(freqs, result.noise_transfer[group].abs().numpy(), style, label=label)
-        bounds = result.gain_interval[worst].tolist()
-        for bound, crossing, style in zip(bounds, result.gain_crossing_hz[worst].tolist(), (":", "-."), strict=True):
-            if crossing == crossing and crossing > 0:  # not NaN; 0 Hz cannot be drawn on a log axis
+        # Each bound of the title's interval is set by one group (the lower by the group with the highest lower
+        # bound, the upper by the lowest upper): mark the frequency at which that group's pole leaves there.
+        for end, pick, style in ((0, result.gain_interval[:, 0].argmax(), ":"),
+                                 (1, result.gain_interval[:, 1].argmin(), "-.")):
+            group = int(pick)
+            bound = float(result.gain_interval[group, end])
+            crossing = float(result.gain_crossing_hz[group, end])
+            if crossing == crossing and crossing > 0 and bound == bound:  # not NaN; 0 Hz is off a log axis
                 for ax in axes:
                     ax.axvline(crossing, color="grey", linestyle=style,
-                               label=f"at DM gain {bound:.3g} a pole leaves at {crossing:.3g} Hz")
+                               label=f"DM gain {max(bound, 0.0) + 0.0:.3g} (group {group}): a pole leaves at "
+                                     f"{crossing:.3g} Hz")
     else:
         for ax in axes:
             ax.text(0.5, 0.5, "transfer functions not computed\n(coupled system too large)", ha="center",
@@ -43,12 +50,13 @@ def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -
         ax.set_ylabel(name)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    status = (f"stable, DM gain in ({lower:.3g}, {upper:.3g}), delay margin "
+    status = (f"stable, DM gain in ({max(lower, 0.0) + 0.0:.3g}, {upper:.3g}) for every group, delay margin "
               f"{float(result.delay_margin_frames.min()):.3g} frames" if result.stable else
               f"UNSTABLE (max pole modulus {float(result.max_root_modulus.max()):.4g})")
+    # Two lines, inside the figure: one line of this length is wider than the figure and was cut off.
     fig.suptitle(f"{title + ': ' if title else ''}{result.kind} {result.structure}, p={result.history_length}, "
-                 f"delay {result.setup.delay_frames:g} frames, DM gain {result.setup.dm_gain:g} — {status}", fontsize=10)
-    fig.tight_layout()
+                 f"delay {result.setup.delay_frames:g} frames, DM gain {result.setup.dm_gain:g}\n{status}", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.92))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)

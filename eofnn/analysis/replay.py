@@ -50,10 +50,12 @@ class ErrorStats:
 
     median_rms_nm: float
     mean_rms_nm: float
-    median_rms_noise_corrected_nm: float
+    median_rms_noise_corrected_nm: float | None
     rms_nm: list[float] = field(repr=False)
     map_rms_nm: list[float] = field(repr=False)
     psd_nm2_per_hz: list[float] = field(repr=False)
+    #: What the noise-corrected value is, or why it could not be estimated (then it is ``None``).
+    noise_correction: str = ""
 
 
 @dataclass
@@ -71,7 +73,7 @@ class ReplayResult:
 
     def summary(self) -> dict:
         """The JSON-ready scalars."""
-        pick = ("median_rms_nm", "mean_rms_nm", "median_rms_noise_corrected_nm")
+        pick = ("median_rms_nm", "mean_rms_nm", "median_rms_noise_corrected_nm", "noise_correction")
         return {"predictor": {k: getattr(self.predictor, k) for k in pick},
                 "own_controller": {k: getattr(self.own_controller, k) for k in pick},
                 "noise_nm": self.noise_nm, "n_frames": self.n_frames, "plant": self.plant}
@@ -86,11 +88,20 @@ class ReplayResult:
 def _stats(error: list[torch.Tensor], noise_nm: float, psd: WelchPSD) -> ErrorStats:
     rms = torch.cat([e.pow(2).mean(-1) for e in error]).sqrt()
     per_actuator = torch.cat(error).pow(2).mean(0).sqrt()
-    corrected = (rms.pow(2) - noise_nm ** 2).clamp(min=0).sqrt()
+    median = float(rms.median())
+    if noise_nm <= 0:
+        corrected, note = median, "no WFS noise estimate (plant not identified): equal to the raw median RMS"
+    elif median <= noise_nm:
+        # Removing more noise than the error holds would print 0 nm, which no predictor reaches: say so instead.
+        corrected, note = None, (f"cannot be estimated: the median RMS ({median:.3g} nm) is within the WFS noise "
+                                 f"({noise_nm:.3g} nm) that the POL values carry")
+    else:
+        corrected = float((rms.pow(2) - noise_nm ** 2).clamp(min=0).sqrt().median())
+        note = f"median RMS with {noise_nm:.3g} nm of WFS noise removed in quadrature"
     for e in error:
         psd(0, {"eps": e.unsqueeze(0)})
-    return ErrorStats(float(rms.median()), float(rms.mean()), float(corrected.median()), rms.tolist(),
-                      per_actuator.tolist(), psd.result()[1])
+    return ErrorStats(median, float(rms.mean()), corrected, rms.tolist(), per_actuator.tolist(), psd.result()[1],
+                      note)
 
 
 @torch.no_grad()
@@ -166,18 +177,30 @@ def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | A
 
     panels = 3 if grid is not None else 2
     fig, axes = plt.subplots(1, panels, figsize=(5 * panels, 4))
-    for stats, label in ((result.predictor, "predictor"), (result.own_controller, "telemetry's controller")):
-        axes[0].plot(stats.rms_nm, lw=0.6, label=f"{label} (median {stats.median_rms_nm:.3g} nm)")
+    curves = ((result.predictor, "predictor", "-"), (result.own_controller, "telemetry's controller", "--"))
+    for stats, label, style in curves:  # distinct styles: the two may lie on top of each other
+        axes[0].plot(stats.rms_nm, style, lw=0.6, label=f"{label} (median {stats.median_rms_nm:.3g} nm)")
         if stats.psd_nm2_per_hz:
-            axes[1].loglog(result.psd_freq_hz[1:], stats.psd_nm2_per_hz[1:], label=label)
+            axes[1].loglog(result.psd_freq_hz[1:], stats.psd_nm2_per_hz[1:], style, label=label)
     axes[0].set(xlabel="replayed frame", ylabel="RMS error (nm)", title="prediction error per frame")
     axes[1].set(xlabel="frequency (Hz)", ylabel="PSD (nm²/Hz)", title="temporal PSD")
     for ax in axes[:2]:
         ax.legend(fontsize=8)
     if isinstance(grid, ActuatorGrid):
-        image = grid.to_map(torch.tensor(result.predictor.map_rms_nm)).numpy()
-        shown = axes[2].imshow(image, origin="lower")
-        fig.colorbar(shown, ax=axes[2], label="RMS error (nm)")
+        values = torch.tensor(result.predictor.map_rms_nm, dtype=torch.float64)
+        image = grid.to_map(values).numpy()
+        # A robust colour range: a few edge actuators (extruded columns, rims) would otherwise swamp the scale.
+        # From the 1st percentile to the 99th, or to median + 6 MAD (sigma-equivalent) when that is lower.
+        finite = values[values.isfinite()]
+        low, high = (float(q) for q in torch.quantile(finite, torch.tensor([0.01, 0.99], dtype=torch.float64)))
+        median = float(finite.median())
+        spread = 1.4826 * float((finite - median).abs().median())
+        if spread > 0:
+            high = min(high, median + 6 * spread)
+        shown = axes[2].imshow(image, origin="lower", vmin=low, vmax=max(high, low + 1e-12))
+        above = int((finite > high).sum())
+        fig.colorbar(shown, ax=axes[2], extend="max" if above else "neither",
+                     label=f"RMS error (nm); robust colour range\n({above} actuators above {high:.3g} nm)")
         axes[2].set(title="predictor error per actuator", xlabel="x (actuators)", ylabel="y (actuators)")
     elif grid is not None:
         x, y = grid.positions_m.T

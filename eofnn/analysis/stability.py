@@ -232,6 +232,10 @@ def integrator_weights(gain: float, leak: float = 0.0) -> torch.Tensor:
     return integrator_filter(HistorySpec("closed_loop", 1), gain, leak)
 
 
+#: Largest filter weight (nm of command per nm of history) the analysis accepts.
+MAX_WEIGHT = 1e12
+
+
 def _check_weights(weights: torch.Tensor, kind: str, history_length: int, structure: str,
                    neighbours: torch.Tensor | None) -> None:
     require(kind in HISTORY_KINDS, f"history kind={kind!r} is invalid: allowed are {', '.join(HISTORY_KINDS)}")
@@ -242,6 +246,14 @@ def _check_weights(weights: torch.Tensor, kind: str, history_length: int, struct
             f"weights must be a 2-D tensor (groups, taps), got {getattr(weights, 'shape', type(weights).__name__)}")
     taps = history_length * (2 if kind == "closed_loop" else 1)
     shape = tuple(weights.shape)
+    finite = weights[weights.isfinite()]
+    require(finite.numel() == weights.numel(),
+            f"weights hold {weights.numel() - finite.numel()} non-finite value(s): no loop runs them")
+    largest = float(finite.abs().max()) if finite.numel() else 0.0
+    # A filter weight is nm of command per nm: beyond 1e12 it cannot be a predictor, and the polynomial roots
+    # of such weights overflow (reporting "stable, max root 0" for 1e150).
+    require(largest <= MAX_WEIGHT, f"weights reach {largest:.3g} (nm per nm): at most {MAX_WEIGHT:g} can be "
+            "analysed; such a filter is not a predictor")
     if structure == "neighbourhood":
         require(neighbours is not None and neighbours.dim() == 2 and neighbours.shape[0] == shape[0]
                 and shape[1] == neighbours.shape[1] * taps,

@@ -77,7 +77,8 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
                     log(f"{scenario_name:>12s} {name:>18s}: DM-gain interval by simulation ...")
                     result.simulated_stability.setdefault(scenario_name, {})[name] = simulated_dm_gain_interval(
                         experiment, name, scenario_name)
-        write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference)
+        write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference,
+                     cfg.evaluation.strehl_wavelength_m)
         if grid:
             robustness = robustness_map(experiment, grid)
             (staging / "robustness.json").write_text(robustness.to_json())

@@ -13,6 +13,11 @@ import yaml
 
 from eofnn.errors import ConfigError
 
+#: eofnn's own configs (``configs/`` of the checkout eofnn runs from), where a config's ``scenario: realistic.yaml``
+#: is looked for when no such file is beside the config.
+INSTALLED_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+#: Entries whose ``.yaml`` values are outputs or other files, not configs to load.
+NOT_CONFIG_KEYS = ("out", "grid")
 #: Most YAML nodes a config may expand to (the full study's config has about 300).
 MAX_CONFIG_NODES = 100_000
 #: Largest config file read, in bytes.
@@ -85,3 +90,42 @@ def check_config_file(path: str | Path, _depth: int = 0) -> None:
             nested = path.parent / value
             if nested.is_file():
                 check_config_file(nested, _depth + 1)
+
+
+def _is_config_name(value) -> bool:
+    return isinstance(value, str) and value.endswith((".yaml", ".yml")) and "\n" not in value
+
+
+def resolve_config_references(path: str | Path) -> str:
+    """The ``--config`` value that loads ``path`` with its top-level ``.yaml`` entries found.
+
+    A config names another (``scenario: realistic.yaml``) relative to its own folder; a config copied out of
+    ``configs/`` still finds eofnn's own ``realistic.yaml``: each name is looked for beside the config first, then
+    in :data:`INSTALLED_CONFIGS`. When every name is beside the config, that is ``path`` itself; otherwise the
+    config's text with those names made absolute (jsonargparse reads a ``--config`` value as a path or as YAML).
+
+    Raises
+    ------
+    ConfigError
+        Naming the entry and every folder searched, when none holds the file.
+    """
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return str(path)  # check_config_file says what is wrong with the file
+    if not isinstance(raw, dict):
+        return str(path)
+    changed = False
+    for key, value in raw.items():
+        if key in NOT_CONFIG_KEYS or not _is_config_name(value) or Path(value).is_absolute():
+            continue
+        folders = [path.resolve().parent, INSTALLED_CONFIGS]
+        found = next((folder / value for folder in folders if (folder / value).is_file()), None)
+        if found is None:
+            raise ConfigError(f"config file {str(path)!r}: {key}={value!r} is not a file in any folder searched: "
+                              f"{folders[0]} (beside the config), {folders[1]} (eofnn's configs)")
+        if found.parent != folders[0]:
+            check_config_file(found)
+            raw[key], changed = str(found), True
+    return yaml.safe_dump(raw, sort_keys=False) if changed else str(path)

@@ -14,6 +14,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import load_configured_checkpoint, trusted_class_paths
 from eofnn.evaluation.metrics import loop_metrics
+from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.evaluation.report import plot_rms_vs_time
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, staged_file
@@ -60,6 +61,7 @@ def run(cfg, config_dump: str) -> None:
                    f"simulate with frames={cfg.frames}, realisations={cfg.realisations} and "
                    f"{scenario.grid.n_actuators} actuators")
     scenario.require_stream_frames(cfg.frames, f"frames={cfg.frames}")
+    require_changes_within(scenario, cfg.frames, "scenario")
     if p.controller in NEEDS_PREDICTOR:
         predictor = load_configured_checkpoint("controller", p, {"scenario": scenario},
                                                trusted_class_paths({"controller": p}, cfg.trusted_networks))
@@ -73,4 +75,5 @@ def run(cfg, config_dump: str) -> None:
         telemetry.save(partial, overwrite=True, dtype=cfg.dtype)
     with staged_file(plot, cfg.overwrite) as partial:
         plot_rms_vs_time(ExperimentResult({"scenario": {p.controller: metrics}}), scenario.frame_rate_hz, partial)
-    log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary()}))
+    log(json.dumps({"telemetry": str(out), "plot": str(plot), **metrics.summary(),
+                    "strehl_wavelength_m": EvaluationConfig().strehl_wavelength_m}))

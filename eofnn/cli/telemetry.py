@@ -13,7 +13,7 @@ from eofnn.analysis.replay import replay, replay_figure
 from eofnn.cli.common import log
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import load_telemetry, telemetry_grid
-from eofnn.errors import CheckpointError, ConfigError
+from eofnn.errors import CheckpointError, ConfigError, TelemetryError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.outputs import check_output_file, check_output_folder, staged_folder
 from eofnn.sim.telemetry import Telemetry
@@ -21,6 +21,7 @@ from eofnn.training.checkpoint import load_predictor
 from eofnn.training.export import export_filter
 from eofnn.training.from_telemetry import TelemetryFit, fit_from_telemetry
 from eofnn.training.identify import IdentifiedPlant, identify_plant
+from eofnn.validation import Interval, OrNone, check_value
 
 IDENTIFY = ("Identify the plant from dithered closed-loop telemetry (FITS/npz with y and wfs, docs/telemetry.md): DM "
             "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise, each with a "
@@ -66,7 +67,26 @@ def resolve_plant_option(plant: str, telemetry: list[Telemetry]) -> IdentifiedPl
         return identified
     if plant == "nominal":
         return None
-    return IdentifiedPlant.from_json(plant)
+    identified = IdentifiedPlant.from_json(plant)
+    n_act, delay = telemetry[0].y.shape[-1], telemetry[0].delay_frames
+    if identified.actuator_gains and len(identified.actuator_gains) != n_act:
+        raise TelemetryError(f"plant={plant!r} was identified for {len(identified.actuator_gains)} actuators but the "
+                             f"telemetry has {n_act}: identify the plant on telemetry of this system")
+    if identified.delay_frames != delay:
+        raise TelemetryError(f"plant={plant!r} was identified with delay_frames={identified.delay_frames} but the "
+                             f"telemetry has delay_frames={delay}")
+    return identified
+
+
+def check_checkpoint_fits(predictor, checkpoint: str, telemetry: list[Telemetry]) -> None:
+    """One line unless the checkpoint's network runs on this telemetry (actuators, delay)."""
+    n_act, delay = telemetry[0].y.shape[-1], telemetry[0].delay_frames
+    if predictor.n_actuators != n_act:
+        raise CheckpointError(f"checkpoint {checkpoint!r} was trained for {predictor.n_actuators} actuators but the "
+                              f"telemetry has {n_act}")
+    if predictor.spec.delay_frames != delay:
+        raise CheckpointError(f"checkpoint {checkpoint!r} was trained for delay_frames={predictor.spec.delay_frames} "
+                              f"but the telemetry has delay_frames={delay}")
 
 
 def add_identify_arguments(parser: ArgumentParser) -> None:
@@ -144,9 +164,12 @@ def add_replay_arguments(parser: ArgumentParser) -> None:
 
 
 def run_replay(cfg, config_dump: str) -> dict:
+    check_value("start", cfg.start, Interval(0, 10**9, integer=True))
+    check_value("settle_frames", cfg.settle_frames, Interval(0, 10**9, integer=True))
     out = check_output_folder(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint, trusted_networks=cfg.trusted_networks)
     telemetry = _load(cfg)
+    check_checkpoint_fits(predictor, cfg.checkpoint, telemetry)
     plant = resolve_plant_option(cfg.plant, telemetry)
     result = replay(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
                     settle_frames=cfg.settle_frames)
@@ -168,6 +191,7 @@ def add_export_arguments(parser: ArgumentParser) -> None:
 
 
 def run_export(cfg, config_dump: str) -> dict:
+    check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
     out = check_output_file(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint)
     gain = cfg.dm_gain_model if cfg.dm_gain_model is not None else float(predictor.info.get("dm_gain_model", 1.0))

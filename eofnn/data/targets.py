@@ -65,6 +65,9 @@ def check_sequences(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpe
     for seq in sequences:
         if seq.y is None or seq.wfs is None:
             raise TelemetryError("telemetry lacks y or wfs: training and replay from telemetry need both")
+    if all(not bool(seq.wfs.any()) and not bool(seq.y.any()) for seq in sequences):
+        raise TelemetryError("telemetry holds no signal: y and wfs are zero in every frame (an unconnected "
+                             "recording?): nothing can be learnt or replayed from it")
     n_act = {seq.y.shape[-1] for seq in sequences}
     if len(n_act) > 1:
         raise TelemetryError(f"telemetry files disagree on the number of actuators: {sorted(n_act)}")

@@ -29,8 +29,7 @@ class PredictorConfig:
     Parameters
     ----------
     controller : str
-        ``uncorrected``, ``pseudo_integrator``, ``integrator``, ``dithered_integrator``, ``predictor``, or a classical
-        baseline: ``extrapolator``, ``modal_integrator``, ``lqg`` (:mod:`eofnn.control.classical`).
+        One of {controllers}.
     history : str, optional
         ``open_loop`` (pseudo-open-loop values) or ``closed_loop`` (commands and residuals); unset, ``open_loop``
         for a predictor to train and the checkpoint's own for a checkpoint (set, it must match the checkpoint).
@@ -145,6 +144,10 @@ class PredictorConfig:
     def trains(self) -> bool:
         """Whether this controller is a predictor trained by the experiment (not a baseline or a checkpoint)."""
         return self.controller in NEEDS_PREDICTOR and self.checkpoint is None
+
+
+# The help lists the registry's names, so a controller added there is never missing from ``--help``.
+PredictorConfig.__doc__ = PredictorConfig.__doc__.replace("{controllers}", ", ".join(controller_names()))
 
 
 @dataclass

@@ -21,7 +21,7 @@ from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
-from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
+from eofnn.evaluation.nonstationary import reconvergence, require_changes_within, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import require_memory, require_time
 from eofnn.seeding import int_seed
@@ -29,7 +29,7 @@ from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor
-from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry
+from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry, telemetry_sequences
 
 
 def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: str | Path | None = None,
@@ -155,8 +155,9 @@ class Experiment:
         require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
                      f"{n_act} actuators)", allow_long)
         # Streams the exact turbulence screen must hold (training sequences are checked with their memory).
-        for scenario_value in self.scenarios.values():
+        for scenario_name, scenario_value in self.scenarios.items():
             scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}")
+            require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
             for name, cfg in self.predictors.items():
                 if cfg.gains is not None:
                     scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
@@ -166,9 +167,10 @@ class Experiment:
                     scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
                                                          f"{cfg.data.frames} (its telemetry)")
                 elif cfg.trains and not cfg.data.truth:
-                    n = cfg.data.frames + cfg.data.val_frames
-                    scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training "
-                                                         f"(data.frames + data.val_frames = {n})")
+                    n_sequences, n, _ = telemetry_sequences(cfg.data)
+                    scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training ({n_sequences} "
+                                                         f"sequence(s) of {n} frames, data.sequence_frames="
+                                                         f"{cfg.data.sequence_frames})")
 
     #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
     #: tried, climbing towards the critical gain).
@@ -362,7 +364,11 @@ class Experiment:
 
 def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario) -> str:
     """One progress line: the median RMS (or where it diverged, or that it is diverging) and, for a linear
-    controller, its analytic DM gain margin (with the growth rate its largest root implies when it is unstable)."""
+    controller, its analytic DM gain margin (with the growth rate its largest root implies when it is unstable).
+
+    The margins come from the linear loop model (DM gain, delay, misregistration; no saturation or other
+    nonlinearity): the line says "linear analysis", so a nonlinear plant diverging where it says stable reads right.
+    """
     if m.diverged:
         text = f"median RMS diverged at frame {m.diverged_frame}"
     else:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from eofnn.errors import ConfigError
 from eofnn.sim.scenario import Scenario
 
 #: Running-median window of the residual RMS, in seconds.
@@ -47,6 +48,17 @@ def scenario_changes(scenario: Scenario) -> list[Change]:
     if drift is not None:
         out.append(Change("plant.dm_gain_drift", round(drift.start_s * rate), round(drift.stop_s * rate)))
     return sorted(out, key=lambda c: (c.end_frame, c.start_frame))
+
+
+def require_changes_within(scenario: Scenario, frames: int, what: str) -> None:
+    """One-line :class:`ConfigError` for a change (wind, DM-gain drift) that starts after a run of ``frames`` ends:
+    it would change nothing, and a study of it would report a stationary run as if it had changed."""
+    rate = scenario.frame_rate_hz
+    for change in scenario_changes(scenario):
+        if change.start_frame >= frames:
+            raise ConfigError(f"{what}: {change.name} starts at {change.start_frame / rate:g} s (frame "
+                              f"{change.start_frame}), after the run of {frames} frames ({frames / rate:g} s at "
+                              f"{rate:g} Hz) ends: start it earlier or run longer")
 
 
 def running_median(rms: torch.Tensor, window: int) -> torch.Tensor:

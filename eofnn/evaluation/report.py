@@ -21,14 +21,20 @@ def _cell(m) -> str:
     return f"{m.median_rms_nm:.3g}"
 
 
-def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, float]] | None = None) -> str:
+def strehl_label(wavelength_m: float | None) -> str:
+    """``Strehl at 1.65 um``: a Strehl ratio means nothing without its wavelength."""
+    return "Strehl" if wavelength_m is None else f"Strehl at {wavelength_m * 1e6:.3g} um"
+
+
+def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, float]] | None = None,
+                   strehl_wavelength_m: float | None = None) -> str:
     """Median RMS (nm) per predictor (rows) and scenario (columns); ``reference`` adds the study's numbers."""
     scenarios = list(result.metrics)
     predictors = list(next(iter(result.metrics.values())))
     header = ["predictor"] + [f"{s} median RMS (nm)" for s in scenarios]
     if reference:
         header += [f"{s} study (nm)" for s in scenarios]
-    header += [f"{s} p95 (nm)" for s in scenarios] + [f"{s} Strehl" for s in scenarios]
+    header += [f"{s} p95 (nm)" for s in scenarios] + [f"{s} {strehl_label(strehl_wavelength_m)}" for s in scenarios]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for p in predictors:
         row = [p] + [_cell(result.metrics[s][p]) for s in scenarios]
@@ -86,13 +92,28 @@ def plot_rms_vs_time(result: ExperimentResult, frame_rate_hz: float, path: Path)
     """Spatial RMS residual against time, log scale, one panel per scenario (like the study's Figure 3)."""
 
     def draw(ax, preds, styles):
+        # The y range follows the loops that held: a diverged one is drawn until it diverged, clipped at the top,
+        # and marked where it diverged (an X, or a triangle at the top edge when that point is off the scale).
+        held = [np.asarray(m.rms_nm, dtype=float) for m in preds.values() if not m.diverged and len(m.rms_nm)]
+        finite = np.concatenate([r[np.isfinite(r)] for r in held]) if held else np.array([])
+        top = 10 * finite.max() if finite.size else None
         for name, m in preds.items():
-            rms = np.asarray(m.rms_nm)
+            rms = np.asarray(m.rms_nm, dtype=float)
             if rms.size == 0:
                 continue
+            if m.diverged and m.diverged_frame is not None:
+                rms = rms[:max(1, min(m.diverged_frame + 1, rms.size))]
             t = np.arange(rms.size) / frame_rate_hz
-            label = name + (f" (diverged at {m.diverged_frame / frame_rate_hz:.3g} s)" if m.diverged else "")
-            ax.semilogy(t, np.maximum(rms, 1e-6), lw=0.8, label=label, **styles[name])
+            label = name + (f" (diverged at {m.diverged_frame / frame_rate_hz:.3g} s, marked)" if m.diverged else "")
+            shown = np.maximum(np.nan_to_num(rms, nan=np.inf, posinf=np.inf), 1e-6)
+            ax.semilogy(t, shown, lw=0.8, label=label, **styles[name])
+            if m.diverged:
+                last = shown[np.isfinite(shown)][-1] if np.isfinite(shown).any() else np.inf
+                off_scale = top is not None and last > top
+                ax.plot(t[-1], top / 1.3 if off_scale else last, marker="^" if off_scale else "X", ms=9,
+                        color=styles[name]["color"], markeredgecolor="k", linestyle="none", zorder=5)
+        if top is not None:
+            ax.set_ylim(top=top)
         settle_s = next(iter(preds.values())).settle_frames / frame_rate_hz
         if settle_s > 0:
             ax.axvspan(0, settle_s, color="0.9", zorder=0, label="settling (not in the statistics)")
@@ -221,11 +242,12 @@ def _margins(result: ExperimentResult) -> str:
 
 
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
-                 reference: dict[str, dict[str, float]] | None = None) -> list[Path]:
+                 reference: dict[str, dict[str, float]] | None = None,
+                 strehl_wavelength_m: float | None = None) -> list[Path]:
     """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
     table = out / "results.md"
-    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference) + _gains(result)
-                     + _alphas(result) + _margins(result) + _caveat(result))
+    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference, strehl_wavelength_m)
+                     + _gains(result) + _alphas(result) + _margins(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])

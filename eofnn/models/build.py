@@ -84,9 +84,29 @@ def build_network(config: dict[str, Any], n_actuators: int, n_taps: int, grid: d
         if name in params and name not in init_args:
             init_args[name] = value
     try:
-        return cls(**init_args)
+        network = cls(**init_args)
     except TypeError as err:
         raise ConfigError(f"cannot build {config['class_path']}: {err}") from None
+    check_network(network, n_actuators, n_taps, config["class_path"])
+    return network
+
+
+def check_network(network: nn.Module, n_actuators: int, n_taps: int, name: str) -> None:
+    """One-line :class:`ConfigError` unless ``network`` maps a ``(2, n_actuators, n_taps)`` history to
+    ``(2, n_actuators)`` commands (a probe on zeros, without gradients)."""
+    shape = (2, n_actuators, n_taps)
+    try:
+        with torch.no_grad():
+            out = network(torch.zeros(shape, dtype=input_dtype(network)))
+    except Exception as err:  # a user's forward: any error is theirs, said in one line
+        text = str(err).strip().splitlines()
+        raise ConfigError(f"network {name}: forward raised {type(err).__name__}"
+                          f"{': ' + text[0] if text else ''} on a history of shape {shape}") from None
+    if not isinstance(out, torch.Tensor):
+        raise ConfigError(f"network {name} returned {type(out).__name__}, not a tensor, for a history of shape {shape}")
+    if tuple(out.shape) != shape[:2]:
+        raise ConfigError(f"network {name} returned shape {tuple(out.shape)} for a history of shape {shape}: it must "
+                          f"return (batch, actuators) = {shape[:2]}")
 
 
 def input_dtype(network: nn.Module) -> torch.dtype:

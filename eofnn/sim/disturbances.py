@@ -74,7 +74,8 @@ class Vibration:
     _constraints: ClassVar[dict[str, Constraint]] = {
         "mode": OneOf(tuple(MODES)),
         "frequency_hz": Interval(0, None, closed="neither", unit="Hz, below the Nyquist frequency frame_rate_hz / 2"),
-        "amplitude_nm": Interval(0, None, unit="nm RMS"),
+        # 1 mm RMS: far beyond any telescope that still forms an image (turbulence is ~1 um).
+        "amplitude_nm": Interval(0, 1e6, unit="nm RMS"),
         "damping": Interval(0, 1, closed="left", unit="damping ratio"),
     }
 

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from eofnn.errors import ConfigError, TelemetryError
+from eofnn.resources import require_memory
 from eofnn.validation import Constraint, Interval, check_value, validated
 
 #: Largest grid accepted: 512 x 512 actuators already needs ~1.6 GB per 1000 float64 frames of telemetry.
@@ -63,11 +64,18 @@ class ActuatorGrid:
         pos = np.asarray(positions_m, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) < 4:
             raise TelemetryError(f"actuator positions have shape {pos.shape}: expected (actuators >= 4, 2) in metres")
+        if not np.isfinite(pos).all():
+            raise TelemetryError("actuator positions hold non-finite values (NaN or inf)")
         from scipy.spatial import cKDTree
 
         # The smallest Chebyshev spacing, by KD-tree: a (K, K) table of gaps would need gigabytes for an ELT's DM.
         gaps = cKDTree(pos).query(pos, k=min(len(pos), 3), p=np.inf)[0][:, 1:]
-        pitch = float(gaps[gaps > 0].min())
+        if gaps.size == 0 or not (gaps > 0).all():
+            same = int((gaps == 0).any(1).sum()) if gaps.size else len(pos)
+            where = "all lie at one point" if gaps.size == 0 or not (gaps > 0).any() else f"repeat ({same} share a place)"
+            raise TelemetryError(f"actuator positions ({len(pos)} actuators) {where}: each actuator needs a place of "
+                                 "its own on the grid")
+        pitch = float(gaps.min())
         centre = (pos.max(0) + pos.min(0)) / 2
         n_across = int(round(float((pos.max(0) - pos.min(0)).max()) / pitch)) + 1
         radius = np.hypot(*(pos - centre).T)
@@ -126,6 +134,12 @@ class ActuatorGrid:
         """
         check_value("neighbourhood radius", radius, Interval(0, self.n_across, unit="pitches"))
         r = int(np.floor(radius))
+        # Count before building: the table is n_actuators x (about pi r^2) indices, and the filter's weights and
+        # gathered histories are that times the taps.
+        n_offsets = sum(2 * int(np.floor(np.sqrt(max(radius * radius + 1e-9 - dr * dr, 0.0)))) + 1
+                        for dr in range(-r, r + 1))
+        require_memory(8.0 * self.n_actuators * n_offsets * 4, f"a neighbourhood of radius {radius:g} pitches "
+                       f"({n_offsets} actuators each) on {self.n_actuators} actuators")
         offsets = [
             (dr, dc)
             for dr in range(-r, r + 1)

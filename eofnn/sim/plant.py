@@ -36,8 +36,10 @@ class Plant:
         ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` (see :mod:`eofnn.sim.delay`).
     dm_gain : float
         The DM applies ``dm_gain * y`` (1 is nominal).
-    misregistration_x, misregistration_y : float
-        Shift of the applied DM shape relative to the controller's model, in actuator pitches.
+    misregistration_x : float
+        Shift along x of the applied DM shape relative to the controller's model, in actuator pitches (|x| <= 10).
+    misregistration_y : float
+        Shift along y of the applied DM shape relative to the controller's model, in actuator pitches (|y| <= 10).
     nonlinearity : str
         DM response: ``"none"``, ``"tanh"`` (saturates at ``nonlinearity_scale_nm``) or ``"quadratic"``
         (``y + y**2 / nonlinearity_scale_nm``).

@@ -53,6 +53,12 @@ class Scenario:
             elif not isinstance(value, cls):
                 raise ConfigError(f"{name}={value!r} is invalid: it must be a mapping of {cls.__name__} fields")
         object.__setattr__(self, "vibrations", build_vibrations(self.vibrations, self.frame_rate_hz))
+        for axis in ("x", "y"):  # the plant's own limit is +-10 pitches whatever the grid
+            shift = getattr(self.plant, f"misregistration_{axis}")
+            if abs(shift) >= self.grid.n_across:
+                raise ConfigError(f"plant.misregistration_{axis}={shift!r} is invalid: it shifts the DM by more than "
+                                  f"the grid's {self.grid.n_across} actuators across: it must be within "
+                                  f"+-{self.grid.n_across - 1} (actuator pitches)")
 
     @property
     def delay_frames(self) -> int | float:

@@ -92,8 +92,9 @@ class Atmosphere:
     remove_ptt : bool
         Project piston, tip and tilt out of every frame.
     model : {"exact", "hcipy_pupil", "strip"}
-        How layers are built (see the module docstring); ``exact`` by default. ``oversampling`` and
-        ``interpolation_order`` are the strip's.
+        How layers are built: ``exact`` (default: a von Karman screen evaluated exactly at every actuator),
+        ``hcipy_pupil`` (HCIPy's layer on the actuator-pitch pupil, the study's) or ``strip`` (an HCIPy strip
+        translated with B-splines; ``oversampling`` and ``interpolation_order`` are its).
     kernel : {"subaperture", "point"} or None
         Sensing kernel: ``subaperture`` (model ``exact`` only) averages the phase over each actuator's pitch x pitch
         subaperture, a perfect zonal Shack-Hartmann-like measurement; ``point`` samples the field at the actuators.

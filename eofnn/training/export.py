@@ -70,6 +70,11 @@ def export_filter(network: LinearFilter, spec: HistorySpec, path: str | Path, *,
         raise ConfigError(f"filter file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits")
     check_output_file(path, overwrite)  # before any work
     coefficients, neighbours = filter_coefficients(network)
+    if not np.isfinite(coefficients).all():
+        raise ConfigError(f"the filter holds {int((~np.isfinite(coefficients)).sum())} non-finite coefficient(s): "
+                          "nothing was written (eofnn.runtime would refuse it)")
+    if not (np.isfinite(dm_gain_model) and 0 < dm_gain_model <= 100):
+        raise ConfigError(f"dm_gain_model={dm_gain_model!r} is invalid: it must be a number in (0, 100]")
     primary = fits.PrimaryHDU(coefficients)
     cards = [("EOFNNFLT", FORMAT_VERSION, "eofnn linear filter format version"),
              ("HISTKIND", spec.kind, "open_loop (POL) or closed_loop (y, wfs)"),

@@ -31,7 +31,7 @@ from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction, RidgePath
 from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
 from eofnn.training.search import check_search, run_search
-from eofnn.training.task import OptimizationConfig, PredictorTask
+from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
 
 DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
 
@@ -149,7 +149,8 @@ def fit_predictor(
     # Network initialisation and SGD draw from torch's global generator: seed it, so a fit is reproducible.
     L.seed_everything(data.seed, workers=True, verbose=False)
     info = {"scenario": scenario.to_dict(), "data": asdict(data)}
-    task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid, asdict(optimization), info)
+    task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid,
+                         resolve_normalize(network_config, asdict(optimization)), info)
     net = task.network
     if optimization.fit_method == "closed_form" and not supports_closed_form(net):
         raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {type(net).__name__} has no "
@@ -180,7 +181,7 @@ def fit_predictor(
                 task, trainer, searched = run_search(
                     check_search(optimization.search, optimization.lr), network_config, optimization,
                     lambda net_cfg, opt: PredictorTask(net_cfg, scenario.grid.n_actuators, spec.to_dict(), grid,
-                                                       asdict(opt), info),
+                                                       resolve_normalize(net_cfg, asdict(opt)), info),
                     lambda t, tr, dm=datamodule: tr.fit(t, datamodule=dm, weights_only=True),
                     lambda opt, callbacks: make_trainer(opt, progress, callbacks), data.seed, data.frames)
                 net, network_config = task.network, task.hparams.network
@@ -194,12 +195,14 @@ def fit_predictor(
             # Lightning answers Ctrl-C inside fit/validate with its own shutdown and sys.exit(1): it is an interruption.
             raise KeyboardInterrupt from None
         rounds.append({"round": round_index, **metrics})
+    last = rounds[-1]
+    sgd = optimization.fit_method != "closed_form"
+    check_fit(task, last.get("train_loss"), last.get("val_loss"), datamodule.val_dataloader() if sgd else None)
     net.eval()
     predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info, ridge_path)
     if checkpoint_path is not None:
         with staged_file(checkpoint_path, overwrite) as partial:
             trainer.save_checkpoint(partial)
-    last = rounds[-1]
     return FitResult(predictor, last.get("train_loss"), last.get("val_loss"), rounds, checkpoint_path)
 
 

@@ -34,7 +34,7 @@ from eofnn.training.alpha import MarginFunction
 from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, bind_margin, make_trainer, solve_closed_form
 from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.training.search import check_search, run_search
-from eofnn.training.task import OptimizationConfig, PredictorTask
+from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
 
 
 @dataclass
@@ -140,7 +140,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     if first_item.measurement:
         info["measurement"] = first_item.measurement
     L.seed_everything(seed, workers=True, verbose=False)
-    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict, asdict(optimization), info)
+    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict,
+                         resolve_normalize(network or DEFAULT_NETWORK, asdict(optimization)), info)
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
                            stop=train_stop + val_frames) if val_frames else None
@@ -167,7 +168,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
             raise ConfigError("optimization.search chooses on held-out telemetry: give val_frames > 0")
         task, trainer, searched = run_search(
             check_search(optimization.search, optimization.lr), network or DEFAULT_NETWORK, optimization,
-            lambda net_cfg, opt: PredictorTask(net_cfg, n_act, spec.to_dict(), grid_dict, asdict(opt), info),
+            lambda net_cfg, opt: PredictorTask(net_cfg, n_act, spec.to_dict(), grid_dict,
+                                               resolve_normalize(net_cfg, asdict(opt)), info),
             lambda t, tr: tr.fit(t, train_dataloaders=DataLoader(train, batch_size=None),
                                  val_dataloaders=DataLoader(val, batch_size=None)),
             lambda opt, callbacks: make_trainer(opt, progress, callbacks), seed, train_stop * len(sequences))
@@ -179,6 +181,9 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
                     val_dataloaders=DataLoader(val, batch_size=None) if val is not None else None)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
         train_loss, val_loss = metrics.get("train_loss"), metrics.get("val_loss")
+    sgd = optimization.fit_method != "closed_form"
+    check_fit(task, train_loss, None if val_loss is None else float(val_loss),
+              DataLoader(val, batch_size=None) if sgd and val is not None else None)
     network_config = task.hparams.network
     predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info, ridge_path)
     if checkpoint_path is not None:
@@ -186,6 +191,20 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
             trainer.save_checkpoint(partial)
     return TelemetryFit(predictor, dm_gain, errors, source, train_loss, None if val_loss is None else float(val_loss),
                         checkpoint_path, info)
+
+
+def telemetry_sequences(data: DataConfig) -> tuple[int, int, int]:
+    """``(sequences, frames per sequence, validation frames per sequence)`` of telemetry recorded for training.
+
+    Like the simulator-truth streams, telemetry longer than ``data.sequence_frames`` is recorded as several
+    independent sequences (an observatory's separate telemetry runs, each on its own turbulence realisation): one
+    turbulence screen need not hold ``frames + val_frames``, and each sequence holds out its own last
+    ``ceil(val_frames / sequences)`` frames. Up to ``data.sequence_frames``, one sequence, as before.
+    """
+    total = data.frames + data.val_frames
+    n_sequences = max(1, -(-total // data.sequence_frames))
+    val_frames = -(-data.val_frames // n_sequences)
+    return n_sequences, -(-data.frames // n_sequences) + val_frames, val_frames
 
 
 def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", history_length: int = 4,
@@ -197,9 +216,12 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
 
     The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
     does not learn from simulator truth): ``data.frames + data.val_frames`` frames per realisation are recorded
-    with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white dither in the scenario's plant;
-    the plant is identified from that dither, and the predictor is fitted from ``y`` and ``wfs`` alone, the last
-    ``data.val_frames`` frames held out for validation. The learner never sees ``s`` or the plant.
+    (in independent sequences of at most ``data.sequence_frames``, as the simulator-truth path streams them; see
+    :func:`telemetry_sequences`) with an integrator (``data.integrator_gain``) plus ``data.dither_nm`` of white
+    dither in the scenario's plant; the plant is identified from that dither, and the predictor is fitted from
+    ``y`` and ``wfs`` alone, the last
+    ``data.val_frames`` frames (split evenly over the sequences) held out for validation. The learner never sees
+    ``s`` or the plant.
     """
     data = data or DataConfig()
     spec = HistorySpec.from_scenario(history, history_length, scenario)
@@ -207,18 +229,18 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
         raise ConfigError(f"data.dither_nm={data.dither_nm!r} is invalid for telemetry training: the plant is "
                           "identified from the dither, so it must be > 0 (nm)")
     recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
-    n_frames = data.frames + data.val_frames
-    scenario.require_stream_frames(n_frames, f"telemetry training (data.frames + data.val_frames = {n_frames})")
-    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", data.realisations), scenario.plant, recorder,
-                      n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"), record=("y", "wfs"),
-                      progress=progress)
+    n_sequences, n_frames, val_frames = telemetry_sequences(data)
+    scenario.require_stream_frames(n_frames, f"telemetry training ({n_sequences} sequence(s) of {n_frames} frames)")
+    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", n_sequences * data.realisations),
+                      scenario.plant, recorder, n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"),
+                      record=("y", "wfs"), progress=progress)
     if result.diverged:
         raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame} in the scenario's "
                             "plant: lower data.integrator_gain or data.dither_nm")
     plant = identify_plant(result.telemetry)
     plant.require_identified()
     return fit_from_telemetry(result.telemetry, spec, network, plant=plant, optimization=optimization,
-                              batch_frames=data.batch_frames, val_frames=data.val_frames, seed=data.seed,
+                              batch_frames=data.batch_frames, val_frames=val_frames, seed=data.seed,
                               checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress, margin=margin,
                               info={"scenario": scenario.to_dict(), "data": asdict(data),
                                     "identified_plant": plant.model_errors()})

@@ -7,6 +7,8 @@ network it trains.
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -15,7 +17,8 @@ import torch
 
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
-from eofnn.models.build import build_network, input_dtype
+from eofnn.models.build import OWN_NETWORKS, build_network, input_dtype, resolve_class_path
+from eofnn.models.normalized import Normalized
 from eofnn.training.alpha import check_alpha_path, check_select
 from eofnn.training.search import check_search
 from eofnn.validation import NON_NEGATIVE, Constraint, Either, Interval, IsBool, OneOf, OrNone, validated
@@ -61,6 +64,10 @@ class OptimizationConfig:
         Epochs of gradient descent (a closed-form fit is one pass).
     accelerator : str
         Lightning accelerator: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ``gpu`` or ``mps``.
+    normalize : bool or None
+        Gradient descent on scaled numbers: the history divided by its RMS and the output multiplied by the
+        targets' RMS (both measured on the first training batch and saved; :class:`~eofnn.models.normalized.Normalized`).
+        Unset: on for networks that are not eofnn's own (those scale themselves or are fitted in closed form).
     """
 
     fit_method: str = "closed_form"
@@ -74,6 +81,7 @@ class OptimizationConfig:
     weight_decay: float = 0.0
     epochs: int = 1
     accelerator: str = "auto"
+    normalize: bool | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "fit_method": OneOf(FIT_METHODS),
@@ -84,6 +92,7 @@ class OptimizationConfig:
         "weight_decay": NON_NEGATIVE,
         "epochs": Interval(1, 100_000, integer=True),
         "accelerator": OneOf(ACCELERATORS),
+        "normalize": OrNone(IsBool()),
     }
     _where: ClassVar[str] = "optimization."
 
@@ -151,25 +160,44 @@ class PredictorTask(L.LightningModule):
     def configure_models(self) -> None:
         """Build the network from the hyperparameters (also what ``load_from_checkpoint`` runs)."""
         hp = self.hparams
-        self.network = build_network(hp.network, hp.n_actuators, self.spec.n_taps, hp.grid, self.spec.kind,
-                                     self.spec.delay_frames)
+        network = build_network(hp.network, hp.n_actuators, self.spec.n_taps, hp.grid, self.spec.kind,
+                                self.spec.delay_frames)
+        # Unset here (older checkpoints, direct use): unscaled; the fits resolve it first (resolve_normalize).
+        self.network = Normalized(network) if (hp.optimization or {}).get("normalize") else network
+
+    @property
+    def network_name(self) -> str:
+        return str(self.hparams.network.get("class_path"))
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
         """The network's commands (nm) for histories (nm), given in the network's own dtype.
 
-        Histories are float64 and unscaled (nm of optical path): a float32 network gets them converted, and a
-        network that wants inputs of order one scales them itself (as :class:`~eofnn.models.mlp.MLP` does).
+        Histories are float64 and unscaled (nm of optical path): a float32 network gets them converted; a network
+        that wants inputs of order one scales them itself (as :class:`~eofnn.models.mlp.MLP` does) or is trained
+        through :class:`~eofnn.models.normalized.Normalized` (``optimization.normalize``).
         """
-        return self.network(history.to(input_dtype(self.network)))
+        try:
+            return self.network(history.to(input_dtype(self.network)))
+        except Exception as err:  # a user's forward: one line naming it, not Lightning's traceback
+            text = str(err).strip().splitlines()
+            raise ConfigError(f"network {self.network_name}: forward raised {type(err).__name__}"
+                              f"{': ' + text[0] if text else ''}") from None
 
     def _loss(self, batch) -> torch.Tensor:
         history, target = batch
         prediction = self(history)
+        if prediction.shape != target.shape:
+            raise ConfigError(f"network {self.network_name} returned shape {tuple(prediction.shape)} for a history "
+                              f"of shape {tuple(history.shape)}: it must return {tuple(target.shape)}")
         return (prediction - target.to(prediction.dtype)).pow(2).mean()
 
     def training_step(self, batch, batch_idx):
+        if isinstance(self.network, Normalized) and not self.network.fitted:
+            self.network.fit_scales(*batch)
         loss = self._loss(batch)
         self.log("train_loss", loss, prog_bar=True, on_step=False, on_epoch=True, batch_size=batch[0].shape[0])
+        if isinstance(self.network, Normalized):  # descend on the scaled error; the logged loss stays in nm^2
+            return loss / self.network.target_scale_nm.to(loss.dtype) ** 2
         return loss
 
     def validation_step(self, batch, batch_idx):
@@ -179,6 +207,9 @@ class PredictorTask(L.LightningModule):
 
     def configure_optimizers(self):
         opt = self.optimization
+        if not any(p.requires_grad for p in self.network.parameters()):
+            raise ConfigError(f"network {self.network_name} has no trainable parameters: there is nothing for "
+                              "optimization.fit_method sgd to fit")
         params = self.network.parameters()
         if opt.optimizer == "lbfgs":
             return torch.optim.LBFGS(params, lr=opt.lr, history_size=50, max_iter=20, line_search_fn="strong_wolfe")
@@ -186,3 +217,59 @@ class PredictorTask(L.LightningModule):
             return torch.optim.SGD(params, lr=opt.lr, momentum=0.9, weight_decay=opt.weight_decay)
         return torch.optim.Adam(params, lr=opt.lr, weight_decay=opt.weight_decay)
 
+
+def resolve_normalize(network: dict, optimization: dict | None) -> dict:
+    """``optimization`` with ``normalize`` decided: unset, on for a network trained by gradient descent that is not
+    eofnn's own (a closed-form fit solves the unscaled problem exactly)."""
+    optimization = dict(optimization or {})
+    if optimization.get("normalize") is None:
+        try:
+            own = resolve_class_path(network.get("class_path")) in OWN_NETWORKS
+        except (ConfigError, AttributeError):
+            own = True  # build_network says what is wrong with it
+        optimization["normalize"] = optimization.get("fit_method", "closed_form") == "sgd" and not own
+    return optimization
+
+
+@torch.no_grad()
+def trivial_losses(batches, kind: str) -> dict[str, float]:
+    """Mean squared error (nm^2) of the trivial predictors on ``(history, target)`` batches.
+
+    ``zero command`` (no correction) and, for an open-loop history, the ``pseudo-integrator``: the latest
+    pseudo-open-loop value (tap 0), with its least-squares scale (which absorbs the sign and the DM gain).
+    """
+    n, tt, th, hh = 0, 0.0, 0.0, 0.0
+    for history, target in batches:
+        t = target.to(torch.float64)
+        n += t.numel()
+        tt += float(t.pow(2).sum())
+        if kind == "open_loop":
+            h = history[..., 0].to(torch.float64)
+            th += float((t * h).sum())
+            hh += float(h.pow(2).sum())
+    if n == 0:
+        return {}
+    losses = {"zero command": tt / n}
+    if kind == "open_loop" and hh > 0:
+        losses["pseudo-integrator"] = max(tt - th * th / hh, 0.0) / n
+    return losses
+
+
+def check_fit(task: PredictorTask, train_loss: float | None, val_loss: float | None, val_batches=None) -> None:
+    """After a fit and before anything is saved: refuse non-finite losses, warn when gradient descent did not beat
+    the trivial predictors on the validation data (``val_batches``: compared only when given)."""
+    name = task.network_name
+    for label, loss in (("training", train_loss), ("validation", val_loss)):
+        if loss is not None and not math.isfinite(loss):
+            raise ConfigError(f"network {name} gave a {label} loss of {loss} (not finite): nothing was saved; "
+                              "lower optimization.lr or look for NaN/inf in its forward")
+    if val_loss is None or val_batches is None:
+        return
+    trivial = trivial_losses(val_batches, task.spec.kind)
+    if trivial and val_loss >= min(trivial.values()):
+        others = ", ".join(f"{k} {v:.4g}" for k, v in trivial.items())
+        own = resolve_class_path(name) in OWN_NETWORKS if name != "None" else True
+        hint = "" if own or task.hparams.optimization.get("normalize") else "optimization.normalize: true, "
+        warnings.warn(f"network {name} does not beat the trivial predictors on validation data (loss {val_loss:.4g} "
+                      f"nm^2; {others} nm^2): it learnt nothing useful; try {hint}more epochs or another lr",
+                      stacklevel=2)

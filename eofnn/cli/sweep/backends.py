@@ -125,13 +125,18 @@ def run_tasks(tasks: list[Task], backend: str = "local", workers: int = 1,
               address: str | None = None) -> Iterator[tuple[int, dict]]:
     """Run ``tasks`` on ``backend`` (``local``: in process for one worker, else worker processes; ``ray``)."""
     if not tasks:
-        return iter(())
+        return _nothing()
     if backend == "ray":
         return run_on_ray(tasks, workers, address)
     if address is not None:
         raise ConfigError(f"address={address!r} is only for backend='ray'")
     workers = min(workers, len(tasks))
     return run_in_process(tasks) if workers == 1 else run_in_processes(tasks, workers)
+
+
+def _nothing() -> Iterator[tuple[int, dict]]:
+    """No tasks: a generator all the same, so callers may ``close()`` whatever they were given."""
+    yield from ()
 
 
 def task(config_yaml: str, folder: Path, threads: int) -> Task:

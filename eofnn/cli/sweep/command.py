@@ -11,6 +11,7 @@ Rerunning the same command resumes: finished points are kept, unfinished and fai
 
 from __future__ import annotations
 
+import os
 import shutil
 import sys
 from contextlib import closing
@@ -77,7 +78,12 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
     elif out.exists() and any(out.iterdir()) and not (out / SWEEP_FILE).is_file():
         raise ConfigError(f"out={str(out)!r} is not empty and holds no sweep: choose another folder or pass "
                           "--overwrite true")
-    (out / POINTS_DIR).mkdir(parents=True, exist_ok=True)
+    try:
+        (out / POINTS_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"out={str(out)!r} cannot be created: {err.strerror or err}") from None
+    if not os.access(out, os.W_OK | os.X_OK) or not os.access(out / POINTS_DIR, os.W_OK | os.X_OK):
+        raise ConfigError(f"out={str(out)!r} is not writable: choose another folder")
 
 
 def _check_options(cfg) -> None:
@@ -110,10 +116,14 @@ def _run(cfg) -> int:
     _prepare_out(out, cfg.overwrite)
     folders = {p.id: out / POINTS_DIR / p.id for p in points}
     results = {p.id: r for p in points if (r := read_point(folders[p.id], p.config_yaml)) is not None}
+    # Unchanged files are not rewritten: resuming a finished sweep touches nothing.
     write_atomic(out / SWEEP_FILE, yaml.safe_dump({"config": str(Path(cfg.config).resolve()), "grid": grid,
                                                    "points": len(points)}, sort_keys=False))
     write_csv(out / CSV_FILE, points, results)
     todo: list[Point] = [p for p in points if p.id not in results]
+    if not todo and any(out.glob("median_rms_*.png")):
+        _log(f"sweep: all {len(points)} points done, nothing to run; results in {out / CSV_FILE}")
+        return 0
     where = f"{cfg.backend}" + (f" at {cfg.address}" if cfg.address else "")
     _log(f"sweep: {len(points)} points, {len(results)} already done, {len(todo)} to run ({where}, "
          f"{cfg.workers} worker{'s' * (cfg.workers > 1)})")

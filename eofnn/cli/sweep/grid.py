@@ -24,6 +24,8 @@ import yaml
 
 from eofnn.errors import ConfigError, require
 
+#: Most points a grid may expand to (each is a whole ``compare`` run), counted before anything is built.
+MAX_POINTS = 10_000
 #: Longest readable part of a point id (the hash keeps ids unique whatever is cut).
 SLUG_CHARS = 80
 
@@ -61,6 +63,8 @@ def _values(key: str, spec: Any) -> list[Any]:
                 f"grid {key}: log_range={bounds!r} is invalid: start and stop must be > 0")
         require(isinstance(count, int) and count >= 1 and (count > 1 or start == stop),
                 f"grid {key}: log_range={bounds!r} is invalid: count must be an integer >= 2 (1 only if start == stop)")
+        require(count <= MAX_POINTS, f"grid {key}: log_range={bounds!r} is invalid: count={count} values, at most "
+                f"{MAX_POINTS} (each is a compare run)")
         return log_range(start, stop, count)
     require(isinstance(spec, list),
             f"grid {key}={spec!r} is invalid: give a list of values or {{log_range: [start, stop, count]}}")
@@ -85,6 +89,10 @@ def parse_grid(raw: Any, source: str = "grid") -> dict[str, list[Any]]:
     for key in grid:
         for other in grid:
             require(not other.startswith(key + "."), f"grid keys {key!r} and {other!r} overlap: sweep one of them")
+    n_points = math.prod(len(values) for values in grid.values())
+    require(n_points <= MAX_POINTS, f"{source} has {n_points} points ("
+            f"{' x '.join(str(len(v)) for v in grid.values())} values), more than the {MAX_POINTS} a sweep runs: "
+            "sweep fewer keys or values, or split the grid")
     return grid
 
 

@@ -43,7 +43,7 @@ def _compare_parser():
     # Imported here: eofnn.main registers the sweep subcommand, so it imports this package first.
     from eofnn.main import build_parser
 
-    return build_parser()
+    return build_parser(["compare"])
 
 
 def one_line(err: BaseException) -> str:
@@ -57,8 +57,10 @@ def resolve_base(config_path: str | Path) -> dict:
     """The base config as ``eofnn compare --config config_path`` resolves it, defaults filled in."""
     path = Path(config_path)
     require(path.is_file(), f"config={str(path)!r} is not a file")
+    from eofnn.cli.configfile import resolve_config_references
+
     parser = _compare_parser()
-    cfg = parser.parse_args(["compare", "--config", str(path), "--out", "unused"])
+    cfg = parser.parse_args(["compare", "--config", resolve_config_references(path), "--out", "unused"])
     resolved = yaml.safe_load(parser.dump(cfg))["compare"]
     for key in RUN_KEYS:
         resolved.pop(key, None)

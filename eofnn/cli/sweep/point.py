@@ -19,7 +19,6 @@ import time
 import traceback
 from pathlib import Path
 
-import torch
 from threadpoolctl import threadpool_limits
 
 STATUS_FILE = "status.json"
@@ -31,14 +30,24 @@ INTERRUPTED = 130
 ERROR_PREFIX = "eofnn: error: "
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that a reader (or a crash) sees the old file or the new one, never half."""
+def write_atomic(path: Path, text: str) -> bool:
+    """Write ``text`` to ``path`` so that a reader (or a crash) sees the old file or the new one, never half.
+
+    A file that already holds ``text`` is left alone (not rewritten, its time stamp kept); returns whether it was
+    written.
+    """
+    try:
+        if path.is_file() and path.read_text() == text:
+            return False
+    except (OSError, UnicodeDecodeError):
+        pass
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "w") as f:
         f.write(text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+    return True
 
 
 def first_line(err: BaseException) -> str:
@@ -70,6 +79,8 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
         ``status`` (``done`` or ``failed``), ``error`` (one line or ``None``), ``seconds`` and, when done,
         ``scenarios`` (the metrics of ``metrics.json``).
     """
+    import torch  # here: ``eofnn sweep --help`` needs none of it
+
     from eofnn.main import main  # here: eofnn.main imports this package
 
     out = Path(folder)
@@ -122,6 +133,32 @@ def record_failure(folder: str | Path, error: str) -> dict:
     return status
 
 
+def _flat(node, prefix: str = "") -> dict[str, object]:
+    if isinstance(node, dict) and node:
+        flat = {}
+        for key, value in node.items():
+            flat.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+        return flat
+    return {prefix: node}
+
+
+def config_changes(old_yaml: str, new_yaml: str, most: int = 3) -> str:
+    """What differs between two resolved configs, on one line: ``evaluation.frames 300 -> 320, ...``."""
+    import yaml
+
+    try:
+        old, new = _flat(yaml.safe_load(old_yaml) or {}), _flat(yaml.safe_load(new_yaml) or {})
+    except yaml.YAMLError:
+        return "its point.yaml is not valid YAML"
+    missing = object()
+    changes = [f"{key} {old.get(key, '(unset)')!r} -> {new.get(key, '(unset)')!r}"
+               for key in sorted(set(old) | set(new)) if old.get(key, missing) != new.get(key, missing)]
+    if not changes:
+        return "its point.yaml differs only in layout"
+    more = len(changes) - most
+    return ", ".join(changes[:most]) + (f" and {more} more" if more > 0 else "")
+
+
 def read_point(folder: Path, config_yaml: str) -> dict | None:
     """The result of a finished point (as :func:`run_point` returns it), or ``None`` if it has to run.
 
@@ -139,9 +176,11 @@ def read_point(folder: Path, config_yaml: str) -> dict | None:
         return None
     if status.get("status") != "done":
         return None  # failed points are retried on every restart
-    if not config_path.is_file() or config_path.read_text() != config_yaml:
+    old = config_path.read_text() if config_path.is_file() else ""
+    if old != config_yaml:
         raise ConfigError(f"point {folder.name!r} in {str(folder.parent)!r} was run with another configuration (the "
-                          "base config changed): choose another --out or pass --overwrite true")
+                          f"base config changed: {config_changes(old, config_yaml)}): choose another --out, or pass "
+                          "--overwrite true to discard the old points")
     try:
         status["scenarios"] = json.loads((folder / RUN_DIR / "metrics.json").read_text())["scenarios"]
     except (OSError, json.JSONDecodeError, KeyError):
