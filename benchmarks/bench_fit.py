@@ -108,7 +108,13 @@ def alpha_path_row(x: torch.Tensor, t: torch.Tensor, repeat: int, alpha: float, 
 
     timings = time_interleaved({"path": (path, 1), "solve": (lambda: train.solve(alpha).weights, 1)},
                                repeat=max(repeat, 5), warmup=1, sync=sync)
+    # Cross-check: the path's weights at its chosen alpha against a direct solve at that alpha.
+    ridge = RidgePath.compute(train, val, DEFAULT_ALPHA_PATH)
+    chosen = ridge.select().alpha
+    direct, via_path = train.solve(chosen).weights, ridge.weights(chosen)
+    agreement = float(((via_path - direct).abs().max() / direct.abs().max()).item())
     return Row("fit", "fit/alpha_path", "s/solve", timings["path"], timings["solve"], "one solve at a fixed alpha",
                goal_ratio=1 / 1.5, goal_label=">= 0.67 (within 1.5x)", device=device,
                info={"n_actuators": x.shape[0], "n_taps": x.shape[-1], "alphas": len(DEFAULT_ALPHA_PATH),
+                     "chosen_alpha": chosen, "max_relative_weight_difference": agreement,
                      "threads": torch.get_num_threads()})

@@ -184,8 +184,8 @@ def test_delay_mismatches_and_unsupported_uses_are_one_line_errors(loops, tmp_pa
     with pytest.raises(CheckpointError, match="delay_frames=2 but the scenario has delay_frames=1.5"):
         predictor.check_fits(scenario(1.5, 6))
     grid = scenario(1.5, 6).grid
-    zeros = torch.zeros(300, grid.n_actuators, dtype=torch.float64)
-    tel = Telemetry(y=zeros, wfs=zeros, delay_frames=1.5, positions_m=torch.as_tensor(grid.positions_m))
+    signal = torch.randn(300, grid.n_actuators, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    tel = Telemetry(y=signal, wfs=signal, delay_frames=1.5, positions_m=torch.as_tensor(grid.positions_m))
     with pytest.raises(TelemetryError, match="telemetry has delay_frames=1.5 but the history asks for delay_frames=2"):
         check_sequences(tel, HistorySpec("open_loop", 4, 2))
     with pytest.raises(TelemetryError, match="integer delays only"):

@@ -362,7 +362,7 @@ class Experiment:
                                 classical_models=models)
 
 
-def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario) -> str:
+def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario | None = None) -> str:
     """One progress line: the median RMS (or where it diverged, or that it is diverging) and, for a linear
     controller, its analytic DM gain margin (with the growth rate its largest root implies when it is unstable).
 
@@ -381,7 +381,7 @@ def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario) -> str:
     text += "; linear analysis: " + ("stable" if margins["stable"] else "unstable")
     if margins["stable"] and low is not None and high is not None:
         text += f" for DM gain {max(low, 0.0) + 0.0:.3g} to {high:.3g}"
-    elif not margins["stable"]:
+    elif not margins["stable"] and scenario is not None:
         root = margins["max_root_modulus"]
         text += f" (largest root {root:.5g}: {scenario.frame_rate_hz * math.log(root):+.3g}/s)"
     return text

@@ -16,7 +16,7 @@ from eofnn.evaluation.results import ExperimentResult  # noqa: E402
 def _cell(m) -> str:
     if m.diverged:
         return f"diverged (frame {m.diverged_frame})"
-    if m.diverging:
+    if getattr(m, "diverging", False):
         return f"{m.median_rms_nm:.3g}, diverging ({m.growth['growth_rate_per_s']:+.2g}/s)"
     return f"{m.median_rms_nm:.3g}"
 
