@@ -130,7 +130,8 @@ class AnyWindFrozenFlow:
         self._plan(outer_scale_m, wind_speed_mps * frame_period_s)
         require_memory(self.peak_bytes, f"the exact screen of one layer ({self.n_actuators} positions x "
                                         f"{self.n_period} frames, screen_frames={screen_frames})")
-        self._series = self._synthesise(np.random.default_rng(seed), r0_m, r0_wavelength_m, outer_scale_m)
+        self._spectrum_args = (r0_m, r0_wavelength_m, outer_scale_m)
+        self._series = self._synthesise(np.random.default_rng(seed), *self._spectrum_args)
 
     def _plan(self, outer_scale_m: float, step_m: float) -> None:
         """Periods and bands: ``n_period`` frames along the wind, and each ``q``'s across-wind period and modes."""
@@ -234,6 +235,18 @@ class AnyWindFrozenFlow:
             values = torch.fft.fft(folded[:, a: a + columns], dim=0)[: self.screen_frames]
             series[:, a: a + columns] = values.real * math.sqrt(2)
         return series
+
+    def expected_psd(self, frame_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(f_hz, psd)``: the expected one-sided temporal PSD (nm²/Hz) of every position's frames, with no sampling
+        noise: the screen's line spectrum, frequency ``q`` at ``(q mod M) / M`` of the frame rate (the frames'
+        aliasing), ``+f`` and ``-f`` folded onto one side, each line spread over its cell ``frame_rate_hz / M``.
+        The same at every position."""
+        power = np.zeros(self.n_period)
+        for q, _, amplitude in self._amplitudes(*self._spectrum_args):
+            np.add.at(power, q % self.n_period, 2 * (amplitude.astype(np.float64) ** 2).sum(1))
+        m = np.arange(1, (self.n_period + 1) // 2)
+        cell = frame_rate_hz / self.n_period
+        return m * cell, (power[m] + power[self.n_period - m]) / cell
 
     def write_frames(self, start: int, stop: int, out: torch.Tensor, add: bool = False) -> torch.Tensor:
         """Write (or, with ``add``, add) the OPD (nm) of frames ``start..stop-1`` into ``out`` ``(frames, n_act)``."""
