@@ -86,6 +86,25 @@ def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, o
                              frame_period_s, kernel, screen_frames, seed)
 
 
+def screen_bytes(grid: ActuatorGrid, outer_scale_m: float, wind_speed_mps: float, wind_direction_deg: float,
+                 frame_period_s: float, screen_frames: int) -> int:
+    """Peak memory (bytes) of building one :class:`AnyWindFrozenFlow` realisation on ``grid`` (0 for a lattice
+    direction, whose lines model needs far less): checked up front, before anything is simulated."""
+    if lattice_direction(wind_direction_deg) is not None:
+        return 0
+    angle = math.radians(wind_direction_deg)
+    u = grid.positions_m @ np.array([math.cos(angle), math.sin(angle)])
+    step_m = wind_speed_mps * frame_period_s
+    frames = math.ceil(float(np.ptp(u)) / step_m) + screen_frames + 1
+    n_period = nice_fft_size(max(frames, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m / step_m)))
+    return _peak_bytes(n_period, screen_frames, grid.n_actuators)
+
+
+def _peak_bytes(n_period: int, screen_frames: int, n_positions: int) -> int:
+    """The fold buffer (complex64) and the float32 screen, plus one chunk's working arrays."""
+    return 8 * n_period * n_positions + 4 * screen_frames * n_positions + 48 * _CHUNK_ELEMENTS
+
+
 class AnyWindFrozenFlow:
     """One realisation of one layer moving in any direction, seen through a sensing kernel, at given positions.
 
@@ -160,9 +179,7 @@ class AnyWindFrozenFlow:
                       for a, b in zip(np.r_[0, edges], np.r_[edges, len(q)], strict=True)]
         self.n_q = len(q)
         self.n_coefficients = int(sum((b - a) * (2 * m + 1) for a, b, _, m in self._runs))
-        # Fold buffer (complex64) and the float32 screen, plus one chunk's working arrays.
-        self.peak_bytes = 8 * self.n_period * self.n_actuators + 4 * self.screen_frames * self.n_actuators \
-            + 48 * _CHUNK_ELEMENTS
+        self.peak_bytes = _peak_bytes(self.n_period, self.screen_frames, self.n_actuators)
 
     def _amplitude_key(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float) -> tuple:
         return (r0_m, r0_wavelength_m, outer_scale_m, self.kernel, self.pitch_m, tuple(self._unit), self.period_m,
