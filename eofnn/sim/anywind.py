@@ -233,8 +233,8 @@ class AnyWindFrozenFlow:
             x = 2 * np.pi * self._w / across_period  # in [-pi, pi]: the spread is below the period
             across = finufft.nufft1d2(x, coefficients, eps=_NUFFT_EPS, isign=1, nthreads=_NUFFT_THREADS)
             across = torch.as_tensor(np.atleast_2d(across))
-            # Frozen flow's phase ramp: frame n reads u_k - n step, so q's coefficient at u_k gains exp(2 pi i q u_k / P),
-            # written exp(2 pi i q0 u_k / P) exp(2 pi i j u_k / P) for the rows q = q0 + j of a chunk.
+            # Frozen flow's phase ramp: frame n reads u_k - n step, so q's coefficient at u_k gains
+            # exp(2 pi i q u_k / P), written exp(2 pi i q0 u_k / P) exp(2 pi i j u_k / P) for rows q = q0 + j.
             rows = len(q)
             if rows not in ramps:
                 turns = torch.remainder(torch.arange(rows, dtype=torch.float64).unsqueeze(1) * u / self.period_m, 1.0)
