@@ -21,10 +21,11 @@ so the across-wind period only has to exceed the actuators' spread by ``_IMAGE_D
 below ``exp(-2 pi _IMAGE_DECAY)``, 7e-9, of the covariance): ``3 L0`` for the lowest frequencies, a few pitches for
 most. The across-wind band is ``max(_ACROSS_BAND / pitch, min(_RIDGE |f_u|, _ACROSS_CAP / pitch))``: the subaperture's
 transform ``sinc(d f_x) sinc(d f_y)`` keeps a ridge where one factor is ~1, at ``|f_w| = |f_u| cot`` or
-``tan`` of the wind angle, and the ridge sets the temporal PSD at high frequencies (the band keeps the theoretical
-PSD within ~2% from 1 to 300 Hz at 10 m/s and 1 kHz for every angle; tests/test_anywind.py checks 17, 30 and 120
-degrees). Each coefficient has the variance of its frequency cell, ``Phi |K|² / (P W_q)``; frequencies ``q > 0``
-carry those of ``-q`` too (the field is ``sqrt(2) Re`` of a complex series).
+``tan`` of the wind angle, and the ridge sets the temporal PSD at high frequencies (with this band the screen's
+expected PSD is within 1% of theory from 1 to 300 Hz and 2% up to the Nyquist frequency at 10 m/s, 1 kHz and 0.2 m
+pitch, for directions from 5 to 80 degrees; tests/test_anywind.py checks 17, 30 and 120 degrees). Each
+coefficient has the variance of its frequency cell, ``Phi |K|² / (P W_q)``; frequencies ``q > 0`` carry those of
+``-q`` too (the field is ``sqrt(2) Re`` of a complex series).
 
 The whole screen (``screen_frames x n_actuators``, float32: rounding 6e-8 of the RMS, far below any floor a
 predictor reaches) is computed when the layer is built, so frames are then copies; set-up time and memory grow as
