@@ -102,8 +102,10 @@ def screen_bytes(grid: ActuatorGrid, outer_scale_m: float, wind_speed_mps: float
 
 
 def _peak_bytes(n_period: int, screen_frames: int, n_positions: int) -> int:
-    """The fold buffer (complex64) and the float32 screen, plus one chunk's working arrays."""
-    return 8 * n_period * n_positions + 4 * screen_frames * n_positions + 48 * _CHUNK_ELEMENTS
+    """The fold buffer (complex64) and the float32 screen, plus one chunk's working arrays (about six complex128
+    arrays of ``_CHUNK_ELEMENTS``) and the shared amplitude table (at most ``_MAX_SHARED_AMPLITUDE_BYTES``)."""
+    return (8 * n_period * n_positions + 4 * screen_frames * n_positions + 100 * _CHUNK_ELEMENTS
+            + _MAX_SHARED_AMPLITUDE_BYTES)
 
 
 class AnyWindFrozenFlow:
@@ -199,7 +201,7 @@ class AnyWindFrozenFlow:
         nm2 = VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * (r0_wavelength_m / (2 * np.pi) * 1e9) ** 2
         out = []
         for first, stop, across_period, modes in self._runs:
-            rows = max(1, _CHUNK_ELEMENTS // (2 * modes + 1))
+            rows = max(1, _CHUNK_ELEMENTS // max(2 * modes + 1, self.n_actuators))
             f_w = (torch.arange(-modes, modes + 1, dtype=torch.float64) / across_period).float().unsqueeze(0)
             for a in range(first, stop, rows):
                 q = np.arange(a, min(a + rows, stop))
