@@ -50,7 +50,8 @@ def test_non_finite_and_null_values(capsys, tmp_path, key, value):
 
 
 @pytest.mark.parametrize("layer", ["{cn2_fraction: .inf}", "{wind_speed_mps: .nan}", "{wind_direction_deg: .inf}",
-                                   "{cn2_fraction: -1}", "{wind_speed_mps: 'fast'}", "{speed: 3}"])
+                                   "{wind_direction_deg: .nan}", "{wind_speed_mps: .inf}", "{cn2_fraction: -1}",
+                                   "{wind_speed_mps: 'fast'}", "{speed: 3}"])
 def test_bad_layers(capsys, tmp_path, layer):
     key = layer.strip("{}").split(":")[0]
     run_bad(capsys, ["compare", "--config", TINY, "--scenario.atmosphere.layers", f"[{layer}]", "--out", tmp_path / "o"],

@@ -23,7 +23,7 @@ from benchmarks import run  # noqa: E402
 
 EXPECTED_ROWS = {
     "turbulence": ("frame/", "setup/"),
-    "exact": ("frame/", "setup/"),
+    "exact": ("frame/", "setup/", "anywind-frame/", "anywind-setup/", "anywind-stream/"),
     "loop": ("run_loop/bound/", "run_loop/realtime/", "run_loop_pregenerated/numpy/", "step/bound/", "step/numpy/",
              "step/budget/"),
     "fit": ("fit/",),

@@ -116,7 +116,7 @@ def test_no_change_and_no_drift_are_the_stationary_stream_and_plant():
     ([{"at_s": 1.0, "ramp_s": -0.1, "cn2_scale": 2.0}], "ramp_s=-0.1 is invalid"),
     ([{"at_s": 1.0, "cn2_scale": 0.0}], "cn2_scale=0.0 is invalid"),
     ([{"at_s": 1.0, "ramp_s": 0.5, "cn2_scale": 2.0}, {"at_s": 1.2, "wind_speed_mps": 3.0}], "overlap"),
-    ([{"at_s": 1.0, "wind_direction_deg": 10.0}], "wind_direction_deg=10.0 is invalid for model 'exact'"),
+    ([{"at_s": 1.0, "wind_direction_deg": float("nan")}], "wind_direction_deg=nan is invalid"),
     ([{"at_s": 1.0, "wind_speed_mps": 0.0}], "wind_speed_mps=0.0 is invalid for model 'exact'"),
     ({"at_s": 1.0}, "give a list of changes"),
 ])

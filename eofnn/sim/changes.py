@@ -4,7 +4,7 @@
 direction, or its strength, changes, at once or over ``ramp_s`` seconds.
 
 - **Wind** (speed and/or direction). The layer models evaluate one frozen screen along one straight path (the
-  ``exact`` model a periodic Fourier screen along a lattice direction, with a fine grid tied to the speed), so a new
+  ``exact`` model a periodic Fourier screen in the frame of its wind, with periods tied to the speed), so a new
   wind cannot follow the same screen. The layer is *cross-faded* to an independent screen of the same layer with the
   new wind: ``s = cos(pi/2 p) s_old + sin(pi/2 p) s_new`` with ``p`` rising from 0 at ``at_s`` to 1 at
   ``at_s + ramp_s`` as a smoothstep of time (:meth:`AtmosphereChange.progress`). The two screens are independent,

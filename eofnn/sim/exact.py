@@ -11,7 +11,7 @@ A field read only on those lines cannot tell an across-wind frequency ``f_w`` fr
 lattice frequency carries the variance of all its aliases (summed over ``|a| <= _ALIASES``): the lines then have
 the cross-covariance of the continuous screen, periodised over ``N_w`` spacings (Poisson summation) — exact once
 ``N_w`` spacings hold several outer scales, where the von Kármán covariance has decayed as ``exp(-2 pi r / L0)``.
-Other directions put every actuator on its own line and are refused (use model ``strip``).
+Other directions put every actuator on a line of its own: :mod:`eofnn.sim.anywind` handles them.
 
 *Along the wind* the field on each line is a trigonometric polynomial (frequencies up to ``f_max``: twice the
 frame rate's Nyquist ``1 / (2 v dt)`` and at least ``_SPATIAL_BAND / pitch``). It is evaluated at every
@@ -113,29 +113,29 @@ def nice_fft_size(n: int) -> int:
     return best
 
 
-def lattice_direction(direction_deg: float) -> tuple[int, int]:
+def lattice_direction(direction_deg: float) -> tuple[int, int] | None:
     """``(p, q)``, coprime with ``|p|, |q| <= _MAX_SLOPE``, such that the wind blows along ``(q, p)`` on the grid.
 
     Such a wind keeps every actuator on a line parallel to it (lines ``pitch / hypot(p, q)`` apart): 0, 90, 180 and
-    270 degrees, 45 degrees and its multiples, atan(1/2) = 26.565... degrees, and so on. A one-line error otherwise.
+    270 degrees, 45 degrees and its multiples, atan(1/2) = 26.565... degrees, and so on. ``None`` for any other
+    direction (:mod:`eofnn.sim.anywind` evaluates those).
     """
     angle = math.radians(direction_deg)
     for q, p in sorted(_LATTICE_DIRECTIONS, key=lambda v: abs(v[0]) + abs(v[1])):
         error = math.remainder(angle - math.atan2(p, q), 2 * math.pi)
         if abs(error) < math.radians(_DIRECTION_TOLERANCE_DEG):
             return p, q
-    nearest = min(_LATTICE_DIRECTIONS, key=lambda v: abs(math.remainder(angle - math.atan2(v[1], v[0]), 2 * math.pi)))
-    require(False, f"wind_direction_deg={direction_deg!r} is invalid for model 'exact': it must run along a lattice "
-                   f"direction of the grid, atan2(p, q) with |p|, |q| <= {_MAX_SLOPE} (e.g. 0, 45, 90; nearest "
-                   f"{math.degrees(math.atan2(nearest[1], nearest[0])):.9g}); use model 'strip' for other directions")
-    return 0, 1
+    return None
 
 
 def wind_axes(grid: ActuatorGrid, direction_deg: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """``(u_m, line, line_spacing_m, unit)``: along-wind coordinate (m) and across-wind line index of each active
     actuator, the spacing of those lines (m) and the wind's unit vector (x, y).
     """
-    p, q = lattice_direction(direction_deg)
+    direction = lattice_direction(direction_deg)
+    require(direction is not None, f"wind_direction_deg={direction_deg!r} is not a lattice direction of the grid "
+                                   "(atan2(p, q), |p|, |q| <= 4): the lines model cannot take it")
+    p, q = direction
     norm = math.hypot(p, q)
     unit = np.array([q, p]) / norm
     x, y = grid.positions_m.T
@@ -191,7 +191,7 @@ class ExactFrozenFlow:
         Layer's Fried parameter (m) at a wavelength (m), and the outer scale (m, finite).
     wind_speed_mps, wind_direction_deg : float
         Wind speed (m/s, > 0) and direction (degrees from +x towards +y, along a lattice direction: see
-        :func:`lattice_direction`).
+        :func:`lattice_direction`; :class:`eofnn.sim.anywind.AnyWindFrozenFlow` takes any other).
     frame_period_s : float
         Time between frames in seconds.
     kernel : {"subaperture", "point"}

@@ -9,6 +9,9 @@ from typing import Any, ClassVar
 import yaml
 
 from eofnn.errors import ConfigError
+from eofnn.resources import require_memory
+from eofnn.sim.anywind import screen_bytes
+from eofnn.sim.changes import layer_winds
 from eofnn.sim.disturbances import Vibration, build_vibrations
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant
@@ -77,6 +80,14 @@ class Scenario:
             raise ConfigError(f"{what} needs {n_frames} frames of one turbulence realisation but "
                               f"atmosphere.screen_frames={atm.screen_frames} (model exact): raise "
                               f"atmosphere.screen_frames to at least {n_frames}, or use shorter streams")
+        if atm.model == "exact":  # a non-lattice wind builds its whole screen at once: refuse what cannot fit
+            winds = [w for i, lay in enumerate(atm.layers)
+                     for w in [lay, *layer_winds(lay, [c for c in atm.changes if c.layer == i])]]
+            need = max(screen_bytes(self.grid, atm.outer_scale_m, w.wind_speed_mps, w.wind_direction_deg,
+                                    1 / self.frame_rate_hz, atm.screen_frames) for w in winds)
+            if need:
+                require_memory(need, f"{what}: the exact screen of a non-lattice wind ({self.grid.n_actuators} "
+                                     f"actuators x screen_frames={atm.screen_frames})")
 
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""

@@ -2,9 +2,11 @@
 
 Three models build a layer (``Atmosphere.model``):
 
-- ``exact`` (:mod:`eofnn.sim.exact`): a von Kármán screen synthesised in the Fourier domain and evaluated at every
-  actuator's exact position, frame ``n`` at ``x - n v dt``, seen through the sensing kernel (``subaperture``: the
-  mean over each actuator's subaperture; ``point``). No interpolation: the physics to judge predictors with.
+- ``exact`` (:mod:`eofnn.sim.exact`, :mod:`eofnn.sim.anywind`): a von Kármán screen synthesised in the Fourier
+  domain and evaluated at every actuator's exact position, frame ``n`` at ``x - n v dt``, seen through the sensing
+  kernel (``subaperture``: the mean over each actuator's subaperture; ``point``), for any wind direction (lattice
+  directions by lines of actuators, others by a non-uniform FFT across the wind). No interpolation: the physics to
+  judge predictors with.
 - ``hcipy_pupil`` (:mod:`eofnn.sim.hcipy_pupil`): HCIPy's ``InfiniteAtmosphericLayer`` on the actuator-pitch pupil
   grid advanced with ``layer.t``, as the reference study did (its rim extrusion and sub-pixel interpolation kept).
 - ``strip`` (:mod:`eofnn.sim.strip`): a strip at the actuator pitch translated with B-splines. Fast, any wind
@@ -27,9 +29,10 @@ import torch
 
 from eofnn.errors import require
 from eofnn.seeding import stream_seed, sub_seed
+from eofnn.sim.anywind import frozen_flow_layer
 from eofnn.sim.changes import AtmosphereChange, build_changes, layer_winds, with_changes
 from eofnn.sim.disturbances import BoilingLayer, Vibration, VibrationSeries
-from eofnn.sim.exact import KERNELS, ExactFrozenFlow, lattice_direction, project_out
+from eofnn.sim.exact import KERNELS, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
 from eofnn.sim.strip import FrozenFlowStrip
@@ -155,7 +158,6 @@ class Atmosphere:
             for lay in layers + changed:
                 require(lay.wind_speed_mps > 0,
                         f"wind_speed_mps={lay.wind_speed_mps!r} is invalid for model 'exact': it must be > 0 (m/s)")
-                lattice_direction(lay.wind_direction_deg)
 
     @property
     def sensing_kernel(self) -> str:
@@ -254,8 +256,8 @@ def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, f
     (``write_frames(start, stop, out, add)`` for model ``exact``)."""
     r0_m, wavelength_m, outer_m = atmosphere.layer_r0_m(layer), atmosphere.r0_wavelength_m, atmosphere.outer_scale_m
     if atmosphere.model == "exact":
-        def screen(child: np.random.SeedSequence) -> ExactFrozenFlow:
-            return ExactFrozenFlow(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
+        def screen(child: np.random.SeedSequence):
+            return frozen_flow_layer(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
                                    frame_period_s, atmosphere.sensing_kernel, atmosphere.screen_frames, child)
         if not layer.boiling_time_s:
             return screen(seed)

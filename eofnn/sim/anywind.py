@@ -1,0 +1,284 @@
+"""Exact frozen flow along any wind direction: a von Kármán screen evaluated where each actuator looks, every frame.
+
+A wind along a lattice direction of the grid keeps the actuators on a few lines parallel to it
+(:class:`~eofnn.sim.exact.ExactFrozenFlow`); any other direction puts every actuator on a line of its own. This
+module handles those directions (and any other positions), with the same physics: one layer is a Fourier series in
+its own frame (``u`` along the wind, ``w`` across it), with HCIPy's von Kármán spectrum times the sensing kernel's
+squared transform as the variance of each coefficient, and frame ``n`` at actuator ``k`` is that series at
+``(u_k - n v dt, w_k)``. Nothing is interpolated between frames.
+
+*Along the wind* the series is periodic over ``P = M v dt`` (``M`` whole frames, longer than the screen plus the
+aperture and than ``_PERIOD_OUTER_SCALES`` outer scales) and holds the frequencies ``q / P`` up to ``f_max`` (as the
+lattice model: twice the frame rate's Nyquist ``1 / (2 v dt)``, at least ``_SPATIAL_BAND / pitch``). Because the
+frame step is ``P / M``, the frames of one actuator are ``sqrt(2) Re sum_m B_k(m) exp(-2 pi i m n / M)`` with
+``B_k(m)`` the sum over ``q = m (mod M)`` of the actuator's along-wind coefficients times ``exp(2 pi i q u_k / P)``
+(the phase ramp of frozen flow): one FFT of length ``M`` gives every frame of every actuator, exactly.
+
+*Across the wind*, for each along-wind frequency ``q`` the actuators' coefficients are
+``sum_l c(q, l) exp(2 pi i l w_k / W_q)``: a type-2 non-uniform FFT (FINUFFT, many vectors at the same points).
+At fixed ``f_u`` the across-wind covariance decays as ``exp(-2 pi kappa |dw|)``, ``kappa = sqrt(f_u² + L0^-2)``,
+so the across-wind period only has to exceed the actuators' spread by ``_IMAGE_DECAY / kappa`` (periodic images
+below ``exp(-2 pi _IMAGE_DECAY)``, 7e-9, of the covariance): ``3 L0`` for the lowest frequencies, a few pitches for
+most. The across-wind band is ``max(_ACROSS_BAND / pitch, min(_RIDGE |f_u|, _ACROSS_CAP / pitch))``: the subaperture's
+transform ``sinc(d f_x) sinc(d f_y)`` keeps a ridge where one factor is ~1, at ``|f_w| = |f_u| cot`` or
+``tan`` of the wind angle, and the ridge sets the temporal PSD at high frequencies (with this band the screen's
+expected PSD is within 1% of theory from 1 to 300 Hz and 2% up to the Nyquist frequency at 10 m/s, 1 kHz and 0.2 m
+pitch, for directions from 5 to 80 degrees; tests/test_anywind.py checks 17, 30 and 120 degrees). Each
+coefficient has the variance of its frequency cell, ``Phi |K|² / (P W_q)``; frequencies ``q > 0`` carry those of
+``-q`` too (the field is ``sqrt(2) Re`` of a complex series).
+
+The whole screen (``screen_frames x n_actuators``, float32: rounding 6e-8 of the RMS, far below any floor a
+predictor reaches) is computed when the layer is built, so frames are then copies; set-up time and memory grow as
+``screen_frames x n_actuators`` (about ``12 bytes`` per actuator-frame at the peak, refused up front when it does
+not fit: :func:`eofnn.resources.require_memory`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from eofnn.errors import require
+from eofnn.resources import require_memory
+from eofnn.sim.exact import (
+    _PERIOD_OUTER_SCALES,
+    _SPATIAL_BAND,
+    _TEMPORAL_BAND,
+    KERNELS,
+    VON_KARMAN_COEFFICIENT,
+    ExactFrozenFlow,
+    lattice_direction,
+    nice_fft_size,
+)
+from eofnn.sim.grid import ActuatorGrid
+
+#: Across-wind band (cycles per pitch): at least ``_ACROSS_BAND``, else ``_RIDGE |f_u|`` up to ``_ACROSS_CAP``.
+_ACROSS_BAND = {"subaperture": 4.0, "point": 10.0}
+_RIDGE = {"subaperture": 2.0, "point": 3.0}
+_ACROSS_CAP = {"subaperture": 16.0, "point": 24.0}
+#: Across-wind period beyond the actuators' spread, in units of 1 / kappa (covariance images < exp(-2 pi 3)).
+_IMAGE_DECAY = 3.0
+#: Across-wind periods are rounded up to powers of this factor, and mode counts to multiples of ``_MODE_STEP``, so
+#: that runs of consecutive ``q`` share one non-uniform FFT plan.
+_PERIOD_GROWTH = 1.25
+_MODE_STEP = 16
+#: FINUFFT's requested relative accuracy (double precision), and its threads: one, as OpenMP threads contending
+#: with other processes for few cores were measured 10-100x slower (and one thread is bit-for-bit reproducible).
+_NUFFT_EPS = 1e-9
+_NUFFT_THREADS = 1
+#: Elements (rows x modes or rows x actuators) processed together: bounds the set-up's working memory (~100 MB).
+_CHUNK_ELEMENTS = 2**22
+#: Amplitude tables up to this size are kept (the latest one) and shared by the realisations of a layer.
+_MAX_SHARED_AMPLITUDE_BYTES = 256 * 2**20
+_AMPLITUDE_CACHE: dict[tuple, list] = {}
+
+
+def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, outer_scale_m: float,
+                      wind_speed_mps: float, wind_direction_deg: float, frame_period_s: float, kernel: str,
+                      screen_frames: int, seed: np.random.SeedSequence):
+    """One realisation of one ``exact`` layer: the lattice model along lattice directions (fast, pinned by tests),
+    :class:`AnyWindFrozenFlow` along any other."""
+    if lattice_direction(wind_direction_deg) is not None:
+        return ExactFrozenFlow(grid, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps, wind_direction_deg,
+                               frame_period_s, kernel, screen_frames, seed)
+    return AnyWindFrozenFlow(grid, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps, wind_direction_deg,
+                             frame_period_s, kernel, screen_frames, seed)
+
+
+def screen_bytes(grid: ActuatorGrid, outer_scale_m: float, wind_speed_mps: float, wind_direction_deg: float,
+                 frame_period_s: float, screen_frames: int) -> int:
+    """Peak memory (bytes) of building one :class:`AnyWindFrozenFlow` realisation on ``grid`` (0 for a lattice
+    direction, whose lines model needs far less): checked up front, before anything is simulated."""
+    if lattice_direction(wind_direction_deg) is not None:
+        return 0
+    angle = math.radians(wind_direction_deg)
+    u = grid.positions_m @ np.array([math.cos(angle), math.sin(angle)])
+    step_m = wind_speed_mps * frame_period_s
+    frames = math.ceil(float(np.ptp(u)) / step_m) + screen_frames + 1
+    n_period = nice_fft_size(max(frames, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m / step_m)))
+    return _peak_bytes(n_period, screen_frames, grid.n_actuators)
+
+
+def _peak_bytes(n_period: int, screen_frames: int, n_positions: int) -> int:
+    """The fold buffer (complex64) and the float32 screen, plus one chunk's working arrays (about six complex128
+    arrays of ``_CHUNK_ELEMENTS``) and the shared amplitude table (at most ``_MAX_SHARED_AMPLITUDE_BYTES``)."""
+    return (8 * n_period * n_positions + 4 * screen_frames * n_positions + 100 * _CHUNK_ELEMENTS
+            + _MAX_SHARED_AMPLITUDE_BYTES)
+
+
+class AnyWindFrozenFlow:
+    """One realisation of one layer moving in any direction, seen through a sensing kernel, at given positions.
+
+    Parameters
+    ----------
+    grid : ActuatorGrid
+        Actuators (their positions, unless ``positions_m`` is given, and the pitch that sets the kernel).
+    r0_m, r0_wavelength_m, outer_scale_m : float
+        Layer's Fried parameter (m) at a wavelength (m), and the outer scale (m, finite).
+    wind_speed_mps, wind_direction_deg : float
+        Wind speed (m/s, > 0) and direction (degrees from +x towards +y; any finite value).
+    frame_period_s : float
+        Time between frames in seconds.
+    kernel : {"subaperture", "point"}
+        Sensing kernel.
+    screen_frames : int
+        Frames the screen holds: frames ``0 .. screen_frames - 1`` can be asked for, in any order.
+    seed : SeedSequence
+        Seed of this realisation.
+    positions_m : ndarray, optional
+        ``(n, 2)`` positions (m) to evaluate instead of the grid's actuators (tests probe the field with them).
+    """
+
+    def __init__(self, grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, outer_scale_m: float,
+                 wind_speed_mps: float, wind_direction_deg: float, frame_period_s: float, kernel: str,
+                 screen_frames: int, seed: np.random.SeedSequence, positions_m: np.ndarray | None = None) -> None:
+        require(math.isfinite(wind_speed_mps) and wind_speed_mps > 0,
+                f"wind_speed_mps={wind_speed_mps!r} is invalid for model 'exact': it must be a finite number > 0 (m/s)")
+        require(math.isfinite(wind_direction_deg),
+                f"wind_direction_deg={wind_direction_deg!r} is invalid: it must be a finite number (degrees)")
+        require(math.isfinite(outer_scale_m),
+                f"outer_scale_m={outer_scale_m!r} is invalid for model 'exact': it must be finite (metres)")
+        require(kernel in KERNELS, f"kernel={kernel!r} is invalid: allowed are {', '.join(KERNELS)}")
+        self.screen_frames, self.pitch_m, self.kernel = screen_frames, grid.pitch_m, kernel
+        positions = np.asarray(grid.positions_m if positions_m is None else positions_m, dtype=float)
+        self.n_actuators = len(positions)
+        angle = math.radians(wind_direction_deg)
+        self._unit = np.array([math.cos(angle), math.sin(angle)])
+        u = positions @ self._unit
+        w = positions @ np.array([-self._unit[1], self._unit[0]])
+        self._u, self._w = u - u.min(), w - 0.5 * (w.max() + w.min())
+        self._plan(outer_scale_m, wind_speed_mps * frame_period_s)
+        require_memory(self.peak_bytes, f"the exact screen of one layer ({self.n_actuators} positions x "
+                                        f"{self.n_period} frames, screen_frames={screen_frames})")
+        self._spectrum_args = (r0_m, r0_wavelength_m, outer_scale_m)
+        self._series = self._synthesise(np.random.default_rng(seed), *self._spectrum_args)
+
+    def _plan(self, outer_scale_m: float, step_m: float) -> None:
+        """Periods and bands: ``n_period`` frames along the wind, and each ``q``'s across-wind period and modes."""
+        spread_u, spread_w = float(self._u.max()), float(np.ptp(self._w))
+        self.step_m = step_m
+        frames_needed = math.ceil(spread_u / step_m) + self.screen_frames + 1
+        self.n_period = nice_fft_size(max(frames_needed, math.ceil(_PERIOD_OUTER_SCALES * outer_scale_m / step_m)))
+        self.period_m = self.n_period * step_m
+        f_max = max(_TEMPORAL_BAND / (2 * step_m), _SPATIAL_BAND / self.pitch_m)
+        q = np.arange(math.floor(f_max * self.period_m) + 1)
+        f_u = q / self.period_m
+        kappa = np.hypot(f_u, 1 / outer_scale_m)
+        base = spread_w + 2 * self.pitch_m  # the subaperture widens the covariance's support by up to 2 pitches
+        needed = base + _IMAGE_DECAY / kappa
+        smallest = float(needed.min())
+        level = np.ceil(np.log(needed / smallest) / math.log(_PERIOD_GROWTH) - 1e-9).clip(0)
+        across_period = smallest * _PERIOD_GROWTH**level
+        band = np.maximum(_ACROSS_BAND[self.kernel], np.minimum(_RIDGE[self.kernel] * f_u * self.pitch_m,
+                                                                _ACROSS_CAP[self.kernel])) / self.pitch_m
+        modes = np.ceil(band * across_period / _MODE_STEP).astype(np.int64) * _MODE_STEP  # l in [-modes, modes]
+        self._f_w_max = band
+        # Runs of consecutive q with the same (period, modes): one plan each.
+        key = level * 10**7 + modes
+        edges = np.flatnonzero(np.diff(key)) + 1
+        self._runs = [(int(a), int(b), float(across_period[a]), int(modes[a]))
+                      for a, b in zip(np.r_[0, edges], np.r_[edges, len(q)], strict=True)]
+        self.n_q = len(q)
+        self.n_coefficients = int(sum((b - a) * (2 * m + 1) for a, b, _, m in self._runs))
+        self.peak_bytes = _peak_bytes(self.n_period, self.screen_frames, self.n_actuators)
+
+    def _amplitude_key(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float) -> tuple:
+        return (r0_m, r0_wavelength_m, outer_scale_m, self.kernel, self.pitch_m, tuple(self._unit), self.period_m,
+                tuple(self._runs), self._f_w_max.tobytes())
+
+    def _amplitudes(self, r0_m: float, r0_wavelength_m: float, outer_scale_m: float) -> list[tuple]:
+        """``[(q, across_period_m, amplitude)]``: rows ``q`` of ``sqrt(variance / 2)`` (nm, float32,
+        ``(rows, 2 modes + 1)``, across-wind frequencies ``l / across_period_m``, ``l = -modes .. modes``).
+
+        They do not depend on the seed: tables up to ``_MAX_SHARED_AMPLITUDE_BYTES`` are shared by realisations.
+        """
+        key = self._amplitude_key(r0_m, r0_wavelength_m, outer_scale_m)
+        if key in _AMPLITUDE_CACHE:
+            return _AMPLITUDE_CACHE[key]
+        cos, sin = (np.float32(v) for v in self._unit)
+        nm2 = VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * (r0_wavelength_m / (2 * np.pi) * 1e9) ** 2
+        out = []
+        for first, stop, across_period, modes in self._runs:
+            rows = max(1, _CHUNK_ELEMENTS // max(2 * modes + 1, self.n_actuators))
+            f_w = (torch.arange(-modes, modes + 1, dtype=torch.float64) / across_period).float().unsqueeze(0)
+            for a in range(first, stop, rows):
+                q = np.arange(a, min(a + rows, stop))
+                f_u = torch.as_tensor(q / self.period_m, dtype=torch.float32).unsqueeze(1)
+                # Single precision: the weights of a random field need no more.
+                variance = (f_u**2 + f_w**2 + outer_scale_m**-2) ** (-11 / 6)
+                if self.kernel == "subaperture":  # telescope-frame frequencies of (f_u, f_w)
+                    d = self.pitch_m
+                    variance *= (torch.sinc(d * (f_u * cos - f_w * sin)) * torch.sinc(d * (f_u * sin + f_w * cos))) ** 2
+                variance *= f_w.abs() <= torch.as_tensor(self._f_w_max[q], dtype=torch.float32).unsqueeze(1)
+                # q > 0 carries -q too (sqrt(2) Re of the series); q = 0 keeps both signs of l itself.
+                scale = nm2 / (self.period_m * across_period) / 2
+                variance *= torch.where(torch.as_tensor(q) > 0, 2 * scale, scale).float().unsqueeze(1)
+                out.append((q, across_period, variance.sqrt_().numpy()))
+        if 4 * self.n_coefficients <= _MAX_SHARED_AMPLITUDE_BYTES:
+            _AMPLITUDE_CACHE.clear()  # one table kept: the latest layer's
+            _AMPLITUDE_CACHE[key] = out
+        return out
+
+    def _synthesise(self, rng: np.random.Generator, r0_m: float, r0_wavelength_m: float,
+                    outer_scale_m: float) -> torch.Tensor:
+        """``(screen_frames, n_actuators)`` float32 OPD (nm) of every frame at every position."""
+        import finufft  # noqa: PLC0415 (only this model needs it)
+
+        folded = torch.zeros(self.n_period, self.n_actuators, dtype=torch.complex64)
+        u = torch.as_tensor(self._u)
+        ramps: dict[int, torch.Tensor] = {}
+        for q, across_period, amplitude in self._amplitudes(r0_m, r0_wavelength_m, outer_scale_m):
+            # E|c|² = variance; single precision draws: the field is exactly the series of whatever is drawn.
+            draws = rng.standard_normal((*amplitude.shape, 2), dtype=np.float32).view(np.complex64)[..., 0]
+            coefficients = (draws * amplitude).astype(np.complex128)
+            x = 2 * np.pi * self._w / across_period  # in [-pi, pi]: the spread is below the period
+            across = finufft.nufft1d2(x, coefficients, eps=_NUFFT_EPS, isign=1, nthreads=_NUFFT_THREADS)
+            across = torch.as_tensor(np.atleast_2d(across))
+            # Frozen flow's phase ramp: frame n reads u_k - n step, so q's coefficient at u_k gains
+            # exp(2 pi i q u_k / P), written exp(2 pi i q0 u_k / P) exp(2 pi i j u_k / P) for rows q = q0 + j.
+            rows = len(q)
+            if rows not in ramps:
+                turns = torch.remainder(torch.arange(rows, dtype=torch.float64).unsqueeze(1) * u / self.period_m, 1.0)
+                ramps[rows] = torch.polar(torch.ones_like(turns), 2 * math.pi * turns)
+            first = torch.remainder(int(q[0]) * u / self.period_m, 1.0)
+            across *= ramps[rows] * torch.polar(torch.ones_like(first), 2 * math.pi * first)
+            m0 = int(q[0]) % self.n_period
+            if m0 + rows <= self.n_period:
+                folded[m0: m0 + rows] += across
+            else:
+                folded.index_add_(0, torch.as_tensor(q % self.n_period), across.to(torch.complex64))
+        series = torch.empty(self.screen_frames, self.n_actuators, dtype=torch.float32)
+        columns = max(1, _CHUNK_ELEMENTS // self.n_period)
+        for a in range(0, self.n_actuators, columns):
+            values = torch.fft.fft(folded[:, a: a + columns], dim=0)[: self.screen_frames]
+            series[:, a: a + columns] = values.real * math.sqrt(2)
+        return series
+
+    def expected_psd(self, frame_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(f_hz, psd)``: the expected one-sided temporal PSD (nm²/Hz) of every position's frames, with no sampling
+        noise: the screen's line spectrum, frequency ``q`` at ``(q mod M) / M`` of the frame rate (the frames'
+        aliasing), ``+f`` and ``-f`` folded onto one side, each line spread over its cell ``frame_rate_hz / M``.
+        The same at every position."""
+        power = np.zeros(self.n_period)
+        for q, _, amplitude in self._amplitudes(*self._spectrum_args):
+            np.add.at(power, q % self.n_period, 2 * (amplitude.astype(np.float64) ** 2).sum(1))
+        m = np.arange(1, (self.n_period + 1) // 2)
+        cell = frame_rate_hz / self.n_period
+        return m * cell, (power[m] + power[self.n_period - m]) / cell
+
+    def write_frames(self, start: int, stop: int, out: torch.Tensor, add: bool = False) -> torch.Tensor:
+        """Write (or, with ``add``, add) the OPD (nm) of frames ``start..stop-1`` into ``out`` ``(frames, n_act)``."""
+        require(stop <= self.screen_frames,
+                f"frame {stop - 1} is beyond the exact screen (screen_frames={self.screen_frames}): raise "
+                "atmosphere.screen_frames")
+        block = self._series[start:stop]
+        return out.add_(block) if add else out.copy_(block)
+
+    def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
+        """OPD (nm) of frames ``start..stop-1`` at the positions, ``(frames, n)``; ``basis`` projected out."""
+        from eofnn.sim.exact import project_out  # noqa: PLC0415
+
+        out = self.write_frames(start, stop, torch.empty(stop - start, self.n_actuators, dtype=torch.float64))
+        return out if basis is None else project_out(out, basis)
