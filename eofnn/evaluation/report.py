@@ -200,6 +200,8 @@ def _alphas(result: ExperimentResult) -> str:
         for name, choice in choices.items():
             where = ("" if "dm_gain_interval" not in choice
                      else "; stable for DM gain {:.3g} to {:.3g}".format(*choice["dm_gain_interval"]))
+            if choice.get("at_edge"):
+                where += "; at an end of the path: extend alpha_path to look beyond it"
             lines.append(f"- {name} trained in {scenario}: alpha {choice['alpha']:g} (least validation error of "
                          f"{len(choice['path']['alpha'])} from {choice['path']['alpha'][0]:g} to "
                          f"{choice['path']['alpha'][-1]:g}{where})")

@@ -157,6 +157,7 @@ class AlphaChoice:
     def summary(self) -> dict:
         """JSON-ready: the choice and the validation curve."""
         out = {"alpha": self.alpha, "val_loss": self.val_loss, "relative": self.path.relative,
+               "at_edge": self.alpha in (self.path.alphas[0], self.path.alphas[-1]),
                "path": {"alpha": list(self.path.alphas),
                         "val_loss": [v if math.isfinite(v) else None for v in self.path.val_loss]}}
         if self.dm_gain_interval is not None:
