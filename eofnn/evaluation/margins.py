@@ -44,34 +44,27 @@ def simulated_dm_gain_interval(experiment: Experiment, name: str, scenario_name:
 
     if not stable(1.0):
         return {"dm_gain_interval": None, "bracket": None, "probes": _probes(probes), "tolerance": tolerance}
-    # Upper bound: double out of 1 until unstable, then bisect.
-    low_ok, high_bad = 1.0, 2.0
-    while stable(high_bad):
-        low_ok, high_bad = high_bad, 2 * high_bad
-        if high_bad > HIGHEST_GAIN:
-            high_bad = None
-            break
-    if high_bad is not None:
-        while high_bad - low_ok > tolerance:
-            middle = (low_ok + high_bad) / 2
-            low_ok, high_bad = (middle, high_bad) if stable(middle) else (low_ok, middle)
-    upper = (low_ok, high_bad)
-    # Lower bound: halve out of 1 until unstable, then bisect.
-    high_ok, low_bad = 1.0, 0.5
-    while stable(low_bad):
-        high_ok, low_bad = low_bad, low_bad / 2
-        if low_bad < LOWEST_GAIN:
-            low_bad = None
-            break
-    if low_bad is not None:
-        while high_ok - low_bad > tolerance:
-            middle = (low_bad + high_ok) / 2
-            low_bad, high_ok = (low_bad, middle) if stable(middle) else (middle, high_ok)
-    lower = (low_bad, high_ok)
+    upper_ok, upper_bad = _bound(stable, 2.0, tolerance, HIGHEST_GAIN)  # double out of 1, then bisect
+    lower_ok, lower_bad = _bound(stable, 0.5, tolerance, LOWEST_GAIN)  # halve out of 1, then bisect
+    upper, lower = (upper_ok, upper_bad), (lower_bad, lower_ok)
     interval = [0.0 if lower[0] is None else (lower[0] + lower[1]) / 2,
                 None if upper[1] is None else (upper[0] + upper[1]) / 2]
     return {"dm_gain_interval": interval, "bracket": [list(lower), list(upper)], "probes": _probes(probes),
             "tolerance": tolerance}
+
+
+def _bound(stable, factor: float, tolerance: float, limit: float) -> tuple[float, float | None]:
+    """``(last stable, first unstable)`` DM gains stepping out of 1 by ``factor`` (beyond ``limit``: ``None``
+    unstable found), then bisected until they are ``tolerance`` apart."""
+    ok, bad = 1.0, factor
+    while stable(bad):
+        ok, bad = bad, bad * factor
+        if (bad > limit) if factor > 1 else (bad < limit):
+            return ok, None
+    while abs(bad - ok) > tolerance:
+        middle = (ok + bad) / 2
+        ok, bad = (middle, bad) if stable(middle) else (ok, middle)
+    return ok, bad
 
 
 def _probes(probes: dict[float, bool]) -> dict[str, bool]:
