@@ -348,3 +348,16 @@ def test_eofnn_stability_analyses_classical_controllers(tmp_path, capsys):
         code = main(["stability", "--scenario", str(TINY_SCENARIO), "--out", str(tmp_path / "bad"), *args])
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(err) == 1 and "either --checkpoint" in err[0] and not (tmp_path / "bad").exists()
+
+
+def test_the_modal_gain_cap_is_chosen_in_closed_loop(lqg_model):
+    """How near its critical gain a mode may go is chosen on a stream of its own, like the integrator's gain."""
+    from eofnn.control.modal import GAIN_MARGIN_CANDIDATES, build_modal_integrator
+
+    scenario, _ = lqg_model
+    model = build_modal_integrator(scenario, DataConfig(frames=2048, dither_nm=5.0, integrator_gain=0.4))
+    scan = model.info["margin_scan"]
+    assert list(scan) == [f"{m:g}" for m in GAIN_MARGIN_CANDIDATES]
+    finite = {m: v for m, v in scan.items() if v is not None}
+    assert float(min(finite, key=finite.get)) == model.info["gain_margin"]
+    assert float(model.gains.max()) <= model.info["critical_gain"] / model.info["gain_margin"] * (1 + 1e-12)
