@@ -20,8 +20,9 @@ def feed(monitor: GrowthMonitor, log_power: torch.Tensor, chunk: int = 700) -> d
     """Residuals whose per-frame power follows ``exp(log_power)`` (frames, K), with white fluctuations."""
     gen = torch.Generator().manual_seed(0)
     eps = torch.randn(1, *log_power.shape, generator=gen, dtype=torch.float64) * (log_power / 2).exp()
+    s = torch.full_like(eps, 100.0)  # stationary turbulence
     for first in range(0, eps.shape[1], chunk):
-        monitor(first, {"eps": eps[:, first: first + chunk]})
+        monitor(first, {"eps": eps[:, first: first + chunk], "s": s[:, first: first + chunk]})
     return monitor.result()
 
 
@@ -44,6 +45,18 @@ def test_stationary_steps_and_slight_drifts_are_not_diverging(shape):
         log_power += 2 * math.log(1.2) * t.view(-1, 1) / t[-1]
     result = feed(GrowthMonitor(RATE, settle_frames=500), log_power)
     assert not result["diverging"], result
+
+
+def test_turbulence_that_waxes_and_wanes_is_not_a_diverging_loop():
+    """Uncorrected, the residual is the turbulence: its power at an actuator may rise for seconds (large scales
+    crossing the pupil), which is no instability."""
+    t = torch.arange(4000, dtype=torch.float64) / RATE
+    gen = torch.Generator().manual_seed(1)
+    s = torch.randn(1, 4000, 30, generator=gen, dtype=torch.float64) * (3.0 * t).exp().view(1, -1, 1)
+    monitor = GrowthMonitor(RATE, settle_frames=500)
+    for first in range(0, 4000, 700):
+        monitor(first, {"eps": s[:, first: first + 700], "s": s[:, first: first + 700]})
+    assert not monitor.result()["diverging"]
 
 
 def test_a_short_run_is_not_judged():

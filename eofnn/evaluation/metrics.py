@@ -56,9 +56,11 @@ class GrowthMonitor:
     """Sees a loop that diverges slowly: a residual that keeps growing without (yet) exceeding any fixed multiple of
     the turbulence, as a loop just past its stability margin does for thousands of frames.
 
-    The mean square of each actuator's residual is accumulated over blocks of ``block_frames`` after
-    ``settle_frames``; over the last half of the run (at least ``MIN_BLOCKS`` blocks), a straight line fitted to the
-    log of each actuator's block power gives its exponential growth rate. The loop is *diverging* when, for some
+    The mean squares of each actuator's residual and turbulence are accumulated over blocks of ``block_frames``
+    after ``settle_frames``; over the last half of the run (at least ``MIN_BLOCKS`` blocks), a straight line fitted
+    to the log of each actuator's block power gives its exponential growth rate, less the turbulence's own growth
+    at that actuator (the turbulence waxes and wanes over seconds: a residual that follows it is not diverging).
+    The loop is *diverging* when, for some
     actuator, that growth is significant (t-statistic above :attr:`T_STAT`, a strict threshold since 1000s of
     actuators are tested and blocks are correlated), at least doubles the amplitude over the window, and is
     sustained: the mean log power rises in each of :attr:`SEGMENTS` consecutive segments (a step change, a new wind,
@@ -76,17 +78,18 @@ class GrowthMonitor:
         self._filled = 0
 
     def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
-        eps = arrays["eps"]
         skip = max(0, self.settle - first_frame)
-        power = eps[:, skip:].pow(2).mean(0)  # (frames, K), pooled over realisations
-        while power.shape[0]:
-            take = min(self.block - self._filled, power.shape[0])
-            part = power[:take].sum(0)
+        # The turbulence's power is kept beside the residual's: it waxes and wanes over seconds at an actuator (large
+        # scales crossing the pupil), and a residual that only follows it is not a loop diverging.
+        power = torch.stack([arrays["eps"][:, skip:].pow(2).mean(0), arrays["s"][:, skip:].pow(2).mean(0)])
+        while power.shape[1]:
+            take = min(self.block - self._filled, power.shape[1])
+            part = power[:, :take].sum(1)
             self._partial = part if self._partial is None else self._partial + part
             self._filled += take
-            power = power[take:]
+            power = power[:, take:]
             if self._filled == self.block:
-                self._blocks.append(self._partial / self.block)
+                self._blocks.append(self._partial / self.block)  # (2, K): residual and turbulence power
                 self._partial, self._filled = None, 0
 
     def result(self) -> dict | None:
@@ -95,21 +98,23 @@ class GrowthMonitor:
         n = len(self._blocks) // 2
         if n < self.MIN_BLOCKS:
             return None
-        logs = torch.stack(self._blocks[-n:]).clamp(min=1e-300).log()  # (n, K)
-        t = (torch.arange(n, dtype=torch.float64) * self.block / self.rate).view(-1, 1)
+        logs = torch.stack(self._blocks[-n:]).clamp(min=1e-300).log()  # (n, 2, K)
+        t = (torch.arange(n, dtype=torch.float64) * self.block / self.rate).view(-1, 1, 1)
         tc = t - t.mean()
-        slope = (tc * (logs - logs.mean(0))).sum(0) / tc.pow(2).sum()
-        residual = logs - logs.mean(0) - slope * tc
+        slopes = (tc * (logs - logs.mean(0))).sum(0) / tc.pow(2).sum()  # (2, K)
+        residual = logs[:, 0] - logs[:, 0].mean(0) - slopes[0] * tc[:, 0]
         stderr = (residual.pow(2).sum(0) / (n - 2)).sqrt() / tc.pow(2).sum().sqrt()
-        t_stat = slope / stderr.clamp(min=1e-300)
-        worst = int(torch.where(t_stat > self.T_STAT, slope, torch.full_like(slope, -math.inf)).argmax())
-        if not torch.isfinite(slope[worst]) or t_stat[worst] <= self.T_STAT:
-            worst = int(slope.argmax())
+        t_stat = slopes[0] / stderr.clamp(min=1e-300)
+        # Growth beyond the turbulence's own at the same actuator, significant in the residual itself.
+        excess = slopes[0] - slopes[1].clamp(min=0)
+        worst = int(torch.where(t_stat > self.T_STAT, excess, torch.full_like(excess, -math.inf)).argmax())
+        if not torch.isfinite(excess[worst]) or t_stat[worst] <= self.T_STAT:
+            worst = int(excess.argmax())
         window = float(n * self.block / self.rate)
-        rate = float(slope[worst]) / 2  # of the amplitude: half that of the power
-        segments = logs[:, worst].tensor_split(self.SEGMENTS)
-        means = torch.stack([seg.mean() for seg in segments])
-        sustained = bool((means.diff() > 0.25 * float(slope[worst]) * window / self.SEGMENTS).all())
+        rate = float(excess[worst]) / 2  # of the amplitude: half that of the power
+        relative = logs[:, 0, worst] - logs[:, 1, worst]
+        means = torch.stack([seg.mean() for seg in relative.tensor_split(self.SEGMENTS)])
+        sustained = bool((means.diff() > 0.25 * float(excess[worst]) * window / self.SEGMENTS).all())
         diverging = bool(t_stat[worst] > self.T_STAT and rate * window >= math.log(2) and sustained)
         return {"diverging": diverging, "growth_rate_per_s": rate, "t_stat": float(t_stat[worst]),
                 "actuator": worst, "window_s": window}
