@@ -502,7 +502,8 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
     text = f"""# eofnn's experiments: the reference study reproduced, and what changes on realistic physics
 
-Regenerate everything on this page with one command (about 40 minutes on 2 idle cores):
+Regenerate everything on this page with one command (well over an hour on 2 cores: the other sections took
+about 40 minutes; the fair contest of section 2 took 24-34 minutes and its alpha check 31, on a shared machine):
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Regenerate experiments/: the study's reproduction and its design sweeps, the realistic comparison, the
 # closed-loop EOF study, the robustness maps, vibrations and online adaptation; then rewrite
-# experiments/README.md from their result files. About 40 minutes on 2 idle cores. Run after scripts/setup.sh.
+# experiments/README.md from their result files. Well over an hour on 2 cores (the fair contest of section 2 took
+# 24-34 minutes and its alpha check 31 on a shared machine; the rest about 40). Run after scripts/setup.sh.
 # Every sweep is resumable: rerun this script after an interruption and finished points are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
