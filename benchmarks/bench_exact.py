@@ -10,8 +10,8 @@ import sys
 from pathlib import Path
 
 from benchmarks.baselines import HcipyTurbulence
-from benchmarks.bench_turbulence import scenario_with_grid
-from benchmarks.common import Row, Timing, time_interleaved, time_once
+from benchmarks.bench_turbulence import scenario_with_grid, time_against_hcipy
+from benchmarks.common import Row, Timing, time_once
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.turbulence import Turbulence
 
@@ -42,23 +42,12 @@ def bench_exact(scenario: Scenario, n_across: tuple[int, ...] = (40, 80), chunk_
     rows = []
     for n in n_across:
         sc = exact_scenario(scenario, n, (repeat + 1) * chunk_frames * chunks_per_repeat)  # warm-up + timed frames
-        exact = sc.turbulence(seed)
-        hcipy_turbulence = HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed)
-        state = {"next": 0}
-
-        def exact_chunks(exact=exact, state=state):
-            for _ in range(chunks_per_repeat):
-                first = state["next"]
-                state["next"] += chunk_frames
-                exact.frames(first, first + chunk_frames)
-
-        timings = time_interleaved({"exact": (exact_chunks, chunk_frames * chunks_per_repeat),
-                                    "hcipy": (lambda h=hcipy_turbulence: h.frames(hcipy_frames), hcipy_frames)},
-                                   repeat=repeat, warmup=1)
+        timings = time_against_hcipy(sc.turbulence(seed), sc, seed, chunk_frames, chunks_per_repeat, hcipy_frames,
+                                     repeat)
         rows.append(Row(
-            "exact", f"frame/{n}", "s/frame", timings["exact"], timings["hcipy"], "HCIPy InfiniteAtmosphericLayer loop",
+            "exact", f"frame/{n}", "s/frame", timings["eofnn"], timings["hcipy"], "HCIPy InfiniteAtmosphericLayer loop",
             goal_ratio=10.0, goal_label=">= 10 (10x HCIPy's rate)",
-            info={"n_across": n, "n_actuators": sc.grid.n_actuators, "exact_frames_per_s": 1 / timings["exact"].min,
+            info={"n_across": n, "n_actuators": sc.grid.n_actuators, "exact_frames_per_s": 1 / timings["eofnn"].min,
                   "hcipy_frames_per_s": 1 / timings["hcipy"].min, "chunk_frames": chunk_frames,
                   "kernel": "subaperture", "screen_frames": sc.atmosphere.screen_frames},
         ))
@@ -91,25 +80,14 @@ def bench_any_wind(scenario: Scenario, n: int, direction_deg: float, goal: float
     frames = (repeat + 1) * chunk_frames * chunks_per_repeat
     sc = exact_scenario(scenario, n, frames, wind_direction_deg=direction_deg)
     setup, exact = time_once(lambda: sc.turbulence(seed))
-    hcipy_turbulence = HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed)
-    state = {"next": 0}
-
-    def exact_chunks():
-        for _ in range(chunks_per_repeat):
-            first = state["next"]
-            state["next"] += chunk_frames
-            exact.frames(first, first + chunk_frames)
-
-    timings = time_interleaved({"exact": (exact_chunks, chunk_frames * chunks_per_repeat),
-                                "hcipy": (lambda: hcipy_turbulence.frames(hcipy_frames), hcipy_frames)},
-                               repeat=repeat, warmup=1)
-    stream = Timing([setup / frames + timings["exact"].min])
+    timings = time_against_hcipy(exact, sc, seed, chunk_frames, chunks_per_repeat, hcipy_frames, repeat)
+    stream = Timing([setup / frames + timings["eofnn"].min])
     info = {"n_across": n, "n_actuators": sc.grid.n_actuators, "wind_direction_deg": direction_deg,
             "screen_frames": frames, "setup_s": setup, "kernel": "subaperture",
             "hcipy_frames_per_s": 1 / timings["hcipy"].min}
     label = f">= {goal:g} ({goal:g}x HCIPy's rate)"
     return [
-        Row("exact", f"anywind-frame/{n}", "s/frame", timings["exact"], timings["hcipy"],
+        Row("exact", f"anywind-frame/{n}", "s/frame", timings["eofnn"], timings["hcipy"],
             "HCIPy InfiniteAtmosphericLayer loop", goal_ratio=goal, goal_label=label, info=info),
         Row("exact", f"anywind-setup/{n}", "s", Timing([setup]), Timing([timings["hcipy"].min * frames]),
             f"HCIPy InfiniteAtmosphericLayer loop, {frames} frames", info=info),

@@ -39,22 +39,29 @@ def bench_turbulence(scenario: Scenario, n_across: tuple[int, ...] = (40, 80), c
     return rows
 
 
-def _rows_for_grid(sc: Scenario, chunk_frames: int, chunks_per_repeat: int, hcipy_frames: int, repeat: int,
-                   setup_repeat: int, seed: int) -> list[Row]:
-    n = sc.grid.n_across
-    eofnn_turbulence = sc.turbulence(seed)
+def time_against_hcipy(turbulence: Turbulence, sc: Scenario, seed: int, chunk_frames: int, chunks_per_repeat: int,
+                       hcipy_frames: int, repeat: int) -> dict[str, Timing]:
+    """``{"eofnn", "hcipy"}`` s/frame: ``turbulence.frames`` streamed in consecutive ``chunk_frames`` calls
+    (``chunks_per_repeat`` per timing, as ``run_loop`` asks for them) against HCIPy's layer evolved frame by frame
+    on the scenario's grid, interleaved (one warm-up)."""
     hcipy_turbulence = HcipyTurbulence(sc.atmosphere, sc.grid, sc.frame_rate_hz, seed)
     state = {"next": 0}
 
-    def eofnn_chunks():
+    def chunks():
         for _ in range(chunks_per_repeat):
             first = state["next"]
             state["next"] += chunk_frames
-            eofnn_turbulence.frames(first, first + chunk_frames)
+            turbulence.frames(first, first + chunk_frames)
 
-    timings = time_interleaved({"eofnn": (eofnn_chunks, chunk_frames * chunks_per_repeat),
-                                "hcipy": (lambda: hcipy_turbulence.frames(hcipy_frames), hcipy_frames)},
-                               repeat=repeat, warmup=1)
+    return time_interleaved({"eofnn": (chunks, chunk_frames * chunks_per_repeat),
+                             "hcipy": (lambda: hcipy_turbulence.frames(hcipy_frames), hcipy_frames)},
+                            repeat=repeat, warmup=1)
+
+
+def _rows_for_grid(sc: Scenario, chunk_frames: int, chunks_per_repeat: int, hcipy_frames: int, repeat: int,
+                   setup_repeat: int, seed: int) -> list[Row]:
+    n = sc.grid.n_across
+    timings = time_against_hcipy(sc.turbulence(seed), sc, seed, chunk_frames, chunks_per_repeat, hcipy_frames, repeat)
     rows = [Row(
         "turbulence", f"frame/{n}", "s/frame", timings["eofnn"], timings["hcipy"],
         "HCIPy InfiniteAtmosphericLayer loop", goal_ratio=10.0, goal_label=">= 10 (10x HCIPy's rate)",
