@@ -47,7 +47,9 @@ def _rank_check(singular: np.ndarray, name: str, shape, n_controlled: int, rcond
     return kept
 
 
-def _matrix(value, name: str) -> np.ndarray:
+def _matrix(value, name: str, shape: tuple[int, int] | None = None, why: str = "", relation: str = "") -> np.ndarray:
+    """``value`` as a finite float64 matrix, of ``shape`` when given (``why``: what sets that shape; ``relation``:
+    the equation the matrix stands in)."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     value = np.asarray(value)
@@ -57,6 +59,8 @@ def _matrix(value, name: str) -> np.ndarray:
     value = value.astype(np.float64)
     if not np.isfinite(value).all():
         raise TelemetryError(f"telemetry {name} holds {int((~np.isfinite(value)).sum())} non-finite values (NaN or inf)")
+    if shape is not None and value.shape != shape:
+        raise TelemetryError(f"telemetry {name} has shape {value.shape} but {why}: expected {shape} ({relation})")
     return value
 
 
@@ -86,18 +90,11 @@ def residual_from_slopes(slopes: torch.Tensor, n_controlled: int, interaction_ma
                              "reconstructor (wfs = R @ slopes): add one to form the residual")
     if not (0 < rcond < 1):
         raise TelemetryError(f"telemetry rcond={rcond!r} is invalid: it must be in (0, 1)")
+    sizes = f"the slopes have {n_slopes} values and y {n_controlled} columns"
     if interaction_matrix is not None:
-        im = _matrix(interaction_matrix, "interaction_matrix")
-        if im.shape != (n_slopes, n_controlled):
-            raise TelemetryError(f"telemetry interaction_matrix has shape {im.shape} but the slopes have {n_slopes} "
-                                 f"values and y {n_controlled} columns: expected ({n_slopes}, {n_controlled}) "
-                                 "(slopes = IM @ y)")
+        im = _matrix(interaction_matrix, "interaction_matrix", (n_slopes, n_controlled), sizes, "slopes = IM @ y")
     if reconstructor is not None:
-        r = _matrix(reconstructor, "reconstructor")
-        if r.shape != (n_controlled, n_slopes):
-            raise TelemetryError(f"telemetry reconstructor has shape {r.shape} but the slopes have {n_slopes} values "
-                                 f"and y {n_controlled} columns: expected ({n_controlled}, {n_slopes}) "
-                                 "(wfs = R @ slopes)")
+        r = _matrix(reconstructor, "reconstructor", (n_controlled, n_slopes), sizes, "wfs = R @ slopes")
         u, singular, _ = np.linalg.svd(r, full_matrices=False)
         kept = _rank_check(singular, "reconstructor", r.shape, n_controlled, rcond, "command")
         seen = u[:, :kept]
