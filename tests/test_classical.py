@@ -14,15 +14,8 @@ from eofnn.analysis.linear import controller_stability, modal_stability
 from eofnn.analysis.stability import LoopSetup, analyse_polynomials
 from eofnn.control.baselines import critical_gain
 from eofnn.control.classical import Extrapolator, ModalIntegrator, extrapolation_weights, extrapolator_filter
-from eofnn.control.modal import (
-    build_lqg,
-    critical_integrator_gain,
-    fit_ar2,
-    integrator_transfer,
-    kalman_gain,
-    modal_statistics,
-    prediction_error_variance,
-)
+from eofnn.control.kalman import fit_ar2, kalman_gain, prediction_error_variance
+from eofnn.control.modal import build_lqg, critical_integrator_gain, integrator_transfer, modal_statistics
 from eofnn.data.history import HistorySpec, blended_target, open_loop_history
 from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
