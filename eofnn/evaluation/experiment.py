@@ -346,20 +346,18 @@ class Experiment:
                 rate = self.scenarios[scenario_name].frame_rate_hz
                 for name, entries in reconvergence(runs, changes, rate).items():
                     metrics[scenario_name][name].reconvergence = entries
-        gains: dict[str, dict[str, dict]] = {}
-        for (name, scenario_name), scan in self.gain_scans.items():
-            gains.setdefault(scenario_name, {})[name] = scan
-        alphas: dict[str, dict[str, dict]] = {}
-        for (name, scenario_name), choice in self.alpha_choices.items():
-            alphas.setdefault(scenario_name, {})[name] = choice
-        searches: dict[str, dict[str, dict]] = {}
-        for (name, scenario_name), searched in self.searches.items():
-            searches.setdefault(scenario_name, {})[name] = searched
-        models: dict[str, dict[str, dict]] = {}
-        for (name, scenario_name), model in self.classical_models.items():
-            models.setdefault(scenario_name, {})[name] = model.info
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, gains, alphas, searches,
-                                classical_models=models)
+        models = {key: model.info for key, model in self.classical_models.items()}
+        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, _by_scenario(self.gain_scans),
+                                _by_scenario(self.alpha_choices), _by_scenario(self.searches),
+                                classical_models=_by_scenario(models))
+
+
+def _by_scenario(per_controller: dict[tuple[str, str], dict]) -> dict[str, dict[str, dict]]:
+    """``{(controller, scenario): value}`` regrouped as ``{scenario: {controller: value}}``, as result files hold it."""
+    out: dict[str, dict[str, dict]] = {}
+    for (name, scenario_name), value in per_controller.items():
+        out.setdefault(scenario_name, {})[name] = value
+    return out
 
 
 def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario | None = None) -> str:
