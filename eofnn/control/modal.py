@@ -310,9 +310,8 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
     for margin in GAIN_MARGIN_CANDIDATES:
         gains, residual, k_crit = optimal_gains(stats, delay, dm_gain_model, min_gain_margin=margin)
         candidate = ModalIntegrator(stats.modes, gains, delay, dm_gain_model)
-        run = run_loop(scenario.turbulence(data.seed, "modal-margin", data.realisations), scenario.plant, candidate,
-                       data.frames, noise_seed=int_seed(data.seed, "modal-margin"), record=(), progress=False)
-        rms = None if run.diverged else float(run.residual_rms_nm[:, settle:].median())
+        rms = scenario.median_residual_nm(candidate, data.frames, data.seed, "modal-margin", settle,
+                                          realisations=data.realisations)
         scan[f"{margin:g}"] = rms
         if rms is not None and (best is None or rms < best[0]):
             best = (rms, margin, gains, residual)

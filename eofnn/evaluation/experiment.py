@@ -24,7 +24,6 @@ from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_
 from eofnn.evaluation.nonstationary import reconvergence, require_changes_within, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import require_memory, require_time
-from eofnn.seeding import int_seed
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
@@ -252,10 +251,9 @@ class Experiment:
         scanned: dict[float, float | None] = {}
 
         def run(gain: float) -> None:
-            result = run_loop(scenario.turbulence(cfg.data.seed, "gain-scan"), scenario.plant,
-                              Integrator(gain, cfg.leak), cfg.data.frames, noise_seed=int_seed(cfg.data.seed, "gain-scan"),
-                              record=(), divergence_factor=self.evaluation.divergence_factor, progress=False)
-            scanned[gain] = None if result.diverged else float(result.residual_rms_nm[:, settle:].median())
+            scanned[gain] = scenario.median_residual_nm(Integrator(gain, cfg.leak), cfg.data.frames, cfg.data.seed,
+                                                        "gain-scan", settle,
+                                                        divergence_factor=self.evaluation.divergence_factor)
 
         for gain in cfg.gains:
             run(gain)

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 from eofnn.evaluation.experiment import Experiment
 from eofnn.evaluation.metrics import GrowthMonitor
-from eofnn.seeding import int_seed
-from eofnn.sim.loop import run_loop
 
 #: Probes beyond which a bound is reported as "beyond the range searched".
 HIGHEST_GAIN, LOWEST_GAIN = 8.0, 1.0 / 16
@@ -33,13 +31,11 @@ def simulated_dm_gain_interval(experiment: Experiment, name: str, scenario_name:
         if relative not in probes:
             plant = scenario.plant.with_errors(dm_gain=relative * nominal)
             growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
-            result = run_loop(scenario.turbulence(ev.seed, "margin", ev.realisations), plant,
-                              experiment.controller(name, scenario_name), ev.frames,
-                              noise_seed=int_seed(ev.seed, "margin"), record=(), progress=False,
-                              divergence_factor=ev.divergence_factor,
-                              on_chunk=lambda first, arrays: growth(first, arrays))
-            judged = None if result.diverged else growth.result()
-            probes[relative] = not result.diverged and not (judged is not None and judged["diverging"])
+            rms = scenario.median_residual_nm(experiment.controller(name, scenario_name), ev.frames, ev.seed, "margin",
+                                              ev.settle_frames, realisations=ev.realisations, plant=plant,
+                                              divergence_factor=ev.divergence_factor, on_chunk=growth)
+            judged = None if rms is None else growth.result()
+            probes[relative] = rms is not None and not (judged is not None and judged["diverging"])
         return probes[relative]
 
     if not stable(1.0):

@@ -23,8 +23,7 @@ from eofnn.control.predictive import PredictiveController
 from eofnn.control.registry import build_controller, dm_gain_model_of
 from eofnn.evaluation.experiment import Experiment
 from eofnn.models.linear import LinearFilter
-from eofnn.seeding import int_seed
-from eofnn.sim.loop import Controller, run_loop
+from eofnn.sim.loop import Controller
 
 #: Most points drawn along one ridge path (evenly spaced over it, the chosen alpha always among them).
 MAX_PATH_POINTS = 9
@@ -81,10 +80,8 @@ def pareto(experiment: Experiment, scenario_name: str | None = None) -> ParetoRe
     plant_gain = scenario.plant.dm_gain
 
     def median_rms(controller: Controller) -> float | None:
-        result = run_loop(scenario.turbulence(ev.seed, "pareto", ev.realisations), scenario.plant, controller,
-                          ev.frames, noise_seed=int_seed(ev.seed, "pareto"), record=(),
-                          divergence_factor=ev.divergence_factor, progress=False)
-        return None if result.diverged else float(result.residual_rms_nm[:, ev.settle_frames:].median())
+        return scenario.median_residual_nm(controller, ev.frames, ev.seed, "pareto", ev.settle_frames,
+                                           realisations=ev.realisations, divergence_factor=ev.divergence_factor)
 
     out = ParetoResult(scenario_name)
     for name, cfg in experiment.predictors.items():

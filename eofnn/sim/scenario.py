@@ -10,10 +10,12 @@ import yaml
 
 from eofnn.errors import ConfigError
 from eofnn.resources import require_memory
+from eofnn.seeding import int_seed
 from eofnn.sim.anywind import screen_bytes
 from eofnn.sim.changes import layer_winds
 from eofnn.sim.disturbances import Vibration, build_vibrations
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.plant import Plant
 from eofnn.sim.turbulence import Atmosphere, Layer, Turbulence
 from eofnn.validation import Constraint, Interval, validated
@@ -72,6 +74,17 @@ class Scenario:
         """The turbulence stream of this scenario for ``seed`` and ``stream``."""
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
                           self.vibrations)
+
+    def median_residual_nm(self, controller: Controller, n_frames: int, seed: int, stream: str, settle_frames: int, *,
+                           realisations: int = 1, plant: Plant | None = None, divergence_factor: float = 10.0,
+                           on_chunk=None) -> float | None:
+        """Close the loop with ``controller`` for ``n_frames`` on stream ``stream`` of ``seed`` (a stream of its own,
+        WFS noise included), in this scenario's plant or ``plant``: the median residual RMS (nm) after
+        ``settle_frames``, ``None`` when the loop diverged. How tuning scans and robustness probes judge a setting."""
+        result = run_loop(self.turbulence(seed, stream, realisations), plant or self.plant, controller, n_frames,
+                          noise_seed=int_seed(seed, stream), record=(), divergence_factor=divergence_factor,
+                          progress=False, on_chunk=on_chunk)
+        return None if result.diverged else float(result.residual_rms_nm[:, settle_frames:].median())
 
     def require_stream_frames(self, n_frames: int, what: str) -> None:
         """Refuse, up front, a stream of ``n_frames`` frames that the ``exact`` turbulence screen cannot hold."""
