@@ -11,6 +11,7 @@ result, so a network's number can be read against the linear filters' one closed
 from __future__ import annotations
 
 import copy
+import inspect
 import itertools
 import math
 from collections.abc import Callable
@@ -20,6 +21,7 @@ from typing import Any
 import lightning as L
 
 from eofnn.errors import ConfigError
+from eofnn.models.build import import_class
 
 SEARCH_KEYS = ("lr", "width", "patience")
 
@@ -98,12 +100,8 @@ def run_search(space: SearchSpace, network: dict, optimization, make_task: Calla
                seed: int, frames_per_epoch: int) -> tuple[L.LightningModule, L.Trainer, dict]:
     """Train one network per trial of ``space``; return the best task (at its best epoch), its trainer and a
     summary: the trials with their validation losses and epochs, the choice, and the budget used."""
-    if space.width is not None:
-        from eofnn.models.build import import_class  # the class must take a width: check before training
-
+    if space.width is not None:  # the class must take a width: checked before anything is trained
         cls = import_class(network["class_path"])
-        import inspect
-
         if "hidden" not in inspect.signature(cls).parameters:
             raise ConfigError(f"optimization.search.width is for networks with a hidden argument (such as "
                               f"eofnn.models.mlp.MLP); {network['class_path']} has none")
