@@ -73,7 +73,7 @@ def classical_stability(controller: PredictorConfig, scenario, dm_gain_model: fl
     experiment = Experiment(scenario, {"nominal": {}}, {"controller": controller}, EvaluationConfig(),
                             log=log)
     result = controller_stability(experiment.config("controller", "nominal"),
-                                  experiment._predictor_if_any("controller", "nominal"), scenario)
+                                  experiment.predictor_if_any("controller", "nominal"), scenario)
     if result is None:
         raise ConfigError(f"controller={controller.controller!r} has no linear model to analyse")
     return result

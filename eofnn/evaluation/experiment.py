@@ -207,7 +207,7 @@ class Experiment:
                 self.checkpoints[f"{name}/{train_in}"] = f"{path.parent.name}/{path.name}"
         return self._trained[key]
 
-    def _predictor_if_any(self, name: str, scenario_name: str) -> TrainedPredictor | None:
+    def predictor_if_any(self, name: str, scenario_name: str) -> TrainedPredictor | None:
         """The trained predictor of controller ``name`` if it runs one (baselines run none), or the model a classical
         controller builds from telemetry recorded in the scenario (on a stream of its own, like the gain scan)."""
         if self.predictors[name].controller in FROM_TELEMETRY:
@@ -283,7 +283,7 @@ class Experiment:
 
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
-        predictor = self._predictor_if_any(name, scenario_name)
+        predictor = self.predictor_if_any(name, scenario_name)
         return build_controller(self.config(name, scenario_name), predictor)
 
     def evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
@@ -319,7 +319,7 @@ class Experiment:
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
-        predictor = self._predictor_if_any(name, scenario_name)
+        predictor = self.predictor_if_any(name, scenario_name)
         result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
         return None if result is None else stability_summary(result)
 

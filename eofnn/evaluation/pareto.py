@@ -86,7 +86,7 @@ def pareto(experiment: Experiment, scenario_name: str | None = None) -> ParetoRe
     out = ParetoResult(scenario_name)
     for name, cfg in experiment.predictors.items():
         run_cfg = experiment.config(name, scenario_name)
-        predictor = experiment._predictor_if_any(name, scenario_name)
+        predictor = experiment.predictor_if_any(name, scenario_name)
         path = getattr(predictor, "ridge_path", None)
         points = []
         if path is not None and isinstance(predictor.network, LinearFilter):
