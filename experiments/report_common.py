@@ -1,0 +1,76 @@
+"""What every section of experiments/README.md shares: reading result files and writing their numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+HERE = Path(__file__).parent
+STUDY = {  # Fowler, van Kooten & Jensen-Clem 2023, median RMS residual (nm)
+    ("nominal", "uncorrected"): "1534",
+    ("nominal", "pseudo_integrator"): "24.3",
+    ("nominal", "cl_eof"): "9.49",
+    ("nominal", "ol_eof"): "1.03",
+    ("dm_gain_2", "cl_eof"): "16.66",
+    ("dm_gain_2", "ol_eof"): ">10x worse than nominal",
+}
+NAMES = {"uncorrected": "uncorrected", "pseudo_integrator": "pseudo-integrator (oracle)", "integrator": "integrator",
+         "ol_eof": "open-loop EOF", "cl_eof": "closed-loop EOF", "mlp": "MLP (open loop)",
+         "ol_eof_nb": "open-loop EOF, neighbourhood", "mlp_nb": "MLP, neighbourhood", "extrapolator": "POL extrapolation",
+         "modal_integrator": "modal integrator", "lqg": "LQG (AR(2) per mode)"}
+
+
+def load(path: str) -> dict | None:
+    file = HERE / path
+    return json.loads(file.read_text()) if file.is_file() else None
+
+
+def cell(m: dict | None, digits: int = 3) -> str:
+    if m is None:
+        return "n/a"
+    if m["diverged"]:
+        return f"diverged (frame {m['diverged_frame']})"
+    value = m["median_rms_nm"]
+    return f"{value:.0f}" if value >= 1000 else f"{value:.{digits}g}"
+
+
+def rms(m: dict | None) -> float:
+    return math.nan if m is None or m["diverged"] else m["median_rms_nm"]
+
+
+def sweep_rows(name: str) -> list[dict[str, str]]:
+    file = HERE / "sweeps" / name / "sweep.csv"
+    if not file.is_file():
+        return []
+    with file.open() as f:
+        return [row for row in csv.DictReader(f) if row["status"] == "done"]
+
+
+def point_margin(sweep: str, row: dict[str, str]) -> str:
+    """The analytic DM-gain interval of a sweep point's predictor, from the point's own metrics.json."""
+    result = load(f"sweeps/{sweep}/points/{row['point']}/run/metrics.json")
+    if result is None:
+        return ""
+    return margin(result.get("stability", {}).get(row["scenario"], {}).get(row["predictor"]))
+
+
+def number(text: str) -> float:
+    return float(text) if text not in ("", None) else math.nan
+
+
+def fmt(value: float, digits: int = 3) -> str:
+    return "diverged" if math.isnan(value) else f"{value:.{digits}g}"
+
+
+def margin(stability: dict | None) -> str:
+    if not stability:
+        return ""
+    if not stability["stable"]:
+        return "unstable"
+    low, high = stability["dm_gain_interval"]
+    return f"{max(low or 0.0, 0.0):.3g}–{high:.3g}" if high is not None else f"> {max(low or 0.0, 0.0):.3g}"
+
+
+# ---------------------------------------------------------------------------------------------------------------
