@@ -178,3 +178,46 @@ automatic choice does not have):
 
 {alpha_check()}
 """
+
+
+def _epochs(result: dict, scenario: str, name: str) -> str:
+    searched = result.get("searches", {}).get(scenario, {}).get(name)
+    if not searched:
+        return ""
+    return f"{searched['chosen']['best_epoch']}/{searched['budget']['max_epochs_per_trial']} ep."
+
+
+def mlp_budget_check() -> str:
+    """The contest's MLPs with up to 15 epochs instead of 3 (experiments/fair/mlp_budget), beside the contest's rows."""
+    longer, contest = load("fair/mlp_budget/metrics.json"), load("realistic/metrics.json")
+    if longer is None or contest is None:
+        return "(experiments/fair/mlp_budget not run)"
+    lines = ["| WFS noise | network | 3 epochs (the contest) | up to 15 epochs, early stopping | change | best linear "
+             "(the contest) |", "|---|---|---|---|---|---|"]
+    for scenario, preds in longer["scenarios"].items():
+        for name in preds:
+            short, long_ = contest["scenarios"][scenario].get(name), preds[name]
+            linear = "ol_eof_nb" if name.endswith("_nb") else "ol_eof"
+            change = f"{100 * (1 - rms(long_) / rms(short)):+.1f}%" if short else ""
+            lines.append(f"| {scenario.replace('noise_', '')} nm | {NAMES.get(name, name)} | {cell(short)} "
+                         f"({_epochs(contest, scenario, name)}) | {cell(long_)} ({_epochs(longer, scenario, name)}) | "
+                         f"{change} | {NAMES[linear]} {cell(contest['scenarios'][scenario].get(linear))} |")
+    return "\n".join(lines)
+
+
+def paper_gap_check() -> str:
+    """The study's MLP gap under fair tuning, on HCIPy's layer and on exact frozen flow (experiments/fair/paper_gap)."""
+    runs = {"HCIPy's InfiniteAtmosphericLayer (the study's)": load("fair/paper_gap/hcipy/metrics.json"),
+            "exact frozen flow, point samples": load("fair/paper_gap/exact/metrics.json"),
+            "exact frozen flow, subaperture averages": load("fair/paper_gap/exact_subaperture/metrics.json")}
+    if any(r is None for r in runs.values()):
+        return "(experiments/fair/paper_gap not run)"
+    lines = ["| turbulence | best-gain integrator | open-loop EOF (α chosen) | MLP (epochs) | MLP against EOF |",
+             "|---|---|---|---|---|"]
+    for title, result in runs.items():
+        m = result["scenarios"]["nominal"]
+        alpha = result["ridge_alphas"]["nominal"]["ol_eof"]["alpha"]
+        gain = 1 - rms(m["mlp"]) / rms(m["ol_eof"])
+        lines.append(f"| {title} | {cell(m['integrator'])} | {cell(m['ol_eof'])} ({alpha:.2g}) | {cell(m['mlp'])} "
+                     f"({_epochs(result, 'nominal', 'mlp')}) | {100 * gain:+.0f}% |")
+    return "\n".join(lines)
