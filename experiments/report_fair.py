@@ -123,16 +123,16 @@ def realistic_section() -> str:
   {modal_text}; at or below it at {len(modal)} of {len(noise)} noise levels. How near its critical gain each mode
   may go is chosen in closed loop on a stream of its own, as the integrator's gain is: {margins}.
 - *Budgets*: {capped} of {len(searches)} network searches chose their last allowed epoch, so the MLP rows are
-  limited by the training budget (3 epochs of 10000 frames), not by validation; {smallest} of {len(alphas)} ridge
+  limited by the training budget (3 epochs of 10000 frames), not by validation (the check below gives them up to 15
+  epochs); {smallest} of {len(alphas)} ridge
   choices are the smallest alpha of the path: the error is flat there (the pareto table below: the same RMS from
   1e-14 to 1e-8 at 1 nm), so these fits need almost no ridge.
 - *Limits*: one realisation, {metrics[noise[0]][predictors[0]]['n_frames']} frames
   ({metrics[noise[0]][predictors[0]]['n_frames'] - metrics[noise[0]][predictors[0]]['settle_frames']} settled) of
   one test stream per scenario; perfect zonal sensing (subaperture average, no aliasing); two frozen-flow layers
   along lattice directions; the MLP and linear rows use the same 10000 training frames.
-- *Open*: on the study's own turbulence (`configs/paper.yaml`, section 1) an MLP was reported to beat open-loop
-  EOF by about 2x even at a ridge alpha of 1e-12; that comparison was not re-run with this tuning, and nothing here
-  explains it yet.
+- *The study's MLP gap* (an MLP 2x better than open-loop EOF on `configs/paper.yaml`): re-run with this tuning on
+  the study's turbulence and on exact frozen flow of the same layer, below.
 """
     pareto_md = HERE / "realistic" / "pareto.md"
     pareto = pareto_md.read_text().split("\n", 2)[2] if pareto_md.is_file() else "(no pareto.md)"
@@ -177,6 +177,24 @@ automatic one, all on the same test stream; the fixed alphas' best is chosen *on
 automatic choice does not have):
 
 {alpha_check()}
+
+**Are the MLP rows limited by their budget?** (`eofnn compare --config experiments/fair/mlp_budget.yaml --out
+experiments/fair/mlp_budget`: the same two MLPs, data, learning rates and test stream as the contest, up to 15
+epochs with early stopping, patience 2; median RMS in nm, chosen epoch / allowed):
+
+{mlp_budget_check()}
+
+{mlp_budget_text()}
+
+**The study's MLP gap, with fair tuning** (`experiments/fair/paper_gap.yaml`, three runs in
+`experiments/reproduce.sh`: the study's scenario, nominal plant, 4 frames of each actuator's own history, 10000
+training and 2000 validation frames, `alpha: auto` for the linear filter and the contest's MLP search; the same
+layer on HCIPy's `InfiniteAtmosphericLayer`, as exact frozen flow sampled at the same points, and as exact frozen
+flow seen through each subaperture; median RMS in nm on one test stream of 5000 frames):
+
+{paper_gap_check()}
+
+{paper_gap_text()}
 """
 
 
@@ -221,3 +239,43 @@ def paper_gap_check() -> str:
         lines.append(f"| {title} | {cell(m['integrator'])} | {cell(m['ol_eof'])} ({alpha:.2g}) | {cell(m['mlp'])} "
                      f"({_epochs(result, 'nominal', 'mlp')}) | {100 * gain:+.0f}% |")
     return "\n".join(lines)
+
+
+def mlp_budget_text() -> str:
+    longer, contest = load("fair/mlp_budget/metrics.json"), load("realistic/metrics.json")
+    if longer is None or contest is None:
+        return ""
+    parts = []
+    for scenario, preds in longer["scenarios"].items():
+        base = contest["scenarios"][scenario]
+        own = 100 * (1 - rms(base["ol_eof"]) / rms(preds["mlp"])) if "mlp" in preds else math.nan
+        nb = 100 * (1 - rms(base["ol_eof_nb"]) / rms(preds["mlp_nb"])) if "mlp_nb" in preds else math.nan
+        parts.append(f"{scenario.replace('noise_', '')} nm: own history {own:.1f}%, neighbourhood {nb:.1f}%")
+    epochs = [v["chosen"]["best_epoch"] for per in longer.get("searches", {}).values() for v in per.values()]
+    return (f"With the longer budget, linear EOF's median RMS is below the MLP's by ({'; '.join(parts)}; negative: "
+            f"the MLP is better). The chosen epochs ({', '.join(map(str, epochs))} of 15) are at or near the last "
+            "allowed, so more epochs may still help, most at 0 nm, where 15 epochs gained 14-15% over 3 (at 1 nm, "
+            "under 1%). The MLP's deficit in the contest table at 0 nm is mostly its training budget; the linear "
+            "filter's lead with a neighbourhood was not closed by 5x the epochs.")
+
+
+def paper_gap_text() -> str:
+    hcipy, point = load("fair/paper_gap/hcipy/metrics.json"), load("fair/paper_gap/exact/metrics.json")
+    subaperture = load("fair/paper_gap/exact_subaperture/metrics.json")
+    if hcipy is None or point is None or subaperture is None:
+        return ""
+
+    def gain(result: dict) -> str:
+        m = result["scenarios"]["nominal"]
+        return f"{100 * (1 - rms(m['mlp']) / rms(m['ol_eof'])):+.0f}%"
+
+    return (f"The gap survives fair tuning on HCIPy's layer (the MLP {gain(hcipy)} against `alpha: auto` EOF) and is "
+            f"gone on exact frozen flow of the same layer ({gain(point)} with point samples, {gain(subaperture)} "
+            "through subapertures). The optimal predictor of a stationary Gaussian signal from its own past is "
+            "linear, so a nonlinear gain needs a signal that is not: HCIPy's layer moves 0.0255 pixel per frame and "
+            "is interpolated between pixels and extruded at its rim, and its residual PSD "
+            "(`fair/paper_gap/hcipy/residual_psd.png`) carries a comb at multiples of v / pitch = 25.5 Hz, the "
+            "period of that interpolation, which the exact layer's (`fair/paper_gap/exact*/residual_psd.png`) does "
+            "not. The MLP's 2x is a property of that turbulence construction, not evidence that a network predicts "
+            "frozen flow better than a linear filter. Limits: one layer, one test stream, no WFS noise; which of the "
+            "interpolation and the rim extrusion the MLP exploits was not separated.")
