@@ -19,6 +19,14 @@ done
 $eofnn compare --config configs/realistic_study.yaml --out $x/realistic --overwrite true --pareto noise_1 \
   --simulated_margins '[noise_1]'
 $eofnn compare --config $x/fair/alpha_auto.yaml --out $x/fair/alpha_auto --overwrite true
+#    Are the MLP rows limited by their 3 epochs? And the study's MLP gap under the same tuning, on HCIPy's layer and
+#    on exact frozen flow of the same layer (point samples; subapertures).
+$eofnn compare --config $x/fair/mlp_budget.yaml --out $x/fair/mlp_budget --overwrite true
+$eofnn compare --config $x/fair/paper_gap.yaml --out $x/fair/paper_gap/hcipy --overwrite true
+$eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact --scenario.atmosphere.kernel point \
+  --out $x/fair/paper_gap/exact --overwrite true
+$eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact \
+  --out $x/fair/paper_gap/exact_subaperture --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \
