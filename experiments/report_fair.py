@@ -271,15 +271,16 @@ def paper_gap_text() -> str:
 
     def gain(result: dict) -> str:
         m = result["scenarios"]["nominal"]
-        return f"{100 * (1 - rms(m['mlp']) / rms(m['ol_eof'])):+.0f}%"
+        return f"{100 * (1 - rms(m['mlp']) / rms(m['ol_eof'])):+.1f}%"
 
     return (f"The gap survives fair tuning on HCIPy's layer (the MLP {gain(hcipy)} against `alpha: auto` EOF) and is "
             f"gone on exact frozen flow of the same layer ({gain(point)} with point samples, {gain(subaperture)} "
             "through subapertures). The optimal predictor of a stationary Gaussian signal from its own past is "
             "linear, so a nonlinear gain needs a signal that is not: HCIPy's layer moves 0.0255 pixel per frame and "
             "is interpolated between pixels and extruded at its rim, and its residual PSD "
-            "(`fair/paper_gap/hcipy/residual_psd.png`) carries a comb at multiples of v / pitch = 25.5 Hz, the "
-            "period of that interpolation, which the exact layer's (`fair/paper_gap/exact*/residual_psd.png`) does "
-            "not. The MLP's 2x is a property of that turbulence construction, not evidence that a network predicts "
+            "(`fair/paper_gap/hcipy/residual_psd.png`) carries peaks at multiples of v / pitch = 25.5 Hz, the "
+            "period of that interpolation; the exact layer's (`fair/paper_gap/exact*/residual_psd.png`) has none "
+            "(through subapertures it has nulls there instead, the zeros of the subaperture's average along the "
+            "wind). The MLP's 2x is a property of that turbulence construction, not evidence that a network predicts "
             "frozen flow better than a linear filter. Limits: one layer, one test stream, no WFS noise; which of the "
             "interpolation and the rim extrusion the MLP exploits was not separated.")
