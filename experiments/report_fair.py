@@ -237,7 +237,7 @@ def paper_gap_check() -> str:
         alpha = result["ridge_alphas"]["nominal"]["ol_eof"]["alpha"]
         gain = 1 - rms(m["mlp"]) / rms(m["ol_eof"])
         lines.append(f"| {title} | {cell(m['integrator'])} | {cell(m['ol_eof'])} ({alpha:.2g}) | {cell(m['mlp'])} "
-                     f"({_epochs(result, 'nominal', 'mlp')}) | {100 * gain:+.0f}% |")
+                     f"({_epochs(result, 'nominal', 'mlp')}) | {100 * gain:+.1f}% |")
     return "\n".join(lines)
 
 
