@@ -30,7 +30,7 @@ from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, layout_from_positions
 from eofnn.sim.spaces import read_matrix
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
-from eofnn.sim.telemetry_file import StreamedTelemetry
+from eofnn.sim.telemetry_file import NotStreamableError, StreamedTelemetry
 
 #: One recording (in memory, or a file read in blocks of frames).
 AnyTelemetry = Telemetry | StreamedTelemetry
@@ -132,6 +132,9 @@ class TelemetryBatches(IterableDataset):
         self.sequences = check_sequences(telemetry, spec)
         if not (math.isfinite(dm_gain) and dm_gain != 0):
             raise TelemetryError(f"dm_gain={dm_gain!r} is invalid: it must be finite and non-zero")
+        if isinstance(batch_frames, bool) or not isinstance(batch_frames, int) or batch_frames < 1:
+            raise TelemetryError(f"batch_frames={batch_frames!r} is invalid: it must be an integer >= 1 (frames per "
+                                 "batch; each batch also reads the history's first_frame frames before it)")
         self.spec, self.dm_response, self.dm_gain = spec, dm_response, float(dm_gain)
         self.batch_frames, self.first, self.stop = batch_frames, first, stop
 
@@ -157,9 +160,17 @@ def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | No
         raise TelemetryError("no telemetry file given")
     space = {name: read_matrix(value, name) if isinstance(value, (str, Path)) else value
              for name, value in (matrices or {}).items() if value is not None}
-    if streamed:
-        return [StreamedTelemetry.open(path, space=space) for path in paths]
-    return [Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space) for path in paths]
+    return [_open(path, space) if streamed else Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space)
+            for path in paths]
+
+
+def _open(path, space: dict) -> AnyTelemetry:
+    """A file for block reading; one whose frames are not contiguous on disk (Fortran order, compressed images) is
+    read whole, as before streaming existed."""
+    try:
+        return StreamedTelemetry.open(path, space=space)
+    except NotStreamableError:
+        return Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space)
 
 
 def telemetry_grid(telemetry: AnyTelemetry, grid: ActuatorGrid | ActuatorLayout | None = None

@@ -40,6 +40,11 @@ STREAMED = ("y", "wfs", "slopes")
 _FITS_DTYPES = {-32: ">f4", -64: ">f8", 8: "u1", 16: ">i2", 32: ">i4", 64: ">i8"}
 
 
+class NotStreamableError(TelemetryError):
+    """The file is valid telemetry but its frames are not contiguous on disk (Fortran order, a compressed or BLANK
+    image): it can be read whole (:meth:`Telemetry.load`), not in blocks."""
+
+
 class _RawReader:
     """One array stored contiguously (C order) at ``offset`` bytes of ``path``: blocks by ``seek`` + ``readinto``."""
 
@@ -386,7 +391,7 @@ def _fits_readers(path: Path) -> dict:
             if name not in STREAMED or hdu.header.get("NAXIS", 0) == 0:
                 continue
             if not isinstance(hdu, fits.ImageHDU) or hdu.header.get("ZIMAGE") or "BLANK" in hdu.header:
-                raise TelemetryError(f"telemetry file {str(path)!r}: HDU {hdu.name} is a {type(hdu).__name__}: "
+                raise NotStreamableError(f"telemetry file {str(path)!r}: HDU {hdu.name} is a {type(hdu).__name__}: "
                                      "streamed reading needs an uncompressed image without BLANK values")
             header = hdu.header
             bitpix = header["BITPIX"]
@@ -415,6 +420,6 @@ def _check_stored(path: Path, name: str, dtype: np.dtype, shape: tuple, fortran:
         raise TelemetryError(f"telemetry array {name!r} has shape {shape}: expected (frames, actuators) or "
                              "(batch, frames, actuators)")
     if fortran and shape[-2] > 1 and shape[-1] > 1:
-        raise TelemetryError(f"telemetry file {str(path)!r}: array {name!r} is stored in Fortran order, so its "
+        raise NotStreamableError(f"telemetry file {str(path)!r}: array {name!r} is stored in Fortran order, so its "
                              "frames are not contiguous on disk: save np.ascontiguousarray(...) to stream it, or read "
                              "it whole (Telemetry.load)")

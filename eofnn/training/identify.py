@@ -141,6 +141,8 @@ def identify_plant(telemetry: AnyTelemetry | Sequence[AnyTelemetry], grid: Actua
     require(isinstance(nuisance_lags, int) and nuisance_lags >= max(1, delay - 1),
             f"nuisance_lags={nuisance_lags!r} is invalid: it must be an integer >= max(1, delay_frames - 1) = "
             f"{max(1, delay - 1)}")
+    require(isinstance(batch_frames, int) and not isinstance(batch_frames, bool) and batch_frames >= 1,
+            f"batch_frames={batch_frames!r} is invalid: it must be an integer >= 1 (frames per pass step)")
     max_lag = delay + 2 if max_lag is None else max_lag
     require(isinstance(max_lag, int) and max_lag >= 0, f"max_lag={max_lag!r} is invalid: it must be an integer >= 0")
     settings = {"radius": radius, "nuisance_lags": nuisance_lags, "max_lag": max_lag, "batch_frames": batch_frames}
