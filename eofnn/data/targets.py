@@ -26,6 +26,7 @@ from torch.utils.data import IterableDataset
 
 from eofnn.data.history import HistorySpec, applied_command, blended_target, build_history, open_loop_history
 from eofnn.errors import TelemetryError
+from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, layout_from_positions
 from eofnn.sim.spaces import read_matrix
@@ -160,8 +161,20 @@ def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | No
         raise TelemetryError("no telemetry file given")
     space = {name: read_matrix(value, name) if isinstance(value, (str, Path)) else value
              for name, value in (matrices or {}).items() if value is not None}
-    return [_open(path, space) if streamed else Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space)
-            for path in paths]
+    return [_open(path, space) if streamed else _whole(path, space) for path in paths]
+
+
+def _whole(path, space: dict) -> Telemetry:
+    """The file in memory, refused up front when its float64 arrays (and the read buffers converting them) would
+    not fit (the header says how big they are)."""
+    try:
+        header = StreamedTelemetry.open(path, space=space)
+    except TelemetryError:
+        header = None  # Telemetry.load says what is wrong, or reads what cannot be read in blocks
+    if header is not None:
+        values = sum(math.prod(array.shape) for array in (header.y, header.wfs))
+        require_memory(3 * 8 * values, f"reading telemetry file {str(path)!r} whole ({values} values)")
+    return Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space)
 
 
 def _open(path, space: dict) -> AnyTelemetry:
