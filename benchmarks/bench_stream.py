@@ -11,8 +11,9 @@ written block by block (never whole in memory), deleted afterwards.
   :func:`eofnn.training.from_telemetry.fit_from_telemetry` on a :class:`~eofnn.sim.telemetry_file.StreamedTelemetry`
   of the big file (open-loop EOF, history 4, per actuator, ``batch_frames`` 256), against a memory budget of
   ``budget_fraction`` of the file. ``ratio = budget / peak`` (higher is better); goal >= 1: within the budget.
-  ``info`` has the file size, the peak, the peak in-memory fit of the small file (``Telemetry.load`` + the same fit)
-  for contrast, and the times.
+  ``info`` has the file size, the peak, and for contrast the peaks on the small file of the in-memory fit
+  (``Telemetry.load`` + the same fit), the streamed one, and plant identification (``batch_frames`` 256) streamed
+  and in memory, with the times.
 - ``fit_time/<K>``: s per frame of the streamed fit (open + finiteness scan + fit) against the in-memory fit
   (``Telemetry.load`` + fit) of a small file that fits in memory, timed alternately in this process. Goal: within
   1.5x (ratio >= 0.67). ``info.max_relative_weight_difference`` checks they give the same filter.
@@ -63,13 +64,18 @@ def write_fits(path: Path, n_frames: int, n_actuators: int, seed: int = 0, block
 
 
 def _fit(path: str, mode: str, batch_frames: int):
-    """The fit measured: streamed (open, scan, fit) or in memory (load whole, fit)."""
+    """The fit measured: streamed (open, scan, fit) or in memory (load whole, fit); with ``identify_`` in front of
+    the mode, plant identification instead."""
     from eofnn.data.history import HistorySpec
     from eofnn.sim.telemetry import Telemetry
     from eofnn.sim.telemetry_file import StreamedTelemetry
     from eofnn.training.from_telemetry import fit_from_telemetry
+    from eofnn.training.identify import identify_plant
 
-    telemetry = StreamedTelemetry.open(path) if mode == "streamed" else Telemetry.load(path, required=("y", "wfs"))
+    streamed = mode.endswith("streamed")
+    telemetry = StreamedTelemetry.open(path) if streamed else Telemetry.load(path, required=("y", "wfs"))
+    if mode.startswith("identify_"):
+        return identify_plant(telemetry, batch_frames=batch_frames)
     return fit_from_telemetry(telemetry, HistorySpec(*SPEC), plant={"dm_gain": 1.0}, batch_frames=batch_frames)
 
 
@@ -103,7 +109,7 @@ def _peak_child(path: str, mode: str, batch_frames: int) -> dict:
     seconds = time.perf_counter() - t0
     peak = status_bytes("VmHWM")
     return {"mode": mode, "rss_before_bytes": before, "peak_rss_bytes": peak, "peak_added_bytes": peak - before,
-            "seconds": seconds, "train_loss": fit.train_loss}
+            "seconds": seconds, "result": getattr(fit, "train_loss", None) or getattr(fit, "dm_gain", None)}
 
 
 def peak_memory(path: Path, mode: str, batch_frames: int) -> dict:
@@ -126,8 +132,8 @@ def bench_stream(n_actuators: int = 5000, big_frames: int = 50000, small_frames:
         streamed_big = peak_memory(big, "streamed", batch_frames)
         big.unlink()  # disk back before the small runs
         small_bytes = write_fits(small, small_frames, n_actuators, seed=2)
-        in_memory_small = peak_memory(small, "in_memory", batch_frames) if contrast else None
-        streamed_small = peak_memory(small, "streamed", batch_frames) if contrast else None
+        small_peaks = {mode: peak_memory(small, mode, batch_frames) for mode in
+                       ("in_memory", "streamed", "identify_in_memory", "identify_streamed")} if contrast else {}
         fits = {}
         calls = {mode: (lambda mode=mode: fits.__setitem__(mode, _fit(str(small), mode, batch_frames)), small_frames)
                  for mode in ("streamed", "in_memory")}
@@ -142,8 +148,7 @@ def bench_stream(n_actuators: int = 5000, big_frames: int = 50000, small_frames:
                  info={"file_bytes": big_bytes, "n_actuators": n_actuators, "frames": big_frames, "dtype": "float32",
                        "batch_frames": batch_frames, "budget_bytes": budget, "write_s": write_s,
                        "streamed_big": streamed_big, "peak_over_file": streamed_big["peak_added_bytes"] / big_bytes,
-                       "small_file_bytes": small_bytes, "in_memory_small": in_memory_small,
-                       "streamed_small": streamed_small})
+                       "small_file_bytes": small_bytes, "small_file_peaks": small_peaks})
     time_row = Row("stream", f"fit_time/{n_actuators}", "s/frame", timings["streamed"], timings["in_memory"],
                    "Telemetry.load + the same fit", goal_ratio=0.67, goal_label=">= 0.67 (within 1.5x)",
                    info={"frames": small_frames, "file_bytes": small_bytes, "batch_frames": batch_frames,

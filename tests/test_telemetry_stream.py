@@ -195,3 +195,18 @@ def test_batches_cover_every_frame_once(recorded, tmp_path):
     assert torch.equal(history, torch.cat([h for h, _ in reference]))
     assert torch.equal(torch.cat([t for _, t in ours]), torch.cat([t for _, t in reference]))
     assert history.shape[0] == 2 * (1500 - spec.first_frame)
+
+
+def test_memory_refused_up_front(recorded, tmp_path, monkeypatch):
+    """What the fit and identification will hold is checked against the memory available before any pass."""
+    import eofnn.resources
+
+    path = save(recorded, tmp_path / "t.npz", "float32")
+    monkeypatch.setattr(eofnn.resources, "available_memory_bytes", lambda: 2**20)
+    with pytest.raises(ConfigError, match=r"fitting from telemetry \(80 actuators, 3 taps, batches of 4096 frames\) "
+                                          r"needs about .* GiB of memory"):
+        fit_from_telemetry(StreamedTelemetry.open(path), HistorySpec("open_loop", 3, 2), batch_frames=4096)
+    with pytest.raises(ConfigError, match=r"identification \(80 actuators, batches of 4096 frames\) needs about"):
+        identify_plant(StreamedTelemetry.open(path), batch_frames=4096)
+    with pytest.raises(ConfigError, match="reading telemetry file .* whole"):
+        load_telemetry(path)
