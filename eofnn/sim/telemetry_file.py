@@ -111,7 +111,7 @@ class _ZipReader:
                 view[got: got + len(chunk)] = np.frombuffer(chunk, np.uint8)
                 got += len(chunk)
                 self._pos += len(chunk)
-        self._last = (first, view)
+            self._last = (first, view)  # ends where the stream stands: the next window continues from it
         return out
 
     def close(self) -> None:
