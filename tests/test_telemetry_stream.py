@@ -17,7 +17,8 @@ from eofnn.errors import ConfigError, TelemetryError
 from eofnn.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, Telemetry, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.telemetry_file import StreamedTelemetry, _RawReader
+from eofnn.sim.telemetry_file import StreamedTelemetry
+from eofnn.sim.telemetry_readers import RawReader
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
 
@@ -121,13 +122,13 @@ def test_memory_is_bounded_by_the_block(recorded, tmp_path, monkeypatch):
                      delay_frames=2)  # 12000 frames: 7.7 MB in float32
     path = long.save(tmp_path / "long.npz", dtype="float32")
     reads = []
-    original = _RawReader.read
+    original = RawReader.read
 
     def spy(self, batch, start, stop):
         reads.append(stop - start)
         return original(self, batch, start, stop)
 
-    monkeypatch.setattr(_RawReader, "read", spy)
+    monkeypatch.setattr(RawReader, "read", spy)
     streamed = StreamedTelemetry.open(path)
     spec = HistorySpec("open_loop", 4, 2)
     tracemalloc.start()
