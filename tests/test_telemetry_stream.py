@@ -17,7 +17,7 @@ from eofnn.errors import ConfigError, TelemetryError
 from eofnn.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, Telemetry, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.telemetry_file import StreamedTelemetry
+from eofnn.sim.telemetry_file import SCAN_FRAMES, StreamedTelemetry
 from eofnn.sim.telemetry_readers import RawReader
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
@@ -138,7 +138,7 @@ def test_memory_is_bounded_by_the_block(recorded, tmp_path, monkeypatch):
     finally:
         tracemalloc.stop()
     window = 200 + spec.first_frame
-    assert reads and max(reads) <= max(window, 1024)  # fit windows; the finiteness scan reads 1024-frame blocks
+    assert reads and max(reads) <= max(window, SCAN_FRAMES)  # fit windows; the finiteness scan reads its blocks
     assert sum(r for r in reads if r <= window) >= 12000  # ... and the fit did read every frame
     assert peak < streamed.stored_bytes / 4, (peak, streamed.stored_bytes)
 
@@ -156,7 +156,7 @@ def test_bad_files_one_line(recorded, tmp_path, capsys):
     bad = recorded.wfs.clone().numpy()
     bad[1, 1203, 7] = np.nan
     np.savez(tmp_path / "nan.npz", y=recorded.y.numpy(), wfs=bad, delay_frames=np.array(2))
-    with pytest.raises(TelemetryError, match=r"'wfs' holds 1 non-finite values \(NaN or inf\) in frames 1024 \.\. 1499"):
+    with pytest.raises(TelemetryError, match=r"'wfs' holds 1 non-finite values \(NaN or inf\) in frames 1024 \.\. 1279"):
         identify_plant(StreamedTelemetry.open(tmp_path / "nan.npz"))
     with pytest.raises(TelemetryError, match="batch_frames=0 is invalid"):
         fit_from_telemetry(StreamedTelemetry.open(npz), HistorySpec("open_loop", 2, 2), batch_frames=0)

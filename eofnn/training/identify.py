@@ -337,14 +337,27 @@ def _response(result: IdentifiedPlant, sequences, beta: torch.Tensor, grid: Actu
                                f"{result.dm_gain_se:.2g}; record longer or with a larger dither")
 
 
+def _sources(dm_response, n_act: int, chunk: int = 256, most: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(weight, index)``, ``(K, most)``: the model DM as at most ``most`` sources per actuator (a bilinear shift
+    has 4), the largest of its response to each actuator, so that rows of ``(K, frames)`` signals are gathered
+    whole. Unit commands go in ``chunk`` actuators at a time: never a ``(K, K)`` matrix (200 MB at 5000)."""
+    weight = torch.zeros(n_act, 0, dtype=torch.float64)
+    index = torch.zeros(n_act, 0, dtype=torch.int64)
+    for a in range(0, n_act, chunk):
+        b = min(a + chunk, n_act)
+        units = torch.zeros(b - a, n_act, dtype=torch.float64)
+        units[torch.arange(b - a), torch.arange(a, b)] = 1.0
+        weight = torch.cat([weight, dm_response(units).T], 1)  # column j: what a unit command on a + j applies
+        index = torch.cat([index, torch.arange(a, b).expand(n_act, -1)], 1)
+        top = weight.abs().topk(min(most, weight.shape[1]), dim=1).indices
+        weight, index = weight.gather(1, top), index.gather(1, top)
+    return weight, index
+
+
 def _noise(sequences, dm_response, first: int, batch_frames: int) -> tuple[float, float]:
     """White WFS noise RMS (nm) and its standard error from the structure function of the POL reconstruction."""
     n_act = sequences[0].y.shape[-1]
-    # The model DM as at most 4 sources per actuator (a bilinear shift), found from its response to each actuator:
-    # rows of (K, frames) signals are then gathered whole.
-    response = dm_response(torch.eye(n_act, dtype=torch.float64))  # row j: what a unit command on j applies
-    weight, index = response.T.abs().topk(min(4, n_act), dim=1)
-    weight = response.T.gather(1, index)
+    weight, index = _sources(dm_response, n_act)
     sums, count = torch.zeros(2, n_act, dtype=torch.float64), 0
     for seq in sequences:
         frames = seq.y.shape[0]
