@@ -110,6 +110,11 @@ def test_slopes_stream_through_the_reconstructor(recorded, tmp_path):
     streamed = StreamedTelemetry.open(tmp_path / "slopes.npz")
     assert streamed.measurement == whole.measurement and "pinv(IM)" in streamed.measurement
     assert relative(streamed.wfs[100:300], whole.wfs[100:300]) < 1e-12
+    slopes = wfs @ im.T
+    slopes[700, 3] = np.inf
+    np.savez(tmp_path / "bad.npz", y=y, slopes=slopes, interaction_matrix=im, delay_frames=np.array(2))
+    with pytest.raises(TelemetryError, match=r"'slopes' holds 1 non-finite values \(NaN or inf\) in frames 512 "):
+        identify_plant(StreamedTelemetry.open(tmp_path / "bad.npz"))
     spec = HistorySpec("open_loop", 2, 2)
     ours = fit_from_telemetry(streamed, spec, plant={"dm_gain": 1.5}, batch_frames=64)
     reference = fit_from_telemetry(whole, spec, plant={"dm_gain": 1.5}, batch_frames=512)

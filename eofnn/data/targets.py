@@ -144,10 +144,17 @@ class TelemetryBatches(IterableDataset):
         for seq in self.sequences:
             stop = seq.y.shape[0] if self.stop is None else min(self.stop, seq.y.shape[0])
             for start in range(max(self.first, span), stop - lead, self.batch_frames):
-                window = slice(start - span, min(start + self.batch_frames + lead, stop))
-                y, wfs = seq.y[window], seq.wfs[window]
-                yield (telemetry_history(wfs, y, self.spec, self.dm_response),
-                       telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))
+                yield self._batch(seq, slice(start - span, min(start + self.batch_frames + lead, stop)))
+
+    def _batch(self, seq, window: slice) -> tuple[torch.Tensor, torch.Tensor]:
+        """History and targets of the frames in ``window`` (its window of ``y`` and ``wfs`` is freed on return, so
+        the generator holds nothing between batches)."""
+        y, wfs = seq.y[window], seq.wfs[window]
+        s_hat = pol_reconstruction(wfs, y, self.dm_response, self.spec.delay_fraction)
+        # Open loop: the POL values are the history too (computed once; telemetry_history would compute them again).
+        history = open_loop_history(s_hat, self.spec) if self.spec.kind == "open_loop" else \
+            build_history(self.spec, y=y, wfs=wfs)
+        return history, -blended_target(s_hat, self.spec) / self.dm_gain
 
 
 def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | None = None, streamed: bool = False
