@@ -227,3 +227,13 @@ def fmt_seconds(s: float) -> str:
         if abs(s) >= scale:
             return f"{s / scale:.3g} {unit}"
     return f"{s:.3g} s"
+
+
+def fmt_value(value: float, unit: str) -> str:
+    """A row's figure: bytes (rows whose unit is ``bytes``, e.g. peak memory) in B/kB/MB/GB, else seconds."""
+    if unit != "bytes" or not math.isfinite(value):
+        return fmt_seconds(value)
+    for name, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if abs(value) >= scale:
+            return f"{value / scale:.3g} {name}"
+    return f"{value:.3g} B"

@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import Series, Skipped, fmt_seconds
+from benchmarks.common import Series, Skipped, fmt_value
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
-BENCHMARKS = ("turbulence", "exact", "loop", "fit", "end_to_end", "scaling")
+BENCHMARKS = ("turbulence", "exact", "loop", "fit", "end_to_end", "scaling", "stream")
 #: Benchmarks whose functions take a ``device``; the others are CPU code in eofnn (HCIPy, numpy, the loop).
 DEVICE_BENCHMARKS = ("loop", "fit")
 
@@ -46,6 +46,7 @@ FULL = {
     "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
                    "val_frames": 2000, "eval_frames": 5000, "repeat": 2},
     "scaling": {},
+    "stream": {"n_actuators": 5000, "big_frames": 50000, "small_frames": 4000, "batch_frames": 256, "repeat": 2},
 }
 QUICK = {
     "turbulence": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
@@ -61,6 +62,8 @@ QUICK = {
                 "stream_chunk": 200, "call_frames": (100, 200, 400), "chunk_frames": 200, "loop_frames": 100,
                 "steps": 100, "fit_frames": (500, 1000, 2000),
                 "fit_actuator_frames": 500, "fit_history_frames": 500, "base_across": 10, "repeat": 1},
+    "stream": {"n_actuators": 80, "big_frames": 8000, "small_frames": 2000, "batch_frames": 256, "repeat": 1,
+               "contrast": False},
 }
 
 
@@ -100,6 +103,10 @@ def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, 
         from benchmarks.bench_scaling import bench_scaling
 
         return bench_scaling(with_model(scenario, "strip"), **sizes), []
+    if name == "stream":
+        from benchmarks.bench_stream import bench_stream
+
+        return bench_stream(**sizes), []
     raise ValueError(f"unknown benchmark {name!r}: allowed are {', '.join(BENCHMARKS)}")
 
 
@@ -238,8 +245,8 @@ def format_table(results: dict) -> str:
     header = ("benchmark", "row", "dev", "eofnn", "baseline", "baseline is", "ratio", "(median)", "goal", "met")
     table = [header]
     for r in results["rows"]:
-        table.append((r["benchmark"], r["name"], r["device"], f"{fmt_seconds(r['eofnn_s']['min'])}",
-                      f"{fmt_seconds(r['baseline_s']['min'])}", r["baseline"], f"{r['ratio']:.3g}",
+        table.append((r["benchmark"], r["name"], r["device"], fmt_value(r["eofnn_s"]["min"], r["unit"]),
+                      fmt_value(r["baseline_s"]["min"], r["unit"]), r["baseline"], f"{r['ratio']:.3g}",
                       f"({r['ratio_median']:.3g})", r["goal"] or "", _met(r["goal_met"])))
     lines += _columns(table)
     if results["scaling"]:
@@ -247,7 +254,7 @@ def format_table(results: dict) -> str:
         table = [("series", "x", "sizes", "times", "growth", "exponent", "goal", "met")]
         for s in results["scaling"]:
             table.append((s["name"], s["x_name"], " ".join(f"{x:g}" for x in s["x"]),
-                          " ".join(fmt_seconds(t).replace(" ", "") for t in s["seconds"]),
+                          " ".join(fmt_value(t, s["unit"]).replace(" ", "") for t in s["seconds"]),
                           " ".join(f"{g:.3g}" for g in s["ratios"]), f"{s['exponent']:.2f}", s["goal"] or "",
                           _met(s["goal_met"])))
         lines += _columns(table)

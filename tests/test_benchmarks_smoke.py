@@ -28,6 +28,7 @@ EXPECTED_ROWS = {
              "step/budget/"),
     "fit": ("fit/",),
     "end_to_end": ("total", "fit", "evaluate"),
+    "stream": ("memory/", "fit_time/"),
 }
 EXPECTED_SERIES = (
     "turbulence_vs_actuators", "turbulence_vs_frames", "turbulence_vs_call_frames", "step_vs_actuators",
@@ -92,6 +93,8 @@ def test_baselines_do_the_same_work(quick):
     assert loop["info"]["numpy_max_relative_rms_difference"] < 1e-8
     for fit in (r for r in results["rows"] if r["benchmark"] == "fit"):
         assert fit["info"]["max_relative_weight_difference"] < 1e-6
+    streamed = next(r for r in results["rows"] if r["name"].startswith("fit_time/"))  # streamed fit = in-memory fit
+    assert streamed["info"]["max_relative_weight_difference"] < 1e-10
 
 
 def test_cuda_rows_are_skipped_cleanly_without_a_gpu(quick):

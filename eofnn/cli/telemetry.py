@@ -12,11 +12,10 @@ from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.replay import replay, replay_figure
 from eofnn.cli.common import log
 from eofnn.data.history import HistorySpec
-from eofnn.data.targets import load_telemetry, telemetry_grid
+from eofnn.data.targets import AnyTelemetry, load_telemetry, telemetry_grid
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.outputs import check_output_file, check_output_folder, staged_folder
-from eofnn.sim.telemetry import Telemetry
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.export import export_filter
 from eofnn.training.from_telemetry import TelemetryFit, fit_from_telemetry
@@ -59,7 +58,7 @@ def _base(parser: ArgumentParser, out_help: str) -> None:
     add_matrix_arguments(parser)
 
 
-def resolve_plant_option(plant: str, telemetry: list[Telemetry]) -> IdentifiedPlant | None:
+def resolve_plant_option(plant: str, telemetry: list[AnyTelemetry]) -> IdentifiedPlant | None:
     """``--plant``: identify from the telemetry, the nominal DM (None), or a plant.json."""
     if plant == "identify":
         identified = identify_plant(telemetry)
@@ -78,7 +77,7 @@ def resolve_plant_option(plant: str, telemetry: list[Telemetry]) -> IdentifiedPl
     return identified
 
 
-def check_checkpoint_fits(predictor, checkpoint: str, telemetry: list[Telemetry]) -> None:
+def check_checkpoint_fits(predictor, checkpoint: str, telemetry: list[AnyTelemetry]) -> None:
     """One line unless the checkpoint's network runs on this telemetry (actuators, delay)."""
     n_act, delay = telemetry[0].y.shape[-1], telemetry[0].delay_frames
     if predictor.n_actuators != n_act:
@@ -94,17 +93,20 @@ def add_identify_arguments(parser: ArgumentParser) -> None:
     parser.add_argument("--radius", type=float, default=1.5, help="Coupling neighbourhood radius in pitches.")
     parser.add_argument("--nuisance_lags", type=int, default=2, help="Past frames of y and wfs as nuisance regressors.")
     parser.add_argument("--max_lag", type=int | None, default=None, help="Largest WFS lag searched (frames).")
+    parser.add_argument("--batch_frames", type=int, default=1024,
+                        help="Frames read and regressed at a time (memory: about 8 bytes x actuators x batch_frames x "
+                             "(neighbours + 2 nuisance_lags + 8), whatever the length of the file).")
 
 
 def _files(value: str | list[str]) -> list[str]:
     return [value] if isinstance(value, str) else list(value)
 
 
-def _load(cfg) -> list[Telemetry]:
+def _load(cfg, streamed: bool = False) -> list[AnyTelemetry]:
     """Read the telemetry files (with matrices given beside them) and say how each residual was formed when it was
-    not recorded as one."""
+    not recorded as one. ``streamed``: open them for block reading (identification and fits never hold a file)."""
     paths = cfg.telemetry
-    telemetry = load_telemetry(paths, {name: getattr(cfg, name, None) for name in MATRICES})
+    telemetry = load_telemetry(paths, {name: getattr(cfg, name, None) for name in MATRICES}, streamed=streamed)
     for path, item in zip(_files(paths), telemetry, strict=True):
         if item.measurement:
             log(f"telemetry {path}: {item.measurement}")
@@ -115,9 +117,11 @@ def _load(cfg) -> list[Telemetry]:
 
 
 def run_identify(cfg, config_dump: str) -> dict:
+    check_value("batch_frames", cfg.batch_frames, Interval(1, 1_000_000, integer=True, unit="frames"))
     out = check_output_file(cfg.out, cfg.overwrite)
-    telemetry = _load(cfg)
-    plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag)
+    telemetry = _load(cfg, streamed=True)
+    plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag,
+                           batch_frames=cfg.batch_frames)
     plant.settings["telemetry"] = _files(cfg.telemetry)
     plant.to_json(out, overwrite=cfg.overwrite)
     keys = ("identified", "dm_gain", "dm_gain_se", "misregistration_x", "misregistration_x_se", "misregistration_y",
@@ -140,7 +144,7 @@ def add_fit_telemetry_arguments(parser: ArgumentParser) -> None:
 
 def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
     p: PredictorConfig = cfg.predictor
-    telemetry = _load(cfg)
+    telemetry = _load(cfg, streamed=True)  # read predictor.data.batch_frames frames at a time, never whole
     spec = HistorySpec(p.history, p.history_length, telemetry[0].delay_frames)
     plant = resolve_plant_option(cfg.plant, telemetry)
     frames = min(seq.y.shape[0] for t in telemetry for seq in t.sequences())

@@ -26,10 +26,15 @@ from torch.utils.data import IterableDataset
 
 from eofnn.data.history import HistorySpec, applied_command, blended_target, build_history, open_loop_history
 from eofnn.errors import TelemetryError
+from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, layout_from_positions
 from eofnn.sim.spaces import read_matrix
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
+from eofnn.sim.telemetry_file import NotStreamableError, StreamedTelemetry
+
+#: One recording (in memory, or a file read in blocks of frames).
+AnyTelemetry = Telemetry | StreamedTelemetry
 
 #: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
 DMResponse = Callable[[torch.Tensor], torch.Tensor]
@@ -56,11 +61,22 @@ def telemetry_history(wfs: torch.Tensor, y: torch.Tensor, spec: HistorySpec, dm_
     return build_history(spec, y=y, wfs=wfs)
 
 
-def check_sequences(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec | None = None) -> list[Telemetry]:
-    """Independent ``(frames, K)`` sequences of one or several telemetry files, checked to fit ``spec``."""
-    items = [telemetry] if isinstance(telemetry, Telemetry) else list(telemetry)
+def telemetry_items(telemetry: AnyTelemetry | Sequence[AnyTelemetry]) -> list[AnyTelemetry]:
+    """One or several telemetry files (in memory or streamed) as a list."""
+    items = [telemetry] if isinstance(telemetry, (Telemetry, StreamedTelemetry)) else list(telemetry)
     if not items:
         raise TelemetryError("no telemetry given")
+    return items
+
+
+def check_sequences(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: HistorySpec | None = None
+                    ) -> list[AnyTelemetry]:
+    """Independent ``(frames, K)`` sequences of one or several telemetry files, checked to fit ``spec`` (streamed
+    files are scanned once, block by block, for non-finite values: :meth:`StreamedTelemetry.check`)."""
+    items = telemetry_items(telemetry)
+    for item in items:
+        if isinstance(item, StreamedTelemetry):
+            item.check()
     sequences = [seq for item in items for seq in item.sequences()]
     for seq in sequences:
         if seq.y is None or seq.wfs is None:
@@ -89,13 +105,16 @@ class TelemetryBatches(IterableDataset):
     """Yields ``(history, target)`` batches, ``(samples, K, taps)`` and ``(samples, K)``, from recorded telemetry.
 
     The telemetry twin of :class:`eofnn.data.stream.SimulatedTelemetry`: histories are built one batch of frames at
-    a time (never the whole history tensor), targets through the identified DM (see the module docstring). Frames
+    a time (never the whole history tensor), targets through the identified DM (see the module docstring). Each
+    batch reads the window of frames ``[start - first_frame, start + batch_frames + target_lead)``: its samples'
+    histories reach ``first_frame`` (``history_length + delay - 1``, or more) frames back, so consecutive windows
+    overlap by that many frames and a :class:`StreamedTelemetry` reads just these frames from disk. Frames
     ``[first, stop)`` of every sequence are used (``stop=None``: to the end), so a held-out tail can be kept aside.
 
     Parameters
     ----------
     telemetry : Telemetry or sequence of Telemetry
-        Recorded ``y`` and ``wfs`` (several files or batches: independent sequences).
+        Recorded ``y`` and ``wfs`` (several files or batches: independent sequences), in memory or streamed.
     spec : HistorySpec
         History kind, length and delay (the delay must match the telemetry's).
     dm_response : callable
@@ -108,12 +127,15 @@ class TelemetryBatches(IterableDataset):
         Frame range used in each sequence.
     """
 
-    def __init__(self, telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec, dm_response: DMResponse,
+    def __init__(self, telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: HistorySpec, dm_response: DMResponse,
                  dm_gain: float, batch_frames: int = 1024, first: int = 0, stop: int | None = None) -> None:
         super().__init__()
         self.sequences = check_sequences(telemetry, spec)
         if not (math.isfinite(dm_gain) and dm_gain != 0):
             raise TelemetryError(f"dm_gain={dm_gain!r} is invalid: it must be finite and non-zero")
+        if isinstance(batch_frames, bool) or not isinstance(batch_frames, int) or batch_frames < 1:
+            raise TelemetryError(f"batch_frames={batch_frames!r} is invalid: it must be an integer >= 1 (frames per "
+                                 "batch; each batch also reads the history's first_frame frames before it)")
         self.spec, self.dm_response, self.dm_gain = spec, dm_response, float(dm_gain)
         self.batch_frames, self.first, self.stop = batch_frames, first, stop
 
@@ -122,25 +144,56 @@ class TelemetryBatches(IterableDataset):
         for seq in self.sequences:
             stop = seq.y.shape[0] if self.stop is None else min(self.stop, seq.y.shape[0])
             for start in range(max(self.first, span), stop - lead, self.batch_frames):
-                window = slice(start - span, min(start + self.batch_frames + lead, stop))
-                y, wfs = seq.y[window], seq.wfs[window]
-                yield (telemetry_history(wfs, y, self.spec, self.dm_response),
-                       telemetry_targets(wfs, y, self.spec, self.dm_response, self.dm_gain))
+                yield self._batch(seq, slice(start - span, min(start + self.batch_frames + lead, stop)))
+
+    def _batch(self, seq, window: slice) -> tuple[torch.Tensor, torch.Tensor]:
+        """History and targets of the frames in ``window`` (its window of ``y`` and ``wfs`` is freed on return, so
+        the generator holds nothing between batches)."""
+        y, wfs = seq.y[window], seq.wfs[window]
+        s_hat = pol_reconstruction(wfs, y, self.dm_response, self.spec.delay_fraction)
+        # Open loop: the POL values are the history too (computed once; telemetry_history would compute them again).
+        history = open_loop_history(s_hat, self.spec) if self.spec.kind == "open_loop" else \
+            build_history(self.spec, y=y, wfs=wfs)
+        return history, -blended_target(s_hat, self.spec) / self.dm_gain
 
 
-def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | None = None) -> list[Telemetry]:
+def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | None = None, streamed: bool = False
+                   ) -> list[AnyTelemetry]:
     """Read one or several telemetry files (``docs/telemetry.md``), each needing ``y`` and ``wfs`` (or ``slopes``);
     ``matrices`` (``interaction_matrix``, ``reconstructor``, ``modal_basis``: arrays or files) apply to every file
-    and replace what the files hold."""
+    and replace what the files hold. ``streamed``: open them for block reading (:class:`StreamedTelemetry`:
+    training and identification then never hold a whole file) instead of reading them whole."""
     paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
     if not paths:
         raise TelemetryError("no telemetry file given")
     space = {name: read_matrix(value, name) if isinstance(value, (str, Path)) else value
              for name, value in (matrices or {}).items() if value is not None}
-    return [Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space) for path in paths]
+    return [_open(path, space) if streamed else _whole(path, space) for path in paths]
 
 
-def telemetry_grid(telemetry: Telemetry, grid: ActuatorGrid | ActuatorLayout | None = None
+def _whole(path, space: dict) -> Telemetry:
+    """The file in memory, refused up front when its float64 arrays (and the read buffers converting them) would
+    not fit (the header says how big they are)."""
+    try:
+        header = StreamedTelemetry.open(path, space=space)
+    except TelemetryError:
+        header = None  # Telemetry.load says what is wrong, or reads what cannot be read in blocks
+    if header is not None:
+        values = sum(math.prod(array.shape) for array in (header.y, header.wfs))
+        require_memory(3 * 8 * values, f"reading telemetry file {str(path)!r} whole ({values} values)")
+    return Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space)
+
+
+def _open(path, space: dict) -> AnyTelemetry:
+    """A file for block reading; one whose frames are not contiguous on disk (Fortran order, compressed images) is
+    read whole, as before streaming existed."""
+    try:
+        return StreamedTelemetry.open(path, space=space)
+    except NotStreamableError:
+        return Telemetry.load(path, required=TELEMETRY_REQUIRED, space=space)
+
+
+def telemetry_grid(telemetry: AnyTelemetry, grid: ActuatorGrid | ActuatorLayout | None = None
                    ) -> ActuatorGrid | ActuatorLayout | None:
     """The actuator layout of ``telemetry``: ``grid`` if given, else None for modal telemetry, else its positions
     (eofnn's own grid when they are one, else an :class:`~eofnn.sim.layout.ActuatorLayout`), else its eofnn

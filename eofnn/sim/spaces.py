@@ -84,7 +84,15 @@ def residual_from_slopes(slopes: torch.Tensor, n_controlled: int, interaction_ma
     rcond : float
         Truncation of ``pinv(interaction_matrix)``, relative to the largest singular value.
     """
-    n_slopes = slopes.shape[-1]
+    r, note, seen = slopes_reconstructor(slopes.shape[-1], n_controlled, interaction_matrix, reconstructor, rcond)
+    return slopes.to(torch.float64) @ r.T, note, seen
+
+
+def slopes_reconstructor(n_slopes: int, n_controlled: int, interaction_matrix=None, reconstructor=None,
+                         rcond: float = RCOND) -> tuple[torch.Tensor, str, torch.Tensor | None]:
+    """``(R, note, projector)`` of :func:`residual_from_slopes` without the slopes: the ``(n_controlled, n_slopes)``
+    reconstructor (``wfs = slopes @ R.T``), the line saying how it was formed, and the projector for ``y`` (None
+    when every mode is seen). Streamed telemetry applies them one block of frames at a time."""
     if reconstructor is None and interaction_matrix is None:
         raise TelemetryError("telemetry has slopes but neither an interaction_matrix (slopes = IM @ y) nor a "
                              "reconstructor (wfs = R @ slopes): add one to form the residual")
@@ -108,11 +116,10 @@ def residual_from_slopes(slopes: torch.Tensor, n_controlled: int, interaction_ma
         note = (f"wfs = pinv(IM) @ slopes, least squares with IM {im.shape}: {n_controlled - kept} mode(s) with "
                 f"singular values below rcond={rcond:g} of the largest truncated (unseen: read as 0), condition "
                 f"number of the rest {singular[0] / singular[kept - 1]:.3g}")
-    wfs = slopes.to(torch.float64) @ torch.as_tensor(r).T
     if kept == n_controlled:
-        return wfs, note, None
+        return torch.as_tensor(r), note, None
     note += f"; the {n_controlled - kept} unseen mode(s) removed from y too"
-    return wfs, note, torch.as_tensor(seen @ seen.T)
+    return torch.as_tensor(r), note, torch.as_tensor(seen @ seen.T)
 
 
 def check_modal_basis(basis, n_modes: int) -> torch.Tensor:

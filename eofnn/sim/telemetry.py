@@ -273,7 +273,9 @@ def _array(data, name: str) -> np.ndarray:
     return data.astype(np.float64)
 
 
-def _read_fits(path: Path):
+def _read_fits(path: Path, skip: tuple[str, ...] = ()):
+    """Arrays, positions, delay, frame rate, config and space matrices of a FITS file; arrays named in ``skip``
+    are left unread (streamed telemetry reads them block by block)."""
     from astropy.io import fits
 
     arrays, positions, delay, rate, meta, space = {}, None, None, None, {}, {}
@@ -283,12 +285,12 @@ def _read_fits(path: Path):
         header = hdul[0].header
         names = {hdu.name for hdu in hdul}
         for name in ARRAYS:
-            if name.upper() in names and hdul[name.upper()].data is not None:
+            if name not in skip and name.upper() in names and hdul[name.upper()].data is not None:
                 arrays[name] = torch.from_numpy(_array(hdul[name.upper()].data, name))
         if "POSITIONS" in names:
             positions = torch.from_numpy(_array(hdul["POSITIONS"].data, "positions_m"))
         for name in SPACE_ARRAYS:
-            if name.upper() in names and hdul[name.upper()].data is not None:
+            if name not in skip and name.upper() in names and hdul[name.upper()].data is not None:
                 space[name] = torch.from_numpy(_array(hdul[name.upper()].data, name))
         if "RCOND" in header:
             space["rcond"] = _number(header["RCOND"], "rcond")
@@ -302,16 +304,17 @@ def _read_fits(path: Path):
     return arrays, positions, delay, rate, meta, space
 
 
-def _read_npz(path: Path):
+def _read_npz(path: Path, skip: tuple[str, ...] = ()):
+    """What :func:`_read_fits` reads, from an ``.npz`` file (members are read only when accessed)."""
     arrays, positions, delay, rate, meta, space = {}, None, None, None, {}, {}
     with np.load(path, allow_pickle=False) as data:
         for name in ARRAYS:
-            if name in data.files:
+            if name not in skip and name in data.files:
                 arrays[name] = torch.from_numpy(_array(data[name], name))
         if "positions_m" in data.files:
             positions = torch.from_numpy(_array(data["positions_m"], "positions_m"))
         for name in SPACE_ARRAYS:
-            if name in data.files:
+            if name not in skip and name in data.files:
                 space[name] = torch.from_numpy(_array(data[name], name))
         if "rcond" in data.files:
             space["rcond"] = _number(data["rcond"].item(), "rcond")

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import lightning as L
+import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
@@ -20,16 +21,16 @@ from eofnn.control.baselines import Dithered, Integrator
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig
-from eofnn.data.targets import TelemetryBatches, check_sequences, telemetry_grid
+from eofnn.data.targets import AnyTelemetry, TelemetryBatches, check_sequences, telemetry_grid, telemetry_items
 from eofnn.errors import ConfigError, DivergedError, TelemetryError
 from eofnn.outputs import check_output_file, staged_file
+from eofnn.resources import require_memory
 from eofnn.seeding import int_seed
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, dm_model, layout_to_dict
 from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.telemetry import Telemetry
 from eofnn.training.alpha import MarginFunction
 from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, bind_margin, make_trainer, solve_closed_form
 from eofnn.training.identify import IdentifiedPlant, identify_plant
@@ -79,7 +80,7 @@ def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int | floa
     return (lambda y: model.dm_gain * y), model.dm_gain, errors, "given" if errors else "nominal"
 
 
-def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: HistorySpec, network: dict | None = None,
+def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: HistorySpec, network: dict | None = None,
                        *, plant: IdentifiedPlant | dict | None = None, grid: ActuatorGrid | None = None,
                        optimization: OptimizationConfig | None = None, batch_frames: int = 1024, stop: int | None = None,
                        val_frames: int = 0, seed: int = 0, checkpoint_path: str | Path | None = None,
@@ -89,8 +90,11 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
 
     Parameters
     ----------
-    telemetry : Telemetry or sequence of Telemetry
-        Recorded ``y`` and ``wfs`` (nm): one or several files, batched or not.
+    telemetry : Telemetry, StreamedTelemetry or a sequence of them
+        Recorded ``y`` and ``wfs`` (nm): one or several files, batched or not. A
+        :class:`~eofnn.sim.telemetry_file.StreamedTelemetry` is read ``batch_frames`` frames at a time (plus the
+        history's overlap), so the fit never holds the file: memory is set by ``batch_frames``, the actuators and the
+        network's normal equations (refused up front when that does not fit).
     spec : HistorySpec
         History kind, length and delay (the delay must be the telemetry's).
     network : dict, optional
@@ -124,7 +128,7 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     if checkpoint_path is not None:
         checkpoint_path = check_output_file(checkpoint_path, overwrite, "checkpoint")
     n_act, n_frames = sequences[0].y.shape[-1], min(seq.y.shape[0] for seq in sequences)
-    first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
+    first_item = telemetry_items(telemetry)[0]
     grid = telemetry_grid(first_item, grid)
     dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, grid)
     train_stop = (stop if stop is not None else n_frames) - val_frames
@@ -142,6 +146,8 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
     L.seed_everything(seed, workers=True, verbose=False)
     task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict,
                          resolve_normalize(network or DEFAULT_NETWORK, asdict(optimization)), info)
+    require_memory(fit_working_bytes(task.network, spec, n_act, batch_frames),
+                   f"fitting from telemetry ({n_act} actuators, {spec.n_taps} taps, batches of {batch_frames} frames)")
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
                            stop=train_stop + val_frames) if val_frames else None
@@ -191,6 +197,23 @@ def fit_from_telemetry(telemetry: Telemetry | Sequence[Telemetry], spec: History
             trainer.save_checkpoint(partial)
     return TelemetryFit(predictor, dm_gain, errors, source, train_loss, None if val_loss is None else float(val_loss),
                         checkpoint_path, info)
+
+
+def fit_working_bytes(network: nn.Module, spec: HistorySpec, n_act: int, batch_frames: int) -> int:
+    """Bytes a streamed fit holds at once, whatever the length of the telemetry: one window of ``y`` and ``wfs``
+    (read buffer and float64), its POL values, the batch's history and targets, the network's features of them
+    (closed form: with their float64 copy), and the normal equations (sized from the network's features of one
+    sample)."""
+    window = (batch_frames + spec.first_frame + spec.target_lead) * n_act * 8
+    history = batch_frames * n_act * spec.n_taps * 8
+    equations = 0
+    if hasattr(network, "features"):
+        with torch.no_grad():
+            groups, _, n_features = network.features(
+                torch.zeros(1, n_act, spec.n_taps, dtype=network.weight.dtype)).shape
+        history = max(history, batch_frames * groups * n_features * 8)
+        equations = groups * (n_features + 2) ** 2 * 8
+    return 4 * window + 4 * history + equations
 
 
 def telemetry_sequences(data: DataConfig) -> tuple[int, int, int]:

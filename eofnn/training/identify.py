@@ -56,11 +56,13 @@ from collections.abc import Sequence
 
 import torch
 
-from eofnn.data.targets import check_sequences, telemetry_grid
+from eofnn.data.targets import AnyTelemetry, check_sequences, telemetry_grid, telemetry_items
 from eofnn.errors import CollinearityWarning, TelemetryError, require
+from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, coupling_stencils, layout_to_dict
 from eofnn.sim.telemetry import Telemetry
+from eofnn.sim.telemetry_file import StreamedTelemetry
 from eofnn.training.identified import IdentifiedPlant, PlantNotIdentifiedWarning
 from eofnn.training.ridge import NormalEquations
 
@@ -99,15 +101,17 @@ def _solve(ne: NormalEquations) -> torch.Tensor:
         return ne.solve(0.0, relative=False).weights
 
 
-def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGrid | ActuatorLayout | None = None, *,
+def identify_plant(telemetry: AnyTelemetry | Sequence[AnyTelemetry], grid: ActuatorGrid | ActuatorLayout | None = None, *,
                    radius: float = 1.5, nuisance_lags: int = 2, max_lag: int | None = None, batch_frames: int = 1024,
                    min_excitation: float = 1e-6) -> IdentifiedPlant:
     """Identify DM response, WFS lag and noise from dithered closed-loop telemetry (method: module docstring).
 
     Parameters
     ----------
-    telemetry : Telemetry or sequence of Telemetry
-        Recorded ``y`` and ``wfs`` (nm); several files or batches are independent sequences of one plant.
+    telemetry : Telemetry, StreamedTelemetry or a sequence of them
+        Recorded ``y`` and ``wfs`` (nm); several files or batches are independent sequences of one plant. Every
+        pass (whitening, excitation and lag, response, noise) reads ``batch_frames`` frames at a time plus the
+        lags it needs, so a :class:`~eofnn.sim.telemetry_file.StreamedTelemetry` is never held whole.
     grid : ActuatorGrid or ActuatorLayout, optional
         The actuator layout; by default from the telemetry's ``positions_m`` or its eofnn scenario. Without one the
         DM gain and the lag are still identified (from each actuator's response to its own dither), the
@@ -126,7 +130,7 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
         Below this ratio of whitened to raw command-increment RMS, the telemetry counts as undithered.
     """
     sequences = check_sequences(telemetry)
-    first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
+    first_item = telemetry_items(telemetry)[0]
     grid = telemetry_grid(first_item, grid)
     n_act, delay = sequences[0].y.shape[-1], sequences[0].delay_frames
     if not float(delay).is_integer():  # the lag search and the whitening assume whole frames
@@ -137,6 +141,8 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     require(isinstance(nuisance_lags, int) and nuisance_lags >= max(1, delay - 1),
             f"nuisance_lags={nuisance_lags!r} is invalid: it must be an integer >= max(1, delay_frames - 1) = "
             f"{max(1, delay - 1)}")
+    require(isinstance(batch_frames, int) and not isinstance(batch_frames, bool) and batch_frames >= 1,
+            f"batch_frames={batch_frames!r} is invalid: it must be an integer >= 1 (frames per pass step)")
     max_lag = delay + 2 if max_lag is None else max_lag
     require(isinstance(max_lag, int) and max_lag >= 0, f"max_lag={max_lag!r} is invalid: it must be an integer >= 0")
     settings = {"radius": radius, "nuisance_lags": nuisance_lags, "max_lag": max_lag, "batch_frames": batch_frames}
@@ -150,11 +156,12 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
     if delay < 2:
         result.warnings.append("delay_frames=1: the controller's input wfs(n-1) holds the previous dither, so the "
                                "whitening is not exact; identified values may be biased")
-    signals = [(seq.y.T.contiguous(), seq.wfs.T.contiguous()) for seq in sequences]
-    innovations = _whiten(signals, nuisance_lags, first, batch_frames)
-    power = sum(float(u[:, first:].pow(2).sum()) for u in innovations)
-    raw = sum(float((y[:, first:] - y[:, first - 1:-1]).pow(2).sum()) for y, _ in signals)
-    result.excitation_rms_nm = math.sqrt(power / 2 / sum(u[:, first:].numel() for u in innovations))
+    require_memory(identify_working_bytes(n_act, 1 if grid is None else grid.neighbours(radius).shape[1],
+                                          nuisance_lags, max_lag, batch_frames),
+                   f"identification ({n_act} actuators, batches of {batch_frames} frames)")
+    beta = _whiten(sequences, nuisance_lags, first, batch_frames)
+    power, raw, count, response, norm = _excitation(sequences, beta, nuisance_lags, first, max_lag, batch_frames)
+    result.excitation_rms_nm = math.sqrt(power / 2 / count)
     if power <= min_excitation ** 2 * raw:
         message = ("the telemetry holds no excitation: the commands are a function of the past residuals (no "
                    "dither), so the plant cannot be identified from it; record with a white dither")
@@ -163,19 +170,10 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
         return result
 
     # WFS lag: where the pooled response of Dwfs(n + l) to the dither innovation u(n) peaks.
-    response, norm = torch.zeros(max_lag + 1, dtype=torch.float64), 0.0
-    for (y, wfs), u in zip(signals, innovations, strict=True):
-        stop = y.shape[1] - max_lag
-        u_used = u[:, first:stop]
-        norm += float(((y[:, first:stop] - y[:, first - 1:stop - 1]) * u_used).sum())
-        increments = wfs[:, first - 1:].diff(dim=1)  # increments[:, i] = wfs(first + i) - wfs(first + i - 1)
-        for lag in range(max_lag + 1):
-            response[lag] += float((increments[:, lag: lag + stop - first] * u_used).sum())
     response /= norm
     lag = int(response.abs().argmax())
     if lag > 0:  # wfs recorded `lag` frames late: realign to the documented convention and identify again
-        shifted = [Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=delay, modal_basis=seq.modal_basis)
-                   for seq in sequences]
+        shifted = [_realigned(seq, lag) for seq in sequences]
         again = identify_plant(shifted, grid, radius=radius, nuisance_lags=nuisance_lags, max_lag=max_lag,
                                batch_frames=batch_frames, min_excitation=min_excitation)
         again.lag_frames, again.lag_response = lag, response.tolist()
@@ -184,46 +182,104 @@ def identify_plant(telemetry: Telemetry | Sequence[Telemetry], grid: ActuatorGri
             "and was realigned for identification; realign it (wfs[lag:], y[:-lag]) before training"] + again.warnings
         return again
     result.lag_frames, result.lag_response = lag, response.tolist()
-    _response(result, signals, innovations, grid, radius, nuisance_lags, first, batch_frames,
+    _response(result, sequences, beta, grid, radius, nuisance_lags, first, batch_frames,
               modal=first_item.modal_basis is not None)
-    result.wfs_noise_nm, result.wfs_noise_nm_se = _noise(signals, result.dm_response("model"), first)
+    result.wfs_noise_nm, result.wfs_noise_nm_se = _noise(sequences, result.dm_response("model"), first, batch_frames)
     return result
 
 
-def _whiten(signals, p: int, first: int, batch_frames: int) -> list[torch.Tensor]:
-    """Step 1: ``u(n) = Dy(n) - fit(Dy(n) | z(n))`` per actuator, ``(K, frames)`` per sequence (0 before ``first``)."""
+def identify_working_bytes(n_act: int, n_neighbours: int, nuisance_lags: int, max_lag: int, batch_frames: int) -> int:
+    """Bytes identification holds at once, whatever the length of the telemetry: the regressor buffer, a window of
+    ``y`` and ``wfs`` (read and transposed), the innovations and increments of a batch."""
+    window = (batch_frames + nuisance_lags + 1 + max_lag) * n_act * 8
+    return (n_neighbours + 2 * nuisance_lags) * batch_frames * n_act * 8 + 8 * window
+
+
+def _window(seq, a: int, b: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(K, b - a)`` contiguous ``y`` and ``wfs`` of frames ``a .. b-1`` (a view of memory, or a block read)."""
+    return seq.y[a:b].T.contiguous(), seq.wfs[a:b].T.contiguous()
+
+
+def _realigned(seq, lag: int):
+    """``y[:-lag]`` beside ``wfs[lag:]`` (lazy for a streamed file)."""
+    if isinstance(seq, StreamedTelemetry):
+        return seq.shifted(lag)
+    return Telemetry(y=seq.y[:-lag], wfs=seq.wfs[lag:], delay_frames=seq.delay_frames, modal_basis=seq.modal_basis)
+
+
+def _batches(sequences, p: int, first: int, batch_frames: int, ahead: int = 0):
+    """``(seq, a, b, o, y, wfs)`` for frames ``a .. b-1`` of each sequence from ``first`` on, with the window
+    ``y, wfs`` ``(K, frames)`` reaching ``p + 1`` frames back and ``ahead`` frames forward; frame ``n`` is column
+    ``n - o``."""
+    for seq in sequences:
+        frames = seq.y.shape[0]
+        for a, b in _chunks(first, frames, batch_frames):
+            o = a - p - 1
+            y, wfs = _window(seq, o, min(b + ahead, frames))
+            yield seq, a, b, o, y, wfs
+
+
+def _whiten(sequences, p: int, first: int, batch_frames: int) -> torch.Tensor:
+    """Step 1: the whitening coefficients ``beta`` ``(K, 2p)`` of ``Dy(n)`` on ``z(n)`` (:func:`_innovation`)."""
     whitening = NormalEquations()
-    regressors = _Regressors(signals[0][0].shape[0], 2 * p, batch_frames)
-    for y, wfs in signals:
-        for a, b in _chunks(first, y.shape[1], batch_frames):
-            whitening.update(regressors.nuisance(y, wfs, p, a, b).transpose(1, 2), y[:, a:b] - y[:, a - 1:b - 1])
-    beta = _solve(whitening)
-    innovations = []
-    for y, wfs in signals:
-        u = torch.zeros_like(y)
-        for a, b in _chunks(first, y.shape[1], batch_frames):
-            fit = torch.bmm(beta.unsqueeze(1), regressors.nuisance(y, wfs, p, a, b)).squeeze(1)
-            u[:, a:b] = y[:, a:b] - y[:, a - 1:b - 1] - fit
-        innovations.append(u)
-    return innovations
+    regressors = None
+    for _, a, b, o, y, wfs in _batches(sequences, p, first, batch_frames):
+        regressors = regressors or _Regressors(y.shape[0], 2 * p, batch_frames)
+        whitening.update(regressors.nuisance(y, wfs, p, a - o, b - o).transpose(1, 2),
+                         y[:, a - o: b - o] - y[:, a - o - 1: b - o - 1])
+    return _solve(whitening)
 
 
-def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid | ActuatorLayout | None,
+def _innovation(beta: torch.Tensor, regressors: _Regressors, y: torch.Tensor, wfs: torch.Tensor, p: int, a: int,
+                b: int) -> torch.Tensor:
+    """``u(n) = Dy(n) - beta . z(n)`` per actuator for window columns ``a .. b-1``, ``(K, b - a)``."""
+    fit = torch.bmm(beta.unsqueeze(1), regressors.nuisance(y, wfs, p, a, b)).squeeze(1)
+    return y[:, a:b] - y[:, a - 1: b - 1] - fit
+
+
+def _excitation(sequences, beta: torch.Tensor, p: int, first: int, max_lag: int, batch_frames: int):
+    """``(power, raw, count, response, norm)``: the innovations' and the raw command increments' sums of squares
+    over ``count`` values, and the pooled response of ``Dwfs(n + l)`` to ``u(n)`` for ``l = 0..max_lag`` with its
+    norm ``sum Dy(n) u(n)`` (frames ``first <= n < frames - max_lag``)."""
+    power = raw = norm = 0.0
+    count = 0
+    response = torch.zeros(max_lag + 1, dtype=torch.float64)
+    regressors = None
+    for seq, a, b, o, y, wfs in _batches(sequences, p, first, batch_frames, ahead=max_lag):
+        regressors = regressors or _Regressors(y.shape[0], 2 * p, batch_frames)
+        u = _innovation(beta, regressors, y, wfs, p, a - o, b - o)
+        increments = y[:, a - o: b - o] - y[:, a - o - 1: b - o - 1]
+        power += float(u.pow(2).sum())
+        raw += float(increments.pow(2).sum())
+        count += u.numel()
+        used = min(b, seq.y.shape[0] - max_lag) - a
+        if used <= 0:
+            continue
+        u_used = u[:, :used]
+        norm += float((increments[:, :used] * u_used).sum())
+        for lag in range(max_lag + 1):
+            n0 = a - o + lag
+            response[lag] += float(((wfs[:, n0: n0 + used] - wfs[:, n0 - 1: n0 - 1 + used]) * u_used).sum())
+    return power, raw, count, response, norm
+
+
+def _response(result: IdentifiedPlant, sequences, beta: torch.Tensor, grid: ActuatorGrid | ActuatorLayout | None,
               radius: float, p: int, first: int, batch_frames: int, modal: bool = False) -> None:
     """Step 2 and what follows from it: coupling, gains, misregistration, their standard errors (into ``result``)."""
-    n_act = signals[0][0].shape[0]
+    n_act = beta.shape[0]
     # Without positions each actuator's own dither is its only regressor: the gain needs no geometry.
     neighbours = torch.arange(n_act).unsqueeze(1) if grid is None else grid.neighbours(radius)
     n_nb = neighbours.shape[1]
     regression = NormalEquations()
     regressors = _Regressors(n_act, n_nb + 2 * p, batch_frames)
-    for (y, wfs), u in zip(signals, innovations, strict=True):
+    whitening = _Regressors(n_act, 2 * p, batch_frames)
+    for _, a, b, o, y, wfs in _batches(sequences, p, first, batch_frames):
+        u = _innovation(beta, whitening, y, wfs, p, a - o, b - o)
         u_pad = torch.cat([u, torch.zeros_like(u[:1])], 0)  # a zero row for neighbour slots beyond the pupil edge
-        for a, b in _chunks(first, y.shape[1], batch_frames):
-            features = regressors.nuisance(y, wfs, p, a, b, offset=n_nb)
-            for j in range(n_nb):
-                features[:, j].copy_(u_pad[neighbours[:, j], a:b])
-            regression.update(features.transpose(1, 2), wfs[:, a:b] - wfs[:, a - 1:b - 1])
+        features = regressors.nuisance(y, wfs, p, a - o, b - o, offset=n_nb)
+        for j in range(n_nb):
+            features[:, j].copy_(u_pad[neighbours[:, j]])
+        regression.update(features.transpose(1, 2), wfs[:, a - o: b - o] - wfs[:, a - o - 1: b - o - 1])
     weights = _solve(regression)
     gram = regression.gram
     sse = regression.target_power - 2 * (weights * regression.cross).sum(-1) + (
@@ -281,23 +337,38 @@ def _response(result: IdentifiedPlant, signals, innovations, grid: ActuatorGrid 
                                f"{result.dm_gain_se:.2g}; record longer or with a larger dither")
 
 
-def _noise(signals, dm_response, first: int) -> tuple[float, float]:
+def _sources(dm_response, n_act: int, chunk: int = 256, most: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(weight, index)``, ``(K, most)``: the model DM as at most ``most`` sources per actuator (a bilinear shift
+    has 4), the largest of its response to each actuator, so that rows of ``(K, frames)`` signals are gathered
+    whole. Unit commands go in ``chunk`` actuators at a time: never a ``(K, K)`` matrix (200 MB at 5000)."""
+    weight = torch.zeros(n_act, 0, dtype=torch.float64)
+    index = torch.zeros(n_act, 0, dtype=torch.int64)
+    for a in range(0, n_act, chunk):
+        b = min(a + chunk, n_act)
+        units = torch.zeros(b - a, n_act, dtype=torch.float64)
+        units[torch.arange(b - a), torch.arange(a, b)] = 1.0
+        weight = torch.cat([weight, dm_response(units).T], 1)  # column j: what a unit command on a + j applies
+        index = torch.cat([index, torch.arange(a, b).expand(n_act, -1)], 1)
+        top = weight.abs().topk(min(most, weight.shape[1]), dim=1).indices
+        weight, index = weight.gather(1, top), index.gather(1, top)
+    return weight, index
+
+
+def _noise(sequences, dm_response, first: int, batch_frames: int) -> tuple[float, float]:
     """White WFS noise RMS (nm) and its standard error from the structure function of the POL reconstruction."""
-    n_act = signals[0][0].shape[0]
-    # The model DM as at most 4 sources per actuator (a bilinear shift), found from its response to each actuator:
-    # rows of (K, frames) signals are then gathered whole.
-    response = dm_response(torch.eye(n_act, dtype=torch.float64))  # row j: what a unit command on j applies
-    weight, index = response.T.abs().topk(min(4, n_act), dim=1)
-    weight = response.T.gather(1, index)
+    n_act = sequences[0].y.shape[-1]
+    weight, index = _sources(dm_response, n_act)
     sums, count = torch.zeros(2, n_act, dtype=torch.float64), 0
-    for y, wfs in signals:
-        s_hat = wfs[:, first:].clone()
-        for m in range(index.shape[1]):
-            s_hat -= weight[:, m, None] * y[index[:, m], first:]
-        stop = s_hat.shape[1] - 2
-        for lag in (1, 2):
-            sums[lag - 1] += (s_hat[:, lag: stop + lag] - s_hat[:, :stop]).pow(2).sum(-1)
-        count += stop
+    for seq in sequences:
+        frames = seq.y.shape[0]
+        count += frames - first - 2
+        for a, b in _chunks(first, frames - 2, batch_frames):
+            y, wfs = _window(seq, a, b + 2)  # s_hat(n + 2) for the last n of the batch
+            s_hat = wfs.clone()
+            for m in range(index.shape[1]):
+                s_hat -= weight[:, m, None] * y[index[:, m]]
+            for lag in (1, 2):
+                sums[lag - 1] += (s_hat[:, lag: b - a + lag] - s_hat[:, : b - a]).pow(2).sum(-1)
     structure = sums / count
     variance = (4 * structure[0] - structure[1]) / 6  # per actuator, nm^2: D(l) = 2 sigma^2 + c l^2
     mean, se_var = float(variance.mean()), float(variance.std() / math.sqrt(variance.numel()))

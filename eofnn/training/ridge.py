@@ -147,6 +147,7 @@ def _accumulate(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.
     equations = NormalEquations()
     for history, target in batches:
         equations.update(network.features(history), network.group_targets(target))
+        del history, target  # freed before the next batch is built: one batch in memory at a time, not two
     return equations
 
 
