@@ -9,6 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from eofnn.analysis.block import CoupledAnalysisTooLarge
 from eofnn.analysis.linear import controller_stability, dm_gain_margin
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
@@ -320,7 +321,11 @@ class Experiment:
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
         predictor = self.predictor_if_any(name, scenario_name)
-        result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
+        try:
+            result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
+        except CoupledAnalysisTooLarge as err:  # reported like a network's: no analytic margins
+            self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
+            return None
         return None if result is None else stability_summary(result)
 
     def run(self) -> ExperimentResult:
