@@ -156,7 +156,8 @@ class Experiment:
                      f"{n_act} actuators)", allow_long)
         # Streams the exact turbulence screen must hold (training sequences are checked with their memory).
         for scenario_name, scenario_value in self.scenarios.items():
-            scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}")
+            scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}",
+                                                 evaluation.realisations)
             require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
             for name, cfg in self.predictors.items():
                 if cfg.gains is not None:
@@ -170,7 +171,8 @@ class Experiment:
                     n_sequences, n, _ = telemetry_sequences(cfg.data)
                     scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training ({n_sequences} "
                                                          f"sequence(s) of {n} frames, data.sequence_frames="
-                                                         f"{cfg.data.sequence_frames})")
+                                                         f"{cfg.data.sequence_frames})",
+                                                         n_sequences * cfg.data.realisations)
 
     #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
     #: tried, climbing towards the critical gain).
