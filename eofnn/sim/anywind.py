@@ -90,9 +90,10 @@ def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, o
                                frame_period_s, kernel, screen_frames, seed)
     # A built screen is read-only (frames are copies of it), and a study asks for the same realisation many times
     # (every controller's test stream, every gain of an integrator's scan): built once, it is shared.
-    key = (grid.diameter_m, grid.n_across, grid.obstruction, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps,
-           wind_direction_deg, frame_period_s, kernel, screen_frames, seed.entropy, tuple(seed.spawn_key),
-           seed.pool_size)
+    positions = np.ascontiguousarray(grid.positions_m, dtype=float)
+    key = (positions.shape, positions.tobytes(), float(grid.pitch_m), r0_m, r0_wavelength_m, outer_scale_m,
+           wind_speed_mps, wind_direction_deg, frame_period_s, kernel, screen_frames, seed.entropy,
+           tuple(seed.spawn_key), seed.pool_size)
     if key in _SCREEN_CACHE:
         _SCREEN_CACHE[key] = _SCREEN_CACHE.pop(key)  # most recently used last
         return _SCREEN_CACHE[key]
