@@ -171,3 +171,27 @@ def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(ca
                    expected, tmp_path / "o")
     needed = float(line.split("needs about ")[1].split(" GiB")[0]) if "GiB of memory" in line else math.inf
     assert needed > 0.8 * 4 and "3.2 GiB available" in line
+
+
+def test_replay_in_blocks_of_frames_equals_one_block(monkeypatch, small_scenario):
+    """A neighbourhood filter is replayed a few frames at a time (its gathered history is (frames, K, M x taps)):
+    the same errors as all frames at once."""
+    from eofnn.analysis import replay as replay_module
+    from eofnn.control.baselines import Integrator
+    from eofnn.data.history import HistorySpec
+    from eofnn.models.linear import LinearFilter
+    from eofnn.sim.loop import run_loop
+
+    scen = small_scenario
+    telemetry = run_loop(scen.turbulence(4, "test"), scen.plant, Integrator(0.5), 400).telemetry
+    spec = HistorySpec("closed_loop", 3, 2)
+    grid = {"diameter_m": scen.grid.diameter_m, "n_across": scen.grid.n_across, "obstruction": scen.grid.obstruction}
+    network = LinearFilter(scen.grid.n_actuators, spec.n_taps, structure="neighbourhood", radius=1.5, grid=grid)
+    with torch.no_grad():
+        network.weight.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(0))
+    whole = replay_module.replay(network, spec, telemetry, plant={}, settle_frames=50)
+    monkeypatch.setattr(replay_module, "REPLAY_BLOCK_ELEMENTS", 7 * scen.grid.n_actuators * spec.n_taps)
+    blocks = replay_module.replay(network, spec, telemetry, plant={}, settle_frames=50)
+    assert blocks.predictor.median_rms_nm == pytest.approx(whole.predictor.median_rms_nm, rel=1e-12)
+    assert blocks.predictor.map_rms_nm == pytest.approx(whole.predictor.map_rms_nm, rel=1e-12)
+    assert whole.predictor.median_rms_nm > 0
