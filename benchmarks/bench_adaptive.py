@@ -132,8 +132,10 @@ def bisected_upper_gain(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopS
     return 0.5 * (lo + hi)
 
 
-def stability_rows(n_actuators: int, history_length: int, repeat: int, seed: int) -> list[Row]:
-    """``stability/analysis``: the whole analysis vs a bisection of the upper gain margin alone."""
+def stability_rows(n_actuators: int, history_length: int, repeat: int, seed: int, benchmark: str = "adaptive",
+                   name: str = "stability/analysis", goal_seconds: float | None = None) -> list[Row]:
+    """``stability/analysis``: the whole analysis vs a bisection of the upper gain margin alone; with
+    ``goal_seconds``, a second row ``<name>/budget`` against that many seconds (goal: ratio >= 1)."""
     gen = torch.Generator().manual_seed(seed)
     # A closed-loop EOF near an integrator: the weights of a typical fit, and a stable loop.
     weights = 0.01 * torch.randn(n_actuators, 2 * history_length, generator=gen, dtype=torch.float64)
@@ -155,8 +157,12 @@ def stability_rows(n_actuators: int, history_length: int, repeat: int, seed: int
             "upper_gain_max_relative_difference": float(np.abs(results["bisection"] / analytic - 1).max()),
             "computes": "eofnn: poles, DM gain interval, fractional and integer delay margins, 256-point transfer "
                         "functions; baseline: the upper DM gain bound only (40 bisections of batched eigenvalues)"}
-    return [Row("adaptive", "stability/analysis", "s/analysis", timings["eofnn"], timings["bisection"],
+    rows = [Row(benchmark, name, "s/analysis", timings["eofnn"], timings["bisection"],
                 "bisection of the upper gain margin (numpy eigvals)", None, "", "cpu", info)]
+    if goal_seconds is not None:
+        rows.append(Row(benchmark, f"{name}/budget", "s/analysis", timings["eofnn"], Timing([goal_seconds]),
+                        f"{goal_seconds:g} s budget", 1.0, f">= 1 (analysis < {goal_seconds:g} s)", "cpu", info))
+    return rows
 
 
 def bench_adaptive(n_actuators: int = 1264, n_taps: int = 10, n_frames: int = 200, repeat: int = 5,

@@ -65,7 +65,8 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
                   loop_frames: int = 1000, steps: int = 1000, fit_frames: tuple[int, ...] = (10000, 20000, 40000),
                   fit_actuator_frames: int = 5000, fit_history_frames: int = 10000, fit_taps: int = 12,
                   batch_frames: int = 256, base_across: int = 40, loop_history: int = 12, repeat: int = 3,
-                  seed: int = 0) -> list[Series]:
+                  compare_across: tuple[int, ...] = (20, 40, 80), compare_train_frames: int = 2000,
+                  compare_eval_frames: int = 1000, seed: int = 0) -> list[Series]:
     """Log-log growth exponents (goal: at most linear, ``<= 1.15``).
 
     Series:
@@ -77,7 +78,10 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
     - ``turbulence_vs_call_frames``: seconds of one ``frames(a, a + T)`` call on strip blocks already built (the
       same range every repeat), i.e. the interpolation alone, against ``T``;
     - ``step_vs_*`` / ``run_loop_vs_*``: controller step and ``run_loop`` per frame vs actuators and history length;
-    - ``fit_vs_*``: streamed closed-form fit vs actuators, taps (open-loop history length) and frames.
+    - ``fit_vs_*``: streamed closed-form fit vs actuators, taps (open-loop history length) and frames;
+    - ``compare_vs_actuators``: a whole comparison (integrator, open- and closed-loop EOF per actuator: training,
+      closed-loop evaluation, stability analysis; ``eofnn compare`` without its files) at
+      ``compare_across`` actuators across.
 
     ``x`` is the number of active actuators (not the number across), the history length, or the number of frames.
     One turbulence stream per grid serves every series (each timing continues it), so set-up costs are paid once.
@@ -150,4 +154,41 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
     del x, t
     out.append(Series("scaling", "fit_vs_frames", "frames", list(fit_frames), seconds, "s/fit", LINEAR,
                       LINEAR_LABEL, info={"n_across": base_across, "taps": fit_taps, "batch_frames": batch_frames}))
+    if compare_across:
+        compare_grids = [scenario_with_grid(scenario, n) for n in compare_across]
+        out.append(Series("scaling", "compare_vs_actuators", "n_actuators",
+                          [sc.grid.n_actuators for sc in compare_grids],
+                          [_compare_s(sc, compare_train_frames, compare_eval_frames, repeat) for sc in compare_grids],
+                          "s/run", LINEAR, LINEAR_LABEL,
+                          info={"n_across": list(compare_across), "train_frames": compare_train_frames,
+                                "eval_frames": compare_eval_frames, "predictors": sorted(COMPARE_PREDICTORS),
+                                "what": "Experiment(...).run(): train, evaluate, analyse (eofnn compare without "
+                                        "writing files)"}))
     return out
+
+
+#: The end-to-end series' contenders: an integrator, open- and closed-loop EOF per actuator. (A neighbourhood
+#: filter's coupled stability analysis grows much faster than linearly and is refused beyond 12000 companion rows,
+#: 80 across among them: it would time that analysis, not the comparison.)
+COMPARE_PREDICTORS = {
+    "integrator": {"controller": "integrator", "gain": 0.4},
+    "ol_eof": {"history_length": 4, "optimization": {"alpha": 1e-9}},
+    "cl_eof": {"history": "closed_loop", "history_length": 5, "optimization": {"alpha": 1e-9}},
+}
+
+
+def _compare_s(scenario: Scenario, train_frames: int, eval_frames: int, repeat: int) -> float:
+    """Seconds of a whole comparison (``eofnn compare``'s work, files aside) in ``scenario``."""
+    from eofnn.evaluation.config import EvaluationConfig  # noqa: PLC0415 (only this series needs the experiment)
+    from eofnn.evaluation.experiment import Experiment  # noqa: PLC0415
+
+    data = {"frames": train_frames, "val_frames": max(100, train_frames // 5), "sequence_frames": train_frames}
+    predictors = {name: dict(cfg, data=data) if "controller" not in cfg else cfg
+                  for name, cfg in COMPARE_PREDICTORS.items()}
+    evaluation = EvaluationConfig(frames=eval_frames, settle_frames=min(500, eval_frames // 4),
+                                  psd_segment_frames=min(1024, eval_frames // 2))
+
+    def run():
+        Experiment(scenario, {"nominal": {}}, predictors, evaluation, progress=False, log=lambda _: None).run()
+
+    return time_interleaved({"c": (run, 1)}, repeat=repeat, warmup=0)["c"].min

@@ -27,6 +27,7 @@ EXPECTED_ROWS = {
     "loop": ("run_loop/bound/", "run_loop/realtime/", "run_loop_pregenerated/numpy/", "step/bound/", "step/numpy/",
              "step/budget/"),
     "fit": ("fit/",),
+    "stability": ("analysis/",),
     "end_to_end": ("total", "fit", "evaluate"),
     "stream": ("memory/", "fit_time/"),
 }
@@ -34,6 +35,7 @@ EXPECTED_SERIES = (
     "turbulence_vs_actuators", "turbulence_vs_frames", "turbulence_vs_call_frames", "step_vs_actuators",
     "step_vs_history",
     "run_loop_vs_actuators", "run_loop_vs_history", "fit_vs_actuators", "fit_vs_history", "fit_vs_frames",
+    "compare_vs_actuators",
 )
 
 

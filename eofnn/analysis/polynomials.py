@@ -83,7 +83,7 @@ def trim(p: torch.Tensor) -> torch.Tensor:
 
 
 def real_crossings(a: torch.Tensor, b: torch.Tensor, n_grid: int = 1024,
-                   chunk_rows: int = 256) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   chunk_rows: int = 1024) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Real parameters ``t`` at which ``a(z) + t b(z)`` has a root on the unit circle, per row.
 
     A root ``e^{i w}`` for real ``t`` needs ``a / b`` real there, so the crossings are the zeros of
@@ -147,21 +147,32 @@ def _im_product(a: torch.Tensor, b: torch.Tensor, omega: torch.Tensor) -> tuple[
 
 def _refine(a: torch.Tensor, b: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, h_lo: torch.Tensor,
             h_hi: torch.Tensor, iterations: int = 60) -> torch.Tensor:
-    """Zeros of ``Im(a conj b)`` in brackets ``[lo, hi]`` by false position with the Illinois modification."""
+    """Zeros of ``Im(a conj b)`` in brackets ``[lo, hi]`` by false position with the Illinois modification.
+
+    Each bracket stops once it has converged (a bracket below 1e-13 rad, or ``Im(a conj b)`` at rounding level);
+    later iterations work on the brackets still open only, so a few slow ones cost little (thousands of actuators
+    have tens of thousands of brackets)."""
+    lo, hi, h_lo, h_hi = lo.clone(), hi.clone(), h_lo.clone(), h_hi.clone()
     side = torch.zeros_like(lo)  # -1: lo moved last time, +1: hi moved
+    open_ = torch.arange(len(lo))
+    a_open, b_open = a, b
     for _ in range(iterations):
-        mid = (lo * h_hi - hi * h_lo) / (h_hi - h_lo)
-        mid = torch.where((mid > lo) & (mid < hi), mid, 0.5 * (lo + hi))
-        h_mid, scale = _im_product(a, b, mid)
-        move_lo = (h_mid >= 0) == (h_lo >= 0)
-        # Illinois: an end kept twice in a row has its value halved, so that both ends converge.
-        h_hi = torch.where(move_lo, torch.where(side < 0, 0.5 * h_hi, h_hi), h_mid)
-        h_lo = torch.where(move_lo, h_mid, torch.where(side > 0, 0.5 * h_lo, h_lo))
-        lo, hi = torch.where(move_lo, mid, lo), torch.where(move_lo, hi, mid)
-        side = torch.where(move_lo, -1.0, 1.0).to(lo.dtype)
-        # Converged: a bracket below 1e-13 rad, or Im(a conj b) at rounding level.
-        if bool(((hi - lo <= 1e-13) | (h_mid.abs() <= 1e-14 * scale)).all()):
+        if not len(open_):
             break
+        left, right, hl, hh, sd = lo[open_], hi[open_], h_lo[open_], h_hi[open_], side[open_]
+        mid = (left * hh - right * hl) / (hh - hl)
+        mid = torch.where((mid > left) & (mid < right), mid, 0.5 * (left + right))
+        h_mid, scale = _im_product(a_open, b_open, mid)
+        move_lo = (h_mid >= 0) == (hl >= 0)
+        # Illinois: an end kept twice in a row has its value halved, so that both ends converge.
+        hh = torch.where(move_lo, torch.where(sd < 0, 0.5 * hh, hh), h_mid)
+        hl = torch.where(move_lo, h_mid, torch.where(sd > 0, 0.5 * hl, hl))
+        left, right = torch.where(move_lo, mid, left), torch.where(move_lo, right, mid)
+        lo[open_], hi[open_], h_lo[open_], h_hi[open_] = left, right, hl, hh
+        side[open_] = torch.where(move_lo, -1.0, 1.0).to(lo.dtype)
+        still = ~((right - left <= 1e-13) | (h_mid.abs() <= 1e-14 * scale))
+        if not bool(still.all()):
+            open_, a_open, b_open = open_[still], a_open[still], b_open[still]
     return torch.where(h_lo.abs() < h_hi.abs(), lo, hi)
 
 

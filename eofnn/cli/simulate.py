@@ -60,7 +60,7 @@ def run(cfg, config_dump: str) -> None:
     require_memory(4 * 8 * cfg.frames * cfg.realisations * scenario.grid.n_actuators,
                    f"simulate with frames={cfg.frames}, realisations={cfg.realisations} and "
                    f"{scenario.grid.n_actuators} actuators")
-    scenario.require_stream_frames(cfg.frames, f"frames={cfg.frames}")
+    scenario.require_stream_frames(cfg.frames, f"frames={cfg.frames}", cfg.realisations)
     require_changes_within(scenario, cfg.frames, "scenario")
     if p.controller in NEEDS_PREDICTOR:
         predictor = load_configured_checkpoint("controller", p, {"scenario": scenario},

@@ -84,7 +84,7 @@ def record_pol_telemetry(scenario: Scenario, data, dm_gain_model: float | None =
     kept, and checked against the measurement."""
     n_act = scenario.grid.n_actuators
     require_telemetry(data, n_act, None, "modal telemetry")
-    scenario.require_stream_frames(data.frames, f"modal telemetry (data.frames={data.frames})")
+    scenario.require_stream_frames(data.frames, f"modal telemetry (data.frames={data.frames})", data.realisations)
     require_memory(8 * 4 * data.realisations * data.frames * n_act,
                    f"modal telemetry of data.frames={data.frames} x {n_act} actuators")
     dither_seed = int_seed(data.seed, "classical-dither")

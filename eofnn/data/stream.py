@@ -94,7 +94,8 @@ def require_training_memory(scenario: Scenario, spec: HistorySpec, data: DataCon
 
     A sequence holds ``s, y, eps, wfs`` (float64); a batch its history tensor and the targets.
     """
-    scenario.require_stream_frames(data.sequence_frames, f"data.sequence_frames={data.sequence_frames}")
+    scenario.require_stream_frames(data.sequence_frames, f"data.sequence_frames={data.sequence_frames}",
+                                   data.realisations)
     n_act = scenario.grid.n_actuators
     require_memory(8 * data.realisations * n_act * (4 * data.sequence_frames + data.batch_frames * (spec.n_taps + 1)),
                    f"training data with data.sequence_frames={data.sequence_frames}, data.realisations="

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from eofnn.errors import require
-from eofnn.resources import require_memory
+from eofnn.resources import available_memory_bytes, require_memory
 from eofnn.sim.exact import (
     _PERIOD_OUTER_SCALES,
     _SPATIAL_BAND,
@@ -75,6 +75,11 @@ _CHUNK_ELEMENTS = 2**22
 #: Amplitude tables up to this size are kept (the latest one) and shared by the realisations of a layer.
 _MAX_SHARED_AMPLITUDE_BYTES = 256 * 2**20
 _AMPLITUDE_CACHE: dict[tuple, list] = {}
+#: Built screens shared by the layers that ask for the same realisation (least recently used dropped first), up to
+#: ``_SCREEN_CACHE_BYTES`` and ``_SCREEN_CACHE_FRACTION`` of the memory available when one is added.
+_SCREEN_CACHE: dict[tuple, AnyWindFrozenFlow] = {}
+_SCREEN_CACHE_BYTES = 2 * 2**30
+_SCREEN_CACHE_FRACTION = 0.25
 
 
 def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, outer_scale_m: float,
@@ -85,8 +90,30 @@ def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, o
     if lattice_direction(wind_direction_deg) is not None:
         return ExactFrozenFlow(grid, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps, wind_direction_deg,
                                frame_period_s, kernel, screen_frames, seed)
-    return AnyWindFrozenFlow(grid, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps, wind_direction_deg,
-                             frame_period_s, kernel, screen_frames, seed)
+    # A built screen is read-only (frames are copies of it), and a study asks for the same realisation many times
+    # (every controller's test stream, every gain of an integrator's scan): built once, it is shared.
+    positions = np.ascontiguousarray(grid.positions_m, dtype=float)
+    key = (positions.shape, positions.tobytes(), float(grid.pitch_m), r0_m, r0_wavelength_m, outer_scale_m,
+           wind_speed_mps, wind_direction_deg, frame_period_s, kernel, screen_frames, seed.entropy,
+           tuple(seed.spawn_key), seed.pool_size)
+    if key in _SCREEN_CACHE:
+        _SCREEN_CACHE[key] = _SCREEN_CACHE.pop(key)  # most recently used last
+        return _SCREEN_CACHE[key]
+    layer = AnyWindFrozenFlow(grid, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps, wind_direction_deg,
+                              frame_period_s, kernel, screen_frames, seed)
+    _remember_screen(key, layer)
+    return layer
+
+
+def _remember_screen(key: tuple, layer: AnyWindFrozenFlow) -> None:
+    """Keep ``layer`` among the shared screens, dropping the least recently used beyond the cache's budget."""
+    budget = min(_SCREEN_CACHE_BYTES, _SCREEN_CACHE_FRACTION * available_memory_bytes())
+    size = layer.screen_nbytes
+    if size > budget:
+        return
+    _SCREEN_CACHE[key] = layer
+    while sum(lay.screen_nbytes for lay in _SCREEN_CACHE.values()) > budget:
+        _SCREEN_CACHE.pop(next(iter(_SCREEN_CACHE)))
 
 
 def screen_bytes(grid: ActuatorGrid, outer_scale_m: float, wind_speed_mps: float, wind_direction_deg: float,
@@ -156,6 +183,11 @@ class AnyWindFrozenFlow:
                                         f"{self.n_period} frames, screen_frames={screen_frames})")
         self._spectrum_args = (r0_m, r0_wavelength_m, outer_scale_m)
         self._series = self._synthesise(np.random.default_rng(seed), *self._spectrum_args)
+
+    @property
+    def screen_nbytes(self) -> int:
+        """Bytes the built screen holds (``screen_frames x n_actuators`` float32)."""
+        return self._series.element_size() * self._series.numel()
 
     def _plan(self, outer_scale_m: float, step_m: float) -> None:
         """Periods and bands: ``n_period`` frames along the wind, and each ``q``'s across-wind period and modes."""

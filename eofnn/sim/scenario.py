@@ -86,8 +86,9 @@ class Scenario:
                           progress=False, on_chunk=on_chunk)
         return None if result.diverged else float(result.residual_rms_nm[:, settle_frames:].median())
 
-    def require_stream_frames(self, n_frames: int, what: str) -> None:
-        """Refuse, up front, a stream of ``n_frames`` frames that the ``exact`` turbulence screen cannot hold."""
+    def require_stream_frames(self, n_frames: int, what: str, realisations: int = 1) -> None:
+        """Refuse, up front, a stream of ``n_frames`` frames (of ``realisations`` realisations side by side) that the
+        ``exact`` turbulence screen cannot hold or whose screens do not fit memory."""
         atm = self.atmosphere
         if atm.model == "exact" and n_frames > atm.screen_frames:
             raise ConfigError(f"{what} needs {n_frames} frames of one turbulence realisation but "
@@ -96,11 +97,14 @@ class Scenario:
         if atm.model == "exact":  # a non-lattice wind builds its whole screen at once: refuse what cannot fit
             winds = [w for i, lay in enumerate(atm.layers)
                      for w in [lay, *layer_winds(lay, [c for c in atm.changes if c.layer == i])]]
-            need = max(screen_bytes(self.grid, atm.outer_scale_m, w.wind_speed_mps, w.wind_direction_deg,
-                                    1 / self.frame_rate_hz, atm.screen_frames) for w in winds)
-            if need:
-                require_memory(need, f"{what}: the exact screen of a non-lattice wind ({self.grid.n_actuators} "
-                                     f"actuators x screen_frames={atm.screen_frames})")
+            peaks = [screen_bytes(self.grid, atm.outer_scale_m, w.wind_speed_mps, w.wind_direction_deg,
+                                  1 / self.frame_rate_hz, atm.screen_frames) for w in winds]
+            # One screen is being built at a time; every realisation keeps each built screen while it streams.
+            n_screens = realisations * sum(1 for peak in peaks if peak)
+            need = max(peaks) + (n_screens - 1) * 4 * atm.screen_frames * self.grid.n_actuators
+            if n_screens:
+                require_memory(need, f"{what}: the exact screens of non-lattice winds ({n_screens} screen(s) of "
+                                     f"{self.grid.n_actuators} actuators x screen_frames={atm.screen_frames})")
 
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""
