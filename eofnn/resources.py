@@ -28,6 +28,16 @@ ACTUATOR_FRAMES_PER_S = 2e6
 MAX_SECONDS = 24 * 3600
 
 
+def peak_resident_bytes() -> int | None:
+    """The process's peak resident memory so far (bytes; Linux's ``ru_maxrss`` is in KiB), ``None`` where the
+    platform does not say."""
+    try:
+        import resource  # noqa: PLC0415 (POSIX only)
+    except ImportError:
+        return None
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
 def require_time(actuator_frames: float, what: str, allow_long: bool = False) -> None:
     """One-line :class:`ConfigError` when ``what`` would take more than a day at a conservative simulation rate."""
     seconds = actuator_frames / ACTUATOR_FRAMES_PER_S

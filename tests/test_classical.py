@@ -273,6 +273,10 @@ def test_compare_records_the_classical_models(tmp_path, small_scenario):
     assert set(result["stability"]["nominal"]) == {"lqg", "modal", "extrapolator"}
     assert all(entry["stable"] for entry in result["stability"]["nominal"].values())
     json.dumps(result)  # metrics.json-ready
+    # Each step's peak resident memory so far: positive, never decreasing, one per step as the timings.
+    peaks = list(result["peak_memory_bytes"].values())
+    assert list(result["peak_memory_bytes"]) == list(result["timings_s"])
+    assert all(p > 0 for p in peaks) and peaks == sorted(peaks)
     with pytest.raises(ConfigError, match="modes=500 is invalid"):
         Experiment(small_scenario, {"nominal": {}}, {"lqg": PredictorConfig(controller="lqg", modes=500)},
                    EvaluationConfig(frames=400, settle_frames=100, psd_segment_frames=256))

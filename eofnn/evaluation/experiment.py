@@ -24,7 +24,7 @@ from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, require_changes_within, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
-from eofnn.resources import require_memory, require_time
+from eofnn.resources import peak_resident_bytes, require_memory, require_time
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
@@ -333,13 +333,14 @@ class Experiment:
     def run(self) -> ExperimentResult:
         metrics: dict[str, dict[str, LoopMetrics]] = {}
         stability: dict[str, dict[str, dict]] = {}
-        timings = {}
+        timings, peaks = {}, {}
         for scenario_name in self.scenarios:
             metrics[scenario_name], stability[scenario_name] = {}, {}
             for name in self.predictors:
                 start = time.perf_counter()
                 m = self.evaluate(name, scenario_name)
                 timings[f"{scenario_name}/{name}"] = round(time.perf_counter() - start, 3)
+                peaks[f"{scenario_name}/{name}"] = peak_resident_bytes()
                 metrics[scenario_name][name] = m
                 margins = self.stability(name, scenario_name)
                 if margins is not None:
@@ -354,7 +355,7 @@ class Experiment:
         models = {key: model.info for key, model in self.classical_models.items()}
         return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, _by_scenario(self.gain_scans),
                                 _by_scenario(self.alpha_choices), _by_scenario(self.searches),
-                                classical_models=_by_scenario(models))
+                                classical_models=_by_scenario(models), peak_memory_bytes=peaks)
 
 
 def _by_scenario(per_controller: dict[tuple[str, str], dict]) -> dict[str, dict[str, dict]]:

@@ -30,6 +30,9 @@ class ExperimentResult:
     simulated_stability: dict[str, dict[str, dict]] = field(default_factory=dict)
     #: Classical models built from telemetry: scenario -> controller -> what was identified (modes, gains, AR(2)).
     classical_models: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: The process's peak resident memory (bytes) after each scenario/controller step: the step that raised it is the
+    #: one that needed it (``None`` where the platform does not say).
+    peak_memory_bytes: dict[str, int | None] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -44,6 +47,7 @@ class ExperimentResult:
                              for s, preds in self.metrics.items()},
             "checkpoints": self.checkpoints,
             "timings_s": self.timings_s,
+            "peak_memory_bytes": self.peak_memory_bytes,
         }
 
 
