@@ -16,6 +16,7 @@ import subprocess
 import torch
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
+from report_scale import elt_section
 
 
 def study_section() -> str:
@@ -277,7 +278,8 @@ from telemetry alone (`telemetry.md`).
 {study_section()}
 {realistic_section()}
 {cl_study_section()}
-{robustness_section()}"""
+{robustness_section()}
+{elt_section()}"""
     (HERE / "README.md").write_text(text)
 
 

@@ -55,4 +55,6 @@ $eofnn compare --config $x/adaptive/dm_gain_drift.yaml --scenario.plant.dm_gain_
   --out $x/adaptive/dm_gain_drift_2.0 --overwrite true
 # 6. Learning from telemetry alone against simulator truth (its page: telemetry.md).
 .venv/bin/python $x/telemetry_training.py
+# 7. An ELT-class loop (5024 actuators, three non-lattice layers), every predictor from telemetry alone.
+$eofnn compare --config configs/elt_small.yaml --out $x/elt_small --overwrite true
 .venv/bin/python $x/make_report.py
