@@ -117,17 +117,20 @@ class IntegratorControl:
 
 
 class FilterControl:
-    """An :class:`eofnn.runtime.PredictiveFilter` as the simulator's controller.
+    """An :class:`eofnn.runtime.PredictiveFilter` as the simulator's controller (plus white dither of ``dither_nm``
+    RMS when recording telemetry for a refit: the filter reads back what was applied, dither included).
 
     The first ``warmup_frames`` frames are closed by an integrator of gain ``warmup_gain`` while the filter reads
     the same measurements and the commands really applied (``y_last``), so that it takes over with full, true
     histories instead of from a flat DM (its first ``first_frame`` commands would be zero otherwise).
     """
 
-    def __init__(self, runtime: PredictiveFilter, warmup_gain: float = 0.3, warmup_frames: int = 0) -> None:
+    def __init__(self, runtime: PredictiveFilter, warmup_gain: float = 0.3, warmup_frames: int = 0,
+                 dither_nm: float = 0.0, seed: int = 0) -> None:
         check_value("warmup_frames", warmup_frames, Interval(0, None, integer=True, unit="frames"))
         self.runtime, self.warmup_frames = runtime, warmup_frames
         self._warmup = IntegratorControl(warmup_gain)
+        self._dither = IntegratorControl(0.0, dither_nm, seed)  # white dither alone (a zero-gain integrator)
 
     def reset(self, n_actuators: int) -> None:
         if self.runtime.n_actuators != n_actuators:
@@ -135,6 +138,7 @@ class FilterControl:
                               f"{n_actuators}: fit it on telemetry of this simulator")
         self.runtime.reset()
         self._warmup.reset(n_actuators)
+        self._dither.reset(n_actuators)
         self._frame, self._last = 0, None
 
     def step(self, measurement: np.ndarray) -> np.ndarray:
@@ -142,7 +146,7 @@ class FilterControl:
         if self._frame < self.warmup_frames:
             y = self._warmup.step(measurement)
         self._frame += 1
-        return y
+        return y + self._dither.step(measurement) if self._dither.dither_nm else y
 
     def applied(self, command: np.ndarray) -> None:
         """What the loop really applied (projected): the filter's next ``y_last``."""

@@ -88,7 +88,7 @@ class OopaoLoop:
                  sensor: str = "shack_hartmann", photon_noise: bool = False, magnitude: float = 8.0,
                  r0_m: float = 0.15, outer_scale_m: float = 25.0, wind_speed_mps: float = 10.0,
                  wind_direction_deg: float = 0.0, frame_rate_hz: float = 1000.0, delay_frames: int = 2,
-                 dm_gain: float = 1.0, rcond: float = 0.03) -> None:
+                 dm_gain: float = 1.0, rcond: float = 0.15) -> None:
         check_value("n_subapertures", n_subapertures, Interval(2, 200, integer=True))
         check_value("diameter_m", diameter_m, Interval(0, 100, closed="right", unit="m"))
         check_value("pupil_pixels_per_subaperture", pupil_pixels_per_subaperture, Interval(2, 32, integer=True))
@@ -138,8 +138,16 @@ class OopaoLoop:
         self._seen = vt[:kept].T
         self.n_seen = kept
         if self.sensor == "perfect":
-            modes = np.asarray(self.dm.modes)[self._pupil.ravel()] * 1e-9  # m of OPD per nm of command
-            self._projection = self._seen @ (self._seen.T @ np.linalg.pinv(modes * 1e9))  # nm cmd per nm OPD
+            self._projection = self._fit_operator()[1]
+
+    def _fit_operator(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(M, F)``: the influence functions over the pupil (nm of OPD per nm of command, piston removed) and the
+        least-squares projection ``F`` of a piston-free OPD on the seen commands (nm of command per nm)."""
+        if not hasattr(self, "_operators"):
+            modes = np.asarray(self.dm.modes)[self._pupil.ravel()].astype(np.float64)  # OOPAO: peak 1 per unit coef
+            modes -= modes.mean(0)
+            self._operators = modes, self._seen @ (self._seen.T @ np.linalg.pinv(modes))
+        return self._operators
 
     @property
     def n_actuators(self) -> int:
@@ -172,7 +180,7 @@ class OopaoLoop:
     def advance(self, command_nm: np.ndarray) -> tuple[np.ndarray, float]:
         command = check_command(command_nm, self.n_actuators)
         with quiet():
-            self.atm.update()
+            self.atm.update()  # moves the screen and restarts the light through it (``src ** atm * tel``)
             self.dm.coefs = self.dm_gain * command * 1e-9
             if self.sensor == "perfect":
                 self.ngs * self.tel * self.dm
@@ -191,3 +199,58 @@ class OopaoLoop:
     def turbulence_opd_nm(self) -> np.ndarray:
         """The current turbulence OPD over the pupil (nm), without the DM."""
         return np.asarray(self.atm.OPD)[self._pupil] * 1e9
+
+    def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray) -> float:
+        """The Shack-Hartmann's optical gain on the current turbulence: the response ``R @ slopes`` to a small DM
+        ``probe_nm`` added to ``command_nm`` (push-pull, same frame), projected on the probe; 1 for a linear
+        sensor. Telemetry only ever sees ``dm_gain`` times this (:mod:`eofnn.training.identify`)."""
+        probe = self.project(check_command(probe_nm, self.n_actuators, "probe"))
+        response = []
+        for sign in (1.0, -1.0):
+            with quiet():
+                self.dm.coefs = self.dm_gain * (command_nm + sign * probe) * 1e-9
+                # ``**`` restarts the light from the source (``*`` alone would add the DM to what is there)
+                self.ngs ** self.atm * self.tel * self.dm * self.wfs
+            response.append(self.reconstructor @ self.slopes())
+        return float((response[0] - response[1]) @ probe / (2 * self.dm_gain * probe @ probe))
+
+
+def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5) -> dict:
+    """What the DM cannot correct: the RMS (nm, piston removed) of the turbulence minus its least-squares fit by
+    the seen DM modes, every ``every`` frames of the realisation ``seed``; ``{"median_rms_nm", "n_frames"}``."""
+    modes, projection = sim._fit_operator()
+    sim.reset(seed)
+    values = []
+    for n in range(n_frames):
+        with quiet():
+            sim.atm.update()
+        if n % every == 0:
+            opd = sim.turbulence_opd_nm()
+            opd = opd - opd.mean()
+            values.append(float(np.sqrt(np.mean((opd - modes @ (projection @ opd)) ** 2))))
+    return {"median_rms_nm": float(np.median(values)), "n_frames": len(values)}
+
+
+def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *, probe_nm: float = 5.0,
+                        every: int = 10, settle_frames: int = 100) -> dict:
+    """The Shack-Hartmann's optical gain in ``sim``'s integrator loop (gain ``gain``): every ``every`` frames after
+    ``settle_frames``, a random probe of ``probe_nm`` RMS per actuator is pushed and pulled on that frame's
+    residual. Returns ``{"mean", "se", "n_probes"}``: what the identified DM gain should equal, divided by
+    ``sim.dm_gain`` (a perfect sensor: 1)."""
+    from eofnn.interop.loop import IntegratorControl
+
+    if sim.sensor == "perfect":
+        return {"mean": 1.0, "se": 0.0, "n_probes": 0}
+    control, rng = IntegratorControl(gain), np.random.default_rng(seed + 11)
+    sim.reset(seed)
+    control.reset(sim.n_actuators)
+    pending, gains = [np.zeros(sim.n_actuators) for _ in range(sim.delay_frames)], []
+    for n in range(n_frames):
+        command = sim.project(control.step(pending.pop(0)))
+        measurement, _ = sim.advance(command)
+        pending.append(measurement)
+        if n >= settle_frames and n % every == 0:
+            gains.append(sim.sensor_gain(command, probe_nm * rng.standard_normal(sim.n_actuators)))
+    gains = np.asarray(gains)
+    return {"mean": float(gains.mean()), "se": float(gains.std() / np.sqrt(max(len(gains), 1))),
+            "n_probes": len(gains)}

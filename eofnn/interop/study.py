@@ -46,9 +46,10 @@ class StudyConfig:
     warmup_frames: int = 100
     record_gain: float = 0.25
     dither_nm: float = 10.0
-    gains: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25, 0.3, 0.4)
+    gains: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
     history_length: int = 4
     controller: str = "runtime"
+    refit_rounds: int = 1
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -98,8 +99,18 @@ def run_study(sim, config: StudyConfig | None = None, *, dm_gain_true: float | N
                   "dm_gain_error": None if dm_gain_true is None else plant.dm_gain / dm_gain_true - 1}
 
     spec = HistorySpec("closed_loop", c.history_length, sim.delay_frames)
+    optimization = OptimizationConfig(alpha="auto" if c.val_frames else 1e-6)
     fitted = fit_from_telemetry(telemetry, spec, plant=plant, val_frames=c.val_frames, seed=c.seed,
-                                optimization=OptimizationConfig(alpha="auto" if c.val_frames else 1e-6))
+                                optimization=optimization)
+    for round_ in range(c.refit_rounds):  # closed-loop identification: refit on data the filter recorded itself
+        recorder = FilterControl(runtime_filter(fitted.network, spec, fitted.dm_gain), c.record_gain,
+                                 c.warmup_frames, c.dither_nm, seed=c.seed + 200 + round_)
+        again = run_closed_loop(sim, recorder, c.record_frames, c.seed + 10 + round_)
+        if again.diverged_frame is not None:
+            raise ConfigError(f"the EOF recording its refit data diverged at frame {again.diverged_frame} in "
+                              f"{sim.name}'s loop: use refit_rounds=0")
+        fitted = fit_from_telemetry(again.telemetry(start=c.settle_frames), spec, plant=plant,
+                                    val_frames=c.val_frames, seed=c.seed, optimization=optimization)
 
     heldout = run_closed_loop(sim, IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 101),
                               c.heldout_frames, seeds["heldout"]).telemetry(start=c.settle_frames)

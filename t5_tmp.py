@@ -1,0 +1,10 @@
+import time, json, sys
+from eofnn.interop.hcipy import HcipyLoop
+from eofnn.interop.study import run_study, StudyConfig
+t=time.time()
+kw=eval(sys.argv[1])
+sim=HcipyLoop(**kw)
+print(sim.describe(), time.time()-t)
+r=run_study(sim, StudyConfig(**eval(sys.argv[2]) if len(sys.argv)>2 else {}), dm_gain_true=kw.get("dm_gain"))
+s=r.summary()
+print(kw, "ident", round(s["identified"]["dm_gain"],4), "noise", round(s["identified"]["wfs_noise_nm"],2), "replay", round(s["replay"]["predictor_median_rms_nm"],2), round(s["replay"]["integrator_median_rms_nm"],2), "int", s["integrator"]["best_gain"], round(s["integrator"]["median_rms_nm"],2), "eof", round(s["eof"]["median_rms_nm"],2), s["eof"]["alpha"], round(time.time()-t))
