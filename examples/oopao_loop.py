@@ -38,7 +38,8 @@ def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
                     magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind)
     started = time.time()
     result = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
-    gain = measure_sensor_gain(sim, config.record_gain, min(config.record_frames, 1500), config.seed)
+    gain = measure_sensor_gain(sim, config.record_gain, min(config.record_frames, 1500), config.seed,
+                               dither_nm=config.dither_nm)
     result["identified"]["sensor_optical_gain"] = gain
     seen = args.dm_gain * gain["mean"]  # what telemetry can identify: DM gain x the sensor's optical gain
     result["identified"]["dm_gain_times_optical_gain"] = seen
@@ -62,7 +63,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--diameter", type=float, default=8.0, help="m")
     parser.add_argument("--dm-gain", type=float, default=2.0)
     parser.add_argument("--wind", type=float, default=20.0, help="m/s")
-    parser.add_argument("--magnitude", type=float, default=10.0, help="guide star I magnitude (photon noise runs)")
+    parser.add_argument("--magnitude", type=float, default=8.0, help="guide star I magnitude (photon noise runs)")
     parser.add_argument("--frames", type=int, default=3000, help="frames of telemetry per recording")
     parser.add_argument("--aliasing", action="store_true", help="also the perfect-sensor and photon-noise runs")
     parser.add_argument("--out", type=Path, help="folder for metrics.json and results.md")

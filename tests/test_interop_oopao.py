@@ -39,7 +39,7 @@ def test_the_system_is_a_fried_shack_hartmann(sim):
 
 def test_dm_gain_is_identified_within_two_percent_of_what_telemetry_can_see(sim, study):
     # Telemetry sees the DM gain times the Shack-Hartmann's optical gain (below 1 on a turbulent residual).
-    optical = measure_sensor_gain(sim, CONFIG.record_gain, 1000, 0)
+    optical = measure_sensor_gain(sim, CONFIG.record_gain, 1000, 0, dither_nm=CONFIG.dither_nm)
     assert 0.85 < optical["mean"] < 1.0
     identified = study["identified"]["dm_gain"]
     assert abs(identified / (2.0 * optical["mean"]) - 1) < 0.02

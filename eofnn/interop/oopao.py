@@ -231,9 +231,10 @@ def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5) -> d
     return {"median_rms_nm": float(np.median(values)), "n_frames": len(values)}
 
 
-def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *, probe_nm: float = 5.0,
-                        every: int = 10, settle_frames: int = 100) -> dict:
-    """The Shack-Hartmann's optical gain in ``sim``'s integrator loop (gain ``gain``): every ``every`` frames after
+def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *, dither_nm: float = 0.0,
+                        probe_nm: float = 5.0, every: int = 10, settle_frames: int = 100) -> dict:
+    """The Shack-Hartmann's optical gain in ``sim``'s integrator loop (gain ``gain``, plus ``dither_nm`` of white
+    dither as when recording telemetry, since the gain depends on the residual): every ``every`` frames after
     ``settle_frames``, a random probe of ``probe_nm`` RMS per actuator is pushed and pulled on that frame's
     residual. Returns ``{"mean", "se", "n_probes"}``: what the identified DM gain should equal, divided by
     ``sim.dm_gain`` (a perfect sensor: 1)."""
@@ -241,7 +242,7 @@ def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *
 
     if sim.sensor == "perfect":
         return {"mean": 1.0, "se": 0.0, "n_probes": 0}
-    control, rng = IntegratorControl(gain), np.random.default_rng(seed + 11)
+    control, rng = IntegratorControl(gain, dither_nm, seed + 12), np.random.default_rng(seed + 11)
     sim.reset(seed)
     control.reset(sim.n_actuators)
     pending, gains = [np.zeros(sim.n_actuators) for _ in range(sim.delay_frames)], []
