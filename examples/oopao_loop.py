@@ -23,8 +23,8 @@ what it cannot (fitting error, aliasing, noise).
 from __future__ import annotations
 
 import argparse
-import sys
 import json
+import sys
 import time
 from pathlib import Path
 

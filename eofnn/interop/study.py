@@ -22,8 +22,7 @@ from dataclasses import asdict, dataclass, field
 from eofnn.analysis.replay import replay
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
-from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter, \
-    scan_integrator
+from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter, scan_integrator
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig
