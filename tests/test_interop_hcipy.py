@@ -85,3 +85,13 @@ def test_mismatched_sizes_are_refused_with_one_line(sim):
     assert "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="warmup_frames=500 is invalid"):
         StudyConfig(warmup_frames=500, settle_frames=300)
+
+
+def test_importing_eofnn_and_the_shared_interop_part_needs_no_oopao():
+    import subprocess
+    import sys
+
+    code = ("import sys, eofnn, eofnn.interop.loop, eofnn.interop.study, eofnn.interop.hcipy; "
+            "print(any(m.split('.')[0] == 'OOPAO' for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
