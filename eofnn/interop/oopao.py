@@ -15,9 +15,9 @@ made, so ``import eofnn`` never needs it. The system is OOPAO's own objects, bui
 The interaction matrix is OOPAO's (``InteractionMatrix``, one push per actuator), in slopes per nm of command;
 the loop's reconstructor is its truncated pseudo-inverse (singular values below ``rcond`` of the largest dropped:
 piston and waffle, which a Shack-Hartmann does not see), and commands are projected on the seen modes, as an RTC
-filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry records,
-formed by :meth:`eofnn.sim.telemetry.Telemetry.from_slopes` from the slopes and this reconstructor; the residual
-OPD RMS (nm, piston removed, over the pupil) is OOPAO's ``tel.OPD``.
+filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry records
+(``Telemetry.from_slopes(y, slopes, reconstructor=sim.reconstructor)`` forms the same from recorded slopes); the
+residual OPD RMS (nm, piston removed, over the pupil) is OOPAO's ``tel.OPD``.
 """
 
 from __future__ import annotations
