@@ -44,8 +44,8 @@ def write_results(folder: str | Path, simulator: str, metrics: dict, command: st
     metrics = {"command": command, **metrics}
     write_text_atomic(folder / "metrics.json", json.dumps(metrics, indent=1))
     lines = [f"# eofnn inside {simulator}", "", f"`{command}`", "",
-             "| run | DM gain identified (true) | replay EOF / integrator (nm) | in-loop EOF / best integrator (nm, "
-             "gain) | fitting error (nm) |", "|---|---|---|---|---|"]
+             "| run | DM gain identified (DM gain x sensor optical gain) | replay EOF / integrator (nm) "
+             "| in-loop EOF / best integrator (nm, gain) | fitting error (nm) |", "|---|---|---|---|---|"]
     for name, run in metrics["runs"].items():
         ident, rep, integ = run["identified"], run["replay"], run["integrator"]
         truth = ident.get("dm_gain_times_optical_gain", ident.get("dm_gain_true"))
