@@ -57,7 +57,7 @@ class StudyConfig:
     history_length: int = 4
     controller: str = "runtime"
     refit_rounds: int = 1
-    dm_gain_interval: tuple[float, float] | None = (0.8, 1.2)
+    dm_gain_interval: tuple[float, float] | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
