@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Create .venv and install eofnn with its test dependencies. Torch is installed first, as the CPU build
+# Create .venv and install eofnn with its test dependencies and the interop extra (OOPAO). Torch is installed first, as the CPU build
 # (a bare `torch` requirement pulls the CUDA build: about 900 MB plus several GB of nvidia-* wheels); the range in
 # pyproject then holds.
 #   - EOFNN_TORCH_INDEX=https://download.pytorch.org/whl/cpu bash scripts/setup.sh   # the CPU build, explicitly
@@ -27,4 +27,5 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
         .venv/bin/python -m pip install -q "$TORCH"
     fi
 fi
-.venv/bin/python -m pip install -q -e ".[test]"
+# The interop extra (OOPAO, for eofnn/interop and its tests) comes with the test set-up: CI runs those tests.
+.venv/bin/python -m pip install -q -e ".[test,interop]"

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 #: Floors from the bottom up; a module may import its own floor and those below it.
-FLOORS = ["sim", "data", "models", "control", "training", "evaluation", "cli"]
+FLOORS = ["sim", "data", "models", "control", "training", "evaluation", "interop", "cli"]
 #: Packages that sit on a floor of another name.
 SAME_FLOOR = {"analysis": "evaluation", "main": "cli", "console": "cli"}
 #: Leaf modules anyone may import; they import nothing of eofnn above themselves.

@@ -1,0 +1,253 @@
+"""The part every simulator shares: its closed loop with a delay line, controllers as callables, telemetry out.
+
+A simulator adapter (:class:`SimulatorAdapter`: :class:`eofnn.interop.oopao.OopaoLoop`,
+:class:`eofnn.interop.hcipy.HcipyLoop`) owns the physics of one frame: it moves its turbulence on by one frame,
+applies a command to its DM, propagates, measures with its own sensor and reconstructs the measurement in actuator
+space. :func:`run_closed_loop` closes the loop around it the way OOPAO's ``run_cl`` and HCIPy's AO tutorials do,
+with eofnn's conventions (``docs/telemetry.md``):
+
+    y(n)    the command applied during frame n, computed from measurements up to frame n - d
+    eps(n)  the residual OPD of frame n: turbulence plus what the DM applies of y(n)
+    wfs(n)  the simulator's reconstructed measurement of eps(n), in nm on the actuators
+
+so ``d = 2`` is OOPAO's "store the slopes after computing the commands". The recorded ``y`` and ``wfs`` (plus the
+actuator positions, delay and frame rate) are an eofnn :class:`~eofnn.sim.telemetry.Telemetry`; the residual OPD
+RMS per frame (nm, piston removed, over the pupil: the simulator's own number, not eofnn's) is summarised with
+eofnn's loop metrics (:func:`eofnn.evaluation.metrics.loop_metrics`: median RMS after the settling frames).
+
+Controllers are objects with ``reset(n_actuators)`` and ``step(measurement) -> command`` (numpy, nm):
+:class:`IntegratorControl` (plus white dither for recording), :class:`FilterControl` (an exported
+:class:`eofnn.runtime.PredictiveFilter`, the code a real-time computer runs) and :class:`TorchControl` (any eofnn
+:class:`~eofnn.control.predictive.PredictiveController`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from eofnn.control.predictive import PredictiveController
+from eofnn.data.history import HistorySpec
+from eofnn.errors import ConfigError, require
+from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
+from eofnn.models.linear import LinearFilter
+from eofnn.runtime import PredictiveFilter
+from eofnn.sim.loop import LoopInput, LoopResult
+from eofnn.sim.telemetry import Telemetry
+from eofnn.training.export import filter_coefficients, filter_taps
+from eofnn.validation import COUNT, Interval, check_value
+
+#: A loop whose residual exceeds this times its first frames' turbulence RMS (or is not finite) has diverged.
+DIVERGENCE_FACTOR = 10.0
+
+
+@runtime_checkable
+class SimulatorAdapter(Protocol):
+    """One frame of another simulator's AO system, seen in actuator space.
+
+    Attributes
+    ----------
+    name : str
+        The simulator ("oopao", "hcipy").
+    positions_m : ndarray
+        ``(K, 2)`` actuator (x, y) in metres, in the order of the commands.
+    delay_frames : int
+        Loop delay ``d``: the command of frame ``n`` uses measurements up to frame ``n - d``.
+    frame_rate_hz : float
+        Loop frame rate in Hz.
+    """
+
+    name: str
+    positions_m: np.ndarray
+    delay_frames: int
+    frame_rate_hz: float
+
+    @property
+    def n_actuators(self) -> int:
+        """``K``."""
+
+    def reset(self, seed: int) -> None:
+        """A new turbulence realisation drawn from ``seed``, a flat DM and fresh noise."""
+
+    def advance(self, command_nm: np.ndarray) -> tuple[np.ndarray, float]:
+        """One frame with ``command_nm`` (``(K,)``) on the DM: ``(measurement of this frame's residual, nm on
+        the actuators, (K,); residual OPD RMS over the pupil, nm, piston removed)``."""
+
+    def project(self, command_nm: np.ndarray) -> np.ndarray:
+        """The command without the modes the sensor does not see (what the loop really applies)."""
+
+    def describe(self) -> dict:
+        """The set-up, JSON-ready."""
+
+
+def check_command(command_nm, n_actuators: int, what: str = "command") -> np.ndarray:
+    """``(K,)`` finite float64, or one :class:`ConfigError` line naming the size and what is allowed."""
+    command = np.asarray(command_nm, dtype=np.float64)
+    if command.shape != (n_actuators,):
+        raise ConfigError(f"{what} has shape {command.shape}: the simulator has {n_actuators} actuators, so it must "
+                          f"be ({n_actuators},) nm")
+    if not np.isfinite(command).all():
+        raise ConfigError(f"{what} holds {int((~np.isfinite(command)).sum())} non-finite value(s): the loop diverged "
+                          "or the controller is broken")
+    return command
+
+
+# -- controllers ----------------------------------------------------------------------------------------------
+class IntegratorControl:
+    """``y(n) = y(n-1) - gain * m(n)`` on the delayed measurement ``m``, plus white dither of ``dither_nm`` RMS
+    that is not fed back into the integrator state (as :class:`eofnn.control.baselines.Dithered`)."""
+
+    def __init__(self, gain: float, dither_nm: float = 0.0, seed: int = 0) -> None:
+        check_value("integrator gain", gain, Interval(0, 10))
+        check_value("dither_nm", dither_nm, Interval(0, 1e5, unit="nm"))
+        self.gain, self.dither_nm, self.seed = float(gain), float(dither_nm), seed
+
+    def reset(self, n_actuators: int) -> None:
+        self._state = np.zeros(n_actuators)
+        self._rng = np.random.default_rng(self.seed)
+
+    def step(self, measurement: np.ndarray) -> np.ndarray:
+        self._state -= self.gain * measurement
+        if not self.dither_nm:
+            return self._state.copy()
+        return self._state + self.dither_nm * self._rng.standard_normal(len(self._state))
+
+
+class FilterControl:
+    """An :class:`eofnn.runtime.PredictiveFilter` as the simulator's controller (plus white dither of ``dither_nm``
+    RMS when recording telemetry for a refit: the filter reads back what was applied, dither included).
+
+    The first ``warmup_frames`` frames are closed by an integrator of gain ``warmup_gain`` while the filter reads
+    the same measurements and the commands really applied (``y_last``), so that it takes over with full, true
+    histories instead of from a flat DM (its first ``first_frame`` commands would be zero otherwise).
+    """
+
+    def __init__(self, runtime: PredictiveFilter, warmup_gain: float = 0.3, warmup_frames: int = 0,
+                 dither_nm: float = 0.0, seed: int = 0) -> None:
+        check_value("warmup_frames", warmup_frames, Interval(0, None, integer=True, unit="frames"))
+        self.runtime, self.warmup_frames = runtime, warmup_frames
+        self._warmup = IntegratorControl(warmup_gain)
+        self._dither = IntegratorControl(0.0, dither_nm, seed)  # white dither alone (a zero-gain integrator)
+
+    def reset(self, n_actuators: int) -> None:
+        if self.runtime.n_actuators != n_actuators:
+            raise ConfigError(f"the filter has {self.runtime.n_actuators} actuators but the simulator has "
+                              f"{n_actuators}: fit it on telemetry of this simulator")
+        self.runtime.reset()
+        self._warmup.reset(n_actuators)
+        self._dither.reset(n_actuators)
+        self._frame, self._last = 0, None
+
+    def step(self, measurement: np.ndarray) -> np.ndarray:
+        y = self.runtime.step(measurement, y_last=self._last)
+        if self._frame < self.warmup_frames:
+            y = self._warmup.step(measurement)
+        self._frame += 1
+        return y + self._dither.step(measurement) if self._dither.dither_nm else y
+
+    def applied(self, command: np.ndarray) -> None:
+        """What the loop really applied (projected): the filter's next ``y_last``."""
+        self._last = command
+
+
+class TorchControl:
+    """An eofnn :class:`~eofnn.control.predictive.PredictiveController` (any torch network) as the controller."""
+
+    def __init__(self, controller: PredictiveController, delay_frames: int) -> None:
+        self.controller, self.delay_frames = controller, delay_frames
+
+    def reset(self, n_actuators: int) -> None:
+        self.controller.reset(1, n_actuators, self.delay_frames, torch.float64)
+        self._frame, self._zeros = 0, torch.zeros(1, n_actuators, dtype=torch.float64)
+
+    def step(self, measurement: np.ndarray) -> np.ndarray:
+        inp = LoopInput(self._frame, torch.from_numpy(np.asarray(measurement, dtype=np.float64))[None], self._zeros)
+        self._frame += 1
+        return self.controller.step(inp)[0].numpy()
+
+
+def runtime_filter(network: LinearFilter, spec: HistorySpec, dm_gain_model: float = 1.0) -> PredictiveFilter:
+    """The exported filter of ``network`` (what :func:`eofnn.training.export.export_filter` writes), in memory."""
+    if not isinstance(network, LinearFilter):
+        raise ConfigError(f"only linear filters run in eofnn.runtime, not {type(network).__name__}: use TorchControl")
+    coefficients, neighbours = filter_coefficients(network)
+    return PredictiveFilter(coefficients, filter_taps(spec), spec.delay_frames, dm_gain_model, neighbours)
+
+
+# -- the loop -------------------------------------------------------------------------------------------------
+@dataclass
+class LoopRecord:
+    """One closed-loop run in another simulator: ``y``, ``wfs`` (``(frames, K)``, nm) and the residual OPD RMS
+    per frame (nm), cut at the frame where it diverged, if it did."""
+
+    y: np.ndarray
+    wfs: np.ndarray
+    residual_rms_nm: np.ndarray
+    positions_m: np.ndarray
+    delay_frames: int
+    frame_rate_hz: float
+    config: dict = field(default_factory=dict)
+    diverged_frame: int | None = None
+
+    def telemetry(self, start: int = 0) -> Telemetry:
+        """The recorded ``y`` and ``wfs`` from frame ``start`` on as eofnn telemetry (positions, delay, rate)."""
+        return Telemetry(y=torch.from_numpy(self.y[start:]), wfs=torch.from_numpy(self.wfs[start:]),
+                         delay_frames=self.delay_frames, frame_rate_hz=self.frame_rate_hz,
+                         positions_m=torch.from_numpy(self.positions_m), config=self.config,
+                         measurement=self.config.get("measurement", ""))
+
+    def metrics(self, settle_frames: int, wavelength_m: float = 1.65e-6) -> LoopMetrics:
+        """eofnn's loop metrics of the residual OPD (median RMS after ``settle_frames``; Strehl at H by default)."""
+        rms = torch.from_numpy(self.residual_rms_nm)[None]
+        result = LoopResult(Telemetry(), rms, rms, self.diverged_frame is not None, self.diverged_frame)
+        return loop_metrics(result, settle_frames, wavelength_m)
+
+
+def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int, *,
+                    divergence_factor: float = DIVERGENCE_FACTOR) -> LoopRecord:
+    """Close ``sim``'s loop with ``controller`` for ``n_frames`` frames on the turbulence realisation ``seed``.
+
+    Per frame ``n``: the controller gets the measurement of frame ``n - d`` (zeros before the first) and returns
+    ``y(n)``; the loop applies ``sim.project(y(n))`` (the modes the sensor sees) and the simulator advances one
+    frame with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
+    turbulence) stops the run as diverged.
+    """
+    check_value("n_frames", n_frames, COUNT)
+    k, d = sim.n_actuators, sim.delay_frames
+    require(float(d).is_integer() and d >= 1, f"delay_frames={d!r} is invalid: the adapters run integer delays >= 1")
+    sim.reset(seed)
+    controller.reset(k)
+    pending = [np.zeros(k) for _ in range(int(d))]  # measurements in flight, oldest first
+    y_all, wfs_all, rms_all = np.zeros((n_frames, k)), np.zeros((n_frames, k)), np.zeros(n_frames)
+    diverged, limit = None, None
+    for n in range(n_frames):
+        command = check_command(controller.step(pending.pop(0)), k, f"{type(controller).__name__} command")
+        command = sim.project(command)
+        if hasattr(controller, "applied"):
+            controller.applied(command)
+        measurement, rms = sim.advance(command)
+        pending.append(measurement)
+        y_all[n], wfs_all[n], rms_all[n] = command, measurement, rms
+        limit = divergence_factor * max(rms, 1e-9) if limit is None else limit
+        if not (np.isfinite(rms) and rms <= limit and np.isfinite(measurement).all()):
+            diverged = n
+            break
+    stop = n_frames if diverged is None else diverged
+    return LoopRecord(y_all[:stop], wfs_all[:stop], rms_all[:stop], np.asarray(sim.positions_m), int(d),
+                      float(sim.frame_rate_hz), sim.describe(), diverged)
+
+
+def scan_integrator(sim: SimulatorAdapter, gains, n_frames: int, seed: int, settle_frames: int) -> dict:
+    """The simulator's best-gain integrator: each gain in ``gains`` closes the loop on the same realisation
+    ``seed``; returns ``{"gain": best, "median_rms_nm": its median, "scan": {gain: median or None if diverged}}``."""
+    scan = {}
+    for gain in gains:
+        record = run_closed_loop(sim, IntegratorControl(float(gain)), n_frames, seed)
+        scan[float(gain)] = record.metrics(settle_frames).median_rms_nm
+    stable = {g: v for g, v in scan.items() if v is not None}
+    require(bool(stable), f"every integrator gain of {list(scan)} diverged in {sim.name}'s loop: give smaller gains")
+    best = min(stable, key=stable.get)
+    return {"gain": best, "median_rms_nm": stable[best], "scan": scan}

@@ -1,0 +1,257 @@
+"""An OOPAO closed loop as an eofnn simulator adapter: Shack-Hartmann (or a perfect, non-aliasing sensor), Fried DM.
+
+OOPAO (https://github.com/cheritie/OOPAO, ``pip install oopao``) is imported only when an :class:`OopaoLoop` is
+made, so ``import eofnn`` never needs it. The system is OOPAO's own objects, built as its tutorials do:
+
+- ``Telescope`` of ``diameter_m`` sampled with ``pupil_pixels_per_subaperture`` pixels per subaperture, a
+  ``Source`` in I band of ``magnitude``, one frozen-flow ``Atmosphere`` layer (von Karman, ``r0_m`` at 500 nm);
+- a ``DeformableMirror`` in Fried geometry (``n_subapertures + 1`` actuators across, at the subaperture corners;
+  Gaussian influence functions of OOPAO's default coupling), whose coefficients are set to
+  ``dm_gain * command`` (a DM that applies ``dm_gain`` times what the controller believes);
+- a diffractive ``ShackHartmann`` (OOPAO's default pixels per subaperture, centre of gravity), photon noise
+  on or off; or ``sensor="perfect"``: the least-squares projection of the residual OPD on the influence
+  functions (no aliasing, no noise), for separating what aliasing costs.
+
+The interaction matrix is OOPAO's (``InteractionMatrix``, one push per actuator), in slopes per nm of command;
+the loop's reconstructor is its truncated pseudo-inverse (singular values below ``rcond`` of the largest dropped:
+piston and waffle, which a Shack-Hartmann does not see), and commands are projected on the seen modes, as an RTC
+filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry records
+(``Telemetry.from_slopes(y, slopes, reconstructor=sim.reconstructor)`` forms the same from recorded slopes); the
+residual OPD RMS (nm, piston removed, over the pupil) is OOPAO's ``tel.OPD``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+
+import numpy as np
+
+from eofnn.errors import ConfigError
+from eofnn.interop.loop import check_command
+from eofnn.validation import Interval, OneOf, check_value
+
+SENSORS = ("shack_hartmann", "perfect")
+
+
+def quiet():
+    """OOPAO prints banners, properties and warnings: keep them off the user's terminal."""
+    return contextlib.redirect_stdout(io.StringIO())
+
+
+def _import_oopao():
+    try:
+        with quiet():
+            from OOPAO.Atmosphere import Atmosphere
+            from OOPAO.calibration.InteractionMatrix import InteractionMatrix
+            from OOPAO.DeformableMirror import DeformableMirror
+            from OOPAO.ShackHartmann import ShackHartmann
+            from OOPAO.Source import Source
+            from OOPAO.Telescope import Telescope
+    except ImportError as err:
+        raise ConfigError(f"the OOPAO adapter needs OOPAO ({err}): pip install 'eofnn[interop]'") from None
+    return Atmosphere, InteractionMatrix, DeformableMirror, ShackHartmann, Source, Telescope
+
+
+class OopaoLoop:
+    """One frame of an OOPAO AO system at a time (:class:`eofnn.interop.loop.SimulatorAdapter`).
+
+    Parameters
+    ----------
+    n_subapertures : int
+        Shack-Hartmann subapertures across the pupil (the DM has one more actuator across).
+    diameter_m : float
+        Telescope diameter (m).
+    pupil_pixels_per_subaperture : int
+        Pupil sampling: OPD pixels per subaperture (also the SH's pixels per subaperture, OOPAO's default).
+    sensor : {"shack_hartmann", "perfect"}
+        OOPAO's diffractive Shack-Hartmann, or the least-squares projection of the residual on the DM.
+    photon_noise : bool
+        Photon noise on the SH detector (flux from ``magnitude``).
+    magnitude : float
+        Guide star I magnitude.
+    r0_m, outer_scale_m, wind_speed_mps, wind_direction_deg : float
+        The single frozen-flow layer (r0 at 500 nm).
+    frame_rate_hz : float
+        Loop rate (Hz).
+    delay_frames : int
+        Loop delay in frames (2: OOPAO's ``run_cl``).
+    dm_gain : float
+        What the DM applies per unit of command (1: a calibrated DM).
+    rcond : float
+        Singular values of the interaction matrix below this fraction of the largest are not controlled.
+    """
+
+    name = "oopao"
+
+    def __init__(self, n_subapertures: int = 10, diameter_m: float = 2.0, *, pupil_pixels_per_subaperture: int = 4,
+                 sensor: str = "shack_hartmann", photon_noise: bool = False, magnitude: float = 8.0,
+                 r0_m: float = 0.15, outer_scale_m: float = 25.0, wind_speed_mps: float = 10.0,
+                 wind_direction_deg: float = 0.0, frame_rate_hz: float = 1000.0, delay_frames: int = 2,
+                 dm_gain: float = 1.0, rcond: float = 0.15) -> None:
+        check_value("n_subapertures", n_subapertures, Interval(2, 200, integer=True))
+        check_value("diameter_m", diameter_m, Interval(0, 100, closed="right", unit="m"))
+        check_value("pupil_pixels_per_subaperture", pupil_pixels_per_subaperture, Interval(2, 32, integer=True))
+        check_value("sensor", sensor, OneOf(SENSORS))
+        check_value("delay_frames", delay_frames, Interval(1, 100, integer=True, unit="frames"))
+        check_value("dm_gain", dm_gain, Interval(0, 100, closed="right"))
+        check_value("rcond", rcond, Interval(0, 1, closed="neither"))
+        self.settings = {"n_subapertures": n_subapertures, "diameter_m": diameter_m,
+                         "pupil_pixels_per_subaperture": pupil_pixels_per_subaperture, "sensor": sensor,
+                         "photon_noise": bool(photon_noise), "magnitude": magnitude, "r0_m": r0_m,
+                         "outer_scale_m": outer_scale_m, "wind_speed_mps": wind_speed_mps,
+                         "wind_direction_deg": wind_direction_deg, "frame_rate_hz": frame_rate_hz,
+                         "delay_frames": delay_frames, "dm_gain": dm_gain, "rcond": rcond}
+        self.sensor, self.photon_noise, self.dm_gain = sensor, bool(photon_noise), float(dm_gain)
+        self.delay_frames, self.frame_rate_hz = int(delay_frames), float(frame_rate_hz)
+        self._build(*_import_oopao())
+        self._calibrate(rcond)
+
+    def _build(self, Atmosphere, InteractionMatrix, DeformableMirror, ShackHartmann, Source, Telescope) -> None:
+        s, n = self.settings, self.settings["n_subapertures"]
+        self._InteractionMatrix = InteractionMatrix
+        with quiet():
+            self.tel = Telescope(resolution=s["pupil_pixels_per_subaperture"] * n, diameter=s["diameter_m"],
+                                 samplingTime=1.0 / s["frame_rate_hz"], centralObstruction=0.0)
+            self.ngs = Source(optBand="I", magnitude=s["magnitude"])
+            self.ngs * self.tel
+            self.atm = Atmosphere(telescope=self.tel, r0=s["r0_m"], L0=s["outer_scale_m"],
+                                  windSpeed=[s["wind_speed_mps"]], fractionalR0=[1.0],
+                                  windDirection=[s["wind_direction_deg"]], altitude=[0.0])
+            self.atm.initializeAtmosphere(self.tel)
+            self.dm = DeformableMirror(telescope=self.tel, nSubap=n, mechCoupling=0.35, print_dm_properties=False)
+            self.wfs = ShackHartmann(nSubap=n, telescope=self.tel, lightRatio=0.5)
+            self.ngs * self.tel * self.wfs
+        self.positions_m = np.asarray(self.dm.coordinates, dtype=np.float64)
+        self._pupil = np.asarray(self.tel.pupil) > 0
+
+    def _calibrate(self, rcond: float) -> None:
+        """OOPAO's interaction matrix (slopes per nm), the truncated reconstructor and the seen-mode projector."""
+        k = self.n_actuators
+        with quiet():
+            calib = self._InteractionMatrix(self.ngs, tel=self.tel, dm=self.dm, wfs=self.wfs, M2C=np.eye(k),
+                                            stroke=1e-9, nMeasurements=50, noise="off")
+        self.interaction_matrix = np.asarray(calib.D) * 1e-9  # slopes per nm of command
+        u, singular, vt = np.linalg.svd(self.interaction_matrix, full_matrices=False)
+        kept = int((singular > rcond * singular[0]).sum())
+        self.reconstructor = (vt[:kept].T / singular[:kept]) @ u[:, :kept].T  # (K, S): nm per slope unit
+        self._seen = vt[:kept].T
+        self.n_seen = kept
+        if self.sensor == "perfect":
+            self._projection = self._fit_operator()[1]
+
+    def _fit_operator(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(M, F)``: the influence functions over the pupil (nm of OPD per nm of command, piston removed) and the
+        least-squares projection ``F`` of a piston-free OPD on the seen commands (nm of command per nm)."""
+        if not hasattr(self, "_operators"):
+            modes = np.asarray(self.dm.modes)[self._pupil.ravel()].astype(np.float64)  # OOPAO: peak 1 per unit coef
+            modes -= modes.mean(0)
+            self._operators = modes, self._seen @ (self._seen.T @ np.linalg.pinv(modes))
+        return self._operators
+
+    @property
+    def n_actuators(self) -> int:
+        return int(self.dm.nValidAct)
+
+    @property
+    def n_pixels_per_subaperture(self) -> int:
+        return int(self.wfs.n_pix_subap)
+
+    def describe(self) -> dict:
+        measured = ("wfs = R @ slopes: OOPAO Shack-Hartmann slopes through the truncated pseudo-inverse of OOPAO's "
+                    f"interaction matrix ({self.n_seen} of {self.n_actuators} modes)" if self.sensor != "perfect"
+                    else "wfs = least-squares projection of the residual OPD on the DM (no aliasing)")
+        return {"simulator": "oopao", **self.settings, "n_actuators": self.n_actuators, "n_seen_modes": self.n_seen,
+                "sh_pixels_per_subaperture": self.n_pixels_per_subaperture, "n_slopes": int(self.wfs.nSignal),
+                "measurement": measured}
+
+    def reset(self, seed: int) -> None:
+        with quiet():
+            if not self.tel.isPaired:
+                self.tel + self.atm
+            self.atm.generateNewPhaseScreen(seed=int(seed))
+            self.dm.coefs = 0
+        self.wfs.cam.photonNoise = self.photon_noise
+        self.wfs.cam.random_state_photon_noise = np.random.RandomState(int(seed) + 7)  # OOPAO seeds by the clock
+
+    def project(self, command_nm: np.ndarray) -> np.ndarray:
+        return self._seen @ (self._seen.T @ command_nm)
+
+    def advance(self, command_nm: np.ndarray) -> tuple[np.ndarray, float]:
+        command = check_command(command_nm, self.n_actuators)
+        with quiet():
+            self.atm.update()  # moves the screen and restarts the light through it (``src ** atm * tel``)
+            self.dm.coefs = self.dm_gain * command * 1e-9
+            if self.sensor == "perfect":
+                self.ngs * self.tel * self.dm
+            else:
+                self.ngs * self.tel * self.dm * self.wfs
+        opd_nm = np.asarray(self.tel.OPD)[self._pupil] * 1e9
+        residual = float(np.std(opd_nm))
+        if self.sensor == "perfect":
+            return self._projection @ (opd_nm - opd_nm.mean()), residual
+        return self.reconstructor @ self.slopes(), residual
+
+    def slopes(self) -> np.ndarray:
+        """The SH slopes of the last frame (OOPAO's ``wfs.signal``)."""
+        return np.asarray(self.wfs.signal, dtype=np.float64)
+
+    def turbulence_opd_nm(self) -> np.ndarray:
+        """The current turbulence OPD over the pupil (nm), without the DM."""
+        return np.asarray(self.atm.OPD)[self._pupil] * 1e9
+
+    def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray) -> float:
+        """The Shack-Hartmann's optical gain on the current turbulence: the response ``R @ slopes`` to a small DM
+        ``probe_nm`` added to ``command_nm`` (push-pull, same frame), projected on the probe; 1 for a linear
+        sensor. Telemetry only ever sees ``dm_gain`` times this (:mod:`eofnn.training.identify`)."""
+        probe = self.project(check_command(probe_nm, self.n_actuators, "probe"))
+        response = []
+        for sign in (1.0, -1.0):
+            with quiet():
+                self.dm.coefs = self.dm_gain * (command_nm + sign * probe) * 1e-9
+                # ``**`` restarts the light from the source (``*`` alone would add the DM to what is there)
+                self.ngs ** self.atm * self.tel * self.dm * self.wfs
+            response.append(self.reconstructor @ self.slopes())
+        return float((response[0] - response[1]) @ probe / (2 * self.dm_gain * probe @ probe))
+
+
+def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5) -> dict:
+    """What the DM cannot correct: the RMS (nm, piston removed) of the turbulence minus its least-squares fit by
+    the seen DM modes, every ``every`` frames of the realisation ``seed``; ``{"median_rms_nm", "n_frames"}``."""
+    modes, projection = sim._fit_operator()
+    sim.reset(seed)
+    values = []
+    for n in range(n_frames):
+        with quiet():
+            sim.atm.update()
+        if n % every == 0:
+            opd = sim.turbulence_opd_nm()
+            opd = opd - opd.mean()
+            values.append(float(np.sqrt(np.mean((opd - modes @ (projection @ opd)) ** 2))))
+    return {"median_rms_nm": float(np.median(values)), "n_frames": len(values)}
+
+
+def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *, dither_nm: float = 0.0,
+                        probe_nm: float = 5.0, every: int = 10, settle_frames: int = 100) -> dict:
+    """The Shack-Hartmann's optical gain in ``sim``'s integrator loop (gain ``gain``, plus ``dither_nm`` of white
+    dither as when recording telemetry, since the gain depends on the residual): every ``every`` frames after
+    ``settle_frames``, a random probe of ``probe_nm`` RMS per actuator is pushed and pulled on that frame's
+    residual. Returns ``{"mean", "se", "n_probes"}``: what the identified DM gain should equal, divided by
+    ``sim.dm_gain`` (a perfect sensor: 1)."""
+    from eofnn.interop.loop import IntegratorControl
+
+    if sim.sensor == "perfect":
+        return {"mean": 1.0, "se": 0.0, "n_probes": 0}
+    control, rng = IntegratorControl(gain, dither_nm, seed + 12), np.random.default_rng(seed + 11)
+    sim.reset(seed)
+    control.reset(sim.n_actuators)
+    pending, gains = [np.zeros(sim.n_actuators) for _ in range(sim.delay_frames)], []
+    for n in range(n_frames):
+        command = sim.project(control.step(pending.pop(0)))
+        measurement, _ = sim.advance(command)
+        pending.append(measurement)
+        if n >= settle_frames and n % every == 0:
+            gains.append(sim.sensor_gain(command, probe_nm * rng.standard_normal(sim.n_actuators)))
+    gains = np.asarray(gains)
+    return {"mean": float(gains.mean()), "se": float(gains.std() / np.sqrt(max(len(gains), 1))),
+            "n_probes": len(gains)}

@@ -1,0 +1,70 @@
+"""Error budgets and the small outputs (``metrics.json``, ``results.md``) of the interop examples."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from eofnn.outputs import write_text_atomic
+
+
+def quadrature_difference(a: float, b: float) -> float:
+    """``sign(a² - b²) sqrt(|a² - b²|)``: the part of ``a`` that ``b`` lacks, for independent errors (nm)."""
+    d = a * a - b * b
+    return math.copysign(math.sqrt(abs(d)), d)
+
+
+def aliasing_budget(perfect: dict, shack_hartmann: dict, photon_noise: dict) -> dict:
+    """What limits each controller, from three runs of :func:`eofnn.interop.study.run_study` (``summary()`` with a
+    ``fitting_error``): a perfect (non-aliasing, noise-free) sensor, the Shack-Hartmann noise-free, and with photon
+    noise. Residual OPD medians (nm) split in quadrature: fitting error (the DM cannot make it), temporal (what is
+    left with a perfect sensor: servo lag, which prediction attacks), aliasing (SH minus perfect) and noise (photon
+    noise minus noise-free); ``eof_removes_nm``: integrator minus EOF in quadrature, per sensor. Quadrature
+    differences assume independent terms; a negative one means the term helped (printed with its sign)."""
+    fit = perfect["fitting_error"]["median_rms_nm"]
+    out = {"fitting_error_nm": fit, "controllers": {}, "eof_removes_nm": {}}
+    for name in ("integrator", "eof"):
+        p, s, n = (run[name]["median_rms_nm"] for run in (perfect, shack_hartmann, photon_noise))
+        out["controllers"][name] = {
+            "residual_perfect_sensor_nm": p, "residual_shack_hartmann_nm": s, "residual_photon_noise_nm": n,
+            "temporal_nm": quadrature_difference(p, fit), "aliasing_nm": quadrature_difference(s, p),
+            "noise_nm": quadrature_difference(n, s)}
+    for label, run in (("perfect_sensor", perfect), ("shack_hartmann", shack_hartmann),
+                       ("photon_noise", photon_noise)):
+        out["eof_removes_nm"][label] = quadrature_difference(run["integrator"]["median_rms_nm"],
+                                                             run["eof"]["median_rms_nm"])
+    return out
+
+
+def write_results(folder: str | Path, simulator: str, metrics: dict, command: str) -> Path:
+    """``folder/metrics.json`` (everything) and ``folder/results.md`` (the table), replacing earlier ones."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    metrics = {"command": command, **metrics}
+    write_text_atomic(folder / "metrics.json", json.dumps(metrics, indent=1))
+    lines = [f"# eofnn inside {simulator}", "", f"`{command}`", "",
+             "| run | DM gain identified (DM gain x sensor optical gain) | replay EOF / integrator (nm) "
+             "| in-loop EOF / best integrator (nm, gain) | fitting error (nm) |", "|---|---|---|---|---|"]
+    for name, run in metrics["runs"].items():
+        ident, rep, integ = run["identified"], run["replay"], run["integrator"]
+        truth = ident.get("dm_gain_times_optical_gain", ident.get("dm_gain_true"))
+        fit = run.get("fitting_error", {}).get("median_rms_nm")
+        lines.append(f"| {name} | {ident['dm_gain']:.4f} ({truth:.4f}) | {rep['predictor_median_rms_nm']:.2f} / "
+                     f"{rep['integrator_median_rms_nm']:.2f} | {run['eof']['median_rms_nm']:.2f} / "
+                     f"{integ['median_rms_nm']:.2f} ({integ['best_gain']}) | "
+                     f"{'' if fit is None else f'{fit:.2f}'} |")
+    if "budget" in metrics:
+        b = metrics["budget"]
+        lines += ["", f"Error budget (median residual OPD, nm, split in quadrature; fitting error "
+                      f"{b['fitting_error_nm']:.2f} nm):", "",
+                  "| controller | perfect sensor | SH | SH + photon noise | temporal | aliasing | noise |",
+                  "|---|---|---|---|---|---|---|"]
+        for name, c in b["controllers"].items():
+            lines.append(f"| {name} | {c['residual_perfect_sensor_nm']:.2f} | {c['residual_shack_hartmann_nm']:.2f} | "
+                         f"{c['residual_photon_noise_nm']:.2f} | {c['temporal_nm']:.2f} | {c['aliasing_nm']:.2f} | "
+                         f"{c['noise_nm']:.2f} |")
+        removed = ", ".join(f"{k} {v:.2f} nm" for k, v in b["eof_removes_nm"].items())
+        lines += ["", f"The EOF removes (integrator minus EOF, in quadrature): {removed}."]
+    write_text_atomic(folder / "results.md", "\n".join(lines) + "\n")
+    return folder

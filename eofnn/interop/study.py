@@ -1,0 +1,148 @@
+"""The worked example, for any simulator adapter: what an observatory does with eofnn, in another simulator's loop.
+
+:func:`run_study` takes a :class:`~eofnn.interop.loop.SimulatorAdapter` and, with eofnn's public functions only:
+
+1. records telemetry in the simulator's own integrator loop with white dither (:func:`run_closed_loop`);
+2. identifies the plant from it (:func:`eofnn.training.identify.identify_plant`: DM gain, noise, lag);
+3. fits a closed-loop EOF from that telemetry alone (:func:`eofnn.training.from_telemetry.fit_from_telemetry`,
+   ridge alpha chosen on its last ``val_frames``);
+4. replays it on a held-out realisation recorded the same way (:func:`eofnn.analysis.replay.replay`);
+5. scans the integrator's gain in the simulator's own loop on a third realisation and runs the EOF there, as the
+   exported runtime filter (:class:`eofnn.runtime.PredictiveFilter`) or the torch controller, reporting the
+   residual OPD (median RMS after ``settle_frames``, :func:`eofnn.evaluation.metrics.loop_metrics`) of each.
+
+The integrator's gain is chosen on the very realisation it is then scored on (an optimistic baseline); the EOF
+never sees that realisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from eofnn.analysis.linear import dm_gain_margin
+from eofnn.analysis.replay import replay
+from eofnn.data.history import HistorySpec
+from eofnn.errors import ConfigError
+from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter, scan_integrator
+from eofnn.training.from_telemetry import fit_from_telemetry
+from eofnn.training.identify import identify_plant
+from eofnn.training.task import OptimizationConfig
+from eofnn.validation import COUNT, Interval, OneOf, check_value
+
+#: Relative ridge alphas searched (1e-14 to 10, two per decade): past eofnn's default 1e-2, so that a DM-gain
+#: margin can be met (a closed-loop EOF fitted on Shack-Hartmann telemetry sits near its upper gain margin).
+ALPHA_PATH = tuple(10 ** (k / 2) for k in range(-28, 3))
+
+
+@dataclass
+class StudyConfig:
+    """Frames, gains and seeds of :func:`run_study` (frames at the loop rate).
+
+    ``record_gain`` and ``gains`` are the integrator's gains as the controller believes them (a DM that applies
+    ``g`` times the command makes the loop gain ``g`` times larger). ``dm_gain_interval``: the ridge alpha is the
+    least-error one whose analytic stable DM-gain interval (per actuator, relative to the identified gain) holds
+    it (:func:`eofnn.analysis.linear.dm_gain_margin`): a Shack-Hartmann's optical gain differs from mode to mode
+    and with the residual, which a filter fitted at the edge of stability does not survive; None: no constraint.
+    """
+
+    record_frames: int = 4000
+    val_frames: int = 800
+    heldout_frames: int = 2000
+    loop_frames: int = 2000
+    settle_frames: int = 300
+    warmup_frames: int = 100
+    record_gain: float = 0.25
+    dither_nm: float = 10.0
+    gains: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
+    history_length: int = 4
+    controller: str = "runtime"
+    refit_rounds: int = 1
+    dm_gain_interval: tuple[float, float] | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("record_frames", "heldout_frames", "loop_frames", "history_length"):
+            check_value(name, getattr(self, name), COUNT)
+        for name in ("val_frames", "settle_frames", "warmup_frames"):
+            check_value(name, getattr(self, name), Interval(0, None, integer=True, unit="frames"))
+        check_value("controller", self.controller, OneOf(("runtime", "torch")))
+        if self.warmup_frames > self.settle_frames:
+            raise ConfigError(f"warmup_frames={self.warmup_frames} is invalid: it must be <= settle_frames="
+                              f"{self.settle_frames} (the integrator's warm-up is not scored)")
+        if self.settle_frames >= min(self.record_frames, self.heldout_frames, self.loop_frames):
+            raise ConfigError(f"settle_frames={self.settle_frames} is invalid: it must be below every run's frames")
+
+
+@dataclass
+class StudyResult:
+    """What :func:`run_study` measured (nm unless stated); ``summary()`` is the JSON of ``metrics.json``."""
+
+    simulator: dict
+    identified: dict
+    replay: dict
+    integrator: dict
+    eof: dict
+    config: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return asdict(self)
+
+
+def run_study(sim, config: StudyConfig | None = None, *, dm_gain_true: float | None = None) -> StudyResult:
+    """Record, identify, fit, replay and run in ``sim``'s own loop (module docstring); ``dm_gain_true`` (what the
+    simulator's DM applies) is only reported beside the identified gain."""
+    c = config or StudyConfig()
+    seeds = {"record": c.seed, "heldout": c.seed + 1, "loop": c.seed + 2}
+    recorder = IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 100)
+    recorded = run_closed_loop(sim, recorder, c.record_frames, seeds["record"])
+    if recorded.diverged_frame is not None:
+        raise ConfigError(f"the recording integrator (gain {c.record_gain}) diverged at frame {recorded.diverged_frame} "
+                          f"in {sim.name}'s loop: lower record_gain or dither_nm")
+    telemetry = recorded.telemetry(start=c.settle_frames)
+    plant = identify_plant(telemetry)
+    plant.require_identified()
+    identified = {"dm_gain": plant.dm_gain, "dm_gain_se": plant.dm_gain_se, "wfs_noise_nm": plant.wfs_noise_nm,
+                  "lag_frames": plant.lag_frames, "misregistration_x": plant.misregistration_x,
+                  "misregistration_y": plant.misregistration_y, "dm_gain_true": dm_gain_true,
+                  "dm_gain_error": None if dm_gain_true is None else plant.dm_gain / dm_gain_true - 1}
+
+    spec = HistorySpec("closed_loop", c.history_length, sim.delay_frames)
+    select = None if c.dm_gain_interval is None or not c.val_frames else {"dm_gain_interval": list(c.dm_gain_interval)}
+    optimization = OptimizationConfig(alpha="auto" if c.val_frames else 1e-6, select=select, alpha_path=ALPHA_PATH)
+    margin = dm_gain_margin(sim.frame_rate_hz) if select else None
+    fitted = fit_from_telemetry(telemetry, spec, plant=plant, val_frames=c.val_frames, seed=c.seed,
+                                optimization=optimization, margin=margin)
+    refits = []
+    for round_ in range(c.refit_rounds):  # closed-loop identification: refit on data the filter recorded itself
+        recorder = FilterControl(runtime_filter(fitted.network, spec, fitted.dm_gain), c.record_gain,
+                                 c.warmup_frames, c.dither_nm, seed=c.seed + 200 + round_)
+        again = run_closed_loop(sim, recorder, c.record_frames, c.seed + 10 + round_)
+        if again.diverged_frame is not None:  # kept as a result: the filter that diverged is then run and reported
+            refits.append(f"skipped: the EOF recording its refit data diverged at frame {again.diverged_frame}")
+            break
+        fitted = fit_from_telemetry(again.telemetry(start=c.settle_frames), spec, plant=plant,
+                                    val_frames=c.val_frames, seed=c.seed, optimization=optimization, margin=margin)
+        refits.append(f"refit on {c.record_frames} frames the EOF recorded with dither")
+
+    heldout = run_closed_loop(sim, IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 101),
+                              c.heldout_frames, seeds["heldout"]).telemetry(start=c.settle_frames)
+    replayed = replay(fitted.network, spec, heldout, plant=plant).summary()
+
+    scan = scan_integrator(sim, c.gains, c.loop_frames, seeds["loop"], c.settle_frames)
+    if c.controller == "runtime":
+        control = FilterControl(runtime_filter(fitted.network, spec, fitted.dm_gain), scan["gain"], c.warmup_frames)
+    else:
+        control = TorchControl(fitted.controller(), sim.delay_frames)
+    eof_metrics = run_closed_loop(sim, control, c.loop_frames, seeds["loop"]).metrics(c.settle_frames).summary()
+    return StudyResult(sim.describe(), identified,
+                       {"predictor_median_rms_nm": replayed["predictor"]["median_rms_nm"],
+                        "integrator_median_rms_nm": replayed["own_controller"]["median_rms_nm"],
+                        "noise_nm": replayed["noise_nm"], "n_frames": replayed["n_frames"]},
+                       {"best_gain": scan["gain"], "median_rms_nm": scan["median_rms_nm"],
+                        "scan": {str(g): v for g, v in scan["scan"].items()}},
+                       {**{k: eof_metrics[k] for k in ("median_rms_nm", "mean_rms_nm", "p95_rms_nm", "diverged")},
+                        "controller": c.controller, "alpha": fitted.info.get("alpha"),
+                        "stable_dm_gain_interval": fitted.info.get("alpha_choice", {}).get("dm_gain_interval"),
+                        "refits": refits,
+                        "history": f"closed_loop, {c.history_length} taps per signal"},
+                       {**asdict(c), "seeds": seeds})
