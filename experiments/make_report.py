@@ -16,7 +16,7 @@ import subprocess
 import torch
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
-from report_scale import elt_section
+from report_scale import elt_section, interop_section
 
 
 def study_section() -> str:
@@ -261,8 +261,9 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
     text = f"""# eofnn's experiments: the reference study reproduced, and what changes on realistic physics
 
-Regenerate everything on this page with one command (well over an hour on 2 cores: the other sections took
-about 40 minutes; the fair contest of section 2 took 24-34 minutes and its alpha check 31, on a shared machine):
+Regenerate everything on this page with one command (well over two hours on 2 cores: sections 1, 3 and 4 took
+about 40 minutes; the fair contest of section 2 took 24-34 minutes, its alpha check 31, its MLP budget check 36 and
+the paper-gap runs about 10 each, on a shared machine; section 5 about 5 minutes and section 6 about 30):
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 
@@ -279,7 +280,8 @@ from telemetry alone (`telemetry.md`).
 {realistic_section()}
 {cl_study_section()}
 {robustness_section()}
-{elt_section()}"""
+{elt_section()}
+{interop_section()}"""
     (HERE / "README.md").write_text(text)
 
 

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Regenerate experiments/: the study's reproduction and its design sweeps, the realistic comparison, the
 # closed-loop EOF study, the robustness maps, vibrations and online adaptation; then rewrite
-# experiments/README.md from their result files. Well over an hour on 2 cores (the fair contest of section 2 took
-# 24-34 minutes and its alpha check 31 on a shared machine; the rest about 40). Run after scripts/setup.sh.
+# experiments/README.md from their result files. Well over two hours on 2 cores (the fair contest of section 2 took
+# 24-34 minutes, its alpha check 31, the MLP budget check 36 and the paper-gap runs 10 each on a shared machine;
+# the ELT run 5 minutes, the interop runs about 30; the rest about 40). Run after scripts/setup.sh.
 # Every sweep is resumable: rerun this script after an interruption and finished points are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -57,4 +58,6 @@ $eofnn compare --config $x/adaptive/dm_gain_drift.yaml --scenario.plant.dm_gain_
 .venv/bin/python $x/telemetry_training.py
 # 7. An ELT-class loop (5024 actuators, three non-lattice layers), every predictor from telemetry alone.
 $eofnn compare --config configs/elt_small.yaml --out $x/elt_small --overwrite true
+# 8. eofnn's controllers inside OOPAO's and HCIPy's own loops (about 30 min of one core).
+bash $x/interop/run.sh
 .venv/bin/python $x/make_report.py
