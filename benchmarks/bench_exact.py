@@ -11,7 +11,7 @@ from pathlib import Path
 
 from benchmarks.baselines import HcipyTurbulence
 from benchmarks.bench_turbulence import scenario_with_grid, time_against_hcipy
-from benchmarks.common import Row, Timing, time_once
+from benchmarks.common import Row, Timing, reset_peak_memory, status_bytes, time_once
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.turbulence import Turbulence
 
@@ -115,16 +115,7 @@ def _stream(n_across: int, n_frames: int, chunk_frames: int, seed: int) -> dict:
 
     sc = exact_scenario(Scenario.from_yaml(ROOT / "configs" / "reference.yaml"), n_across, n_frames)
 
-    def status_bytes(field: str) -> int:
-        # VmHWM (peak resident) belongs to this process image; ru_maxrss would carry a forking parent's over exec.
-        with open("/proc/self/status") as f:
-            return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
-
-    try:  # reset VmHWM to the current resident size, so the peak is this stream's, not the imports'
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
+    reset_peak_memory()  # the peak is this stream's, not the imports'
     before = status_bytes("VmRSS")
     t0 = time.perf_counter()
     turbulence = sc.turbulence(seed)

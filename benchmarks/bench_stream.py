@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import Row, Timing, time_interleaved
+from benchmarks.common import Row, Timing, reset_peak_memory, status_bytes, time_interleaved
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ("open_loop", 4, 2)
@@ -94,15 +94,7 @@ def _peak_child(path: str, mode: str, batch_frames: int) -> dict:
     tiny = Telemetry(y=torch.randn(300, 8, dtype=torch.float64), wfs=torch.randn(300, 8, dtype=torch.float64))
     fit_from_telemetry(tiny, HistorySpec(*SPEC), plant={"dm_gain": 1.0}, batch_frames=batch_frames)
 
-    def status_bytes(field: str) -> int:
-        with open("/proc/self/status") as f:
-            return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
-
-    try:  # reset VmHWM to the current resident size: the peak is the fit's, not the imports'
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
+    reset_peak_memory()  # the peak is the fit's, not the imports'
     before = status_bytes("VmRSS")
     t0 = time.perf_counter()
     fit = _fit(path, mode, batch_frames)

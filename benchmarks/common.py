@@ -237,3 +237,19 @@ def fmt_value(value: float, unit: str) -> str:
         if abs(value) >= scale:
             return f"{value / scale:.3g} {name}"
     return f"{value:.3g} B"
+
+
+def status_bytes(field: str) -> int:
+    """A memory field of ``/proc/self/status`` (``VmRSS``, ``VmHWM``...) in bytes (Linux). VmHWM (peak resident)
+    belongs to this process image; ``ru_maxrss`` would carry a forking parent's over exec."""
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
+
+
+def reset_peak_memory() -> None:
+    """Reset VmHWM to the current resident size (Linux), so that the next peak is what follows, not the imports."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass

@@ -157,8 +157,8 @@ def test_a_screen_that_cannot_fit_is_refused_up_front_with_the_memory_needed():
 
     scenario = Scenario(grid=ActuatorGrid(8.0, 40), atmosphere=Atmosphere(layers=[Layer(1.0, 5.1, 30.0)],
                                                                           screen_frames=50_000_000))
-    with pytest.raises(ConfigError, match=r"frames=100: the exact screen of a non-lattice wind .* needs about [0-9.]+ "
-                                          r"GiB of memory") as info:
+    with pytest.raises(ConfigError, match=r"frames=100: the set of exact screens of non-lattice winds .* needs about "
+                                          r"[0-9.]+ GiB of memory") as info:
         scenario.require_stream_frames(100, "frames=100")
     assert "\n" not in str(info.value)
     lattice = Scenario(grid=ActuatorGrid(8.0, 40), atmosphere=Atmosphere(layers=[Layer(1.0, 5.1, 0.0)],

@@ -154,7 +154,7 @@ GIB = 2**30
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.atmosphere.screen_frames", "1000000"], "exact screens of non-lattice winds (3 screen(s) of 5024 "
                                                           "actuators x screen_frames=1000000) needs about"),
-    (["--evaluation.realisations", "8"], "evaluation.frames=2000: the exact screens of non-lattice winds (24 screen(s)"),
+    (["--evaluation.realisations", "8"], "evaluation.frames=2000: the set of exact screens of non-lattice winds (24 screen(s)"),
     (["--scenario.grid.n_across", "400"], "of memory"),
 ])
 def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(capsys, tmp_path, monkeypatch, args,

@@ -103,8 +103,8 @@ class Scenario:
             n_screens = realisations * sum(1 for peak in peaks if peak)
             need = max(peaks) + (n_screens - 1) * 4 * atm.screen_frames * self.grid.n_actuators
             if n_screens:
-                require_memory(need, f"{what}: the exact screens of non-lattice winds ({n_screens} screen(s) of "
-                                     f"{self.grid.n_actuators} actuators x screen_frames={atm.screen_frames})")
+                require_memory(need, f"{what}: the set of exact screens of non-lattice winds ({n_screens} screen(s) "
+                                     f"of {self.grid.n_actuators} actuators x screen_frames={atm.screen_frames})")
 
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""

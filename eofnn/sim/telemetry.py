@@ -191,13 +191,7 @@ class Telemetry:
         Missing ``required`` arrays, bad shapes, NaNs, complex or text arrays, a missing or non-integer delay and
         unreadable files raise :class:`TelemetryError` with one line.
         """
-        path = Path(path)
-        where = f"telemetry file {str(path)!r}"
-        if not path.exists():
-            raise TelemetryError(f"{where} does not exist")
-        suffix = path.suffix.lower()
-        if suffix not in (".fits", ".fit", ".npz"):
-            raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .fits, .npz")
+        path, where, suffix = telemetry_path(path)
         try:
             arrays, positions, delay, rate, meta, found = (_read_fits if suffix != ".npz" else _read_npz)(path)
         except TelemetryError:
@@ -234,6 +228,19 @@ class Telemetry:
             raise TelemetryError(f"{where} lacks the loop delay: set header key DELAY (FITS) or array delay_frames "
                                  "(npz) to an integer >= 1 (frames)")
         return telemetry
+
+
+def telemetry_path(path: str | Path) -> tuple[Path, str, str]:
+    """``(path, where, suffix)`` of a telemetry file to read: one :class:`TelemetryError` line unless it exists and is
+    ``.fits``/``.fit``/``.npz`` (``where`` names it in messages; ``suffix`` is lower case)."""
+    path = Path(path)
+    where = f"telemetry file {str(path)!r}"
+    if not path.exists():
+        raise TelemetryError(f"{where} does not exist")
+    suffix = path.suffix.lower()
+    if suffix not in (".fits", ".fit", ".npz"):
+        raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .fits, .npz")
+    return path, where, suffix
 
 
 def _real_tensor(value, name: str) -> torch.Tensor:

@@ -30,7 +30,7 @@ import torch
 
 from eofnn.errors import TelemetryError
 from eofnn.sim.spaces import RCOND, slopes_reconstructor
-from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry, _delay, _read_fits, _read_npz
+from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry, _delay, _read_fits, _read_npz, telemetry_path
 from eofnn.sim.telemetry_readers import STREAMED, NotStreamableError, fits_readers, npz_readers
 
 __all__ = ["FrameArray", "NotStreamableError", "StreamedTelemetry"]
@@ -149,13 +149,7 @@ class StreamedTelemetry:
         and locate ``y`` and ``wfs`` (or ``slopes``); ``space`` as in :meth:`Telemetry.load`. Refused with one
         :class:`TelemetryError` line: what :meth:`Telemetry.load` refuses, plus arrays stored so that frames are not
         contiguous (Fortran order, compressed FITS images)."""
-        path = Path(path)
-        where = f"telemetry file {str(path)!r}"
-        if not path.exists():
-            raise TelemetryError(f"{where} does not exist")
-        suffix = path.suffix.lower()
-        if suffix not in (".fits", ".fit", ".npz"):
-            raise TelemetryError(f"{where} has suffix {path.suffix!r}: allowed are .fits, .npz")
+        path, where, suffix = telemetry_path(path)
         try:
             if suffix == ".npz":
                 _, positions, delay, rate, meta, found = _read_npz(path, skip=STREAMED)
