@@ -67,7 +67,8 @@ def _self_slot(neighbours: torch.Tensor) -> torch.Tensor:
     return own.int().argmax(1)
 
 
-@pytest.mark.parametrize("kind, p, delay", [("closed_loop", 3, 2), ("open_loop", 4, 2), ("open_loop", 3, 3)])
+@pytest.mark.parametrize("kind, p, delay", [("closed_loop", 3, 2), ("open_loop", 4, 2), ("open_loop", 3, 3),
+                                            ("open_loop", 4, 1.5), ("closed_loop", 3, 2.5)])
 def test_an_uncoupled_neighbourhood_filter_has_the_per_actuator_margins(kind, p, delay):
     """The per-actuator (block-diagonal: K scalar loops) analysis and the coupled one agree when nothing couples."""
     grid = ActuatorGrid(2.0, 5)

@@ -31,6 +31,8 @@ COMPANION_LIMIT = 12000
 GAIN_STEPS_UP = (1.02, 1.05, 1.1, 1.25, 1.5, 2.0, 3.0, 5.0, 10.0, 100.0)
 GAIN_STEPS_DOWN = (0.98, 0.95, 0.9, 0.75, 0.5, 0.25, 0.1, 0.0, -0.1, -1.0, -10.0)
 BISECTIONS = 30
+#: The extra-delay scan's steps per frame (a crossing narrower than 1 / DELAY_SUBSTEPS frame may be missed).
+DELAY_SUBSTEPS = 10
 
 
 class CoupledAnalysisTooLarge(ConfigError):
@@ -148,14 +150,19 @@ def block_analysis(weights: torch.Tensor, neighbours: torch.Tensor, kind: str, h
         lower = _bisect_edge(stable_at, g, [g * s if g else s - 1 for s in GAIN_STEPS_DOWN])
         upper = _bisect_edge(stable_at, g, [g * s if g else s - 1 for s in GAIN_STEPS_UP])
         interval = torch.tensor([[lower, upper]], dtype=torch.float64)
-        integer = setup.max_extra_delay_frames
-        delay_margin = math.inf
-        for j in range(1, setup.max_extra_delay_frames + 1):
-            if radius(g, tau + j) >= 1:
-                integer = j - 1
-                edge = _bisect_edge(lambda t: radius(g, t) < 1, tau + j - 1, [tau + j])
-                delay_margin = edge - tau
-                break
+        known: dict[float, bool] = {}
+
+        def stable_with(delay: float) -> bool:
+            if delay not in known:
+                known[delay] = radius(g, delay) < 1
+            return known[delay]
+
+        integer = next((j - 1 for j in range(1, setup.max_extra_delay_frames + 1) if not stable_with(tau + j)),
+                       setup.max_extra_delay_frames)
+        # Stability is not monotone in a fractional delay (the plant interpolates between two whole lags): scan in
+        # steps of 1 / DELAY_SUBSTEPS frame up to the first unstable delay, then bisect.
+        steps = [tau + k / DELAY_SUBSTEPS for k in range(1, DELAY_SUBSTEPS * setup.max_extra_delay_frames + 1)]
+        delay_margin = _bisect_edge(stable_with, tau, steps) - tau
     freqs = frequencies_hz
     rejection = noise = torch.zeros(1, 0, dtype=torch.complex128)
     if neighbours.shape[0] <= TRANSFER_LIMIT:
