@@ -110,10 +110,11 @@ without noise and with photon noise):
 - The EOF halves the temporal error and cannot remove aliasing or noise: it predicts the *measured* residual,
   aliasing included, so its replay gain (which scores the measurement) does not carry to the true OPD. With a
   perfect sensor and in HCIPy (phase projection, no aliasing) it beats the best-gain integrator in the loop; with
-  OOPAO's Shack-Hartmann it ties without noise and loses with photon noise.
-- The 40 x 40 OOPAO in-loop row is not a result: the adapter's reconstructor (`rcond` {big['rcond']:g} of the
-  largest singular value) keeps {big['n_seen_modes']} of {big['n_actuators']} modes there and drops smooth ones,
-  which neither controller can then correct; its identification and replay rows stand.
+  OOPAO's Shack-Hartmann it ties (20 x 20) or loses (40 x 40) without noise and loses with photon noise.
+- The reconstructor keeps the interaction matrix's singular values above `rcond` times the largest: 0.15 up to
+  20 x 20 and {big['rcond']:g} at 40 x 40 ({big['n_seen_modes']} of {big['n_actuators']} modes), because a zonal
+  Shack-Hartmann's smooth modes have the smallest singular values and their share of the spectrum shrinks as
+  1 / n (at 0.15 the 40 x 40 loop dropped smooth modes that neither controller could then correct).
 - *Limits*: the integrator's gain is chosen on the realisation it is scored on (favouring it); one realisation;
   1600-2000 frames per recording.
 """

@@ -11,7 +11,7 @@ cd "$(dirname "$0")/../.."
 PY=${PYTHON:-.venv/bin/python}
 what=${1:-all}
 if [ "$what" = all ] || [ "$what" = oopao ]; then
-    $PY examples/oopao_loop.py --n-subapertures 40 --diameter 8 --frames 1600 --out experiments/interop/oopao
+    $PY examples/oopao_loop.py --n-subapertures 40 --diameter 8 --frames 1600 --rcond 0.075 --out experiments/interop/oopao
 fi
 if [ "$what" = all ] || [ "$what" = oopao_aliasing ]; then
     $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --aliasing \
