@@ -12,36 +12,23 @@ the HCIPy loop against the best-gain integrator (residual OPD, median RMS over t
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
-from pathlib import Path
 
 from eofnn.interop.hcipy import HcipyLoop
-from eofnn.interop.report import write_results
+from eofnn.interop.report import example_parser, parse_example, write_results
 from eofnn.interop.study import StudyConfig, run_study
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--small", action="store_true", help="10 x 10 on 2 m, short runs (CI)")
-    parser.add_argument("--n-subapertures", type=int, default=40)
-    parser.add_argument("--diameter", type=float, default=8.0, help="m")
-    parser.add_argument("--dm-gain", type=float, default=2.0)
-    parser.add_argument("--wind", type=float, default=20.0, help="m/s")
+    parser = example_parser(__doc__.splitlines()[0])
     parser.add_argument("--noise", type=float, default=2.0, help="white measurement noise, nm per actuator")
-    parser.add_argument("--frames", type=int, default=3000, help="frames of telemetry per recording")
-    parser.add_argument("--out", type=Path, help="folder for metrics.json and results.md")
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = parser.parse_args(argv)
-    if args.small:
-        args.n_subapertures, args.diameter = 10, 2.0
+    args = parse_example(parser, argv)
     started = time.time()
     sim = HcipyLoop(args.n_subapertures, args.diameter, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
                     wfs_noise_nm=args.noise)
-    frames = args.frames
-    config = StudyConfig(record_frames=frames, val_frames=frames // 5, heldout_frames=frames // 2,
-                         loop_frames=frames // 2, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45))
+    config = StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45))
     run = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
     run["seconds"] = round(time.time() - started, 1)
     print(f"DM gain identified {run['identified']['dm_gain']:.4f} (true {args.dm_gain}); replay: EOF "

@@ -22,14 +22,12 @@ what it cannot (fitting error, aliasing, noise).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
-from eofnn.interop.report import aliasing_budget, write_results
+from eofnn.interop.report import aliasing_budget, example_parser, parse_example, write_results
 from eofnn.interop.study import StudyConfig, run_study
 
 
@@ -57,27 +55,16 @@ def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--small", action="store_true", help="10 x 10 subapertures on 2 m, short runs (CI)")
-    parser.add_argument("--n-subapertures", type=int, default=40)
-    parser.add_argument("--diameter", type=float, default=8.0, help="m")
-    parser.add_argument("--dm-gain", type=float, default=2.0)
-    parser.add_argument("--wind", type=float, default=20.0, help="m/s")
+    parser = example_parser(__doc__.splitlines()[0])
     parser.add_argument("--magnitude", type=float, default=8.0, help="guide star I magnitude (photon noise runs)")
-    parser.add_argument("--frames", type=int, default=3000, help="frames of telemetry per recording")
     parser.add_argument("--aliasing", action="store_true", help="also the perfect-sensor and photon-noise runs")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
                              "it down for larger systems (0.075 at 40 x 40 keeps what 0.15 keeps at 20 x 20)")
-    parser.add_argument("--out", type=Path, help="folder for metrics.json and results.md")
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = parser.parse_args(argv)
-    if args.small:
-        args.n_subapertures, args.diameter = 10, 2.0
-    frames = args.frames
-    config = StudyConfig(record_frames=frames, val_frames=frames // 5, heldout_frames=frames // 2,
-                         loop_frames=frames // 2, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4))
+    args = parse_example(parser, argv)
+    config = StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4))
     runs = {"shack_hartmann": study("shack_hartmann", False, args, config)}
     if args.aliasing:
         runs["perfect"] = study("perfect", False, args, config)

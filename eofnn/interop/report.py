@@ -1,12 +1,36 @@
-"""Error budgets and the small outputs (``metrics.json``, ``results.md``) of the interop examples."""
+"""Error budgets, the small outputs (``metrics.json``, ``results.md``) and the shared options of the interop
+examples."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from pathlib import Path
 
 from eofnn.outputs import write_text_atomic
+
+
+def example_parser(description: str) -> argparse.ArgumentParser:
+    """The options every interop example takes (the system, the DM's gain, the wind, the frames, the output
+    folder); ``--small`` is applied by :func:`parse_example`."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--small", action="store_true", help="10 x 10 subapertures on 2 m, short runs (CI)")
+    parser.add_argument("--n-subapertures", type=int, default=40)
+    parser.add_argument("--diameter", type=float, default=8.0, help="m")
+    parser.add_argument("--dm-gain", type=float, default=2.0)
+    parser.add_argument("--wind", type=float, default=20.0, help="m/s")
+    parser.add_argument("--frames", type=int, default=3000, help="frames of telemetry per recording")
+    parser.add_argument("--out", type=Path, help="folder for metrics.json and results.md")
+    return parser
+
+
+def parse_example(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """``argv`` parsed; ``--small`` sets 10 x 10 subapertures on 2 m."""
+    args = parser.parse_args(argv)
+    if args.small:
+        args.n_subapertures, args.diameter = 10, 2.0
+    return args
 
 
 def quadrature_difference(a: float, b: float) -> float:

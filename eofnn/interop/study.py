@@ -18,6 +18,7 @@ never sees that realisation.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import ClassVar
 
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.replay import replay
@@ -27,7 +28,7 @@ from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, r
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig
-from eofnn.validation import COUNT, Interval, OneOf, check_value
+from eofnn.validation import COUNT, Constraint, Interval, OneOf, validated
 
 #: Relative ridge alphas searched (1e-14 to 10, two per decade): past eofnn's default 1e-2, so that a DM-gain
 #: margin can be met (a closed-loop EOF fitted on Shack-Hartmann telemetry sits near its upper gain margin).
@@ -35,6 +36,7 @@ ALPHA_PATH = tuple(10 ** (k / 2) for k in range(-28, 3))
 
 
 @dataclass
+@validated
 class StudyConfig:
     """Frames, gains and seeds of :func:`run_study` (frames at the loop rate).
 
@@ -60,12 +62,20 @@ class StudyConfig:
     dm_gain_interval: tuple[float, float] | None = None
     seed: int = 0
 
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        **dict.fromkeys(("record_frames", "heldout_frames", "loop_frames", "history_length"), COUNT),
+        **dict.fromkeys(("val_frames", "settle_frames", "warmup_frames"), Interval(0, None, integer=True, unit="frames")),
+        "controller": OneOf(("runtime", "torch")),
+    }
+
+    @classmethod
+    def from_frames(cls, frames: int, gains: tuple[float, ...]) -> StudyConfig:
+        """The examples' split: ``frames`` per recording, a fifth of them for validation, half for the held-out
+        replay and for each closed-loop run; ``gains`` scanned for the best-gain integrator."""
+        return cls(record_frames=frames, val_frames=frames // 5, heldout_frames=frames // 2, loop_frames=frames // 2,
+                   gains=gains)
+
     def __post_init__(self) -> None:
-        for name in ("record_frames", "heldout_frames", "loop_frames", "history_length"):
-            check_value(name, getattr(self, name), COUNT)
-        for name in ("val_frames", "settle_frames", "warmup_frames"):
-            check_value(name, getattr(self, name), Interval(0, None, integer=True, unit="frames"))
-        check_value("controller", self.controller, OneOf(("runtime", "torch")))
         if self.warmup_frames > self.settle_frames:
             raise ConfigError(f"warmup_frames={self.warmup_frames} is invalid: it must be <= settle_frames="
                               f"{self.settle_frames} (the integrator's warm-up is not scored)")
