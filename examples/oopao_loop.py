@@ -7,7 +7,7 @@ Everything eofnn learns comes from the telemetry of OOPAO's own integrator loop 
    is measured beside it by push-pull probes on the closed-loop residual);
 3. fit a closed-loop EOF from that telemetry alone (``fit_from_telemetry``), refit once on telemetry it recorded
    itself in OOPAO's loop (closed-loop identification);
-4. replay it on a held-out realisation (``eofnn.analysis.replay``);
+4. replay it on a held-out realisation (``eofnn.evaluation.replay``);
 5. run it (the exported ``eofnn.runtime.PredictiveFilter``) in OOPAO's loop against OOPAO's best-gain integrator:
    residual OPD (median RMS over the pupil, nm).
 

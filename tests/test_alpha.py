@@ -14,7 +14,7 @@ from eofnn.analysis.stability import LoopSetup, analyse
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
 from eofnn.errors import ConfigError
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.models.linear import LinearFilter
 from eofnn.training.alpha import DEFAULT_ALPHA_PATH
 from eofnn.training.fit import fit_predictor

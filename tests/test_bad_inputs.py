@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from eofnn.main import main
+from eofnn.cli.main import main
 
 CONF = Path(__file__).parent / "conf"
 TINY = CONF / "tiny_compare.yaml"

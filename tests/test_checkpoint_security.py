@@ -10,7 +10,7 @@ import torch
 
 from eofnn.data.stream import DataConfig
 from eofnn.errors import CheckpointError
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import fit_predictor
 from eofnn.training.task import OptimizationConfig

@@ -21,7 +21,7 @@ from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import Experiment
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.sim.loop import run_loop
 
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"

@@ -159,7 +159,7 @@ def test_an_integrator_leaves_the_vibration_peak_that_a_predictor_removes():
 
 
 def test_the_cli_runs_vibrations_and_boiling_from_yaml_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
-    from eofnn.main import main
+    from eofnn.cli.main import main
     from eofnn.sim import Telemetry
 
     scenario = _scenario([Vibration("focus", 100.0, 20.0, 0.0)],

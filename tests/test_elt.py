@@ -13,7 +13,7 @@ import torch
 
 from eofnn.analysis import block
 from eofnn.analysis.stability import LoopSetup, analyse
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.sim import anywind
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant

@@ -28,7 +28,7 @@ def run(level, diverged_frame=None, n=600):
 
 
 def test_a_diverged_controller_is_drawn_until_it_diverged_and_marked(figures, tmp_path):
-    from eofnn.evaluation.report import plot_rms_vs_time
+    from eofnn.reporting.report import plot_rms_vs_time
     from eofnn.evaluation.results import ExperimentResult
 
     result = ExperimentResult({"dm_gain_2": {"integrator": run(20.0), "ol_eof": run(2.0, diverged_frame=7)}})
@@ -43,7 +43,7 @@ def test_a_diverged_controller_is_drawn_until_it_diverged_and_marked(figures, tm
 
 
 def test_the_stability_figure_marks_the_bounds_of_its_title(figures, tmp_path):
-    from eofnn.analysis.figures import plot_stability
+    from eofnn.reporting.stability import plot_stability
     from eofnn.analysis.stability import LoopSetup, analyse
 
     weights = torch.zeros(6, 4, dtype=torch.float64)
@@ -62,7 +62,8 @@ def test_the_stability_figure_marks_the_bounds_of_its_title(figures, tmp_path):
 
 
 def test_the_replay_map_uses_a_robust_colour_range_and_says_so(figures, tmp_path):
-    from eofnn.analysis.replay import ErrorStats, ReplayResult, replay_figure
+    from eofnn.evaluation.replay import ErrorStats, ReplayResult
+    from eofnn.reporting.replay import replay_figure
     from eofnn.sim.grid import ActuatorGrid
 
     grid = ActuatorGrid(2.0, 10)

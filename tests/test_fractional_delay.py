@@ -12,7 +12,7 @@ import torch
 import yaml
 from torch import nn
 
-from eofnn.analysis.replay import replay
+from eofnn.evaluation.replay import replay
 from eofnn.analysis.stability import LoopSetup, analyse_filter, analyse_integrator
 from eofnn.control import Integrator, PredictiveController, PseudoIntegrator
 from eofnn.control.adaptive import RLSController
@@ -20,7 +20,7 @@ from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.data.stream import DataConfig
 from eofnn.data.targets import check_sequences
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry

@@ -7,7 +7,8 @@ import json
 import pytest
 import torch
 
-from eofnn.analysis.replay import replay, replay_figure
+from eofnn.evaluation.replay import replay
+from eofnn.reporting.replay import replay_figure
 from eofnn.control import Dithered, Integrator, PredictiveController
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.data.stream import DataConfig

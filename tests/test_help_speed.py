@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parent.parent
 HEAVY = ("torch", "lightning", "hcipy", "matplotlib", "scipy")
 PROBE = """
 import json, sys
-from eofnn.main import main
+from eofnn.cli.main import main
 try:
     code = main({args!r})
 except SystemExit as stop:
@@ -36,7 +36,7 @@ def test_help_and_version_import_nothing_heavy(args):
 
 
 def test_a_subcommand_still_gets_all_its_arguments():
-    proc = subprocess.run([sys.executable, "-m", "eofnn.main", "simulate", "--help"], cwd=ROOT, capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "simulate", "--help"], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0 and "--scenario.atmosphere.r0_m" in proc.stdout
 
@@ -44,14 +44,14 @@ def test_a_subcommand_still_gets_all_its_arguments():
 def test_version_prints_the_package_version():
     import eofnn
 
-    proc = subprocess.run([sys.executable, "-m", "eofnn.main", "--version"], cwd=ROOT, capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "--version"], cwd=ROOT, capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == f"eofnn {eofnn.__version__}"
 
 
 @pytest.fixture(scope="module")
 def fit_help() -> str:
-    from eofnn.main import build_parser
+    from eofnn.cli.commands import build_parser
 
     return build_parser(["fit"])._subcommands_action.choices["fit"].format_help()
 
@@ -86,7 +86,7 @@ def test_units_and_values_are_in_the_help(fit_help):
 
 
 def test_help_shows_no_sphinx_markup(fit_help):
-    from eofnn.main import plain_text
+    from eofnn.cli.commands import plain_text
 
     assert plain_text("a :class:`~eofnn.sim.disturbances.Vibration` or :mod:`eofnn.sim.changes`, ``x``") == (
         "a Vibration or eofnn.sim.changes, x")

@@ -34,7 +34,7 @@ def _contents(folder: Path) -> dict[str, bytes]:
 
 def _compare(out: Path) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "eofnn.main", "compare", "--config", str(CONF / "tiny_compare.yaml"),
+    return subprocess.Popen([sys.executable, "-m", "eofnn.cli.main", "compare", "--config", str(CONF / "tiny_compare.yaml"),
                              "--out", str(out), "--overwrite", "true"], stderr=subprocess.PIPE, text=True, env=env,
                             preexec_fn=_sigint_default)
 
@@ -74,7 +74,7 @@ def test_a_finished_overwrite_replaces_the_result_whole(tmp_path):
 def test_ctrl_c_while_eofnn_is_still_importing_is_one_line_and_130(tmp_path):
     """The console script answers Ctrl-C even during its imports (torch, Lightning: seconds), without a traceback."""
     code = ("import sys; sys.argv = ['eofnn', 'compare', '--config', sys.argv[1], '--out', sys.argv[2]];"
-            "from eofnn.console import console; console()")
+            "from eofnn.cli.console import console; console()")
     proc = subprocess.Popen([sys.executable, "-c", code, str(CONF / "tiny_compare.yaml"), str(tmp_path / "out")],
                             stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default)
     time.sleep(1.0)

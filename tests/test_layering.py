@@ -1,4 +1,4 @@
-"""Lower floors never import higher ones (../shared/DESIGN.md, data flow): a walk over every import in eofnn/."""
+"""Lower floors never import higher ones (docs/design.md, "Floors"): a walk over every import in eofnn/."""
 
 from __future__ import annotations
 
@@ -8,9 +8,7 @@ from pathlib import Path
 import pytest
 
 #: Floors from the bottom up; a module may import its own floor and those below it.
-FLOORS = ["sim", "data", "models", "control", "training", "evaluation", "interop", "cli"]
-#: Packages that sit on a floor of another name.
-SAME_FLOOR = {"analysis": "evaluation", "main": "cli", "console": "cli"}
+FLOORS = ["sim", "data", "models", "control", "analysis", "training", "evaluation", "interop", "reporting", "cli"]
 #: Leaf modules anyone may import; they import nothing of eofnn above themselves.
 BASE = {"errors", "validation", "seeding", "outputs", "resources"}
 #: Modules that must stand alone (copied into a real-time computer): no eofnn import at all.
@@ -18,8 +16,7 @@ STANDALONE = {"runtime"}
 
 
 def _floor(package: str) -> int | None:
-    name = SAME_FLOOR.get(package, package)
-    return FLOORS.index(name) if name in FLOORS else None
+    return FLOORS.index(package) if package in FLOORS else None
 
 
 def _imports(path: Path, module: str) -> list[tuple[int, str]]:
@@ -71,7 +68,7 @@ def test_no_floor_imports_a_higher_one():
 def test_every_package_has_a_floor():
     root = Path(__file__).parent.parent / "eofnn"
     tops = {p.name if p.is_dir() else p.stem for p in root.iterdir() if p.suffix == ".py" or (p / "__init__.py").exists()}
-    unknown = tops - BASE - STANDALONE - {"__init__"} - set(FLOORS) - set(SAME_FLOOR)
+    unknown = tops - BASE - STANDALONE - {"__init__"} - set(FLOORS)
     assert not unknown, f"give these a floor in tests/test_layering.py: {sorted(unknown)}"
 
 
@@ -81,7 +78,9 @@ def test_every_package_has_a_floor():
     ("models/mlp.py", "from eofnn.control import Integrator", True),
     ("errors.py", "from eofnn.sim import grid", True),
     ("training/fit.py", "from eofnn.control.baselines import Integrator", False),
-    ("evaluation/report.py", "from eofnn.errors import ConfigError", False),
+    ("reporting/report.py", "from eofnn.errors import ConfigError", False),
+    ("analysis/linear.py", "from eofnn.evaluation.metrics import WelchPSD", True),
+    ("evaluation/replay.py", "from eofnn.reporting.replay import replay_figure", True),
 ])
 def test_the_check_catches_a_forbidden_import(tmp_path, source, target, bad):
     """The checker itself: a tiny tree with one import added fails exactly when the import reaches up."""
@@ -90,3 +89,65 @@ def test_the_check_catches_a_forbidden_import(tmp_path, source, target, bad):
     path.parent.mkdir(parents=True)
     path.write_text(f"{target}\n")
     assert bool(forbidden_imports(root)) is bad
+
+
+def folder_graph(root: Path) -> dict[str, set[str]]:
+    """Folder (or top-level module) -> the folders its modules import, leaf modules included."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root.parent).with_suffix("").parts
+        top = parts[1] if len(parts) > 1 else ""
+        for _, name in _imports(path, ".".join(parts)):
+            target = name.split(".")[1] if "." in name else ""
+            if target and target != top and target != "__init__":
+                graph.setdefault(top, set()).add(target)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every circle of imports between folders, each as ``[a, b, ..., a]`` (depth-first search)."""
+    found, state = [], {}
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = "open"
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == "open":
+                found.append(trail[trail.index(nxt):] + [nxt])
+            elif nxt not in state:
+                visit(nxt, trail + [nxt])
+        state[node] = "done"
+
+    for start in sorted(graph):
+        if start not in state:
+            visit(start, [start])
+    return found
+
+
+def test_no_circle_of_imports_between_folders():
+    assert cycles(folder_graph(Path(__file__).parent.parent / "eofnn")) == []
+
+
+def test_the_circle_check_finds_a_circle(tmp_path):
+    root = tmp_path / "eofnn"
+    for source, target in (("training/a.py", "from eofnn.evaluation import b"),
+                           ("evaluation/b.py", "from eofnn.analysis import c"),
+                           ("analysis/c.py", "import eofnn.training.a"), ("sim/d.py", "")):
+        (root / source).parent.mkdir(parents=True, exist_ok=True)
+        (root / source).write_text(target + "\n")
+    assert cycles(folder_graph(root)) == [["analysis", "training", "evaluation", "analysis"]]
+
+
+def test_figures_live_in_one_room():
+    """Only eofnn/reporting/ imports matplotlib, and no library module chooses a backend (the command line does, at
+    its entry: eofnn.cli.main.choose_backend)."""
+    root = Path(__file__).parent.parent / "eofnn"
+    outside = [str(path.relative_to(root)) for path in sorted(root.rglob("*.py"))
+               if path.relative_to(root).parts[0] != "reporting"
+               and any(name == "matplotlib" or name.startswith("matplotlib.")
+                       for node in ast.walk(ast.parse(path.read_text()))
+                       for name in ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                                    [node.module or ""] if isinstance(node, ast.ImportFrom) else []))]
+    assert outside == []
+    choosers = [str(path.relative_to(root)) for path in sorted(root.rglob("*.py")) if ".use(" in path.read_text()
+                and "matplotlib" in path.read_text()]
+    assert choosers == ["cli/main.py"]

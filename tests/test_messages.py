@@ -6,10 +6,10 @@ from types import SimpleNamespace
 
 import torch
 
-from eofnn.analysis.replay import _stats
+from eofnn.evaluation.replay import _stats
 from eofnn.evaluation.experiment import _describe
 from eofnn.evaluation.metrics import WelchPSD
-from eofnn.evaluation.report import markdown_table
+from eofnn.reporting.report import markdown_table
 from eofnn.evaluation.results import ExperimentResult
 
 

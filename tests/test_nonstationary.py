@@ -13,7 +13,7 @@ from eofnn.control.baselines import Integrator
 from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import LoopMetrics
 from eofnn.evaluation.nonstationary import Change, reconvergence
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop
 from eofnn.sim.scenario import Scenario
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from eofnn.main import main
+from eofnn.cli.main import main
 
 SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from eofnn.main import COMMANDS, build_parser, main
+from eofnn.cli.commands import COMMANDS, build_parser
+from eofnn.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from eofnn.analysis.figures import plot_stability
+from eofnn.reporting.stability import plot_stability
 from eofnn.analysis.stability import LoopSetup, analyse, analyse_filter, analyse_integrator
 from eofnn.control.baselines import critical_gain
 from eofnn.data.history import HistorySpec

@@ -14,14 +14,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-import eofnn.main
+import eofnn.cli.compare
+import eofnn.cli.main
 from eofnn.cli.sweep import load_grid, plan
 from eofnn.cli.sweep.grid import expand, log_range, parse_grid
 from eofnn.errors import ConfigError
 
 BASE = Path(__file__).parent / "conf" / "tiny_sweep.yaml"
 ROOT = Path(__file__).resolve().parent.parent
-real_main = eofnn.main.main
+real_main = eofnn.cli.main.main
 
 
 def write_grid(tmp_path: Path, grid: dict, name: str = "grid.yaml") -> Path:
@@ -88,11 +89,13 @@ def test_a_failed_point_is_recorded_and_resuming_reruns_only_unfinished_points(t
     grid = {"predictors.ol_eof.history": ["closed_loop"], "predictors.ol_eof.data.integrator_gain": [0.4, 3.0]}
     runs = []
 
-    def counting_main(args):
-        runs.append(args[args.index("--out") + 1])
-        return real_main(args)
+    real_compare = eofnn.cli.compare.compare
 
-    monkeypatch.setattr(eofnn.main, "main", counting_main)  # what each point runs
+    def counting_compare(cfg, config_dump):
+        runs.append(cfg.out)
+        return real_compare(cfg, config_dump)
+
+    monkeypatch.setattr(eofnn.cli.compare, "compare", counting_compare)  # what each point runs
     assert sweep(tmp_path, grid, "s") == 1
     err = capsys.readouterr().err
     assert "failed: the data controller diverged" in err
@@ -112,7 +115,7 @@ def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp
     grid = write_grid(tmp_path, {"predictors.ol_eof.history_length": [2, 3, 4]})
     out = tmp_path / "s"
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
-    proc = subprocess.Popen([sys.executable, "-m", "eofnn.main", "sweep", "--config", str(BASE), "--grid", str(grid),
+    proc = subprocess.Popen([sys.executable, "-m", "eofnn.cli.main", "sweep", "--config", str(BASE), "--grid", str(grid),
                              "--out", str(out)], env=env, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # even under nohup
     deadline = time.monotonic() + 240

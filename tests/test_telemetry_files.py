@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from eofnn.analysis.replay import replay
+from eofnn.evaluation.replay import replay
 from eofnn.data.history import HistorySpec
 from eofnn.errors import TelemetryError
 from eofnn.runtime import PredictiveFilter

@@ -14,7 +14,7 @@ from eofnn.control import Dithered, Integrator
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import TelemetryBatches, load_telemetry
 from eofnn.errors import ConfigError, TelemetryError
-from eofnn.main import main
+from eofnn.cli.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, Telemetry, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry_file import SCAN_FRAMES, StreamedTelemetry

@@ -11,10 +11,12 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import Experiment
 from eofnn.evaluation.margins import simulated_dm_gain_interval
-from eofnn.evaluation.pareto import pareto, plot_pareto
-from eofnn.evaluation.report import write_report
+from eofnn.evaluation.pareto import pareto
+from eofnn.reporting.pareto import plot_pareto
+from eofnn.reporting.report import write_report
+from eofnn.reporting.robustness import plot_robustness
 from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
-from eofnn.evaluation.robustness import check_grid, plot_robustness, robustness_map
+from eofnn.evaluation.robustness import check_grid, robustness_map
 from eofnn.outputs import check_output_folder, staged_folder
 
 COMPARE = ("Run an experiment: every controller in every scenario (plant), predictors trained once where asked, "
@@ -94,11 +96,11 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
     return result
 
 
-def run_compare(cfg, config_dump: str) -> ExperimentResult:
+def compare(cfg, config_dump: str) -> ExperimentResult:
     return run_experiment(cfg, cfg.predictors, config_dump)
 
 
-def run_evaluate(cfg, config_dump: str) -> ExperimentResult:
+def evaluate(cfg, config_dump: str) -> ExperimentResult:
     predictors = {name: PredictorConfig(controller=name) for name in cfg.baselines}
     for name, path in cfg.checkpoints.items():
         predictors[name] = PredictorConfig(checkpoint=path)

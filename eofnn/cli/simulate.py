@@ -15,7 +15,7 @@ from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import load_configured_checkpoint, trusted_class_paths
 from eofnn.evaluation.metrics import loop_metrics
 from eofnn.evaluation.nonstationary import require_changes_within
-from eofnn.evaluation.report import plot_rms_vs_time
+from eofnn.reporting.report import plot_rms_vs_time
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.resources import require_memory

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 from jsonargparse import ArgumentParser
 
-from eofnn.analysis.figures import plot_stability
+from eofnn.reporting.stability import plot_stability
 from eofnn.analysis.linear import controller_stability, summary
 from eofnn.cli.common import add_common, log
 from eofnn.control.registry import NEEDS_PREDICTOR

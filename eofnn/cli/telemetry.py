@@ -9,7 +9,8 @@ from pathlib import Path
 from jsonargparse import ActionConfigFile, ArgumentParser
 
 from eofnn.analysis.linear import dm_gain_margin
-from eofnn.analysis.replay import replay, replay_figure
+from eofnn.evaluation.replay import replay
+from eofnn.reporting.replay import replay_figure
 from eofnn.cli.common import log
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import AnyTelemetry, load_telemetry, telemetry_grid

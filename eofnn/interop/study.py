@@ -6,7 +6,7 @@
 2. identifies the plant from it (:func:`eofnn.training.identify.identify_plant`: DM gain, noise, lag);
 3. fits a closed-loop EOF from that telemetry alone (:func:`eofnn.training.from_telemetry.fit_from_telemetry`,
    ridge alpha chosen on its last ``val_frames``);
-4. replays it on a held-out realisation recorded the same way (:func:`eofnn.analysis.replay.replay`);
+4. replays it on a held-out realisation recorded the same way (:func:`eofnn.evaluation.replay.replay`);
 5. scans the integrator's gain in the simulator's own loop on a third realisation and runs the EOF there, as the
    exported runtime filter (:class:`eofnn.runtime.PredictiveFilter`) or the torch controller, reporting the
    residual OPD (median RMS after ``settle_frames``, :func:`eofnn.evaluation.metrics.loop_metrics`) of each.
@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, field
 from typing import ClassVar
 
 from eofnn.analysis.linear import dm_gain_margin
-from eofnn.analysis.replay import replay
+from eofnn.evaluation.replay import replay
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter, scan_integrator

@@ -110,7 +110,7 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
     batch_frames : int
         Frames per streamed batch.
     stop : int, optional
-        Train on frames before ``stop`` only (keep the rest for :func:`eofnn.analysis.replay.replay`).
+        Train on frames before ``stop`` only (keep the rest for :func:`eofnn.evaluation.replay.replay`).
     val_frames : int
         The last ``val_frames`` frames (before ``stop``) of each sequence are held out as validation.
     seed : int

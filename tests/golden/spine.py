@@ -44,7 +44,7 @@ PREDICTORS = {
 
 
 def _main(*args) -> None:
-    from eofnn.main import main
+    from eofnn.cli.main import main
 
     err = io.StringIO()
     with contextlib.redirect_stderr(err):

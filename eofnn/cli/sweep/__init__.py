@@ -4,7 +4,7 @@ The subcommand's ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(cfg, confi
 :mod:`eofnn.cli.sweep.command`; the pieces: :mod:`~eofnn.cli.sweep.grid` (grid files, points and their ids),
 :mod:`~eofnn.cli.sweep.plan` (resolved and checked point configs), :mod:`~eofnn.cli.sweep.point` (one point on disk),
 :mod:`~eofnn.cli.sweep.backends` (in process, worker processes, Ray), :mod:`~eofnn.cli.sweep.results` (sweep.csv)
-and :mod:`~eofnn.cli.sweep.figures`.
+and :mod:`~eofnn.reporting.sweep`.
 """
 
 from eofnn.cli.sweep.command import DESCRIPTION, add_arguments, run

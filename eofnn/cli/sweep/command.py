@@ -146,7 +146,7 @@ def _run(cfg) -> int:
         print(f"eofnn: interrupted: {done} of {len(points)} points done, kept in {out}: rerun the same command to "
               "resume", file=sys.stderr)
         return INTERRUPTED
-    from eofnn.cli.sweep.figures import plot_sweep  # matplotlib only when there is something to plot
+    from eofnn.reporting.sweep import plot_sweep  # matplotlib only when there is something to plot
 
     figures = plot_sweep(points, results, grid, out)
     _log(f"sweep: {len(points) - failed} of {len(points)} points done, {failed} failed; results in {out / CSV_FILE}"

@@ -1,6 +1,6 @@
 """From a base ``compare`` config and a grid to the resolved config of every point, checked before anything runs.
 
-The base config is parsed by the ``compare`` parser itself (``eofnn.main.build_parser``) and dumped with every
+The base config is parsed by the ``compare`` parser itself (``eofnn.cli.commands.build_parser``) and dumped with every
 default filled in, so a dotted grid key resolves exactly as ``eofnn compare`` would read it. Each point's config
 is that dump with the swept values set; it is written to the point's folder and run with
 ``eofnn compare --config point.yaml``.
@@ -23,6 +23,8 @@ from typing import Any
 
 import yaml
 
+from eofnn.cli.commands import build_parser, one_line
+from eofnn.cli.configfile import resolve_config_references
 from eofnn.cli.sweep.grid import GridPoint, expand
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError, require
 
@@ -40,25 +42,13 @@ class Point:
 
 
 def _compare_parser():
-    # Imported here: eofnn.main registers the sweep subcommand, so it imports this package first.
-    from eofnn.main import build_parser
-
     return build_parser(["compare"])
-
-
-def one_line(err: BaseException) -> str:
-    """An error (jsonargparse's nested ones included) as compare prints it, on one line."""
-    from eofnn.main import one_line
-
-    return one_line(err)
 
 
 def resolve_base(config_path: str | Path) -> dict:
     """The base config as ``eofnn compare --config config_path`` resolves it, defaults filled in."""
     path = Path(config_path)
     require(path.is_file(), f"config={str(path)!r} is not a file")
-    from eofnn.cli.configfile import resolve_config_references
-
     parser = _compare_parser()
     cfg = parser.parse_args(["compare", "--config", resolve_config_references(path), "--out", "unused"])
     resolved = yaml.safe_load(parser.dump(cfg))["compare"]

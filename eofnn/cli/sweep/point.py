@@ -81,7 +81,8 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
     """
     import torch  # here: ``eofnn sweep --help`` needs none of it
 
-    from eofnn.main import main  # here: eofnn.main imports this package
+    from eofnn.cli.commands import USER_ERRORS, one_line, parse  # here: the sweep's --help needs none of compare
+    from eofnn.cli.compare import compare
 
     out = Path(folder)
     if out.exists():
@@ -100,7 +101,12 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
     try:
         with open(out / LOG_FILE, "w") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
             try:
-                code = main(["compare", "--config", str(config), "--out", str(out / RUN_DIR), "--progress", "false"])
+                parsed = parse(["compare", "--config", str(config), "--out", str(out / RUN_DIR), "--progress", "false"])
+                compare(parsed.config, parsed.dump)
+                code = 0
+            except USER_ERRORS as err:  # a value compare refuses: its one line, as ``eofnn compare`` prints it
+                print(f"{ERROR_PREFIX}{one_line(err)}", file=log)
+                code = 2
             except SystemExit:
                 # Lightning answers Ctrl-C during training with sys.exit(1) (and ignores SIGINT from then on):
                 # for the sweep it is the interruption it is.
@@ -108,8 +114,6 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
             except Exception as err:  # a bug, not a bad value: keep the traceback in the log, one line in the status
                 traceback.print_exc(file=log)
                 code, error = 1, first_line(err)
-        if code == INTERRUPTED:  # compare caught Ctrl-C itself: the sweep stops too
-            raise KeyboardInterrupt
         if code != 0 and error is None:
             error = _last_error(out / LOG_FILE)
     finally:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -30,25 +29,6 @@ def cell(value: Any) -> str:
     if isinstance(value, (list, dict)):
         return json.dumps(value, sort_keys=True)
     return str(value)
-
-
-def metric(result: dict | None, scenario: str, predictor: str, name: str = "median_rms_nm") -> float:
-    """One metric of a point's result, NaN where the point failed, is pending or the loop diverged."""
-    try:
-        value = result["scenarios"][scenario][predictor][name]
-    except (TypeError, KeyError):
-        return math.nan
-    return math.nan if value is None else float(value)
-
-
-def runs(results: dict[str, dict]) -> list[tuple[str, str]]:
-    """Every ``(scenario, predictor)`` of the finished points, in the order compare wrote them."""
-    seen: dict[tuple[str, str], None] = {}
-    for result in results.values():
-        for scenario, predictors in (result.get("scenarios") or {}).items():
-            for predictor in predictors:
-                seen[(scenario, predictor)] = None
-    return list(seen)
 
 
 def rows(points: list[Point], results: dict[str, dict]) -> tuple[list[str], list[dict[str, str]]]:

@@ -4,12 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from eofnn.analysis.stability import StabilityResult  # noqa: E402
+from eofnn.analysis.stability import StabilityResult
 
 
 def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -> Path:

@@ -1,9 +1,10 @@
-"""The ``eofnn`` command line: a table of subcommands, each configured by YAML and dotted overrides (jsonargparse).
+"""The table of ``eofnn``'s subcommands and the parsing of a command line into the configuration of one.
 
 Every value of a config can be overridden on the command line with its dotted key, e.g.
 ``--predictors.cl_eof.history_length 8`` or ``--scenario.atmosphere.r0_m 0.1``. Networks are named by
-``class_path`` (any ``torch.nn.Module`` importable from Python; the folder of ``--config`` is on the path) and
-``init_args``.
+``class_path`` (any ``torch.nn.Module`` importable from Python; the folder of ``--config`` is on the path while the
+config is read) and ``init_args``. :func:`parse` is what :func:`eofnn.cli.main.main` and a sweep's points share:
+command-line arguments in, the command's instantiated configuration and its resolved YAML out.
 """
 
 from __future__ import annotations
@@ -11,13 +12,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
-import logging
 import re
 import sys
-import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import yaml
 from jsonargparse import ArgumentError as JsonArgError
@@ -80,11 +80,11 @@ class Command:
 
 COMMANDS: dict[str, Command] = {
     "compare": Command("Scenarios x controllers: train, evaluate, report.", "eofnn.cli.compare", "COMPARE",
-                       "add_compare_arguments", "run_compare"),
+                       "add_compare_arguments", "compare"),
     "fit": Command("Train one predictor and write a checkpoint.", "eofnn.cli.fit", "DESCRIPTION", "add_arguments",
                    "run"),
     "evaluate": Command("Run saved checkpoints under any plant.", "eofnn.cli.compare", "EVALUATE",
-                        "add_evaluate_arguments", "run_evaluate"),
+                        "add_evaluate_arguments", "evaluate"),
     "simulate": Command("Simulate one controller and save telemetry.", "eofnn.cli.simulate", "DESCRIPTION",
                         "add_arguments", "run"),
     "stability": Command("Stability margins of a linear predictor in a plant.", "eofnn.cli.stability", "DESCRIPTION",
@@ -176,11 +176,6 @@ def one_line(err: BaseException) -> str:
     return ": ".join(kept).replace('Parser key "', "").replace('":', ":").replace("::", ":")
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Warnings reach a user of the command line as one line each, without a source line."""
-    print(f"eofnn: warning: {message}", file=sys.stderr)
-
-
 def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
     """Check every ``--config`` file before jsonargparse reads it, and add its folder to ``folders`` (put on the
     Python path while the command runs, so a user's module beside their config (``class_path: my_net.Net``)
@@ -210,45 +205,48 @@ def _on_python_path(folders: list[str]):
         sys.path[:] = before
 
 
-def main(args: list[str] | None = None) -> int:
-    """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted)."""
-    args = list(sys.argv[1:] if args is None else args)
-    # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    try:
-        # Only the subcommand asked for is built (and imported: seconds, inside the Ctrl-C handling below);
-        # ``eofnn --help`` lists them all without importing any.
-        parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
-        with warnings.catch_warnings():
-            warnings.showwarning = _show_warning
-            # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
-            warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-            # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
-            warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
-            folders: list[str] = []
-            args = _prepare_config_files(args, folders)
-            with _on_python_path(folders):
-                cfg = parser.parse_args(args)
-                command = cfg.command
-                dump = yaml.safe_load(parser.dump(cfg))[command]
-                sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
-                try:
-                    init = parser.instantiate(cfg)[command]
-                except (ValueError, TypeError) as err:  # a nested config's own check, wrapped by jsonargparse
-                    cause = _user_error(err)
-                    if cause is None:
-                        raise
-                    raise cause from None
-                status = COMMANDS[command].run(init, sub_dump)
-    except USER_ERRORS as err:
-        print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)
-        return 130
-    # A command may return its own exit status (sweep: 1 when some points failed); results are not statuses.
-    return status if isinstance(status, int) and not isinstance(status, bool) else 0
+
+@dataclass(frozen=True)
+class Parsed:
+    """A parsed command line: the subcommand, its instantiated configuration and its resolved YAML (``config.yaml``
+    of its outputs)."""
+
+    command: str
+    config: Any
+    dump: str
+    #: The folders of the ``--config`` files, on ``sys.path`` while the command runs (a user's module beside their
+    #: config); the path is as it was afterwards.
+    folders: tuple[str, ...] = ()
+
+    def run(self) -> object:
+        """Run the subcommand on its configuration."""
+        with _on_python_path(list(self.folders)):
+            return COMMANDS[self.command].run(self.config, self.dump)
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def parse(args: list[str]) -> Parsed:
+    """Parse ``args`` (the command line after ``eofnn``) into a :class:`Parsed`; ``--help`` and
+    ``--print_config`` exit as argparse does.
+
+    Raises
+    ------
+    ConfigError, CheckpointError, TelemetryError, jsonargparse.ArgumentError
+        For values that cannot mean what they say (one line each through :func:`one_line`).
+    """
+    # Only the subcommand asked for is built (and imported: seconds); ``eofnn --help`` lists them all without.
+    parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
+    folders: list[str] = []
+    args = _prepare_config_files(args, folders)
+    with _on_python_path(folders):
+        cfg = parser.parse_args(args)
+        command = cfg.command
+        dump = yaml.safe_load(parser.dump(cfg))[command]
+        sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
+        try:
+            init = parser.instantiate(cfg)[command]
+        except (ValueError, TypeError) as err:  # a nested config's own check, wrapped by jsonargparse
+            cause = _user_error(err)
+            if cause is None:
+                raise
+            raise cause from None
+    return Parsed(command, init, sub_dump, tuple(folders))

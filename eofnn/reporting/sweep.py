@@ -14,19 +14,35 @@ import re
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.colors import LogNorm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.colors import LogNorm  # noqa: E402
-
-from eofnn.cli.sweep.plan import Point  # noqa: E402
-from eofnn.cli.sweep.results import metric, runs  # noqa: E402
+#: A sweep's point: ``id`` (its folder name) and ``values`` (swept key -> value), as ``eofnn.cli.sweep.plan.Point``.
+Point = Any
 
 METRIC = "median_rms_nm"
 METRIC_LABEL = "median RMS residual (nm)"
 MAX_HEATMAP_PANELS = 12
+
+
+def metric(result: dict | None, scenario: str, predictor: str, name: str = "median_rms_nm") -> float:
+    """One metric of a point's result, NaN where the point failed, is pending or the loop diverged."""
+    try:
+        value = result["scenarios"][scenario][predictor][name]
+    except (TypeError, KeyError):
+        return math.nan
+    return math.nan if value is None else float(value)
+
+
+def runs(results: dict[str, dict]) -> list[tuple[str, str]]:
+    """Every ``(scenario, predictor)`` of the finished points, in the order compare wrote them."""
+    seen: dict[tuple[str, str], None] = {}
+    for result in results.values():
+        for scenario, predictors in (result.get("scenarios") or {}).items():
+            for predictor in predictors:
+                seen[(scenario, predictor)] = None
+    return list(seen)
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -10,9 +10,9 @@ import sys
 
 
 def console() -> None:
-    """Run :func:`eofnn.main.main` and exit with its status (130 when interrupted, even while importing)."""
+    """Run :func:`eofnn.cli.main.main` and exit with its status (130 when interrupted, even while importing)."""
     try:
-        from eofnn.main import main
+        from eofnn.cli.main import main
     except KeyboardInterrupt:
         print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)
         sys.exit(130)

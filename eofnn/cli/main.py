@@ -1,0 +1,59 @@
+"""The ``eofnn`` command line: parse (:mod:`eofnn.cli.commands`), run, and answer bad input in one line.
+
+Every value of a config can be overridden on the command line with its dotted key, e.g.
+``--predictors.cl_eof.history_length 8`` or ``--scenario.atmosphere.r0_m 0.1``; the subcommands and their
+configurations are in :mod:`eofnn.cli.commands`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import warnings
+
+from eofnn.cli.commands import USER_ERRORS, one_line, parse
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings reach a user of the command line as one line each, without a source line."""
+    print(f"eofnn: warning: {message}", file=sys.stderr)
+
+
+def choose_backend() -> None:
+    """Figures are files: the command line draws with matplotlib's Agg backend (no display needed), chosen here, the
+    one place that does (no library module of eofnn chooses one on import). Without importing matplotlib when
+    nothing has yet: ``eofnn --help`` stays light."""
+    if "matplotlib" in sys.modules:
+        sys.modules["matplotlib"].use("Agg")
+    else:
+        os.environ["MPLBACKEND"] = "Agg"
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted)."""
+    args = list(sys.argv[1:] if args is None else args)
+    choose_backend()
+    # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
+            warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+            # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
+            warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
+            # Parsing imports the subcommand's modules (seconds): inside the Ctrl-C handling below.
+            status = parse(args).run()
+    except USER_ERRORS as err:
+        print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)
+        return 130
+    # A command may return its own exit status (sweep: 1 when some points failed); results are not statuses.
+    return status if isinstance(status, int) and not isinstance(status, bool) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
