@@ -8,19 +8,22 @@ robustness maps (``robustness_{realistic,study}/robustness.json``). A missing re
 
 from __future__ import annotations
 
+import argparse
 import datetime
+import json
 import math
 import platform
 import subprocess
+import sys
+from pathlib import Path
 
-import torch
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
 from report_scale import elt_section, interop_section
 
 
 def study_section() -> str:
-    result = load("paper/metrics.json")
+    result = load("paper")
     if result is None:
         return "## The study's Figure 3\n\n(experiments/paper not run)\n"
     metrics, stab = result["scenarios"], result.get("stability", {})
@@ -162,7 +165,7 @@ def robustness_section() -> str:
                         ("robustness_realistic_misregistration",
                          "Realistic scenario (configs/realistic_small.yaml), misregistration along x (pitches)"),
                         ("robustness_study", "The study's scenario (configs/paper_small.yaml), DM gain")):
-        result = load(f"{name}/robustness.json")
+        result = load(name, "robustness")
         if result is None:
             parts.append(f"### {title}\n\n(not run)\n")
             continue
@@ -191,8 +194,8 @@ points, vertical lines the analytic bounds).
 
 def _answer() -> str:
     """The study's question answered with margins, from the maps above."""
-    realistic, study = load("robustness_realistic/robustness.json"), load("robustness_study/robustness.json")
-    misreg = load("robustness_realistic_misregistration/robustness.json")
+    realistic, study = load("robustness_realistic", "robustness"), load("robustness_study", "robustness")
+    misreg = load("robustness_realistic_misregistration", "robustness")
     if realistic is None or study is None:
         return ""
 
@@ -257,8 +260,36 @@ def _grid(values: list[list[float]]):
 
 
 # ---------------------------------------------------------------------------------------------------------------
-def main() -> None:
+STAMP = HERE / "generated.json"  # when, where and at which commit the summaries were collected from the runs
+
+
+def stamp() -> dict[str, str]:
+    """Record the date, commit, machine and torch version of this collection in experiments/generated.json."""
+    import torch
+
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
+    record = {"date": datetime.date.today().isoformat(), "commit": commit, "machine": platform.machine(),
+              "torch": torch.__version__}
+    STAMP.write_text(json.dumps(record, indent=1) + "\n")
+    return record
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--collect", action="store_true",
+                        help="first write the summaries, figures and pages from the raw runs under experiments/runs/")
+    parser.add_argument("--out", type=Path, default=HERE / "README.md", help="where to write the page")
+    args = parser.parse_args(argv)
+    if args.collect:
+        from summarise import collect
+
+        missing = collect()
+        if missing:
+            print(f"make_report: no run for {', '.join(missing)} under experiments/runs/ (kept their summaries)",
+                  file=sys.stderr)
+        generated = stamp()
+    else:
+        generated = json.loads(STAMP.read_text())
     text = f"""# eofnn's experiments: the reference study reproduced, and what changes on realistic physics
 
 Regenerate everything on this page with one command (well over two hours on 2 cores: sections 1, 3 and 4 took
@@ -268,8 +299,8 @@ the paper-gap runs about 10 each, on a shared machine; section 5 about 5 minutes
     bash scripts/setup.sh && bash experiments/reproduce.sh
 
 It runs `eofnn compare` and `eofnn sweep` into the folders named below and rewrites this file from their result
-files (`experiments/make_report.py`). Last generated {datetime.date.today().isoformat()} at commit {commit} on
-{platform.machine()} with torch {torch.__version__}.
+files (`experiments/make_report.py`). Last generated {generated["date"]} at commit {generated["commit"]} on
+{generated["machine"]} with torch {generated["torch"]}.
 
 The reference study is Fowler, van Kooten & Jensen-Clem, "Closed-Loop Until Further Notice", AO4ELT 2023
 (arXiv 2310.02514). Other experiments, each with its own page or folder: telescope vibrations
@@ -282,7 +313,7 @@ from telemetry alone (`telemetry.md`).
 {robustness_section()}
 {elt_section()}
 {interop_section()}"""
-    (HERE / "README.md").write_text(text)
+    args.out.write_text(text)
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ def best_of(metrics: dict, names: tuple[str, ...]) -> tuple[str | None, float]:
 
 def alpha_check() -> str:
     """alpha: auto against every fixed alpha on the test stream (experiments/fair/alpha_auto)."""
-    result = load("fair/alpha_auto/metrics.json")
+    result = load("fair/alpha_auto")
     if result is None:
         return "(experiments/fair/alpha_auto not run)"
     lines = ["| WFS noise | alpha: auto (α chosen) | best fixed α on the test stream | auto / best |", "|---|---|---|---|"]
@@ -68,7 +68,7 @@ def alpha_check() -> str:
 
 
 def realistic_section() -> str:
-    result = load("realistic/metrics.json")
+    result = load("realistic")
     if result is None:
         return "## 2. The fair contest\n\n(experiments/realistic not run)\n"
     metrics = result["scenarios"]
@@ -207,7 +207,7 @@ def _epochs(result: dict, scenario: str, name: str) -> str:
 
 def mlp_budget_check() -> str:
     """The contest's MLPs with up to 15 epochs instead of 3 (experiments/fair/mlp_budget), beside the contest's rows."""
-    longer, contest = load("fair/mlp_budget/metrics.json"), load("realistic/metrics.json")
+    longer, contest = load("fair/mlp_budget"), load("realistic")
     if longer is None or contest is None:
         return "(experiments/fair/mlp_budget not run)"
     lines = ["| WFS noise | network | 3 epochs (the contest) | up to 15 epochs, early stopping | change | best linear "
@@ -225,9 +225,9 @@ def mlp_budget_check() -> str:
 
 def paper_gap_check() -> str:
     """The study's MLP gap under fair tuning, on HCIPy's layer and on exact frozen flow (experiments/fair/paper_gap)."""
-    runs = {"HCIPy's InfiniteAtmosphericLayer (the study's)": load("fair/paper_gap/hcipy/metrics.json"),
-            "exact frozen flow, point samples": load("fair/paper_gap/exact/metrics.json"),
-            "exact frozen flow, subaperture averages": load("fair/paper_gap/exact_subaperture/metrics.json")}
+    runs = {"HCIPy's InfiniteAtmosphericLayer (the study's)": load("fair/paper_gap/hcipy"),
+            "exact frozen flow, point samples": load("fair/paper_gap/exact"),
+            "exact frozen flow, subaperture averages": load("fair/paper_gap/exact_subaperture")}
     if any(r is None for r in runs.values()):
         return "(experiments/fair/paper_gap not run)"
     lines = ["| turbulence | best-gain integrator | open-loop EOF (α chosen) | MLP (epochs) | MLP against EOF |",
@@ -242,7 +242,7 @@ def paper_gap_check() -> str:
 
 
 def mlp_budget_text() -> str:
-    longer, contest = load("fair/mlp_budget/metrics.json"), load("realistic/metrics.json")
+    longer, contest = load("fair/mlp_budget"), load("realistic")
     if longer is None or contest is None:
         return ""
     parts = []
@@ -264,8 +264,8 @@ def mlp_budget_text() -> str:
 
 
 def paper_gap_text() -> str:
-    hcipy, point = load("fair/paper_gap/hcipy/metrics.json"), load("fair/paper_gap/exact/metrics.json")
-    subaperture = load("fair/paper_gap/exact_subaperture/metrics.json")
+    hcipy, point = load("fair/paper_gap/hcipy"), load("fair/paper_gap/exact")
+    subaperture = load("fair/paper_gap/exact_subaperture")
     if hcipy is None or point is None or subaperture is None:
         return ""
 

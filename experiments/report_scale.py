@@ -16,7 +16,7 @@ def _tuning(result: dict, name: str) -> str:
 
 
 def elt_section() -> str:
-    result = load("elt_small/metrics.json")
+    result = load("elt_small")
     if result is None:
         return "## 5. An ELT-class loop\n\n(experiments/elt_small not run)\n"
     metrics = result["scenarios"]["nominal"]
@@ -71,11 +71,11 @@ def _interop_rows(path: str, title: str) -> list[str]:
 
 
 def interop_section() -> str:
-    rows = (_interop_rows("interop/hcipy/metrics.json", "HCIPy")
-            + _interop_rows("interop/oopao_aliasing/metrics.json", "OOPAO")
-            + _interop_rows("interop/oopao/metrics.json", "OOPAO"))
-    budget = (load("interop/oopao_aliasing/metrics.json") or {}).get("budget")
-    big_runs = (load("interop/oopao/metrics.json") or {"runs": {}})["runs"]
+    rows = (_interop_rows("interop/hcipy", "HCIPy")
+            + _interop_rows("interop/oopao_aliasing", "OOPAO")
+            + _interop_rows("interop/oopao", "OOPAO"))
+    budget = (load("interop/oopao_aliasing") or {}).get("budget")
+    big_runs = (load("interop/oopao") or {"runs": {}})["runs"]
     big = next(iter(big_runs.values()))["simulator"] if big_runs else {"rcond": 0, "n_seen_modes": 0, "n_actuators": 0}
     budget_lines = []
     if budget:
