@@ -113,7 +113,7 @@ def realistic_section() -> str:
     capped = sum(1 for v in searches if v["chosen"]["best_epoch"] == v["budget"]["max_epochs_per_trial"])
     alphas = [v for per in result.get("ridge_alphas", {}).values() for v in per.values()]
     smallest = sum(1 for v in alphas if v["alpha"] == v["path"]["alpha"][0])
-    reading = f"""**Reading the table** (every statement below is computed from `realistic/metrics.json`):
+    reading = f"""**Reading the table** (every statement below is computed from `realistic/summary.json`):
 
 - *Neighbours* (reduction of the median RMS when each actuator also reads its 3x3 neighbourhood; positive: better):
   {structure}.
@@ -138,7 +138,7 @@ def realistic_section() -> str:
     pareto = pareto_md.read_text().split("\n", 2)[2] if pareto_md.is_file() else "(no pareto.md)"
     return f"""## 2. The fair contest: every contender tuned the same way, performance beside robustness
 
-`eofnn compare --config configs/realistic_study.yaml --out experiments/realistic --pareto noise_1
+`eofnn compare --config configs/realistic_study.yaml --out experiments/runs/realistic --pareto noise_1
 --simulated_margins '[noise_1]'`. Same telescope as the study, but `configs/realistic.yaml`'s turbulence: two
 layers of exact frozen flow (5.1 m/s along x and 10 m/s along y, half the Cn² each, r0 = 8.3 cm at 658 nm, L0 =
 20 m), evaluated exactly at every actuator and seen through each subaperture, with 0, 1 or 3 nm RMS of white WFS
@@ -172,15 +172,15 @@ stream of its own):
 
 {pareto}
 **Does `alpha: auto` find the best alpha?** (`eofnn compare --config experiments/fair/alpha_auto.yaml --out
-experiments/fair/alpha_auto`: 4-tap open-loop EOF, 20000 training frames, one predictor per fixed alpha beside the
-automatic one, all on the same test stream; the fixed alphas' best is chosen *on the test stream*, an oracle the
-automatic choice does not have):
+experiments/runs/fair/alpha_auto`: 4-tap open-loop EOF, 20000 training frames, one predictor per fixed alpha
+beside the automatic one, all on the same test stream; the fixed alphas' best is chosen *on the test stream*, an
+oracle the automatic choice does not have):
 
 {alpha_check()}
 
 **Are the MLP rows limited by their budget?** (`eofnn compare --config experiments/fair/mlp_budget.yaml --out
-experiments/fair/mlp_budget`: the same two MLPs, data, learning rates and test stream as the contest, up to 15
-epochs with early stopping, patience 2; median RMS in nm, chosen epoch / allowed):
+experiments/runs/fair/mlp_budget`: the same two MLPs, data, learning rates and test stream as the contest, up to
+15 epochs with early stopping, patience 2; median RMS in nm, chosen epoch / allowed):
 
 {mlp_budget_check()}
 

@@ -34,8 +34,8 @@ def elt_section() -> str:
     first = next(iter(metrics.values()))
     return f"""## 5. An ELT-class loop: 5024 actuators on one CPU machine
 
-`eofnn compare --config configs/elt_small.yaml --out experiments/elt_small`: `configs/elt.yaml`'s 39 m telescope,
-80 actuators across (5024 active, pitch 0.49 m), three layers of exact frozen flow blowing at 30, 150 and 260
+`eofnn compare --config configs/elt_small.yaml --out experiments/runs/elt_small`: `configs/elt.yaml`'s 39 m
+telescope, 80 actuators across (5024 active, pitch 0.49 m), three layers of exact frozen flow blowing at 30, 150 and 260
 degrees (8, 12 and 20 m/s), seen through each subaperture, 1 nm of WFS noise, 1 kHz, two-frame delay. Every
 predictor learns as an observatory would, from telemetry alone (2000 frames of dithered-integrator telemetry, the
 plant identified from the dither, 500 validation frames for `alpha: auto`); the integrator's gain is a refined scan
