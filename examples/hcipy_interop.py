@@ -7,7 +7,7 @@ loop with an integrator and 10 nm of dither, identify the plant, fit a closed-lo
 the HCIPy loop against the best-gain integrator (residual OPD, median RMS over the pupil).
 
     python examples/hcipy_interop.py --small                       # 10 x 10 on 2 m (CI size)
-    python examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --out experiments/interop/hcipy
+    python examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --out experiments/runs/interop/hcipy
 """
 
 from __future__ import annotations

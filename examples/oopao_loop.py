@@ -17,7 +17,7 @@ what it cannot (fitting error, aliasing, noise).
 
     python examples/oopao_loop.py --small                          # 10 x 10 on 2 m, CI size (about a minute)
     python examples/oopao_loop.py --small --aliasing --out DIR     # plus the decomposition; DIR/metrics.json
-    python examples/oopao_loop.py --n-subapertures 40 --diameter 8 --out experiments/interop/oopao
+    python examples/oopao_loop.py --n-subapertures 40 --diameter 8 --out experiments/runs/interop/oopao
 """
 
 from __future__ import annotations

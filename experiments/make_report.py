@@ -1,26 +1,34 @@
-"""Write experiments/README.md from the results of experiments/reproduce.sh (run that, not this, to regenerate).
+"""Write experiments/README.md from the summaries of experiments/reproduce.sh's runs (run that to regenerate them).
 
-Every number on the page is read from a result file written by ``eofnn compare`` or ``eofnn sweep``: the study's
-reproduction (``paper/``), its design sweeps (``sweeps/{alpha,history,frames}/sweep.csv``), the realistic
-comparison (``realistic/``), the closed-loop EOF study (``sweeps/realistic_{cl,ol}_eof/sweep.csv``) and the
-robustness maps (``robustness_{realistic,study}/robustness.json``). A missing result is said, not invented.
+Every number on the page is read from a committed summary, ``experiments/<name>/summary.json``, which
+``summarise.py`` prunes from a result file that ``eofnn compare`` or ``eofnn sweep`` wrote under the ignored
+``experiments/runs/<name>/``: the study's reproduction (``paper/``), its design sweeps (``sweeps/{alpha,history,
+frames}/``: their ``sweep.csv``), the realistic comparison (``realistic/``), the closed-loop EOF study
+(``sweeps/realistic_{cl,ol}_eof/``) and the robustness maps (``robustness_*/``: their ``robustness.json``). A
+missing result is said, not invented.
+
+    python experiments/make_report.py              # the page from the committed summaries alone
+    python experiments/make_report.py --collect    # first the summaries, figures and pages from experiments/runs/
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime
+import json
 import math
 import platform
 import subprocess
+import sys
+from pathlib import Path
 
-import torch
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
 from report_scale import elt_section, interop_section
 
 
 def study_section() -> str:
-    result = load("paper/metrics.json")
+    result = load("paper")
     if result is None:
         return "## The study's Figure 3\n\n(experiments/paper not run)\n"
     metrics, stab = result["scenarios"], result.get("stability", {})
@@ -45,8 +53,8 @@ def study_section() -> str:
             sweeps.append(f"| {title} | open-loop EOF median RMS (nm) |\n|---|---|\n{body}")
     return f"""## 1. The study's Figure 3, on the study's own turbulence
 
-`eofnn compare --config configs/paper.yaml --out experiments/paper`. 8 m telescope, 40 actuators across (1264
-active), one frozen-flow layer (r0 = 8.3 cm at 658 nm, L0 = 20 m, 5.1 m/s), piston/tip/tilt removed, 1 kHz,
+`eofnn compare --config configs/paper.yaml --out experiments/runs/paper`. 8 m telescope, 40 actuators across
+(1264 active), one frozen-flow layer (r0 = 8.3 cm at 658 nm, L0 = 20 m, 5.1 m/s), piston/tip/tilt removed, 1 kHz,
 two-frame delay, perfect WFS, and the turbulence the study most likely used: HCIPy's `InfiniteAtmosphericLayer` on
 the actuator-pitch pupil grid, advanced with `layer.t` (`atmosphere.model: hcipy_pupil`). Median of the spatial
 RMS residual over {settled} settled frames, in nm, on a test stream never used in training; "stable for DM gain" is
@@ -132,11 +140,12 @@ def cl_study_section() -> str:
 points) and open-loop EOF beside it (`sweeps/base_realistic_ol_eof.yaml`, `grid_realistic_ol_eof.yaml`, {len(ol)}
 points), in the realistic scenario at 1 nm of WFS noise, nominal DM. Closed-loop EOF is trained with a 10 nm dither
 and one refit round. Median RMS residual in nm, with the analytic DM-gain interval of the fitted filter in brackets
-(`sweeps/realistic_*_eof/sweep.csv`, each point's `metrics.json`, figures beside them):
+(`sweeps/realistic_*_eof/summary.json`, from each sweep's `sweep.csv` and its points' `metrics.json`; figures
+beside them):
 
 {chr(10).join(lines)}
 
-![closed-loop EOF sweep](sweeps/realistic_cl_eof/median_rms_nm_vs_predictors.cl_eof.history_length.png)
+![closed-loop EOF sweep](sweeps/realistic_cl_eof/median_rms_vs_predictors.cl_eof.history_length.png)
 
 **Does a longer history or more training close the gap? A longer history does; more training does not.**
 
@@ -162,7 +171,7 @@ def robustness_section() -> str:
                         ("robustness_realistic_misregistration",
                          "Realistic scenario (configs/realistic_small.yaml), misregistration along x (pitches)"),
                         ("robustness_study", "The study's scenario (configs/paper_small.yaml), DM gain")):
-        result = load(f"{name}/robustness.json")
+        result = load(name, "robustness")
         if result is None:
             parts.append(f"### {title}\n\n(not run)\n")
             continue
@@ -183,16 +192,16 @@ def robustness_section() -> str:
 Each controller as made for the nominal plant (open-loop EOF assumes the nominal DM; closed-loop EOF was trained
 in the nominal plant), run over a grid of DM gains and misregistrations it was not trained for; "div." marks a
 loop that diverged, and the analytic DM-gain interval of each linear controller (eofnn's stability analysis of the
-fitted filter) is given beside the simulated points (`robustness.json`, `robustness.png`: crosses are diverged
-points, vertical lines the analytic bounds).
+fitted filter) is given beside the simulated points (each run's `summary.json`, from its `robustness.json`;
+`robustness.png`: crosses are diverged points, vertical lines the analytic bounds).
 
 """ + "\n".join(parts) + _answer()
 
 
 def _answer() -> str:
     """The study's question answered with margins, from the maps above."""
-    realistic, study = load("robustness_realistic/robustness.json"), load("robustness_study/robustness.json")
-    misreg = load("robustness_realistic_misregistration/robustness.json")
+    realistic, study = load("robustness_realistic", "robustness"), load("robustness_study", "robustness")
+    misreg = load("robustness_realistic_misregistration", "robustness")
     if realistic is None or study is None:
         return ""
 
@@ -257,8 +266,36 @@ def _grid(values: list[list[float]]):
 
 
 # ---------------------------------------------------------------------------------------------------------------
-def main() -> None:
+STAMP = HERE / "generated.json"  # when, where and at which commit the summaries were collected from the runs
+
+
+def stamp() -> dict[str, str]:
+    """Record the date, commit, machine and torch version of this collection in experiments/generated.json."""
+    import torch
+
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
+    record = {"date": datetime.date.today().isoformat(), "commit": commit, "machine": platform.machine(),
+              "torch": torch.__version__}
+    STAMP.write_text(json.dumps(record, indent=1) + "\n")
+    return record
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--collect", action="store_true",
+                        help="first write the summaries, figures and pages from the raw runs under experiments/runs/")
+    parser.add_argument("--out", type=Path, default=HERE / "README.md", help="where to write the page")
+    args = parser.parse_args(argv)
+    if args.collect:
+        from summarise import collect
+
+        missing = collect()
+        if missing:
+            print(f"make_report: no run for {', '.join(missing)} under experiments/runs/ (kept their summaries)",
+                  file=sys.stderr)
+        generated = stamp()
+    else:
+        generated = json.loads(STAMP.read_text())
     text = f"""# eofnn's experiments: the reference study reproduced, and what changes on realistic physics
 
 Regenerate everything on this page with one command (well over two hours on 2 cores: sections 1, 3 and 4 took
@@ -267,9 +304,13 @@ the paper-gap runs about 10 each, on a shared machine; section 5 about 5 minutes
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 
-It runs `eofnn compare` and `eofnn sweep` into the folders named below and rewrites this file from their result
-files (`experiments/make_report.py`). Last generated {datetime.date.today().isoformat()} at commit {commit} on
-{platform.machine()} with torch {torch.__version__}.
+It runs `eofnn compare` and `eofnn sweep` with every raw output (compare and sweep folders, per-point records,
+checkpoints, time series) under the ignored `experiments/runs/`, then keeps of each run, in the committed
+`experiments/<name>/`, a `summary.json` with the numbers this page quotes, its figures and its `results.md`, and
+rewrites this file from the summaries alone (`experiments/make_report.py`; `--collect` first rebuilds the
+summaries from `experiments/runs/`). The inputs are committed: `configs/*.yaml` and the YAML files under
+`experiments/fair/`, `experiments/adaptive/` and `experiments/sweeps/`. Last generated {generated["date"]} at commit
+{generated["commit"]} on {generated["machine"]} with torch {generated["torch"]}.
 
 The reference study is Fowler, van Kooten & Jensen-Clem, "Closed-Loop Until Further Notice", AO4ELT 2023
 (arXiv 2310.02514). Other experiments, each with its own page or folder: telescope vibrations
@@ -282,7 +323,7 @@ from telemetry alone (`telemetry.md`).
 {robustness_section()}
 {elt_section()}
 {interop_section()}"""
-    (HERE / "README.md").write_text(text)
+    args.out.write_text(text)
 
 
 if __name__ == "__main__":

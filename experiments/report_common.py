@@ -1,8 +1,8 @@
-"""What every section of experiments/README.md shares: reading result files and writing their numbers."""
+"""What every section of experiments/README.md shares: reading the summaries (experiments/*/summary.json) and
+writing their numbers."""
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from pathlib import Path
@@ -22,9 +22,10 @@ NAMES = {"uncorrected": "uncorrected", "pseudo_integrator": "pseudo-integrator (
          "modal_integrator": "modal integrator", "lqg": "LQG (AR(2) per mode)"}
 
 
-def load(path: str) -> dict | None:
-    file = HERE / path
-    return json.loads(file.read_text()) if file.is_file() else None
+def load(name: str, part: str = "metrics") -> dict | None:
+    """One part of experiments/<name>/summary.json (written by summarise.py from experiments/runs/<name>/)."""
+    file = HERE / name / "summary.json"
+    return json.loads(file.read_text()).get(part) if file.is_file() else None
 
 
 def cell(m: dict | None, digits: int = 3) -> str:
@@ -41,19 +42,16 @@ def rms(m: dict | None) -> float:
 
 
 def sweep_rows(name: str) -> list[dict[str, str]]:
-    file = HERE / "sweeps" / name / "sweep.csv"
-    if not file.is_file():
-        return []
-    with file.open() as f:
-        return [row for row in csv.DictReader(f) if row["status"] == "done"]
+    """The finished points of a sweep (its sweep.csv's rows, as strings), from its summary."""
+    return load(f"sweeps/{name}", "rows") or []
 
 
 def point_margin(sweep: str, row: dict[str, str]) -> str:
-    """The analytic DM-gain interval of a sweep point's predictor, from the point's own metrics.json."""
-    result = load(f"sweeps/{sweep}/points/{row['point']}/run/metrics.json")
-    if result is None:
+    """The analytic DM-gain interval of a sweep point's predictor (from the point's own metrics.json)."""
+    stability = (load(f"sweeps/{sweep}", "stability") or {}).get(row["point"])
+    if stability is None:
         return ""
-    return margin(result.get("stability", {}).get(row["scenario"], {}).get(row["predictor"]))
+    return margin(stability.get(row["scenario"], {}).get(row["predictor"]))
 
 
 def number(text: str) -> float:

@@ -53,7 +53,7 @@ def best_of(metrics: dict, names: tuple[str, ...]) -> tuple[str | None, float]:
 
 def alpha_check() -> str:
     """alpha: auto against every fixed alpha on the test stream (experiments/fair/alpha_auto)."""
-    result = load("fair/alpha_auto/metrics.json")
+    result = load("fair/alpha_auto")
     if result is None:
         return "(experiments/fair/alpha_auto not run)"
     lines = ["| WFS noise | alpha: auto (α chosen) | best fixed α on the test stream | auto / best |", "|---|---|---|---|"]
@@ -68,7 +68,7 @@ def alpha_check() -> str:
 
 
 def realistic_section() -> str:
-    result = load("realistic/metrics.json")
+    result = load("realistic")
     if result is None:
         return "## 2. The fair contest\n\n(experiments/realistic not run)\n"
     metrics = result["scenarios"]
@@ -113,7 +113,7 @@ def realistic_section() -> str:
     capped = sum(1 for v in searches if v["chosen"]["best_epoch"] == v["budget"]["max_epochs_per_trial"])
     alphas = [v for per in result.get("ridge_alphas", {}).values() for v in per.values()]
     smallest = sum(1 for v in alphas if v["alpha"] == v["path"]["alpha"][0])
-    reading = f"""**Reading the table** (every statement below is computed from `realistic/metrics.json`):
+    reading = f"""**Reading the table** (every statement below is computed from `realistic/summary.json`):
 
 - *Neighbours* (reduction of the median RMS when each actuator also reads its 3x3 neighbourhood; positive: better):
   {structure}.
@@ -138,7 +138,7 @@ def realistic_section() -> str:
     pareto = pareto_md.read_text().split("\n", 2)[2] if pareto_md.is_file() else "(no pareto.md)"
     return f"""## 2. The fair contest: every contender tuned the same way, performance beside robustness
 
-`eofnn compare --config configs/realistic_study.yaml --out experiments/realistic --pareto noise_1
+`eofnn compare --config configs/realistic_study.yaml --out experiments/runs/realistic --pareto noise_1
 --simulated_margins '[noise_1]'`. Same telescope as the study, but `configs/realistic.yaml`'s turbulence: two
 layers of exact frozen flow (5.1 m/s along x and 10 m/s along y, half the Cn² each, r0 = 8.3 cm at 658 nm, L0 =
 20 m), evaluated exactly at every actuator and seen through each subaperture, with 0, 1 or 3 nm RMS of white WFS
@@ -172,15 +172,15 @@ stream of its own):
 
 {pareto}
 **Does `alpha: auto` find the best alpha?** (`eofnn compare --config experiments/fair/alpha_auto.yaml --out
-experiments/fair/alpha_auto`: 4-tap open-loop EOF, 20000 training frames, one predictor per fixed alpha beside the
-automatic one, all on the same test stream; the fixed alphas' best is chosen *on the test stream*, an oracle the
-automatic choice does not have):
+experiments/runs/fair/alpha_auto`: 4-tap open-loop EOF, 20000 training frames, one predictor per fixed alpha
+beside the automatic one, all on the same test stream; the fixed alphas' best is chosen *on the test stream*, an
+oracle the automatic choice does not have):
 
 {alpha_check()}
 
 **Are the MLP rows limited by their budget?** (`eofnn compare --config experiments/fair/mlp_budget.yaml --out
-experiments/fair/mlp_budget`: the same two MLPs, data, learning rates and test stream as the contest, up to 15
-epochs with early stopping, patience 2; median RMS in nm, chosen epoch / allowed):
+experiments/runs/fair/mlp_budget`: the same two MLPs, data, learning rates and test stream as the contest, up to
+15 epochs with early stopping, patience 2; median RMS in nm, chosen epoch / allowed):
 
 {mlp_budget_check()}
 
@@ -207,7 +207,7 @@ def _epochs(result: dict, scenario: str, name: str) -> str:
 
 def mlp_budget_check() -> str:
     """The contest's MLPs with up to 15 epochs instead of 3 (experiments/fair/mlp_budget), beside the contest's rows."""
-    longer, contest = load("fair/mlp_budget/metrics.json"), load("realistic/metrics.json")
+    longer, contest = load("fair/mlp_budget"), load("realistic")
     if longer is None or contest is None:
         return "(experiments/fair/mlp_budget not run)"
     lines = ["| WFS noise | network | 3 epochs (the contest) | up to 15 epochs, early stopping | change | best linear "
@@ -225,9 +225,9 @@ def mlp_budget_check() -> str:
 
 def paper_gap_check() -> str:
     """The study's MLP gap under fair tuning, on HCIPy's layer and on exact frozen flow (experiments/fair/paper_gap)."""
-    runs = {"HCIPy's InfiniteAtmosphericLayer (the study's)": load("fair/paper_gap/hcipy/metrics.json"),
-            "exact frozen flow, point samples": load("fair/paper_gap/exact/metrics.json"),
-            "exact frozen flow, subaperture averages": load("fair/paper_gap/exact_subaperture/metrics.json")}
+    runs = {"HCIPy's InfiniteAtmosphericLayer (the study's)": load("fair/paper_gap/hcipy"),
+            "exact frozen flow, point samples": load("fair/paper_gap/exact"),
+            "exact frozen flow, subaperture averages": load("fair/paper_gap/exact_subaperture")}
     if any(r is None for r in runs.values()):
         return "(experiments/fair/paper_gap not run)"
     lines = ["| turbulence | best-gain integrator | open-loop EOF (α chosen) | MLP (epochs) | MLP against EOF |",
@@ -242,7 +242,7 @@ def paper_gap_check() -> str:
 
 
 def mlp_budget_text() -> str:
-    longer, contest = load("fair/mlp_budget/metrics.json"), load("realistic/metrics.json")
+    longer, contest = load("fair/mlp_budget"), load("realistic")
     if longer is None or contest is None:
         return ""
     parts = []
@@ -264,8 +264,8 @@ def mlp_budget_text() -> str:
 
 
 def paper_gap_text() -> str:
-    hcipy, point = load("fair/paper_gap/hcipy/metrics.json"), load("fair/paper_gap/exact/metrics.json")
-    subaperture = load("fair/paper_gap/exact_subaperture/metrics.json")
+    hcipy, point = load("fair/paper_gap/hcipy"), load("fair/paper_gap/exact")
+    subaperture = load("fair/paper_gap/exact_subaperture")
     if hcipy is None or point is None or subaperture is None:
         return ""
 

@@ -16,7 +16,7 @@ def _tuning(result: dict, name: str) -> str:
 
 
 def elt_section() -> str:
-    result = load("elt_small/metrics.json")
+    result = load("elt_small")
     if result is None:
         return "## 5. An ELT-class loop\n\n(experiments/elt_small not run)\n"
     metrics = result["scenarios"]["nominal"]
@@ -34,8 +34,8 @@ def elt_section() -> str:
     first = next(iter(metrics.values()))
     return f"""## 5. An ELT-class loop: 5024 actuators on one CPU machine
 
-`eofnn compare --config configs/elt_small.yaml --out experiments/elt_small`: `configs/elt.yaml`'s 39 m telescope,
-80 actuators across (5024 active, pitch 0.49 m), three layers of exact frozen flow blowing at 30, 150 and 260
+`eofnn compare --config configs/elt_small.yaml --out experiments/runs/elt_small`: `configs/elt.yaml`'s 39 m
+telescope, 80 actuators across (5024 active, pitch 0.49 m), three layers of exact frozen flow blowing at 30, 150 and 260
 degrees (8, 12 and 20 m/s), seen through each subaperture, 1 nm of WFS noise, 1 kHz, two-frame delay. Every
 predictor learns as an observatory would, from telemetry alone (2000 frames of dithered-integrator telemetry, the
 plant identified from the dither, 500 validation frames for `alpha: auto`); the integrator's gain is a refined scan
@@ -71,11 +71,11 @@ def _interop_rows(path: str, title: str) -> list[str]:
 
 
 def interop_section() -> str:
-    rows = (_interop_rows("interop/hcipy/metrics.json", "HCIPy")
-            + _interop_rows("interop/oopao_aliasing/metrics.json", "OOPAO")
-            + _interop_rows("interop/oopao/metrics.json", "OOPAO"))
-    budget = (load("interop/oopao_aliasing/metrics.json") or {}).get("budget")
-    big_runs = (load("interop/oopao/metrics.json") or {"runs": {}})["runs"]
+    rows = (_interop_rows("interop/hcipy", "HCIPy")
+            + _interop_rows("interop/oopao_aliasing", "OOPAO")
+            + _interop_rows("interop/oopao", "OOPAO"))
+    budget = (load("interop/oopao_aliasing") or {}).get("budget")
+    big_runs = (load("interop/oopao") or {"runs": {}})["runs"]
     big = next(iter(big_runs.values()))["simulator"] if big_runs else {"rcond": 0, "n_seen_modes": 0, "n_actuators": 0}
     budget_lines = []
     if budget:

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# eofnn's controllers inside OOPAO's and HCIPy's closed loops (docs/interop.md): writes experiments/interop/<sim>/
-# metrics.json and results.md. Needs the interop extra (bash scripts/setup.sh installs it).
+# eofnn's controllers inside OOPAO's and HCIPy's closed loops (docs/interop.md): writes the raw runs
+# experiments/runs/interop/<sim>/{metrics.json,results.md}; make_report.py --collect summarises them into
+# experiments/interop/<sim>/. Needs the interop extra (bash scripts/setup.sh installs it).
 #   - oopao: the system (8 m, 40 x 40 Shack-Hartmann, 1 kHz, two frames, DM applying 2x), 2000 frames per
 #     recording (about 7 min of one core);
 #   - oopao_aliasing: the error budget (perfect sensor, SH noise-free, SH with photon noise) at 20 x 20 on 4 m
@@ -11,12 +12,13 @@ cd "$(dirname "$0")/../.."
 PY=${PYTHON:-.venv/bin/python}
 what=${1:-all}
 if [ "$what" = all ] || [ "$what" = oopao ]; then
-    $PY examples/oopao_loop.py --n-subapertures 40 --diameter 8 --frames 1600 --rcond 0.075 --out experiments/interop/oopao
+    $PY examples/oopao_loop.py --n-subapertures 40 --diameter 8 --frames 1600 --rcond 0.075 \
+        --out experiments/runs/interop/oopao
 fi
 if [ "$what" = all ] || [ "$what" = oopao_aliasing ]; then
     $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --aliasing \
-        --out experiments/interop/oopao_aliasing
+        --out experiments/runs/interop/oopao_aliasing
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
-    $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --out experiments/interop/hcipy
+    $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --out experiments/runs/interop/hcipy
 fi

@@ -1,0 +1,134 @@
+"""Collect the raw runs under experiments/runs/ into the committed summaries, pages and figures of experiments/.
+
+``experiments/reproduce.sh`` writes every raw output (``eofnn compare``/``sweep`` folders, per-point records,
+checkpoints, time series) under the ignored ``experiments/runs/<name>/``. This module keeps, for each experiment,
+only what the pages need in the committed ``experiments/<name>/``:
+
+- ``summary.json``: the numbers the pages quote, pruned from the run's ``metrics.json`` (and ``robustness.json``),
+  or from a sweep's ``sweep.csv`` and its points' ``metrics.json``;
+- the figures (``*.png``) and the run's own pages (``results.md``, ``pareto.md``).
+
+``python experiments/make_report.py --collect`` calls :func:`collect` and then writes experiments/README.md from the
+summaries alone; without ``--collect`` it needs no raw run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+HERE = Path(__file__).parent
+RUNS = HERE / "runs"
+
+# Every ``eofnn compare`` output the pages read (experiments/<name> <- experiments/runs/<name>).
+COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy", "fair/paper_gap/exact",
+            "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
+            "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
+            "adaptive/dm_gain_drift_2.0", "elt_small")
+SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
+INTEROP = ("hcipy", "oopao", "oopao_aliasing")  # experiments/interop/<name>, written by experiments/interop/run.sh
+PAGES = ("results.md", "pareto.md")
+
+# What is kept of each result file: a set keeps those keys whole, a dict descends ("*": every key), True keeps all.
+_PER = lambda keep: {"*": {"*": keep}}  # noqa: E731  (scenario -> predictor -> keep)
+METRICS = {
+    "scenarios": _PER({"median_rms_nm", "diverged", "diverged_frame", "settle_frames", "n_frames", "reconvergence",
+                       "fallback_frame"}),
+    "stability": _PER({"stable", "dm_gain_interval"}),
+    "simulated_stability": _PER({"dm_gain_interval", "tolerance"}),
+    "integrator_gains": _PER({"gain"}),
+    "ridge_alphas": _PER({"alpha": True, "path": {"alpha"}}),
+    "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
+    "classical_models": _PER({"frames", "modes", "gain_margin"}),
+    "timings_s": True,
+    "peak_memory_bytes": True,
+}
+ROBUSTNESS = {"keys", "values", "median_rms_nm", "analytic_dm_gain_interval"}
+INTEROP_METRICS = {
+    "runs": {"*": {"identified": {"dm_gain", "dm_gain_times_optical_gain", "dm_gain_true"},
+                   "simulator": {"n_subapertures", "diameter_m", "rcond", "n_seen_modes", "n_actuators"},
+                   "eof": {"diverged", "median_rms_nm"},
+                   "replay": {"predictor_median_rms_nm", "integrator_median_rms_nm"},
+                   "integrator": {"median_rms_nm", "best_gain"}}},
+    "budget": {"fitting_error_nm": True, "controllers": {"*": {
+        "residual_perfect_sensor_nm", "residual_shack_hartmann_nm", "residual_photon_noise_nm", "temporal_nm",
+        "aliasing_nm", "noise_nm"}}},
+}
+SWEEP_DROPPED = {"status", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged", "diverged_frame", "settle_frames",
+                 "n_frames", "error"}  # sweep.csv columns the pages do not quote
+
+
+def prune(value, keep):
+    """``value`` reduced to the keys ``keep`` names (see METRICS), in ``value``'s order."""
+    if keep is True or not isinstance(value, dict):
+        return value
+    if isinstance(keep, set):
+        keep = dict.fromkeys(keep, True)
+    return {k: prune(v, keep[k] if k in keep else keep["*"]) for k, v in value.items() if k in keep or "*" in keep}
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _write(name: str, source: str, parts: dict) -> None:
+    target = HERE / name / "summary.json"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    summary = {"source": f"experiments/runs/{name}/{source}, pruned to the numbers the pages quote", **parts}
+    target.write_text(json.dumps(summary, indent=1) + "\n")
+
+
+def _copy_figures_and_pages(name: str) -> None:
+    run, target = RUNS / name, HERE / name
+    for file in sorted(run.glob("*.png")) + [run / page for page in PAGES if (run / page).is_file()]:
+        shutil.copyfile(file, target / file.name)
+
+
+def compare_summary(name: str) -> bool:
+    metrics = _read(RUNS / name / "metrics.json")
+    if metrics is None:
+        return False
+    parts = {"metrics": prune(metrics, METRICS)}
+    robustness = _read(RUNS / name / "robustness.json")
+    if robustness is not None:
+        parts["robustness"] = prune(robustness, ROBUSTNESS)
+    _write(name, "metrics.json" + (" and robustness.json" if robustness is not None else ""), parts)
+    _copy_figures_and_pages(name)
+    return True
+
+
+def sweep_summary(sweep: str) -> bool:
+    name = f"sweeps/{sweep}"
+    table = RUNS / name / "sweep.csv"
+    if not table.is_file():
+        return False
+    with table.open() as f:
+        rows = [{k: v for k, v in row.items() if k not in SWEEP_DROPPED}
+                for row in csv.DictReader(f) if row["status"] == "done"]
+    stability: dict[str, dict] = {}
+    for row in rows:
+        point = _read(RUNS / name / "points" / row["point"] / "run" / "metrics.json") or {}
+        stability[row["point"]] = prune(point.get("stability", {}), METRICS["stability"])
+    _write(name, "sweep.csv (done points) and points/*/run/metrics.json", {"rows": rows, "stability": stability})
+    _copy_figures_and_pages(name)
+    return True
+
+
+def interop_summary(run: str) -> bool:
+    name = f"interop/{run}"
+    metrics = _read(RUNS / name / "metrics.json")
+    if metrics is None:
+        return False
+    _write(name, "metrics.json", {"metrics": prune(metrics, INTEROP_METRICS)})
+    _copy_figures_and_pages(name)
+    return True
+
+
+def collect() -> list[str]:
+    """Write the summaries, figures and pages of every experiment found under experiments/runs/; return the missing."""
+    missing = [n for n in COMPARES if not compare_summary(n)]
+    missing += [f"sweeps/{s}" for s in SWEEPS if not sweep_summary(s)]
+    missing += [f"interop/{r}" for r in INTEROP if not interop_summary(r)]
+    return missing
