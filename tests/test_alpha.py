@@ -11,10 +11,10 @@ import torch
 
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse
+from eofnn.cli.main import main
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
 from eofnn.errors import ConfigError
-from eofnn.cli.main import main
 from eofnn.models.linear import LinearFilter
 from eofnn.training.alpha import DEFAULT_ALPHA_PATH
 from eofnn.training.fit import fit_predictor

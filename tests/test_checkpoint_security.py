@@ -8,9 +8,9 @@ import sys
 import pytest
 import torch
 
+from eofnn.cli.main import main
 from eofnn.data.stream import DataConfig
 from eofnn.errors import CheckpointError
-from eofnn.cli.main import main
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import fit_predictor
 from eofnn.training.task import OptimizationConfig

@@ -12,6 +12,7 @@ import yaml
 
 from eofnn.analysis.linear import controller_stability, modal_stability
 from eofnn.analysis.stability import LoopSetup, analyse_polynomials
+from eofnn.cli.main import main
 from eofnn.control.baselines import critical_gain
 from eofnn.control.classical import Extrapolator, ModalIntegrator, extrapolation_weights, extrapolator_filter
 from eofnn.control.kalman import fit_ar2, kalman_gain, prediction_error_variance
@@ -21,7 +22,6 @@ from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import Experiment
-from eofnn.cli.main import main
 from eofnn.sim.loop import run_loop
 
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"

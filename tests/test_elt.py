@@ -177,9 +177,9 @@ def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(ca
 def test_replay_in_blocks_of_frames_equals_one_block(monkeypatch, small_scenario):
     """A neighbourhood filter is replayed a few frames at a time (its gathered history is (frames, K, M x taps)):
     the same errors as all frames at once."""
-    from eofnn.analysis import replay as replay_module
     from eofnn.control.baselines import Integrator
     from eofnn.data.history import HistorySpec
+    from eofnn.evaluation import replay as replay_module
     from eofnn.models.linear import LinearFilter
     from eofnn.sim.loop import run_loop
 

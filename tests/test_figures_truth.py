@@ -28,8 +28,8 @@ def run(level, diverged_frame=None, n=600):
 
 
 def test_a_diverged_controller_is_drawn_until_it_diverged_and_marked(figures, tmp_path):
-    from eofnn.reporting.report import plot_rms_vs_time
     from eofnn.evaluation.results import ExperimentResult
+    from eofnn.reporting.report import plot_rms_vs_time
 
     result = ExperimentResult({"dm_gain_2": {"integrator": run(20.0), "ol_eof": run(2.0, diverged_frame=7)}})
     plot_rms_vs_time(result, 1000.0, tmp_path / "rms.png")
@@ -43,8 +43,8 @@ def test_a_diverged_controller_is_drawn_until_it_diverged_and_marked(figures, tm
 
 
 def test_the_stability_figure_marks_the_bounds_of_its_title(figures, tmp_path):
-    from eofnn.reporting.stability import plot_stability
     from eofnn.analysis.stability import LoopSetup, analyse
+    from eofnn.reporting.stability import plot_stability
 
     weights = torch.zeros(6, 4, dtype=torch.float64)
     weights[:, 0], weights[:, 1] = -1.0, 0.3

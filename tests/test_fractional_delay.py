@@ -12,15 +12,15 @@ import torch
 import yaml
 from torch import nn
 
-from eofnn.evaluation.replay import replay
 from eofnn.analysis.stability import LoopSetup, analyse_filter, analyse_integrator
+from eofnn.cli.main import main
 from eofnn.control import Integrator, PredictiveController, PseudoIntegrator
 from eofnn.control.adaptive import RLSController
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.data.stream import DataConfig
 from eofnn.data.targets import check_sequences
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
-from eofnn.cli.main import main
+from eofnn.evaluation.replay import replay
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry

@@ -7,14 +7,14 @@ import json
 import pytest
 import torch
 
-from eofnn.evaluation.replay import replay
-from eofnn.reporting.replay import replay_figure
 from eofnn.control import Dithered, Integrator, PredictiveController
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.data.stream import DataConfig
 from eofnn.data.targets import TelemetryBatches
 from eofnn.errors import ConfigError, TelemetryError
+from eofnn.evaluation.replay import replay
 from eofnn.models.linear import LinearFilter
+from eofnn.reporting.replay import replay_figure
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
 from eofnn.sim.plant import Plant
 from eofnn.sim.scenario import Scenario

@@ -10,10 +10,10 @@ import pytest
 import torch
 from layout_telemetry import fried_positions, hex_positions, jittered_positions, record
 
-from eofnn.evaluation.replay import replay
+from eofnn.cli.main import main
 from eofnn.data.history import HistorySpec
 from eofnn.errors import TelemetryError
-from eofnn.cli.main import main
+from eofnn.evaluation.replay import replay
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, apply_shift, layout_from_dict, layout_from_positions

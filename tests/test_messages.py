@@ -6,11 +6,11 @@ from types import SimpleNamespace
 
 import torch
 
-from eofnn.evaluation.replay import _stats
 from eofnn.evaluation.experiment import _describe
 from eofnn.evaluation.metrics import WelchPSD
-from eofnn.reporting.report import markdown_table
+from eofnn.evaluation.replay import _stats
 from eofnn.evaluation.results import ExperimentResult
+from eofnn.reporting.report import markdown_table
 
 
 def stats(sigma_nm: float, noise_nm: float):

@@ -9,11 +9,11 @@ import pytest
 import torch
 import yaml
 
+from eofnn.cli.main import main
 from eofnn.control.baselines import Integrator
 from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import LoopMetrics
 from eofnn.evaluation.nonstationary import Change, reconvergence
-from eofnn.cli.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop
 from eofnn.sim.scenario import Scenario
 

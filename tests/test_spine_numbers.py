@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import pytest
-
 from golden.spine import spine_numbers
 
 GOLDEN = Path(__file__).parent / "golden" / "spine.json"

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from eofnn.reporting.stability import plot_stability
 from eofnn.analysis.stability import LoopSetup, analyse, analyse_filter, analyse_integrator
 from eofnn.control.baselines import critical_gain
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
+from eofnn.reporting.stability import plot_stability
 from eofnn.sim import ActuatorGrid, run_loop
 from eofnn.training.fit import fit_predictor
 

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from eofnn.evaluation.replay import replay
 from eofnn.data.history import HistorySpec
 from eofnn.errors import TelemetryError
+from eofnn.evaluation.replay import replay
 from eofnn.runtime import PredictiveFilter
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 from eofnn.training.export import export_filter

@@ -10,9 +10,9 @@ import torch
 from astropy.io import fits
 from layout_telemetry import PITCH_M, fried_positions, record
 
-from eofnn.evaluation.replay import replay
-from eofnn.data.history import HistorySpec
 from eofnn.cli.main import main
+from eofnn.data.history import HistorySpec
+from eofnn.evaluation.replay import replay
 from eofnn.sim.spaces import max_unseen
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.checkpoint import load_predictor

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
+from eofnn.cli.main import main
 from eofnn.control import Dithered, Integrator
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import TelemetryBatches, load_telemetry
 from eofnn.errors import ConfigError, TelemetryError
-from eofnn.cli.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, Telemetry, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry_file import SCAN_FRAMES, StreamedTelemetry

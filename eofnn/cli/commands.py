@@ -15,13 +15,13 @@ import importlib
 import re
 import sys
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import yaml
+from jsonargparse import ActionConfigFile, ArgumentParser, DefaultHelpFormatter
 from jsonargparse import ArgumentError as JsonArgError
-from jsonargparse import ArgumentParser, DefaultHelpFormatter
 
 from eofnn import __version__
 from eofnn.cli.configfile import check_config_file, resolve_config_references
@@ -50,17 +50,20 @@ USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, Json
 
 @dataclass(frozen=True)
 class Command:
-    """One subcommand: its one-line help, and where its description, arguments and run function live.
+    """One subcommand: its one-line help, and where its description, configuration and function live.
 
-    The module is imported only when the subcommand is used, so ``eofnn --help`` and ``eofnn --version`` answer
-    without torch, Lightning or HCIPy (seconds of imports), and ``eofnn sweep --help`` without the others'.
+    The subcommand is the function ``module.function(cfg, config_dump)``; its parser is built from the dataclass
+    ``module.config`` (fields, types and numpydoc), so a command called from Python and from the command line take
+    the same typed configuration. The module is imported only when the subcommand is used, so ``eofnn --help`` and
+    ``eofnn --version`` answer without torch, Lightning or HCIPy (seconds of imports), and ``eofnn sweep --help``
+    without the others'.
     """
 
     help: str
     module: str
     description_name: str
-    add_arguments_name: str
-    run_name: str
+    config_name: str
+    function_name: str
 
     def _get(self, name: str):
         return getattr(importlib.import_module(self.module), name)
@@ -70,33 +73,46 @@ class Command:
         return self._get(self.description_name)
 
     @property
-    def add_arguments(self) -> Callable[[ArgumentParser], None]:
-        return self._get(self.add_arguments_name)
+    def config(self) -> type:
+        """The command's configuration dataclass."""
+        return self._get(self.config_name)
 
     @property
     def run(self) -> Callable[..., object]:
-        return self._get(self.run_name)
+        """The command's function, ``(cfg, config_dump) -> result``."""
+        return self._get(self.function_name)
+
+    def add_arguments(self, parser: ArgumentParser) -> None:
+        """The configuration's fields as the parser's options (and ``--config FILE`` unless it has a field of that
+        name)."""
+        names = {f.name for f in fields(self.config)}
+        if "config" not in names:
+            parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
+        parser.add_class_arguments(self.config, nested_key=None, as_group=False)
+
+    def build(self, parsed) -> Any:
+        """The configuration dataclass from the instantiated namespace of its options."""
+        return self.config(**{f.name: parsed[f.name] for f in fields(self.config)})
 
 
 COMMANDS: dict[str, Command] = {
     "compare": Command("Scenarios x controllers: train, evaluate, report.", "eofnn.cli.compare", "COMPARE",
-                       "add_compare_arguments", "compare"),
-    "fit": Command("Train one predictor and write a checkpoint.", "eofnn.cli.fit", "DESCRIPTION", "add_arguments",
-                   "run"),
-    "evaluate": Command("Run saved checkpoints under any plant.", "eofnn.cli.compare", "EVALUATE",
-                        "add_evaluate_arguments", "evaluate"),
+                       "CompareConfig", "compare"),
+    "fit": Command("Train one predictor and write a checkpoint.", "eofnn.cli.fit", "DESCRIPTION", "FitConfig", "fit"),
+    "evaluate": Command("Run saved checkpoints under any plant.", "eofnn.cli.compare", "EVALUATE", "EvaluateConfig",
+                        "evaluate"),
     "simulate": Command("Simulate one controller and save telemetry.", "eofnn.cli.simulate", "DESCRIPTION",
-                        "add_arguments", "run"),
+                        "SimulateConfig", "simulate"),
     "stability": Command("Stability margins of a linear predictor in a plant.", "eofnn.cli.stability", "DESCRIPTION",
-                         "add_arguments", "run"),
+                         "StabilityConfig", "stability"),
     "sweep": Command("A grid of compare runs: resumable, local or on Ray.", "eofnn.cli.sweep", "DESCRIPTION",
-                     "add_arguments", "run"),
+                     "SweepConfig", "sweep"),
     "identify": Command("Identify the plant from dithered telemetry.", "eofnn.cli.telemetry", "IDENTIFY",
-                        "add_identify_arguments", "run_identify"),
-    "replay": Command("Replay a checkpoint on held-out telemetry.", "eofnn.cli.telemetry", "REPLAY",
-                      "add_replay_arguments", "run_replay"),
-    "export": Command("Export a linear predictor as filter FITS.", "eofnn.cli.telemetry", "EXPORT",
-                      "add_export_arguments", "run_export"),
+                        "IdentifyConfig", "identify"),
+    "replay": Command("Replay a checkpoint on held-out telemetry.", "eofnn.cli.telemetry", "REPLAY", "ReplayConfig",
+                      "replay"),
+    "export": Command("Export a linear predictor as filter FITS.", "eofnn.cli.telemetry", "EXPORT", "ExportConfig",
+                      "export"),
 }
 
 
@@ -243,7 +259,7 @@ def parse(args: list[str]) -> Parsed:
         dump = yaml.safe_load(parser.dump(cfg))[command]
         sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)
         try:
-            init = parser.instantiate(cfg)[command]
+            init = COMMANDS[command].build(parser.instantiate(cfg)[command])
         except (ValueError, TypeError) as err:  # a nested config's own check, wrapped by jsonargparse
             cause = _user_error(err)
             if cause is None:

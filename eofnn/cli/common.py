@@ -1,15 +1,18 @@
-"""Arguments and helpers shared by the subcommands."""
+"""What the subcommands share: the light configuration groups (no torch: ``eofnn sweep --help`` stays fast; the
+groups that hold a scenario are in :mod:`eofnn.cli.groups`), the YAML a command writes, progress lines.
 
-from __future__ import annotations
+Every subcommand is a function ``command(cfg, config_dump) -> result`` whose ``cfg`` is a dataclass below (or one
+of its own that extends one); the command line builds each parser from the dataclass's fields and their numpydoc
+(:mod:`eofnn.cli.commands`). A config is composed of the groups the floors below own: :class:`~eofnn.sim.scenario.
+Scenario` (sim), :class:`~eofnn.evaluation.config.PredictorConfig` and :class:`~eofnn.evaluation.config.
+EvaluationConfig` (evaluation, composing data, optimisation and adaptation groups of data, training and control).
+"""
 
 import sys
+from dataclasses import asdict, dataclass
 from typing import Any
 
-from jsonargparse import ActionConfigFile, ArgumentParser
-
-from eofnn.evaluation.config import EvaluationConfig
-from eofnn.sim.plant import Plant
-from eofnn.sim.scenario import Scenario
+import yaml
 
 
 def log(message: str) -> None:
@@ -17,27 +20,64 @@ def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def add_common(parser: ArgumentParser, out_help: str) -> None:
-    parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
-    parser.add_argument("--scenario", type=Scenario, default=Scenario(),
-                        help="Telescope (grid), atmosphere, frame rate and plant (delay and model errors).")
-    parser.add_argument("--out", type=str, required=True, help=out_help)
-    parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
-    parser.add_argument("--progress", type=bool | None, default=None,
-                        help="Progress bars (default: only when stderr is a terminal).")
-    parser.add_argument("--trusted_networks", type=list[str], default=[],
-                        help="Network class paths, beyond eofnn's own, that checkpoints may name (importing a "
-                             "module runs its code: name only modules you trust).")
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
 
 
-def add_evaluation(parser: ArgumentParser) -> None:
-    names = ", ".join(Plant.model_error_names())
-    parser.add_argument("--scenarios", type=dict[str, dict[str, Any]], default={"nominal": {}},
-                        help=f"Scenario name -> plant changes, e.g. {{nominal: {{}}, dm_gain_2: {{dm_gain: 2.0}}}}; "
-                             f"the names are the plant's fields: {names}.")
-    parser.add_argument("--evaluation", type=EvaluationConfig, default=EvaluationConfig(),
-                        help="Closed-loop evaluation settings.")
-    parser.add_argument("--allow_long", type=bool, default=False,
-                        help="Run an experiment estimated to take more than a day (refused otherwise).")
-    parser.add_argument("--reference", type=dict[str, dict[str, float]] | None, default=None,
-                        help="Published numbers (scenario -> controller -> median RMS nm) shown beside ours.")
+def config_yaml(cfg: Any, dump: str | None = None) -> str:
+    """The resolved YAML a command writes beside its outputs: ``dump``, the parser's own, from the command line; the
+    config's fields when the command is called from Python."""
+    return yaml.safe_dump(_plain(asdict(cfg)), sort_keys=False) if dump is None else dump
+
+
+@dataclass(kw_only=True)
+class Output:
+    """Where a command writes.
+
+    Parameters
+    ----------
+    out : str
+        Output folder (must be empty unless --overwrite true).
+    overwrite : bool
+        Replace existing output.
+    """
+
+    out: str
+    overwrite: bool = False
+
+
+@dataclass(kw_only=True)
+class TelemetryFiles:
+    """Matrices that real-time computers keep beside their telemetry (docs/telemetry.md).
+
+    Parameters
+    ----------
+    interaction_matrix : str, optional
+        File (.npy, .npz, .fits) of the (S, K) interaction matrix, slopes = IM @ y, for telemetry recorded as slopes;
+        replaces one in the telemetry file.
+    reconstructor : str, optional
+        File of the (K, S) reconstructor, wfs = R @ slopes (used as given).
+    modal_basis : str, optional
+        File of the (actuators, M) modal basis when y and wfs are modal coefficients.
+    """
+
+    interaction_matrix: str | None = None
+    reconstructor: str | None = None
+    modal_basis: str | None = None
+
+
+@dataclass(kw_only=True)
+class TelemetryCommand(TelemetryFiles, Output):
+    """A command that reads recorded telemetry (identify, replay).
+
+    Parameters
+    ----------
+    telemetry : str or list of str
+        Telemetry file, .fits or .npz, with y and wfs in nm, or a list [a.fits, b.fits] of files of one plant.
+    """
+
+    telemetry: str | list[str]

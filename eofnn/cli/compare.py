@@ -2,22 +2,22 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from jsonargparse import ArgumentParser
-
-from eofnn.cli.common import add_common, add_evaluation, log
+from eofnn.cli.common import config_yaml, log
+from eofnn.cli.groups import ExperimentCommand
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import Experiment
 from eofnn.evaluation.margins import simulated_dm_gain_interval
 from eofnn.evaluation.pareto import pareto
-from eofnn.reporting.pareto import plot_pareto
-from eofnn.reporting.report import write_report
-from eofnn.reporting.robustness import plot_robustness
 from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
 from eofnn.evaluation.robustness import check_grid, robustness_map
 from eofnn.outputs import check_output_folder, staged_folder
+from eofnn.reporting.pareto import plot_pareto
+from eofnn.reporting.report import write_report
+from eofnn.reporting.robustness import plot_robustness
 
 COMPARE = ("Run an experiment: every controller in every scenario (plant), predictors trained once where asked, "
            "evaluated in closed loop on a held-out stream. Writes metrics.json, results.md, config.yaml, figures, "
@@ -26,35 +26,51 @@ EVALUATE = ("Evaluate saved checkpoints (from fit or compare) in any scenario, w
             "baseline controllers.")
 
 
-def add_compare_arguments(parser: ArgumentParser) -> None:
-    add_common(parser, "Output folder (must be empty unless --overwrite true).")
-    add_evaluation(parser)
-    parser.add_argument("--predictors", type=dict[str, PredictorConfig], required=True,
-                        help="Controller name -> configuration.")
-    parser.add_argument("--robustness", type=dict[str, list[float]] | None, default=None,
-                        help="Plant field -> values, e.g. {dm_gain: [0.5, 1, 1.5, 2, 3]} (one or two fields): every "
-                             "controller, as made for the first scenario, runs in each plant; writes robustness.json "
-                             "and robustness.png with the analytic stability bounds.")
-    parser.add_argument("--simulated_margins", type=list[str], default=[],
-                        help="Scenarios in which the DM-gain interval of every controller without a linear model "
-                             "(networks) is measured by closed-loop simulation, each bound bracketed within 5%% "
-                             "(metrics.json: simulated_stability; results.md).")
-    parser.add_argument("--pareto", type=bool | str, default=False,
-                        help="Also draw every linear controller family along its tuning path (ridge alphas of alpha: "
-                             "auto, integrator gains) in the first scenario (true) or the one named, median RMS on a "
-                             "stream of its own against the width of the stable DM-gain interval: pareto.png, "
-                             "pareto.md, pareto.json.")
+@dataclass(kw_only=True)
+class CompareConfig(ExperimentCommand):
+    """``eofnn compare``: every controller in every scenario.
+
+    Parameters
+    ----------
+    predictors : dict
+        Controller name -> configuration.
+    robustness : dict, optional
+        Plant field -> values, e.g. {dm_gain: [0.5, 1, 1.5, 2, 3]} (one or two fields): every controller, as made for
+        the first scenario, runs in each plant; writes robustness.json and robustness.png with the analytic
+        stability bounds.
+    simulated_margins : list of str
+        Scenarios in which the DM-gain interval of every controller without a linear model (networks) is measured by
+        closed-loop simulation, each bound bracketed within 5% (metrics.json: simulated_stability; results.md).
+    pareto : bool or str
+        Also draw every linear controller family along its tuning path (ridge alphas of alpha: auto, integrator
+        gains) in the first scenario (true) or the one named, median RMS on a stream of its own against the width of
+        the stable DM-gain interval: pareto.png, pareto.md, pareto.json.
+    """
+
+    predictors: dict[str, PredictorConfig]
+    robustness: dict[str, list[float]] | None = None
+    simulated_margins: list[str] = field(default_factory=list)
+    pareto: bool | str = False
 
 
-def add_evaluate_arguments(parser: ArgumentParser) -> None:
-    add_common(parser, "Output folder (must be empty unless --overwrite true).")
-    add_evaluation(parser)
-    parser.add_argument("--checkpoints", type=dict[str, str], required=True, help="Name -> checkpoint path.")
-    parser.add_argument("--baselines", type=list[str], default=["uncorrected", "pseudo_integrator", "integrator"],
-                        help="Baseline controllers to run beside the checkpoints.")
+@dataclass(kw_only=True)
+class EvaluateConfig(ExperimentCommand):
+    """``eofnn evaluate``: saved checkpoints beside baselines.
+
+    Parameters
+    ----------
+    checkpoints : dict
+        Name -> checkpoint path.
+    baselines : list of str
+        Baseline controllers to run beside the checkpoints.
+    """
+
+    checkpoints: dict[str, str]
+    baselines: list[str] = field(default_factory=lambda: ["uncorrected", "pseudo_integrator", "integrator"])
 
 
-def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str) -> ExperimentResult:
+def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None
+                   ) -> ExperimentResult:
     """Validate everything and check the output folder, then run and write the results in one move."""
     out = check_output_folder(cfg.out, cfg.overwrite)
     grid = check_grid(getattr(cfg, "robustness", None))
@@ -70,7 +86,7 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
                             trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
     with staged_folder(out, cfg.overwrite) as staging:
         experiment.checkpoint_dir = staging / "checkpoints"
-        (staging / "config.yaml").write_text(config_dump)
+        (staging / "config.yaml").write_text(config_yaml(cfg, config_dump))
         result = experiment.run()
         for scenario_name in getattr(cfg, "simulated_margins", []):
             for name in experiment.predictors:
@@ -96,11 +112,14 @@ def run_experiment(cfg, predictors: dict[str, PredictorConfig], config_dump: str
     return result
 
 
-def compare(cfg, config_dump: str) -> ExperimentResult:
+def compare(cfg: CompareConfig, config_dump: str | None = None) -> ExperimentResult:
+    """Run ``cfg.predictors`` in every scenario and write the results into ``cfg.out`` (``config_dump``: the resolved
+    YAML written as ``config.yaml``; the config's own YAML when called from Python)."""
     return run_experiment(cfg, cfg.predictors, config_dump)
 
 
-def evaluate(cfg, config_dump: str) -> ExperimentResult:
+def evaluate(cfg: EvaluateConfig, config_dump: str | None = None) -> ExperimentResult:
+    """Run ``cfg.checkpoints`` beside ``cfg.baselines`` in every scenario and write the results into ``cfg.out``."""
     predictors = {name: PredictorConfig(controller=name) for name in cfg.baselines}
     for name, path in cfg.checkpoints.items():
         predictors[name] = PredictorConfig(checkpoint=path)

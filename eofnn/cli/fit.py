@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from jsonargparse import ArgumentParser
-
-from eofnn.cli.common import add_common, log
-from eofnn.cli.telemetry import add_fit_telemetry_arguments, run_fit_telemetry
+from eofnn.cli.common import TelemetryFiles, config_yaml, log
+from eofnn.cli.groups import SimulationCommand
+from eofnn.cli.telemetry import PLANT_HELP, fit_telemetry
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import fit_from_config
@@ -19,14 +19,34 @@ DESCRIPTION = ("Train one predictor on telemetry simulated in a scenario (simula
                "and evaluate can reuse (its resolved config goes beside it, as CHECKPOINT.yaml).")
 
 
-def add_arguments(parser: ArgumentParser) -> None:
-    add_common(parser, "Checkpoint file to write (.ckpt).")
-    parser.add_argument("--predictor", type=PredictorConfig, default=PredictorConfig(),
-                        help="History, network, data and optimisation of the predictor.")
-    add_fit_telemetry_arguments(parser)
+@dataclass(kw_only=True)
+class FitConfig(TelemetryFiles, SimulationCommand):
+    """``eofnn fit``: one predictor, from simulator truth or from telemetry alone.
+
+    Parameters
+    ----------
+    out : str
+        Checkpoint file to write (.ckpt).
+    predictor : PredictorConfig
+        History, network, data and optimisation of the predictor.
+    telemetry : str or list of str, optional
+        Train from these telemetry files alone (y, wfs) instead of simulating the scenario; the last
+        predictor.data.val_frames frames (at most a fifth) are held out for validation.
+    plant : str
+        With --telemetry: {plant_help}
+    """
+
+    predictor: PredictorConfig = field(default_factory=PredictorConfig)
+    telemetry: str | list[str] | None = None
+    plant: str = "identify"
 
 
-def run(cfg, config_dump: str) -> dict:
+FitConfig.__doc__ = FitConfig.__doc__.replace("{plant_help}", PLANT_HELP)
+
+
+def fit(cfg: FitConfig, config_dump: str | None = None) -> dict:
+    """Fit ``cfg.predictor`` and write its checkpoint to ``cfg.out`` and its resolved config beside it; returns the
+    summary line (losses, rounds, where the targets came from)."""
     p: PredictorConfig = cfg.predictor
     if not p.trains:
         raise ConfigError(f"fit trains a predictor: controller={p.controller!r}, checkpoint={p.checkpoint!r} "
@@ -36,13 +56,13 @@ def run(cfg, config_dump: str) -> dict:
     check_output_file(out, cfg.overwrite)
     check_output_file(config_out, cfg.overwrite)
     if cfg.telemetry:
-        result = run_fit_telemetry(cfg, config_dump, out)
+        result = fit_telemetry(cfg, out)
     else:
         log(f"fitting {p.history} predictor, history {p.history_length}, {p.optimization.fit_method}, "
             f"{p.data.frames} frames (simulator truth)")
         result = fit_from_config(cfg.scenario, p, out, overwrite=cfg.overwrite, progress=bool(cfg.progress))
     with staged_file(config_out, overwrite=True) as partial:
-        partial.write_text(config_dump)
+        partial.write_text(config_yaml(cfg, config_dump))
     summary = {"checkpoint": str(out), "train_loss_nm2": result.train_loss, "val_loss_nm2": result.val_loss,
                "rounds": getattr(result, "rounds", []), "targets": "telemetry" if cfg.telemetry else "simulator truth"}
     log(json.dumps(summary))

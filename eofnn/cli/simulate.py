@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
-from jsonargparse import ArgumentParser
 
-from eofnn.cli.common import add_common, log
+from eofnn.cli.common import config_yaml, log
+from eofnn.cli.groups import SimulationCommand
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import load_configured_checkpoint, trusted_class_paths
 from eofnn.evaluation.metrics import loop_metrics
 from eofnn.evaluation.nonstationary import require_changes_within
-from eofnn.reporting.report import plot_rms_vs_time
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, staged_file
+from eofnn.reporting.report import plot_rms_vs_time
 from eofnn.resources import require_memory
 from eofnn.sim.loop import run_loop
 from eofnn.validation import Interval, OneOf, check_value
@@ -27,19 +28,36 @@ DESCRIPTION = ("Run one controller (a baseline or a checkpoint) in a scenario an
 SUFFIXES = (".fits", ".fit", ".npz")
 
 
-def add_arguments(parser: ArgumentParser) -> None:
-    add_common(parser, "Telemetry file to write (.fits or .npz); the plot goes to the same name with .png.")
-    parser.add_argument("--predictor", type=PredictorConfig, default=PredictorConfig(controller="integrator"),
-                        help="The controller: controller: uncorrected|pseudo_integrator|integrator, or "
-                             "controller: predictor with a checkpoint.")
-    parser.add_argument("--frames", type=int, default=2000, help="Frames to simulate.")
-    parser.add_argument("--realisations", type=int, default=1, help="Independent realisations (batch).")
-    parser.add_argument("--seed", type=int, default=1, help="Seed of the turbulence and noise.")
-    parser.add_argument("--dtype", type=str, default="float64",
-                        help="Precision of the saved arrays: float64, or float32 (half the size; nm to 7 digits).")
+@dataclass(kw_only=True)
+class SimulateConfig(SimulationCommand):
+    """``eofnn simulate``: one controller's telemetry.
+
+    Parameters
+    ----------
+    out : str
+        Telemetry file to write (.fits or .npz); the plot goes to the same name with .png.
+    predictor : PredictorConfig
+        The controller: controller: uncorrected|pseudo_integrator|integrator, or controller: predictor with a
+        checkpoint.
+    frames : int
+        Frames to simulate.
+    realisations : int
+        Independent realisations (batch).
+    seed : int
+        Seed of the turbulence and noise.
+    dtype : str
+        Precision of the saved arrays: float64, or float32 (half the size; nm to 7 digits).
+    """
+
+    predictor: PredictorConfig = field(default_factory=lambda: PredictorConfig(controller="integrator"))
+    frames: int = 2000
+    realisations: int = 1
+    seed: int = 1
+    dtype: str = "float64"
 
 
-def run(cfg, config_dump: str) -> None:
+def simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
+    """Run ``cfg.predictor`` in ``cfg.scenario`` and write its telemetry to ``cfg.out`` and an RMS plot beside it."""
     out = Path(cfg.out)
     if out.suffix.lower() not in SUFFIXES:
         raise ConfigError(f"out={str(out)!r} has suffix {out.suffix!r}: allowed are {', '.join(SUFFIXES)}")
@@ -68,7 +86,8 @@ def run(cfg, config_dump: str) -> None:
     result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
                       build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress)
     telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)
-    telemetry.config.update({"eofnn": yaml.safe_load(config_dump), "diverged_frame": result.diverged_frame})
+    telemetry.config.update({"eofnn": yaml.safe_load(config_yaml(cfg, config_dump)),
+                             "diverged_frame": result.diverged_frame})
     settle = min(EvaluationConfig().settle_frames, cfg.frames // 2)
     metrics = loop_metrics(result, settle, EvaluationConfig().strehl_wavelength_m)
     with staged_file(out, cfg.overwrite) as partial:

@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
-from jsonargparse import ArgumentParser
-
-from eofnn.reporting.stability import plot_stability
 from eofnn.analysis.linear import controller_stability, summary
-from eofnn.cli.common import add_common, log
+from eofnn.cli.common import config_yaml, log
+from eofnn.cli.groups import SimulationCommand
 from eofnn.control.registry import NEEDS_PREDICTOR
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import Experiment
 from eofnn.outputs import check_output_folder, staged_folder
+from eofnn.reporting.stability import plot_stability
 from eofnn.training.checkpoint import load_predictor
 from eofnn.validation import Interval, OrNone, check_value
 
@@ -25,21 +24,32 @@ DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator
                "Writes stability.json and stability.png into --out.")
 
 
-def add_arguments(parser: ArgumentParser) -> None:
-    add_common(parser, "Output folder (must be empty unless --overwrite true).")
-    parser.add_argument("--checkpoint", type=str | None, default=None,
-                        help="Checkpoint of a linear predictor (.ckpt); or give --controller.")
-    parser.add_argument("--controller", type=PredictorConfig | None, default=None,
-                        help="A classical controller to analyse instead of a checkpoint, e.g. {controller: lqg, data: "
-                             "{frames: 10000}} (modal_integrator and lqg record their telemetry in the scenario).")
-    parser.add_argument("--dm_gain_model", type=float | None, default=None,
-                        help="DM gain the controller believes (its pseudo-open-loop reconstruction); unset, the "
-                             "checkpoint's own (identified from telemetry, or 1).")
+@dataclass(kw_only=True)
+class StabilityConfig(SimulationCommand):
+    """``eofnn stability``: the analytic margins of one linear controller.
+
+    Parameters
+    ----------
+    checkpoint : str, optional
+        Checkpoint of a linear predictor (.ckpt); or give --controller.
+    controller : PredictorConfig, optional
+        A classical controller to analyse instead of a checkpoint, e.g. {controller: lqg, data: {frames: 10000}}
+        (modal_integrator and lqg record their telemetry in the scenario).
+    dm_gain_model : float, optional
+        DM gain the controller believes (its pseudo-open-loop reconstruction); unset, the checkpoint's own
+        (identified from telemetry, or 1).
+    """
+
+    checkpoint: str | None = None
+    controller: PredictorConfig | None = None
+    dm_gain_model: float | None = None
 
 
-def run(cfg, config_dump: str) -> dict:
+def stability(cfg: StabilityConfig, config_dump: str | None = None) -> dict:
+    """Analyse the checkpoint's filter or the classical controller in ``cfg.scenario``'s plant; writes
+    ``stability.json``, ``stability.png`` and ``config.yaml`` into ``cfg.out`` and returns the summary line."""
     check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
-    if (cfg.checkpoint is None) == (getattr(cfg, "controller", None) is None):
+    if (cfg.checkpoint is None) == (cfg.controller is None):
         raise ConfigError("give either --checkpoint (a trained linear predictor) or --controller (a classical "
                           "controller), not both or neither")
     out = check_output_folder(cfg.out, cfg.overwrite)
@@ -55,7 +65,7 @@ def run(cfg, config_dump: str) -> dict:
         result, what = classical_stability(cfg.controller, cfg.scenario, cfg.dm_gain_model), cfg.controller.controller
     with staged_folder(out, cfg.overwrite) as staging:
         (staging / "stability.json").write_text(result.to_json())
-        (staging / "config.yaml").write_text(config_dump)
+        (staging / "config.yaml").write_text(config_yaml(cfg, config_dump))
         plot_stability(result, staging / "stability.png", f"{what}")
     line = summary(result)
     log(json.dumps({k: line[k] for k in ("stable", "dm_gain_interval", "delay_margin_frames", "max_root_modulus")}))

@@ -4,19 +4,18 @@ telemetry alone (``docs/telemetry.md``) to a deployable filter (``docs/export.md
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from jsonargparse import ActionConfigFile, ArgumentParser
-
 from eofnn.analysis.linear import dm_gain_margin
-from eofnn.evaluation.replay import replay
-from eofnn.reporting.replay import replay_figure
-from eofnn.cli.common import log
+from eofnn.cli.common import Output, TelemetryCommand, log
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import AnyTelemetry, load_telemetry, telemetry_grid
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
 from eofnn.evaluation.config import PredictorConfig
+from eofnn.evaluation.replay import replay as replay_telemetry
 from eofnn.outputs import check_output_file, check_output_folder, staged_folder
+from eofnn.reporting.replay import replay_figure
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.export import export_filter
 from eofnn.training.from_telemetry import TelemetryFit, fit_from_telemetry
@@ -36,27 +35,6 @@ PLANT_HELP = ("DM model for POL values and targets: 'identify' (from this teleme
 
 
 MATRICES = ("interaction_matrix", "reconstructor", "modal_basis")
-
-
-def add_matrix_arguments(parser: ArgumentParser) -> None:
-    """Matrices that real-time computers keep beside their telemetry (docs/telemetry.md)."""
-    parser.add_argument("--interaction_matrix", type=str | None, default=None,
-                        help="File (.npy, .npz, .fits) of the (S, K) interaction matrix, slopes = IM @ y, for telemetry "
-                             "recorded as slopes; replaces one in the telemetry file.")
-    parser.add_argument("--reconstructor", type=str | None, default=None,
-                        help="File of the (K, S) reconstructor, wfs = R @ slopes (used as given).")
-    parser.add_argument("--modal_basis", type=str | None, default=None,
-                        help="File of the (actuators, M) modal basis when y and wfs are modal coefficients.")
-
-
-def _base(parser: ArgumentParser, out_help: str) -> None:
-    parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
-    parser.add_argument("--telemetry", type=str | list[str], required=True,
-                        help="Telemetry file, .fits or .npz, with y and wfs in nm, or a list [a.fits, b.fits] of files "
-                             "of one plant.")
-    parser.add_argument("--out", type=str, required=True, help=out_help)
-    parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
-    add_matrix_arguments(parser)
 
 
 def resolve_plant_option(plant: str, telemetry: list[AnyTelemetry]) -> IdentifiedPlant | None:
@@ -89,14 +67,29 @@ def check_checkpoint_fits(predictor, checkpoint: str, telemetry: list[AnyTelemet
                               f"but the telemetry has delay_frames={delay}")
 
 
-def add_identify_arguments(parser: ArgumentParser) -> None:
-    _base(parser, "plant.json to write.")
-    parser.add_argument("--radius", type=float, default=1.5, help="Coupling neighbourhood radius in pitches.")
-    parser.add_argument("--nuisance_lags", type=int, default=2, help="Past frames of y and wfs as nuisance regressors.")
-    parser.add_argument("--max_lag", type=int | None, default=None, help="Largest WFS lag searched (frames).")
-    parser.add_argument("--batch_frames", type=int, default=1024,
-                        help="Frames read and regressed at a time (memory: about 8 bytes x actuators x batch_frames x "
-                             "(neighbours + 2 nuisance_lags + 8), whatever the length of the file).")
+@dataclass(kw_only=True)
+class IdentifyConfig(TelemetryCommand):
+    """``eofnn identify``: the plant from dithered telemetry.
+
+    Parameters
+    ----------
+    out : str
+        plant.json to write.
+    radius : float
+        Coupling neighbourhood radius in pitches.
+    nuisance_lags : int
+        Past frames of y and wfs as nuisance regressors.
+    max_lag : int, optional
+        Largest WFS lag searched (frames).
+    batch_frames : int
+        Frames read and regressed at a time (memory: about 8 bytes x actuators x batch_frames x (neighbours + 2
+        nuisance_lags + 8), whatever the length of the file).
+    """
+
+    radius: float = 1.5
+    nuisance_lags: int = 2
+    max_lag: int | None = None
+    batch_frames: int = 1024
 
 
 def _files(value: str | list[str]) -> list[str]:
@@ -117,7 +110,8 @@ def _load(cfg, streamed: bool = False) -> list[AnyTelemetry]:
     return telemetry
 
 
-def run_identify(cfg, config_dump: str) -> dict:
+def identify(cfg: IdentifyConfig, config_dump: str | None = None) -> dict:
+    """Identify the plant from ``cfg.telemetry`` and write it to ``cfg.out``; returns the summary line."""
     check_value("batch_frames", cfg.batch_frames, Interval(1, 1_000_000, integer=True, unit="frames"))
     out = check_output_file(cfg.out, cfg.overwrite)
     telemetry = _load(cfg, streamed=True)
@@ -134,16 +128,8 @@ def run_identify(cfg, config_dump: str) -> dict:
     return summary
 
 
-def add_fit_telemetry_arguments(parser: ArgumentParser) -> None:
-    """What ``eofnn fit`` adds for training from telemetry alone."""
-    parser.add_argument("--telemetry", type=str | list[str] | None, default=None,
-                        help="Train from these telemetry files alone (y, wfs) instead of simulating the scenario; the "
-                             "last predictor.data.val_frames frames (at most a fifth) are held out for validation.")
-    parser.add_argument("--plant", type=str, default="identify", help=f"With --telemetry: {PLANT_HELP}")
-    add_matrix_arguments(parser)
-
-
-def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
+def fit_telemetry(cfg, out: Path) -> TelemetryFit:
+    """The telemetry path of ``eofnn fit`` (``cfg``: its :class:`~eofnn.cli.fit.FitConfig`)."""
     p: PredictorConfig = cfg.predictor
     telemetry = _load(cfg, streamed=True)  # read predictor.data.batch_frames frames at a time, never whole
     spec = HistorySpec(p.history, p.history_length, telemetry[0].delay_frames)
@@ -158,17 +144,39 @@ def run_fit_telemetry(cfg, config_dump: str, out: Path) -> TelemetryFit:
                               margin=dm_gain_margin() if p.optimization.select is not None else None)
 
 
-def add_replay_arguments(parser: ArgumentParser) -> None:
-    _base(parser, "Folder for replay.json and replay.png.")
-    parser.add_argument("--checkpoint", type=str, required=True, help="Predictor checkpoint (eofnn fit).")
-    parser.add_argument("--plant", type=str, default="identify", help=PLANT_HELP)
-    parser.add_argument("--start", type=int, default=0, help="First frame of each file to replay (earlier: history).")
-    parser.add_argument("--settle_frames", type=int, default=0, help="Frames after the first left out of statistics.")
-    parser.add_argument("--trusted_networks", type=list[str], default=[],
-                        help="Network class paths, beyond eofnn's own, that the checkpoint may name.")
+@dataclass(kw_only=True)
+class ReplayConfig(TelemetryCommand):
+    """``eofnn replay``: a checkpoint on held-out telemetry.
+
+    Parameters
+    ----------
+    out : str
+        Folder for replay.json and replay.png.
+    checkpoint : str
+        Predictor checkpoint (eofnn fit).
+    plant : str
+        {plant_help}
+    start : int
+        First frame of each file to replay (earlier: history).
+    settle_frames : int
+        Frames after the first left out of statistics.
+    trusted_networks : list of str
+        Network class paths, beyond eofnn's own, that the checkpoint may name.
+    """
+
+    checkpoint: str
+    plant: str = "identify"
+    start: int = 0
+    settle_frames: int = 0
+    trusted_networks: list[str] = field(default_factory=list)
 
 
-def run_replay(cfg, config_dump: str) -> dict:
+ReplayConfig.__doc__ = ReplayConfig.__doc__.replace("{plant_help}", PLANT_HELP)
+
+
+def replay(cfg: ReplayConfig, config_dump: str | None = None) -> dict:
+    """Replay ``cfg.checkpoint`` on ``cfg.telemetry`` and write ``replay.json`` and ``replay.png`` into ``cfg.out``;
+    returns the summary line."""
     check_value("start", cfg.start, Interval(0, 10**9, integer=True))
     check_value("settle_frames", cfg.settle_frames, Interval(0, 10**9, integer=True))
     out = check_output_folder(cfg.out, cfg.overwrite)
@@ -176,7 +184,7 @@ def run_replay(cfg, config_dump: str) -> dict:
     telemetry = _load(cfg)
     check_checkpoint_fits(predictor, cfg.checkpoint, telemetry)
     plant = resolve_plant_option(cfg.plant, telemetry)
-    result = replay(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
+    result = replay_telemetry(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
                     settle_frames=cfg.settle_frames)
     with staged_folder(out, cfg.overwrite) as folder:
         result.to_json(folder / "replay.json")
@@ -186,16 +194,26 @@ def run_replay(cfg, config_dump: str) -> dict:
     return summary
 
 
-def add_export_arguments(parser: ArgumentParser) -> None:
-    parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
-    parser.add_argument("--checkpoint", type=str, required=True, help="Linear predictor checkpoint (eofnn fit).")
-    parser.add_argument("--out", type=str, required=True, help="Filter FITS file to write.")
-    parser.add_argument("--overwrite", type=bool, default=False, help="Replace existing output.")
-    parser.add_argument("--dm_gain_model", type=float | None, default=None,
-                        help="DM gain of the POL reconstruction (open loop); default the one the fit used, else 1.")
+@dataclass(kw_only=True)
+class ExportConfig(Output):
+    """``eofnn export``: a linear predictor's filter for a real-time computer.
+
+    Parameters
+    ----------
+    checkpoint : str
+        Linear predictor checkpoint (eofnn fit).
+    out : str
+        Filter FITS file to write.
+    dm_gain_model : float, optional
+        DM gain of the POL reconstruction (open loop); default the one the fit used, else 1.
+    """
+
+    checkpoint: str
+    dm_gain_model: float | None = None
 
 
-def run_export(cfg, config_dump: str) -> dict:
+def export(cfg: ExportConfig, config_dump: str | None = None) -> dict:
+    """Write ``cfg.checkpoint``'s filter as FITS to ``cfg.out``; returns the summary line."""
     check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
     out = check_output_file(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint)

@@ -15,7 +15,6 @@ import copy
 import json
 import math
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.stability import LoopSetup, StabilityResult, analyse_filter

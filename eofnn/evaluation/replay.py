@@ -37,7 +37,6 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.layout import ActuatorLayout
 from eofnn.sim.spaces import modal_to_actuators
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.from_telemetry import resolve_plant

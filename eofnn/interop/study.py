@@ -21,9 +21,9 @@ from dataclasses import asdict, dataclass, field
 from typing import ClassVar
 
 from eofnn.analysis.linear import dm_gain_margin
-from eofnn.evaluation.replay import replay
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
+from eofnn.evaluation.replay import replay
 from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter, scan_integrator
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant

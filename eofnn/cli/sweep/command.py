@@ -15,13 +15,14 @@ import os
 import shutil
 import sys
 from contextlib import closing
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import yaml
-from jsonargparse import ArgumentParser
 from tqdm import tqdm
 
+from eofnn.cli.common import Output
 from eofnn.cli.sweep.backends import BACKENDS, run_tasks, task
 from eofnn.cli.sweep.grid import load_grid
 from eofnn.cli.sweep.plan import Point, plan
@@ -39,28 +40,41 @@ DESCRIPTION = ("Run one compare per point of a grid of config values (the Cartes
                "130: interrupted.")
 
 
-def add_arguments(parser: ArgumentParser) -> None:
-    """The ``sweep`` subcommand's arguments."""
-    parser.add_argument("--config", type=str, required=True,
-                        help="Base compare config (YAML) that every point starts from.")
-    parser.add_argument("--grid", type=str, required=True,
-                        help="YAML mapping dotted config keys to lists or {log_range: [start, stop, count]}, e.g. "
-                        "predictors.cl_eof.history_length: [2, 4, 8].")
-    parser.add_argument("--out", type=str, required=True,
-                        help="Sweep folder: a new or empty one, or the folder of the same sweep to resume it.")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="Points run at once (local: worker processes, 1 runs in this process; ray without "
-                        "--address: CPUs of the local Ray).")
-    parser.add_argument("--backend", type=Literal["local", "ray"], default="local",
-                        help="local processes, or Ray tasks (pip install eofnn[ray]).")
-    parser.add_argument("--address", type=str | None, default=None,
-                        help="Ray cluster to run on (e.g. auto or ray://host:10001); default: a local Ray.")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="Torch threads per point (fixed, so numbers do not depend on the backend).")
-    parser.add_argument("--overwrite", type=bool, default=False,
-                        help="Discard the points and results of a previous sweep in --out and start again.")
-    parser.add_argument("--progress", type=bool | None, default=None,
-                        help="Progress bar over points (default: only when stderr is a terminal).")
+@dataclass(kw_only=True)
+class SweepConfig(Output):
+    """``eofnn sweep``: a grid of compare runs.
+
+    Parameters
+    ----------
+    config : str
+        Base compare config (YAML) that every point starts from.
+    grid : str
+        YAML mapping dotted config keys to lists or {log_range: [start, stop, count]}, e.g.
+        predictors.cl_eof.history_length: [2, 4, 8].
+    out : str
+        Sweep folder: a new or empty one, or the folder of the same sweep to resume it.
+    workers : int
+        Points run at once (local: worker processes, 1 runs in this process; ray without --address: CPUs of the
+        local Ray).
+    backend : str
+        local processes, or Ray tasks (pip install eofnn[ray]).
+    address : str, optional
+        Ray cluster to run on (e.g. auto or ray://host:10001); default: a local Ray.
+    threads : int
+        Torch threads per point (fixed, so numbers do not depend on the backend).
+    overwrite : bool
+        Discard the points and results of a previous sweep in --out and start again.
+    progress : bool, optional
+        Progress bar over points (default: only when stderr is a terminal).
+    """
+
+    config: str
+    grid: str
+    workers: int = 1
+    backend: Literal["local", "ray"] = "local"
+    address: str | None = None
+    threads: int = 1
+    progress: bool | None = None
 
 
 def _log(message: str) -> None:
@@ -94,8 +108,8 @@ def _check_options(cfg) -> None:
         require(cfg.backend == "ray", f"address={cfg.address!r} is only for --backend ray")
 
 
-def run(cfg, config_dump: str = "") -> int:
-    """Run (or resume) the sweep described by the parsed ``sweep`` options; returns the exit status.
+def sweep(cfg: SweepConfig, config_dump: str | None = None) -> int:
+    """Run (or resume) the sweep ``cfg`` describes; returns the exit status.
 
     0: every point done; 1: some points failed (recorded in ``sweep.csv`` and their ``status.json``);
     130: interrupted (Ctrl-C), with ``sweep.csv`` consistent and finished points kept. Bad options or grids raise
@@ -108,7 +122,7 @@ def run(cfg, config_dump: str = "") -> int:
         return INTERRUPTED
 
 
-def _run(cfg) -> int:
+def _run(cfg: SweepConfig) -> int:
     _check_options(cfg)
     grid = load_grid(cfg.grid)
     points = plan(cfg.config, grid)
