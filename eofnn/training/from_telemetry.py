@@ -14,16 +14,14 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from eofnn.control.baselines import Dithered, Integrator
+from eofnn.control.baselines import record_dithered
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig
 from eofnn.data.targets import AnyTelemetry, TelemetryBatches, check_sequences, telemetry_grid, telemetry_items
-from eofnn.errors import ConfigError, DivergedError, TelemetryError
+from eofnn.errors import ConfigError, TelemetryError
 from eofnn.resources import require_memory
-from eofnn.seeding import int_seed
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, dm_model, layout_to_dict
-from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction
@@ -199,15 +197,11 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
     if data.dither_nm <= 0:
         raise ConfigError(f"data.dither_nm={data.dither_nm!r} is invalid for telemetry training: the plant is "
                           "identified from the dither, so it must be > 0 (nm)")
-    recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
     n_sequences, n_frames, val_frames = telemetry_sequences(data)
     scenario.require_stream_frames(n_frames, f"telemetry training ({n_sequences} sequence(s) of {n_frames} frames)")
-    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", n_sequences * data.realisations),
-                      scenario.plant, recorder, n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"),
-                      record=("y", "wfs"), progress=output.progress)
-    if result.diverged:
-        raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame} in the scenario's "
-                            "plant: lower data.integrator_gain or data.dither_nm")
+    streams = ("telemetry-train", "telemetry-dither", "telemetry-noise")
+    result = record_dithered(scenario, data, n_frames, streams, n_sequences * data.realisations,
+                             progress=output.progress, where=" in the scenario's plant")
     plant = identify_plant(result.telemetry)
     plant.require_identified()
     return fit_from_telemetry(result.telemetry, spec, network, plant=plant,
