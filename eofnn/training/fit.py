@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import copy
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -254,7 +254,7 @@ class Solved:
 
 
 def solve(task: PredictorTask, data: FitData, optimization: OptimizationConfig, *, output: FitOutput | None = None,
-          seed: int = 0, margin=None) -> Solved:
+          seed: int = 0, margin: Callable[[Any], Any] | None = None) -> Solved:
     """Fit ``task``'s network on ``data``, the one step of every fit that tells closed form from SGD.
 
     ``closed_form``: :func:`solve_closed_form` (``margin``: ``weights -> interval``, :func:`bind_margin`), then
