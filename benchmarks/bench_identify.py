@@ -27,7 +27,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
-from eofnn.training.from_telemetry import fit_from_telemetry
+from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 
 
@@ -52,7 +52,8 @@ def bench_identify(n_frames: int = 60000, n_across: int = 40, diameter_m: float 
     results = {}
     calls = {
         "identify": (lambda: results.__setitem__("plant", identify_plant(telemetry, batch_frames=batch_frames)), 1),
-        "fit": (lambda: fit_from_telemetry(telemetry, spec, plant={"dm_gain": 2.0}, batch_frames=batch_frames), 1),
+        "fit": (lambda: fit_from_telemetry(telemetry, spec, plant={"dm_gain": 2.0},
+                                           data=TelemetryDataConfig(batch_frames=batch_frames)), 1),
     }
     timings = time_interleaved(calls, repeat=repeat, warmup=0)
     plant = results["plant"]

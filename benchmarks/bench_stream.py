@@ -69,14 +69,15 @@ def _fit(path: str, mode: str, batch_frames: int):
     from eofnn.data.history import HistorySpec
     from eofnn.sim.telemetry import Telemetry
     from eofnn.sim.telemetry_file import StreamedTelemetry
-    from eofnn.training.from_telemetry import fit_from_telemetry
+    from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
     from eofnn.training.identify import identify_plant
 
     streamed = mode.endswith("streamed")
     telemetry = StreamedTelemetry.open(path) if streamed else Telemetry.load(path, required=("y", "wfs"))
     if mode.startswith("identify_"):
         return identify_plant(telemetry, batch_frames=batch_frames)
-    return fit_from_telemetry(telemetry, HistorySpec(*SPEC), plant={"dm_gain": 1.0}, batch_frames=batch_frames)
+    return fit_from_telemetry(telemetry, HistorySpec(*SPEC), plant={"dm_gain": 1.0},
+                              data=TelemetryDataConfig(batch_frames=batch_frames))
 
 
 def _peak_child(path: str, mode: str, batch_frames: int) -> dict:
@@ -88,11 +89,11 @@ def _peak_child(path: str, mode: str, batch_frames: int) -> dict:
 
     from eofnn.data.history import HistorySpec
     from eofnn.sim.telemetry import Telemetry
-    from eofnn.training.from_telemetry import fit_from_telemetry
+    from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 
     # Lazy initialisation (torch kernels, Lightning's seeding) on 8 actuators: no buffer of the fit's size is kept.
     tiny = Telemetry(y=torch.randn(300, 8, dtype=torch.float64), wfs=torch.randn(300, 8, dtype=torch.float64))
-    fit_from_telemetry(tiny, HistorySpec(*SPEC), plant={"dm_gain": 1.0}, batch_frames=batch_frames)
+    fit_from_telemetry(tiny, HistorySpec(*SPEC), plant={"dm_gain": 1.0}, data=TelemetryDataConfig(batch_frames=batch_frames))
 
     reset_peak_memory()  # the peak is the fit's, not the imports'
     before = status_bytes("VmRSS")

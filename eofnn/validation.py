@@ -9,9 +9,11 @@ a YAML file are caught here rather than deep inside a simulation.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -171,3 +173,26 @@ def validated(cls: type) -> type:
 
     cls.__post_init__ = __post_init__
     return cls
+
+
+def from_mapping(cls: type, value: Any, where: str, *, sort_allowed: bool = True,
+                 check_keys: Callable[[dict], None] | None = None) -> Any:
+    """``value`` as a ``cls`` (a config dataclass): an instance as it is, a mapping of its fields built. Anything else,
+    an unknown key (the allowed ones listed, sorted unless ``sort_allowed`` is false) and a wrong type deep inside
+    are each one line that names ``where``; ``check_keys(value)``, if given, runs after the unknown-key check (e.g.
+    for keys that must be there)."""
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where} must be a mapping, got {type(value).__name__}")
+    allowed = [f.name for f in dataclasses.fields(cls) if not f.name.startswith("_")]
+    unknown = sorted(map(str, set(value) - set(allowed)))
+    if unknown:
+        raise ConfigError(f"unknown key(s) {', '.join(unknown)} in {where}: allowed are "
+                          f"{', '.join(sorted(allowed) if sort_allowed else allowed)}")
+    if check_keys is not None:
+        check_keys(value)
+    try:
+        return cls(**value)
+    except TypeError as err:  # a wrong type deep inside a comparison
+        raise ConfigError(f"invalid value in {where}: {err}") from None

@@ -112,7 +112,7 @@ def train_filter(telemetry_path: Path, filter_path: Path, history_length: int = 
           f"lag {plant.lag_frames} frames")
     spec = HistorySpec("open_loop", history_length, telemetry.delay_frames)
     fitted = fit_from_telemetry(telemetry, spec, plant=plant)
-    return export_filter(fitted.network, spec, filter_path, dm_gain_model=fitted.dm_gain,
+    return export_filter(fitted.network, spec, filter_path, dm_gain_model=fitted.predictor.dm_gain_model,
                          positions_m=telemetry.positions_m, overwrite=True)
 
 

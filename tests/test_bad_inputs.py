@@ -272,10 +272,11 @@ def test_all_zero_telemetry_is_refused_before_a_fit(tmp_path):
     from eofnn.data.history import HistorySpec
     from eofnn.errors import TelemetryError
     from eofnn.sim.telemetry import Telemetry
+    from eofnn.training.fit import FitOutput
     from eofnn.training.from_telemetry import fit_from_telemetry
 
     zeros = torch.zeros(500, 80, dtype=torch.float64)
     telemetry = Telemetry(y=zeros, wfs=zeros.clone(), delay_frames=2)
     with pytest.raises(TelemetryError, match="telemetry holds no signal"):
-        fit_from_telemetry(telemetry, HistorySpec("open_loop", 3, 2), checkpoint_path=tmp_path / "z.ckpt")
+        fit_from_telemetry(telemetry, HistorySpec("open_loop", 3, 2), output=FitOutput(tmp_path / "z.ckpt"))
     assert not (tmp_path / "z.ckpt").exists()

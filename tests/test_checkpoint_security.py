@@ -12,7 +12,7 @@ from eofnn.cli.main import main
 from eofnn.data.stream import DataConfig
 from eofnn.errors import CheckpointError
 from eofnn.training.checkpoint import load_predictor
-from eofnn.training.fit import fit_predictor
+from eofnn.training.fit import FitOutput, fit_predictor
 from eofnn.training.task import OptimizationConfig
 
 MODULE = """
@@ -36,7 +36,7 @@ def foreign_checkpoint(small_scenario, tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(tmp_path))
     path = tmp_path / "ol.ckpt"
     fit_predictor(small_scenario, "open_loop", 3, data=DataConfig(frames=400, val_frames=100, sequence_frames=400),
-                  checkpoint_path=path)
+                  output=FitOutput(path))
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     ckpt["hyper_parameters"]["network"] = {"class_path": "planted_module.Net", "init_args": {}}
     forged = tmp_path / "forged.ckpt"
@@ -76,14 +76,14 @@ def test_eofnns_own_networks_need_no_trust(small_scenario, tmp_path):
     fit_predictor(small_scenario, "open_loop", 3, {"class_path": "MLP", "init_args": {"hidden": [4]}},
                   data=DataConfig(frames=300, val_frames=100, sequence_frames=300),
                   optimization=OptimizationConfig(fit_method="sgd"),
-                  checkpoint_path=path)
+                  output=FitOutput(path))
     assert type(load_predictor(path).network).__name__ == "MLP"
 
 
 def test_non_finite_weights_are_refused(small_scenario, tmp_path):
     path = tmp_path / "ol.ckpt"
     fit_predictor(small_scenario, "open_loop", 3, data=DataConfig(frames=400, val_frames=100, sequence_frames=400),
-                  checkpoint_path=path)
+                  output=FitOutput(path))
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     ckpt["state_dict"]["network.weight"][0, 0] = float("nan")
     torch.save(ckpt, path)

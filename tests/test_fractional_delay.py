@@ -26,7 +26,7 @@ from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.export import export_filter
-from eofnn.training.fit import fit_predictor
+from eofnn.training.fit import FitOutput, fit_predictor
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig
 
@@ -201,7 +201,7 @@ def test_a_checkpoint_records_the_fractional_delay(tmp_path):
     scen = scenario(1.5, 6)
     path = tmp_path / "ol.ckpt"
     fit_predictor(scen, "open_loop", 3, None, data=DataConfig(frames=600, val_frames=200, sequence_frames=600),
-                  checkpoint_path=path)
+                  output=FitOutput(path))
     assert load_predictor(path, scen).spec.delay_frames == 1.5
     with pytest.raises(CheckpointError, match="trained for delay_frames=1.5 but the scenario has delay_frames=2") as err:
         load_predictor(path, scenario(2, 6))

@@ -19,7 +19,8 @@ from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
 from eofnn.sim.plant import Plant
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
-from eofnn.training.from_telemetry import fit_from_scenario_telemetry, fit_from_telemetry
+from eofnn.training.fit import FitOutput
+from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_scenario_telemetry, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.ridge import NormalEquations
 from eofnn.training.task import OptimizationConfig
@@ -73,7 +74,7 @@ def test_closed_loop_eof_from_telemetry_matches_truth(unknown_plant):
     sc, tel, plant = unknown_plant
     spec = SPEC["closed_loop"]
     fitted = fit_from_telemetry(tel, spec, plant=plant)
-    assert fitted.plant_source == "identified" and fitted.dm_gain == pytest.approx(2.0, rel=0.02)
+    assert fitted.info["plant_source"] == "identified" and fitted.predictor.dm_gain_model == pytest.approx(2.0, rel=0.02)
     from_telemetry = closed_loop_rms(sc, fitted.controller())
     from_truth = closed_loop_rms(sc, PredictiveController(truth_fit(tel, spec, 2.0), spec))
     assert from_telemetry == pytest.approx(from_truth, rel=0.2)
@@ -142,7 +143,8 @@ def test_mlp_by_sgd_and_checkpoints(unknown_plant, tmp_path):
     sc, tel, plant = unknown_plant
     spec = SPEC["open_loop"]
     mlp = {"class_path": "MLP", "init_args": {"hidden": [16], "scale_nm": 50.0}}
-    fitted = fit_from_telemetry(tel, spec, mlp, plant=plant, val_frames=500, checkpoint_path=tmp_path / "mlp.ckpt",
+    fitted = fit_from_telemetry(tel, spec, mlp, plant=plant, data=TelemetryDataConfig(val_frames=500),
+                                output=FitOutput(tmp_path / "mlp.ckpt"),
                                 optimization=OptimizationConfig(fit_method="sgd", lr=3e-3, epochs=2, accelerator="cpu"))
     assert fitted.val_loss is not None and fitted.train_loss is not None
     loaded = load_predictor(tmp_path / "mlp.ckpt", sc)
@@ -150,7 +152,8 @@ def test_mlp_by_sgd_and_checkpoints(unknown_plant, tmp_path):
     history = torch.randn(7, sc.grid.n_actuators, spec.n_taps, generator=torch.Generator().manual_seed(0),
                           dtype=torch.float64)
     assert torch.allclose(loaded.network(history), fitted.network(history))
-    linear = fit_from_telemetry(tel, spec, plant=plant, val_frames=500, checkpoint_path=tmp_path / "eof.ckpt")
+    linear = fit_from_telemetry(tel, spec, plant=plant, data=TelemetryDataConfig(val_frames=500),
+                                output=FitOutput(tmp_path / "eof.ckpt"))
     assert linear.val_loss < fitted.val_loss  # a linear EOF in closed form beats a 2-epoch MLP here
     assert torch.equal(load_predictor(tmp_path / "eof.ckpt").network.weight, linear.network.weight)
 

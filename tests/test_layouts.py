@@ -19,6 +19,7 @@ from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, apply_shift, layout_from_dict, layout_from_positions
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.checkpoint import load_predictor
+from eofnn.training.fit import FitOutput
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant
 
@@ -90,7 +91,7 @@ def test_fit_on_fried_with_neighbourhoods_beats_the_integrator_and_checkpoints_r
     train, held_out = record(pos, 3000, seed=0, noise_nm=1.0), record(pos, 1500, seed=5, noise_nm=1.0)
     plant = identify_plant(train)
     spec = HistorySpec("open_loop", 4, 2)
-    fit = fit_from_telemetry(train, spec, NEIGHBOURHOOD, plant=plant, checkpoint_path=tmp_path / "fried.ckpt")
+    fit = fit_from_telemetry(train, spec, NEIGHBOURHOOD, plant=plant, output=FitOutput(tmp_path / "fried.ckpt"))
     result = replay(fit.network, spec, held_out, plant=plant, start=100)
     per_actuator = replay(fit_from_telemetry(train, spec, plant=plant).network, spec, held_out, plant=plant, start=100)
     assert result.predictor.median_rms_nm < 0.1 * result.own_controller.median_rms_nm

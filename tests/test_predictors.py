@@ -18,7 +18,7 @@ from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError, Outp
 from eofnn.models.linear import LinearFilter
 from eofnn.sim import run_loop
 from eofnn.training.checkpoint import load_predictor
-from eofnn.training.fit import fit_predictor
+from eofnn.training.fit import FitOutput, fit_predictor
 from eofnn.training.ridge import NormalEquations, fit_closed_form
 from eofnn.training.task import OptimizationConfig
 
@@ -31,7 +31,7 @@ def fit(scenario, kind, history_length, network=None, checkpoint_path=None, **op
     data = DataConfig(**{k: v for k, v in options.items() if k in DATA_FIELDS})
     optimization = OptimizationConfig(**{k: v for k, v in options.items() if k not in DATA_FIELDS})
     return fit_predictor(scenario, kind, history_length, network, data=data, optimization=optimization,
-                         checkpoint_path=checkpoint_path)
+                         output=FitOutput(checkpoint_path))
 
 
 def recorder(gain=0.4, dither_nm=5.0):

@@ -18,7 +18,7 @@ from eofnn.evaluation.replay import replay
 from eofnn.runtime import PredictiveFilter
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 from eofnn.training.export import export_filter
-from eofnn.training.from_telemetry import fit_from_telemetry
+from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 
 DM_GAIN, NOISE_NM, DELAY, RATE_HZ = 1.7, 3.0, 2, 1000.0
@@ -109,7 +109,7 @@ def test_hand_written_file_identifies_trains_replays_and_exports(recording, tmp_
     errors = {}
     for kind in ("open_loop", "closed_loop"):
         spec = HistorySpec(kind, 4, DELAY)
-        fitted = fit_from_telemetry(telemetry, spec, plant=plant, stop=4000)
+        fitted = fit_from_telemetry(telemetry, spec, plant=plant, data=TelemetryDataConfig(stop=4000))
         result = replay(fitted.network, spec, telemetry, plant=plant, start=4000)
         result.to_json(tmp_path / f"replay_{kind}.json")
         errors[kind] = result.predictor.median_rms_noise_corrected_nm
@@ -117,8 +117,8 @@ def test_hand_written_file_identifies_trains_replays_and_exports(recording, tmp_
         assert result.predictor.median_rms_nm < 0.8 * result.own_controller.median_rms_nm, kind
 
     spec = HistorySpec("open_loop", 4, DELAY)
-    fitted = fit_from_telemetry(telemetry, spec, plant=plant, stop=4000)
-    exported = export_filter(fitted.network, spec, tmp_path / "filter.fits", dm_gain_model=fitted.dm_gain,
+    fitted = fit_from_telemetry(telemetry, spec, plant=plant, data=TelemetryDataConfig(stop=4000))
+    exported = export_filter(fitted.network, spec, tmp_path / "filter.fits", dm_gain_model=fitted.predictor.dm_gain_model,
                              positions_m=telemetry.positions_m)
     runtime = PredictiveFilter.from_file(exported)
     fresh = ao.turbulence(6000, 1500)  # turbulence no recording has seen

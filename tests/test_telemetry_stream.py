@@ -19,7 +19,7 @@ from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, Telemetry, run_loo
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.telemetry_file import SCAN_FRAMES, StreamedTelemetry
 from eofnn.sim.telemetry_readers import RawReader
-from eofnn.training.from_telemetry import fit_from_telemetry
+from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 
 PLANT = {"dm_gain": 1.5, "misregistration_x": 0.1, "wfs_noise_nm": 2.0}
@@ -66,8 +66,8 @@ def test_streamed_fit_equals_in_memory_fit(recorded, tmp_path, suffix, dtype, co
     for kind in ("open_loop", "closed_loop"):
         spec = HistorySpec(kind, 3, 2)
         # Batches of 41 frames: block boundaries fall everywhere, histories reach first_frame frames back over them.
-        ours = fit_from_telemetry(streamed, spec, plant=PLANT, batch_frames=41, val_frames=300)
-        reference = fit_from_telemetry(whole, spec, plant=PLANT, batch_frames=256, val_frames=300)
+        ours = fit_from_telemetry(streamed, spec, plant=PLANT, data=TelemetryDataConfig(batch_frames=41, val_frames=300))
+        reference = fit_from_telemetry(whole, spec, plant=PLANT, data=TelemetryDataConfig(batch_frames=256, val_frames=300))
         assert relative(ours.network.weight, reference.network.weight) < 1e-10
         assert ours.train_loss == pytest.approx(reference.train_loss, rel=1e-10)
         assert ours.val_loss == pytest.approx(reference.val_loss, rel=1e-10)
@@ -79,8 +79,9 @@ def test_blocks_shorter_than_the_history_and_fractional_delay(recorded, tmp_path
     path = one.save(tmp_path / "frac.fits", dtype="float64")
     spec = HistorySpec("open_loop", 6, 1.5)
     assert spec.first_frame + spec.target_lead > 1
-    ours = fit_from_telemetry(StreamedTelemetry.open(path), spec, plant={"dm_gain": 1.5}, batch_frames=1)
-    reference = fit_from_telemetry(one, spec, plant={"dm_gain": 1.5}, batch_frames=400)
+    ours = fit_from_telemetry(StreamedTelemetry.open(path), spec, plant={"dm_gain": 1.5},
+                              data=TelemetryDataConfig(batch_frames=1))
+    reference = fit_from_telemetry(one, spec, plant={"dm_gain": 1.5}, data=TelemetryDataConfig(batch_frames=400))
     assert relative(ours.network.weight, reference.network.weight) < 1e-10
 
 
@@ -116,8 +117,8 @@ def test_slopes_stream_through_the_reconstructor(recorded, tmp_path):
     with pytest.raises(TelemetryError, match=r"'slopes' holds 1 non-finite values \(NaN or inf\) in frames 512 "):
         identify_plant(StreamedTelemetry.open(tmp_path / "bad.npz"))
     spec = HistorySpec("open_loop", 2, 2)
-    ours = fit_from_telemetry(streamed, spec, plant={"dm_gain": 1.5}, batch_frames=64)
-    reference = fit_from_telemetry(whole, spec, plant={"dm_gain": 1.5}, batch_frames=512)
+    ours = fit_from_telemetry(streamed, spec, plant={"dm_gain": 1.5}, data=TelemetryDataConfig(batch_frames=64))
+    reference = fit_from_telemetry(whole, spec, plant={"dm_gain": 1.5}, data=TelemetryDataConfig(batch_frames=512))
     assert relative(ours.network.weight, reference.network.weight) < 1e-10
 
 
@@ -138,7 +139,7 @@ def test_memory_is_bounded_by_the_block(recorded, tmp_path, monkeypatch):
     spec = HistorySpec("open_loop", 4, 2)
     tracemalloc.start()
     try:
-        fit_from_telemetry(streamed, spec, plant={"dm_gain": 1.5}, batch_frames=200)
+        fit_from_telemetry(streamed, spec, plant={"dm_gain": 1.5}, data=TelemetryDataConfig(batch_frames=200))
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -164,7 +165,7 @@ def test_bad_files_one_line(recorded, tmp_path, capsys):
     with pytest.raises(TelemetryError, match=r"'wfs' holds 1 non-finite values \(NaN or inf\) in frames 1024 \.\. 1279"):
         identify_plant(StreamedTelemetry.open(tmp_path / "nan.npz"))
     with pytest.raises(TelemetryError, match="batch_frames=0 is invalid"):
-        fit_from_telemetry(StreamedTelemetry.open(npz), HistorySpec("open_loop", 2, 2), batch_frames=0)
+        fit_from_telemetry(StreamedTelemetry.open(npz), HistorySpec("open_loop", 2, 2), data=TelemetryDataConfig(batch_frames=0))
     with pytest.raises(ConfigError, match="batch_frames=0 is invalid"):
         identify_plant(StreamedTelemetry.open(npz), batch_frames=0)
     # Through the command line: one line, nothing written.
@@ -211,7 +212,8 @@ def test_memory_refused_up_front(recorded, tmp_path, monkeypatch):
     monkeypatch.setattr(eofnn.resources, "available_memory_bytes", lambda: 2**20)
     with pytest.raises(ConfigError, match=r"fitting from telemetry \(80 actuators, 3 taps, batches of 4096 frames\) "
                                           r"needs about .* GiB of memory"):
-        fit_from_telemetry(StreamedTelemetry.open(path), HistorySpec("open_loop", 3, 2), batch_frames=4096)
+        fit_from_telemetry(StreamedTelemetry.open(path), HistorySpec("open_loop", 3, 2),
+                           data=TelemetryDataConfig(batch_frames=4096))
     with pytest.raises(ConfigError, match=r"identification \(80 actuators, batches of 4096 frames\) needs about"):
         identify_plant(StreamedTelemetry.open(path), batch_frames=4096)
     with pytest.raises(ConfigError, match="reading telemetry file .* whole"):

@@ -7,7 +7,7 @@ import pytest
 
 from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
-from eofnn.training.fit import fit_predictor
+from eofnn.training.fit import FitOutput, fit_predictor
 from eofnn.training.task import OptimizationConfig
 
 MODULE = '''
@@ -62,7 +62,7 @@ def fit(scenario, name, tmp_path=None, **optimization):
     options = {"fit_method": "sgd", "lr": 0.02, "epochs": 3, **optimization}
     return fit_predictor(scenario, "open_loop", 3, {"class_path": f"my_nets.{name}"}, data=DATA,
                          optimization=OptimizationConfig(**options),
-                         checkpoint_path=None if tmp_path is None else tmp_path / "net.ckpt")
+                         output=FitOutput(None if tmp_path is None else tmp_path / "net.ckpt"))
 
 
 def test_plain_sgd_diverges_on_nanometres_and_learns_when_normalised(small_scenario, user_module, tmp_path):

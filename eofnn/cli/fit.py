@@ -13,6 +13,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.experiment import fit_from_config
 from eofnn.outputs import check_output_file, staged_file
+from eofnn.training.fit import FitOutput
 
 DESCRIPTION = ("Train one predictor on telemetry simulated in a scenario (simulator truth) or, with --telemetry, on "
                "recorded telemetry alone through an identified plant, and save a Lightning checkpoint that compare "
@@ -60,10 +61,10 @@ def fit(cfg: FitConfig, config_dump: str | None = None) -> dict:
     else:
         log(f"fitting {p.history} predictor, history {p.history_length}, {p.optimization.fit_method}, "
             f"{p.data.frames} frames (simulator truth)")
-        result = fit_from_config(cfg.scenario, p, out, overwrite=cfg.overwrite, progress=bool(cfg.progress))
+        result = fit_from_config(cfg.scenario, p, FitOutput(out, cfg.overwrite, bool(cfg.progress)))
     with staged_file(config_out, overwrite=True) as partial:
         partial.write_text(config_yaml(cfg, config_dump))
     summary = {"checkpoint": str(out), "train_loss_nm2": result.train_loss, "val_loss_nm2": result.val_loss,
-               "rounds": getattr(result, "rounds", []), "targets": "telemetry" if cfg.telemetry else "simulator truth"}
+               "rounds": result.rounds, "targets": "telemetry" if cfg.telemetry else "simulator truth"}
     log(json.dumps(summary))
     return summary

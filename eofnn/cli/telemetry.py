@@ -9,6 +9,7 @@ from pathlib import Path
 
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.cli.common import Output, TelemetryCommand, log
+from eofnn.control.predictive import believed_dm_gain
 from eofnn.data.history import HistorySpec
 from eofnn.data.targets import AnyTelemetry, load_telemetry, telemetry_grid
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
@@ -18,7 +19,8 @@ from eofnn.outputs import check_output_file, check_output_folder, staged_folder
 from eofnn.reporting.replay import replay_figure
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.export import export_filter
-from eofnn.training.from_telemetry import TelemetryFit, fit_from_telemetry
+from eofnn.training.fit import FitOutput, FitResult
+from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.validation import Interval, OrNone, check_value
 
@@ -128,7 +130,7 @@ def identify(cfg: IdentifyConfig, config_dump: str | None = None) -> dict:
     return summary
 
 
-def fit_telemetry(cfg, out: Path) -> TelemetryFit:
+def fit_telemetry(cfg, out: Path) -> FitResult:
     """The telemetry path of ``eofnn fit`` (``cfg``: its :class:`~eofnn.cli.fit.FitConfig`)."""
     p: PredictorConfig = cfg.predictor
     telemetry = _load(cfg, streamed=True)  # read predictor.data.batch_frames frames at a time, never whole
@@ -137,10 +139,10 @@ def fit_telemetry(cfg, out: Path) -> TelemetryFit:
     frames = min(seq.y.shape[0] for t in telemetry for seq in t.sequences())
     log(f"fitting {p.history} predictor, history {p.history_length}, {p.optimization.fit_method}, from telemetry "
         f"{', '.join(_files(cfg.telemetry))} ({frames} frames), plant {cfg.plant}")
-    return fit_from_telemetry(telemetry, spec, p.network, plant=plant, optimization=p.optimization,
-                              batch_frames=p.data.batch_frames, val_frames=min(p.data.val_frames, frames // 5),
-                              seed=p.data.seed, checkpoint_path=out, overwrite=cfg.overwrite,
-                              progress=bool(cfg.progress), info={"telemetry": _files(cfg.telemetry)},
+    return fit_from_telemetry(telemetry, spec, p.network, plant=plant,
+                              data=TelemetryDataConfig.of(p.data, min(p.data.val_frames, frames // 5)),
+                              optimization=p.optimization, output=FitOutput(out, cfg.overwrite, bool(cfg.progress)),
+                              info={"telemetry": _files(cfg.telemetry)},
                               margin=dm_gain_margin() if p.optimization.select is not None else None)
 
 
@@ -217,7 +219,7 @@ def export(cfg: ExportConfig, config_dump: str | None = None) -> dict:
     check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
     out = check_output_file(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint)
-    gain = cfg.dm_gain_model if cfg.dm_gain_model is not None else float(predictor.info.get("dm_gain_model", 1.0))
+    gain = believed_dm_gain(cfg.dm_gain_model, predictor)
     try:
         export_filter(predictor.network, predictor.spec, out, dm_gain_model=gain, overwrite=cfg.overwrite,
                       info={"checkpoint": str(cfg.checkpoint)[-60:]})

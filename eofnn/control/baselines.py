@@ -7,8 +7,9 @@ import math
 import torch
 
 from eofnn.errors import require
-from eofnn.seeding import torch_generator
-from eofnn.sim.loop import LoopInput
+from eofnn.seeding import int_seed, torch_generator
+from eofnn.sim.loop import LoopInput, LoopResult, record_loop
+from eofnn.sim.scenario import Scenario
 from eofnn.validation import Interval, check_value
 
 
@@ -95,3 +96,15 @@ class Dithered:
         if self.amplitude_nm == 0:
             return y
         return y + self.amplitude_nm * torch.randn(self._shape, generator=self._gen, dtype=self._dtype)
+
+
+def record_dithered(scenario: Scenario, data, n_frames: int, streams: tuple[str, str, str], realisations: int = 1, *,
+                    progress: bool = False, where: str = "") -> LoopResult:
+    """Telemetry (``y``, ``wfs``) recorded in ``scenario``'s plant while an integrator (``data.integrator_gain``) plus
+    ``data.dither_nm`` of white dither holds the loop, as a telescope records the telemetry it identifies its plant
+    from. ``streams`` names the turbulence stream of ``data.seed`` and the seeds of the dither and the WFS noise
+    (``int_seed(data.seed, name)``); a diverged recording is refused in one line (``where``: in which loop)."""
+    turbulence, dither, noise = streams
+    recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, dither))
+    return record_loop(scenario.turbulence(data.seed, turbulence, realisations), scenario.plant, recorder, n_frames,
+                       noise_seed=int_seed(data.seed, noise), progress=progress, where=where)

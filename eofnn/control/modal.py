@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import torch
 
-from eofnn.control.baselines import Dithered, Integrator
+from eofnn.control.baselines import record_dithered
 from eofnn.control.classical import DTYPE, ModalIntegrator, ModalLQG, check_modes, dm_response_polynomial
 from eofnn.control.kalman import fit_ar2, kalman_gain, prediction_error_variance
 from eofnn.data.history import pseudo_open_loop
@@ -45,7 +45,6 @@ from eofnn.errors import ConfigError, DivergedError
 from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
 from eofnn.sim.delay import split_delay
-from eofnn.sim.loop import run_loop
 from eofnn.sim.scenario import Scenario
 
 #: Frames per Welch segment of the modal PSDs, and the fewest segments a PSD is estimated from.
@@ -87,18 +86,12 @@ def record_pol_telemetry(scenario: Scenario, data, dm_gain_model: float | None =
     scenario.require_stream_frames(data.frames, f"modal telemetry (data.frames={data.frames})", data.realisations)
     require_memory(8 * 4 * data.realisations * data.frames * n_act,
                    f"modal telemetry of data.frames={data.frames} x {n_act} actuators")
-    dither_seed = int_seed(data.seed, "classical-dither")
-    recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, dither_seed)
-    result = run_loop(scenario.turbulence(data.seed, "classical-telemetry", data.realisations), scenario.plant,
-                      recorder, data.frames, noise_seed=int_seed(data.seed, "classical-noise"), record=("y", "wfs"),
-                      progress=False)
-    if result.diverged:
-        raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame}: lower "
-                            "data.integrator_gain or data.dither_nm")
+    streams = ("classical-telemetry", "classical-dither", "classical-noise")
+    result = record_dithered(scenario, data, data.frames, streams, data.realisations)
     y, wfs = result.telemetry.y, result.telemetry.wfs
     f = scenario.plant.delay_fraction
     # The dither of Dithered, drawn again from its seed: one (realisations, K) draw per frame.
-    gen = torch_generator(dither_seed, "dither")
+    gen = torch_generator(int_seed(data.seed, streams[1]), "dither")
     dither = torch.stack([torch.randn((y.shape[0], n_act), generator=gen, dtype=y.dtype)
                           for _ in range(y.shape[1])], 1) * data.dither_nm
     power = (1 - f) * dither.pow(2).sum()

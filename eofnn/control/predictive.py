@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -124,6 +126,15 @@ class LinearFilterStep:
         else:
             torch.mul(y_old, self.dm_gain_model, out=self._scaled)
             torch.sub(wfs, self._scaled, out=out)
+
+
+def believed_dm_gain(configured: float | None = None, predictor: Any = None) -> float:
+    """The DM gain a predictive controller believes (its pseudo-open-loop reconstruction): the one ``configured`` when
+    set, else the ``predictor``'s own model (``dm_gain_model``: identified or given when it learnt from telemetry),
+    else 1 (the nominal DM)."""
+    if configured is None:
+        configured = getattr(predictor, "dm_gain_model", 1.0) if predictor is not None else 1.0
+    return float(configured)
 
 
 class PredictiveController:

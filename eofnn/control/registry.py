@@ -14,7 +14,7 @@ from typing import Any
 from eofnn.control.baselines import Dithered, Integrator, PseudoIntegrator, Uncorrected
 from eofnn.control.classical import Extrapolator
 from eofnn.control.modal import build_lqg, build_modal_integrator
-from eofnn.control.predictive import PredictiveController
+from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.errors import ConfigError
 from eofnn.sim.loop import Controller
 
@@ -82,11 +82,9 @@ def _dithered_integrator(config: Any, predictor: Any) -> Controller:
 
 
 def dm_gain_model_of(config: Any, predictor: Any) -> float:
-    """The DM gain a predictive controller believes: the config's if set, else the predictor's own model."""
-    chosen = getattr(config, "dm_gain_model", None)
-    if chosen is None:
-        chosen = getattr(predictor, "dm_gain_model", 1.0) if predictor is not None else 1.0
-    return float(chosen)
+    """The DM gain a predictive controller believes: the config's if set, else the predictor's own model
+    (:func:`~eofnn.control.predictive.believed_dm_gain`)."""
+    return believed_dm_gain(getattr(config, "dm_gain_model", None), predictor)
 
 
 @register_controller("predictor", needs_predictor=True)

@@ -12,10 +12,10 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from eofnn.data.history import HistorySpec, build_history, targets
-from eofnn.errors import DivergedError, require
+from eofnn.errors import require
 from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
-from eofnn.sim.loop import Controller, run_loop
+from eofnn.sim.loop import Controller, record_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, check_value, validated
 
@@ -168,12 +168,10 @@ class SimulatedTelemetry(IterableDataset):
         controller = copy.deepcopy(self.data_controller)
         if callable(getattr(controller, "reseed", None)):
             controller.reseed(int_seed(seed, name, 2))
-        result = run_loop(turbulence, plant, controller, self.data.sequence_frames, record=("s", "y", "wfs"),
-                          noise_seed=int_seed(seed, name, 3), progress=False)
-        if result.diverged:
-            raise DivergedError(f"the data controller diverged at frame {result.diverged_frame} while recording "
-                                f"training sequence {name!r}: lower data.integrator_gain or data.dither_nm, or use "
-                                "fewer data.refit_rounds")
+        result = record_loop(turbulence, plant, controller, self.data.sequence_frames,
+                             noise_seed=int_seed(seed, name, 3), record=("s", "y", "wfs"), recorder="the data controller",
+                             where=f" while recording training sequence {name!r}",
+                             hint="lower data.integrator_gain or data.dither_nm, or use fewer data.refit_rounds")
         return {"s": result.telemetry.s, "y": result.telemetry.y, "wfs": result.telemetry.wfs}
 
     def _history(self, arrays: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:

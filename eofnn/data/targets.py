@@ -28,7 +28,7 @@ from eofnn.data.history import HistorySpec, applied_command, blended_target, bui
 from eofnn.errors import TelemetryError
 from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.layout import ActuatorLayout, layout_from_positions
+from eofnn.sim.layout import ActuatorLayout, layout_from_dict, layout_from_positions
 from eofnn.sim.spaces import read_matrix
 from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
 from eofnn.sim.telemetry_file import NotStreamableError, StreamedTelemetry
@@ -206,5 +206,5 @@ def telemetry_grid(telemetry: AnyTelemetry, grid: ActuatorGrid | ActuatorLayout 
         return layout_from_positions(telemetry.positions_m)
     scenario = telemetry.config.get("scenario") or telemetry.config.get("eofnn", {}).get("scenario")
     if isinstance(scenario, dict) and isinstance(scenario.get("grid"), dict):
-        return ActuatorGrid(**scenario["grid"])
+        return layout_from_dict(scenario["grid"])
     return None

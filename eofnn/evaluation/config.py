@@ -15,7 +15,7 @@ from eofnn.errors import ConfigError
 from eofnn.models.build import import_class
 from eofnn.training.ridge import supports_closed_form
 from eofnn.training.task import OptimizationConfig
-from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, check_value, validated
+from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, check_value, from_mapping, validated
 
 #: Most frames of one closed-loop evaluation (per realisation).
 MAX_EVALUATION_FRAMES = 10_000_000
@@ -107,12 +107,9 @@ class PredictorConfig:
     }
 
     def __post_init__(self) -> None:
-        if isinstance(self.data, dict):
-            self.data = DataConfig(**self.data)
-        if isinstance(self.optimization, dict):
-            self.optimization = OptimizationConfig(**self.optimization)
-        if isinstance(self.adaptation, dict):
-            self.adaptation = AdaptationConfig(**self.adaptation)
+        for name, cls in (("data", DataConfig), ("optimization", OptimizationConfig), ("adaptation", AdaptationConfig)):
+            if isinstance(getattr(self, name), dict):
+                setattr(self, name, from_mapping(cls, getattr(self, name), name))
         if self.checkpoint is None:
             self.history = self.history or "open_loop"
             self.history_length = self.history_length or 4

@@ -28,22 +28,17 @@ from eofnn.resources import peak_resident_bytes, require_memory, require_time
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
-from eofnn.training.fit import FitResult, TrainedPredictor, fit_predictor
-from eofnn.training.from_telemetry import TelemetryFit, fit_from_scenario_telemetry, telemetry_sequences
+from eofnn.training.fit import FitOutput, FitResult, TrainedPredictor, fit_predictor
+from eofnn.training.from_telemetry import fit_from_scenario_telemetry, telemetry_sequences
 
 
-def fit_from_config(scenario: Scenario, cfg: PredictorConfig, checkpoint_path: str | Path | None = None,
-                    overwrite: bool = False, progress: bool = False) -> FitResult | TelemetryFit:
+def fit_from_config(scenario: Scenario, cfg: PredictorConfig, output: FitOutput | None = None) -> FitResult:
     """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``: against the simulator's truth,
     or (``data.truth: false``) from the telemetry alone, through the plant identified from its dither."""
     margin = dm_gain_margin(scenario.frame_rate_hz) if cfg.optimization.select is not None else None
-    if not cfg.data.truth:
-        return fit_from_scenario_telemetry(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
-                                           optimization=cfg.optimization, checkpoint_path=checkpoint_path,
-                                           overwrite=overwrite, progress=progress, margin=margin)
-    return fit_predictor(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data,
-                         optimization=cfg.optimization, checkpoint_path=checkpoint_path, overwrite=overwrite,
-                         progress=progress, margin=margin)
+    fit = fit_predictor if cfg.data.truth else fit_from_scenario_telemetry
+    return fit(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data, optimization=cfg.optimization,
+               output=output, margin=margin)
 
 
 def build_scenarios(base: Scenario, scenarios: dict[str, dict[str, Any]]) -> dict[str, Scenario]:
@@ -189,7 +184,7 @@ class Experiment:
             path = None if self.checkpoint_dir is None else self.checkpoint_dir / f"{name}__{train_in}.ckpt"
             self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
                      f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
-            result = fit_from_config(self.scenarios[train_in], cfg, path, overwrite=True, progress=bool(self.progress))
+            result = fit_from_config(self.scenarios[train_in], cfg, FitOutput(path, True, bool(self.progress)))
             self._trained[key] = result.predictor
             searched = result.predictor.info.get("search")
             if searched is not None:

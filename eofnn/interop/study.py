@@ -25,7 +25,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.evaluation.replay import replay
 from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter, scan_integrator
-from eofnn.training.from_telemetry import fit_from_telemetry
+from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig
 from eofnn.validation import COUNT, Constraint, Interval, OneOf, validated
@@ -120,18 +120,18 @@ def run_study(sim, config: StudyConfig | None = None, *, dm_gain_true: float | N
     select = None if c.dm_gain_interval is None or not c.val_frames else {"dm_gain_interval": list(c.dm_gain_interval)}
     optimization = OptimizationConfig(alpha="auto" if c.val_frames else 1e-6, select=select, alpha_path=ALPHA_PATH)
     margin = dm_gain_margin(sim.frame_rate_hz) if select else None
-    fitted = fit_from_telemetry(telemetry, spec, plant=plant, val_frames=c.val_frames, seed=c.seed,
-                                optimization=optimization, margin=margin)
+    data = TelemetryDataConfig(val_frames=c.val_frames, seed=c.seed)
+    fitted = fit_from_telemetry(telemetry, spec, plant=plant, data=data, optimization=optimization, margin=margin)
     refits = []
     for round_ in range(c.refit_rounds):  # closed-loop identification: refit on data the filter recorded itself
-        recorder = FilterControl(runtime_filter(fitted.network, spec, fitted.dm_gain), c.record_gain,
+        recorder = FilterControl(runtime_filter(fitted.network, spec, fitted.predictor.dm_gain_model), c.record_gain,
                                  c.warmup_frames, c.dither_nm, seed=c.seed + 200 + round_)
         again = run_closed_loop(sim, recorder, c.record_frames, c.seed + 10 + round_)
         if again.diverged_frame is not None:  # kept as a result: the filter that diverged is then run and reported
             refits.append(f"skipped: the EOF recording its refit data diverged at frame {again.diverged_frame}")
             break
-        fitted = fit_from_telemetry(again.telemetry(start=c.settle_frames), spec, plant=plant,
-                                    val_frames=c.val_frames, seed=c.seed, optimization=optimization, margin=margin)
+        fitted = fit_from_telemetry(again.telemetry(start=c.settle_frames), spec, plant=plant, data=data,
+                                    optimization=optimization, margin=margin)
         refits.append(f"refit on {c.record_frames} frames the EOF recorded with dither")
 
     heldout = run_closed_loop(sim, IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 101),
@@ -140,7 +140,8 @@ def run_study(sim, config: StudyConfig | None = None, *, dm_gain_true: float | N
 
     scan = scan_integrator(sim, c.gains, c.loop_frames, seeds["loop"], c.settle_frames)
     if c.controller == "runtime":
-        control = FilterControl(runtime_filter(fitted.network, spec, fitted.dm_gain), scan["gain"], c.warmup_frames)
+        control = FilterControl(runtime_filter(fitted.network, spec, fitted.predictor.dm_gain_model), scan["gain"],
+                                c.warmup_frames)
     else:
         control = TorchControl(fitted.controller(), sim.delay_frames)
     eof_metrics = run_closed_loop(sim, control, c.loop_frames, seeds["loop"]).metrics(c.settle_frames).summary()

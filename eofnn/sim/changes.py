@@ -45,8 +45,8 @@ from typing import Any, ClassVar
 
 import torch
 
-from eofnn.errors import ConfigError, require
-from eofnn.validation import Constraint, Interval, OrNone, validated
+from eofnn.errors import require
+from eofnn.validation import Constraint, Interval, OrNone, from_mapping, validated
 
 #: Longest time a change or drift may name, in seconds (about 116 days).
 MAX_TIME_S = 1e7
@@ -109,23 +109,20 @@ class AtmosphereChange:
         return u * u * (3 - 2 * u)
 
 
+def _require_start(change: dict) -> None:
+    require("at_s" in change, f"atmosphere.changes: {change!r} has no at_s (the time it starts, s)")
+
+
 def build_changes(changes: Any, layers: Sequence[Any]) -> list[AtmosphereChange]:
     """``atmosphere.changes`` as a list of :class:`AtmosphereChange`, sorted by time, checked against ``layers``."""
     require(isinstance(changes, (list, tuple)),
             f"atmosphere.changes={changes!r} is invalid: give a list of changes, e.g. [{{at_s: 5.0, layer: 0, "
             "wind_speed_mps: 20.0}]")
-    allowed = [f.name for f in dataclasses.fields(AtmosphereChange)]
     out = []
     for change in changes:
         if isinstance(change, dict):
-            unknown = sorted(set(change) - set(allowed))
-            require(not unknown, f"unknown key(s) {', '.join(map(str, unknown))} in atmosphere.changes: allowed are "
-                                 f"{', '.join(allowed)}")
-            require("at_s" in change, f"atmosphere.changes: {change!r} has no at_s (the time it starts, s)")
-            try:
-                change = AtmosphereChange(**change)
-            except TypeError as err:
-                raise ConfigError(f"invalid value in atmosphere.changes: {err}") from None
+            change = from_mapping(AtmosphereChange, change, "atmosphere.changes", sort_allowed=False,
+                                  check_keys=_require_start)
         require(isinstance(change, AtmosphereChange), f"atmosphere.changes: {change!r} is invalid: give a mapping")
         require(change.layer < len(layers), f"atmosphere.changes: layer={change.layer} is invalid: the atmosphere has "
                                             f"{len(layers)} layer(s) (indices from 0)")
@@ -282,9 +279,9 @@ def build_drift(drift: Any) -> DmGainDrift | None:
     if drift is None or isinstance(drift, DmGainDrift):
         return drift
     require(isinstance(drift, dict), f"plant.dm_gain_drift={drift!r} is invalid: give {{start_s, stop_s, to}}")
-    allowed = [f.name for f in dataclasses.fields(DmGainDrift)]
-    unknown, missing = sorted(set(drift) - set(allowed)), [k for k in allowed if k not in drift]
-    require(not unknown, f"unknown key(s) {', '.join(map(str, unknown))} in plant.dm_gain_drift: allowed are "
-                         f"{', '.join(allowed)}")
+    return from_mapping(DmGainDrift, drift, "plant.dm_gain_drift", sort_allowed=False, check_keys=_require_drift_keys)
+
+
+def _require_drift_keys(drift: dict) -> None:
+    missing = [f.name for f in dataclasses.fields(DmGainDrift) if f.name not in drift]
     require(not missing, f"plant.dm_gain_drift={drift!r} is invalid: it needs {', '.join(missing)}")
-    return DmGainDrift(**drift)

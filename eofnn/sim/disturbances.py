@@ -38,7 +38,7 @@ from scipy.signal import lfilter, lfiltic
 from eofnn.errors import require
 from eofnn.seeding import sub_seed
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.validation import Constraint, Interval, OneOf, validated
+from eofnn.validation import Constraint, Interval, OneOf, from_mapping, validated
 
 #: Vibration modes and their Noll indices (Noll 1976: 2 = tip along x, 3 = tilt along y, 4 = focus, ...).
 MODES = {"tip": 2, "tilt": 3, "focus": 4, "astigmatism_45": 5, "astigmatism_0": 6, "coma_y": 7, "coma_x": 8}
@@ -91,11 +91,7 @@ def build_vibrations(vibrations: Sequence[Vibration | dict] | None, frame_rate_h
     out = []
     for vib in vibrations or ():
         if isinstance(vib, dict):
-            allowed = {name for name in Vibration.__dataclass_fields__ if not name.startswith("_")}
-            unknown = sorted(set(vib) - allowed)
-            require(not unknown, f"unknown key(s) {', '.join(map(str, unknown))} in vibration: allowed are "
-                                 f"{', '.join(sorted(allowed))}")
-            vib = Vibration(**vib)
+            vib = from_mapping(Vibration, vib, "vibration")
         require(isinstance(vib, Vibration), f"vibration {vib!r} is invalid: give a mapping of Vibration fields")
         nyquist = frame_rate_hz / 2
         require(vib.frequency_hz < nyquist, f"frequency_hz={vib.frequency_hz!r} is invalid: a vibration must be below "

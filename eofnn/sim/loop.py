@@ -10,7 +10,7 @@ from typing import Protocol, runtime_checkable
 import torch
 from tqdm.auto import tqdm
 
-from eofnn.errors import require
+from eofnn.errors import DivergedError, require
 from eofnn.seeding import torch_generator
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.telemetry import Telemetry
@@ -199,3 +199,15 @@ def run_loop(
         diverged=diverged_frame is not None,
         diverged_frame=diverged_frame,
     )
+
+
+def record_loop(turbulence: Turbulence, plant: Plant, controller: Controller, n_frames: int, *, noise_seed: int,
+                record: tuple[str, ...] = ("y", "wfs"), progress: bool | None = False,
+                recorder: str = "the recording integrator", where: str = "",
+                hint: str = "lower data.integrator_gain or data.dither_nm") -> LoopResult:
+    """Telemetry recorded while ``controller`` holds the loop (:func:`run_loop`), refused when the loop diverged with
+    one line: ``"{recorder} diverged at frame N{where}: {hint}"``."""
+    result = run_loop(turbulence, plant, controller, n_frames, noise_seed=noise_seed, record=record, progress=progress)
+    if result.diverged:
+        raise DivergedError(f"{recorder} diverged at frame {result.diverged_frame}{where}: {hint}")
+    return result

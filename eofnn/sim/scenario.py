@@ -17,8 +17,8 @@ from eofnn.sim.disturbances import Vibration, build_vibrations
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.plant import Plant
-from eofnn.sim.turbulence import Atmosphere, Layer, Turbulence
-from eofnn.validation import Constraint, Interval, validated
+from eofnn.sim.turbulence import Atmosphere, Turbulence
+from eofnn.validation import Constraint, Interval, from_mapping, validated
 
 
 @dataclass(frozen=True)
@@ -135,17 +135,7 @@ class Scenario:
 
 
 def _build(cls, config: dict, where: str):
-    """Instantiate a config dataclass, turning unknown keys into one clear line."""
+    """Instantiate a config dataclass, turning unknown keys into one clear line (the atmosphere builds its layers)."""
     if not isinstance(config, dict):
         raise ConfigError(f"{where} must be a mapping, got {type(config).__name__}")
-    allowed = {name for name in cls.__dataclass_fields__ if not name.startswith("_")}
-    unknown = sorted(set(config) - allowed)
-    if unknown:
-        raise ConfigError(f"unknown key(s) {', '.join(unknown)} in {where}: allowed are {', '.join(sorted(allowed))}")
-    if cls is Atmosphere and isinstance(config.get("layers"), (list, tuple)):
-        config = dict(config, layers=[_build(Layer, lay, "layer") if isinstance(lay, dict) else lay
-                                      for lay in config["layers"]])
-    try:
-        return cls(**config)
-    except TypeError as err:  # a wrong type deep inside a comparison
-        raise ConfigError(f"invalid value in {where}: {err}") from None
+    return from_mapping(cls, config, where)

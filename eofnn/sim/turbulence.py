@@ -36,7 +36,7 @@ from eofnn.sim.exact import KERNELS, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.hcipy_pupil import HcipyPupilLayer
 from eofnn.sim.strip import FrozenFlowStrip
-from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, OrNone, check_value, validated
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, OrNone, check_value, from_mapping, validated
 
 MODELS = ("exact", "hcipy_pupil", "strip")
 
@@ -139,7 +139,7 @@ class Atmosphere:
         require(isinstance(self.layers, (tuple, list)) and len(self.layers) >= 1,
                 f"layers={self.layers!r} is invalid: give a list of at least one layer")
         # A list, not a tuple: jsonargparse serialises a list of dataclasses in a resolved config, not a tuple.
-        layers = [Layer(**lay) if isinstance(lay, dict) else lay for lay in self.layers]
+        layers = [from_mapping(Layer, lay, "layer") if isinstance(lay, dict) else lay for lay in self.layers]
         require(all(isinstance(lay, Layer) for lay in layers), f"layers={self.layers!r} is invalid: each must be a layer")
         object.__setattr__(self, "layers", layers)
         object.__setattr__(self, "changes", build_changes(self.changes, layers))

@@ -1,31 +1,37 @@
-"""Fitting a predictor: a function beside the model that takes grouped options and returns a small result (BoTorch style).
+"""Fitting a predictor: one solve for closed form and SGD, from simulator truth or from telemetry (BoTorch style).
 
-``fit_predictor(scenario, history, history_length, network, data=..., optimization=...)`` simulates the training
-telemetry in ``scenario`` (:class:`~eofnn.data.stream.DataConfig`), fits the network
-(:class:`~eofnn.training.task.OptimizationConfig`) and returns a :class:`FitResult`. Two steps, both explicit:
+``fit_predictor(scenario, history, history_length, network, data=..., optimization=..., output=...)`` simulates the
+training telemetry in ``scenario`` (:class:`~eofnn.data.stream.DataConfig`), fits the network
+(:class:`~eofnn.training.task.OptimizationConfig`) and returns a :class:`FitResult`;
+:func:`eofnn.training.from_telemetry.fit_from_telemetry` does the same from recorded telemetry. Both build their task
+with :func:`new_task`, fit it with :func:`solve` (the one place that tells the two methods apart) and close with
+:meth:`Solved.result`:
 
 1. *closed form* (linear networks): one streamed pass of ridge regression, :func:`~eofnn.training.ridge.fit_closed_form`,
    then Lightning's ``validate`` for the held-out loss;
-2. *SGD* (any network): Lightning's ``fit``.
+2. *SGD* (any network): Lightning's ``fit`` (or a budgeted search, :mod:`eofnn.training.search`).
 """
 
 from __future__ import annotations
 
 import copy
 import warnings
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from torch import nn
+from torch.utils.data import DataLoader
 
 from eofnn.control.baselines import Dithered, Integrator
-from eofnn.control.predictive import PredictiveController
+from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
 from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
 from eofnn.outputs import check_output_file, staged_file
+from eofnn.sim.layout import layout_to_dict
 from eofnn.sim.loop import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction, RidgePath
@@ -55,9 +61,10 @@ class TrainedPredictor:
         when it learnt from telemetry, 1 (the nominal DM) otherwise."""
         return float(self.info.get("dm_gain_model", 1.0))
 
-    def controller(self, dm_gain_model: float = 1.0) -> PredictiveController:
-        """The loop-side controller that runs this predictor (``dm_gain_model``: the DM gain it believes)."""
-        return PredictiveController(self.network, self.spec, dm_gain_model)
+    def controller(self, dm_gain_model: float | None = None) -> PredictiveController:
+        """The loop-side controller that runs this predictor (``dm_gain_model``: the DM gain it believes; unset, its
+        own, :func:`~eofnn.control.predictive.believed_dm_gain`)."""
+        return PredictiveController(self.network, self.spec, believed_dm_gain(dm_gain_model, self))
 
     def check_fits(self, scenario: Scenario, where: str = "checkpoint", history_length: int | None = None) -> None:
         """One-line error unless this predictor can run in ``scenario`` (actuators, delay) with ``history_length``."""
@@ -75,13 +82,58 @@ class TrainedPredictor:
 
 @dataclass
 class FitResult:
-    """Outcome of :func:`fit_predictor`: the predictor, its losses (nm²) per round, and the checkpoint path."""
+    """Outcome of a fit, from simulator truth or from telemetry: the predictor (its ``info`` says how it was made:
+    for a telemetry fit the DM model it was fitted through), its losses (nm²; of the last round), the metrics of each
+    round of recorded data (simulator truth), and the checkpoint path."""
 
     predictor: TrainedPredictor
     train_loss: float | None
     val_loss: float | None
     rounds: list[dict] = field(default_factory=list)
     checkpoint: Path | None = None
+
+    @property
+    def network(self) -> nn.Module:
+        return self.predictor.network
+
+    @property
+    def spec(self) -> HistorySpec:
+        return self.predictor.spec
+
+    @property
+    def info(self) -> dict:
+        return self.predictor.info
+
+    def controller(self, dm_gain_model: float | None = None) -> PredictiveController:
+        """Loop-side controller (:meth:`TrainedPredictor.controller`): open loop reconstructs POL values with the DM
+        gain the fit assumed."""
+        return self.predictor.controller(dm_gain_model)
+
+
+@dataclass
+class FitOutput:
+    """What a fit writes besides its result: a checkpoint at ``checkpoint_path`` (an existing file is kept unless
+    ``overwrite``), and Lightning's progress bar (``progress``)."""
+
+    checkpoint_path: str | Path | None = None
+    overwrite: bool = False
+    progress: bool = False
+
+    def checked(self) -> FitOutput:
+        """This output, its checkpoint path checked up front (one line when it may not be written)."""
+        if self.checkpoint_path is None:
+            return self
+        return replace(self, checkpoint_path=check_output_file(self.checkpoint_path, self.overwrite, "checkpoint"))
+
+
+@dataclass
+class FitData:
+    """What one solve learns from: ``train`` and held-out ``validation`` (optional) ``(history, target)`` batches (a
+    DataLoader, or any iterable of ready batches), and the frames one pass over ``train`` holds (a search's budget)."""
+
+    train: Iterable
+    validation: Iterable | None
+    frames: int
 
 
 def recording_controller(spec: HistorySpec, data: DataConfig) -> Controller | None:
@@ -103,9 +155,7 @@ def fit_predictor(
     *,
     data: DataConfig | None = None,
     optimization: OptimizationConfig | None = None,
-    checkpoint_path: str | Path | None = None,
-    overwrite: bool = False,
-    progress: bool = False,
+    output: FitOutput | None = None,
     margin: MarginFunction | None = None,
 ) -> FitResult:
     """Train a predictor on telemetry simulated in ``scenario``.
@@ -130,10 +180,8 @@ def fit_predictor(
         How the training and validation telemetry is simulated.
     optimization : OptimizationConfig
         Fit method, ridge, optimiser and accelerator.
-    checkpoint_path : path, optional
-        Where to write the Lightning checkpoint; an existing file is kept unless ``overwrite``.
-    progress : bool
-        Lightning's progress bar.
+    output : FitOutput
+        The checkpoint to write (an existing file is kept unless ``overwrite``) and Lightning's progress bar.
     margin : callable, optional
         :data:`~eofnn.training.alpha.MarginFunction`, for an ``optimization.select`` constraint on ``alpha: auto``
         (built by the caller, which knows the stability analysis).
@@ -141,69 +189,127 @@ def fit_predictor(
     data = data or DataConfig()
     optimization = optimization or OptimizationConfig()
     spec = HistorySpec.from_scenario(history, history_length, scenario)
-    if checkpoint_path is not None:
-        checkpoint_path = check_output_file(checkpoint_path, overwrite, "checkpoint")
-    network_config = network or DEFAULT_NETWORK
-    grid = {"diameter_m": scenario.grid.diameter_m, "n_across": scenario.grid.n_across,
-            "obstruction": scenario.grid.obstruction}
-    # Network initialisation and SGD draw from torch's global generator: seed it, so a fit is reproducible.
-    L.seed_everything(data.seed, workers=True, verbose=False)
+    output = (output or FitOutput()).checked()
     info = {"scenario": scenario.to_dict(), "data": asdict(data)}
-    task = PredictorTask(network_config, scenario.grid.n_actuators, spec.to_dict(), grid,
-                         resolve_normalize(network_config, asdict(optimization)), info)
-    net = task.network
-    if optimization.fit_method == "closed_form" and not supports_closed_form(net):
-        raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {type(net).__name__} has no "
-                          "features()/load_solution(): use optimization.fit_method: sgd")
+    task = new_task(network or DEFAULT_NETWORK, scenario.grid.n_actuators, spec, layout_to_dict(scenario.grid),
+                    optimization, info, data.seed)
+    # The loop the filter is made for: closed-loop EOF learns this plant's DM; open-loop EOF believes 1.
+    plant_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
     data_controller = recording_controller(spec, data)
     rounds = []
-    trainer = ridge_path = None
     for round_index in range(data.refit_rounds + 1):
         if round_index > 0:
-            data_controller = Dithered(PredictiveController(copy.deepcopy(net), spec), data.dither_nm,
+            data_controller = Dithered(PredictiveController(copy.deepcopy(task.network), spec), data.dither_nm,
                                        data.seed + round_index)
         datamodule = LoopDataModule(scenario, spec, replace(data, seed=data.seed + 1000 * round_index), data_controller)
-        trainer = make_trainer(optimization, progress)
-        try:
-            if optimization.fit_method == "closed_form":
-                # The loop the filter is made for: closed-loop EOF learns this plant's DM; open-loop EOF believes 1.
-                plant_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
-                solved = solve_closed_form(net, datamodule.train_dataloader(), datamodule.val_dataloader(),
-                                           optimization, bind_margin(margin, net, spec, plant_gain, 1.0))
-                metrics = {"train_loss": solved.train_loss, "condition": solved.condition, "alpha": solved.alpha}
-                if solved.choice is not None:
-                    info["alpha_choice"] = solved.choice.summary()
-                    task.hparams["info"] = info
-                ridge_path = solved.choice.path if solved.choice is not None else None
-                metrics.update(trainer.validate(task, dataloaders=datamodule.val_dataloader(), verbose=False,
-                                                weights_only=True)[0])
-            elif optimization.search is not None:
-                task, trainer, searched = run_search(
-                    check_search(optimization.search, optimization.lr), network_config, optimization,
-                    lambda net_cfg, opt: PredictorTask(net_cfg, scenario.grid.n_actuators, spec.to_dict(), grid,
-                                                       resolve_normalize(net_cfg, asdict(opt)), info),
-                    lambda t, tr, dm=datamodule: tr.fit(t, datamodule=dm, weights_only=True),
-                    lambda opt, callbacks: make_trainer(opt, progress, callbacks), data.seed, data.frames)
-                net, network_config = task.network, task.hparams.network
-                info["search"] = searched
-                task.hparams["info"] = info
-                metrics = {"val_loss": searched["chosen"]["val_loss"], "lr": searched["chosen"]["lr"]}
-            else:
-                trainer.fit(task, datamodule=datamodule, weights_only=True)
-                metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-        except SystemExit:
-            # Lightning answers Ctrl-C inside fit/validate with its own shutdown and sys.exit(1): it is an interruption.
-            raise KeyboardInterrupt from None
-        rounds.append({"round": round_index, **metrics})
-    last = rounds[-1]
-    sgd = optimization.fit_method != "closed_form"
-    check_fit(task, last.get("train_loss"), last.get("val_loss"), datamodule.val_dataloader() if sgd else None)
-    net.eval()
-    predictor = TrainedPredictor(net, spec, network_config, scenario.grid.n_actuators, info, ridge_path)
-    if checkpoint_path is not None:
-        with staged_file(checkpoint_path, overwrite) as partial:
-            trainer.save_checkpoint(partial)
-    return FitResult(predictor, last.get("train_loss"), last.get("val_loss"), rounds, checkpoint_path)
+        solved = solve(task, FitData(datamodule.train_dataloader(), datamodule.val_dataloader(), data.frames),
+                       optimization, output=output, seed=data.seed,
+                       margin=bind_margin(margin, task.network, spec, plant_gain, 1.0))
+        task = solved.task
+        rounds.append({"round": round_index, **solved.metrics})
+    return solved.result(output, rounds)
+
+
+def new_task(network: dict, n_actuators: int, spec: HistorySpec, grid: dict | None,
+             optimization: OptimizationConfig, info: dict, seed: int) -> PredictorTask:
+    """The task of a fit, its network initialised from ``seed`` (a fit is reproducible); one line when a closed-form
+    fit is asked of a network that has none."""
+    # Network initialisation and SGD draw from torch's global generator: seed it, so a fit is reproducible.
+    L.seed_everything(seed, workers=True, verbose=False)
+    task = PredictorTask(network, n_actuators, spec.to_dict(), grid, resolve_normalize(network, asdict(optimization)),
+                         info)
+    if optimization.fit_method == "closed_form" and not supports_closed_form(task.network):
+        raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; "
+                          f"{type(task.network).__name__} has no features()/load_solution(): use "
+                          "optimization.fit_method: sgd")
+    return task
+
+
+@dataclass
+class Solved:
+    """One :func:`solve`: the task (a search may have replaced it), the trainer that holds it (``None`` when none was
+    needed), the metrics of the solve (losses in nm², alpha, ...), what it learnt from, and the ridge path of an
+    ``alpha: auto`` choice."""
+
+    task: PredictorTask
+    trainer: L.Trainer | None
+    metrics: dict
+    data: FitData
+    ridge_path: RidgePath | None = None
+
+    def result(self, output: FitOutput, rounds: list[dict] | None = None) -> FitResult:
+        """The fit's result: non-finite losses refused (and a warning when gradient descent did not beat the trivial
+        predictors), the network put in eval mode, the checkpoint written."""
+        task = self.task
+        train_loss, val_loss = self.metrics.get("train_loss"), self.metrics.get("val_loss")
+        val_loss = None if val_loss is None else float(val_loss)
+        sgd = task.optimization.fit_method != "closed_form"
+        check_fit(task, train_loss, val_loss, _loader(self.data.validation) if sgd else None)
+        predictor = TrainedPredictor(task.network.eval(), task.spec, task.hparams.network, task.hparams.n_actuators,
+                                     task.hparams["info"], self.ridge_path)
+        if output.checkpoint_path is not None:
+            with staged_file(output.checkpoint_path, output.overwrite) as partial:
+                self.trainer.save_checkpoint(partial)
+        return FitResult(predictor, train_loss, val_loss, rounds or [], output.checkpoint_path)
+
+
+def solve(task: PredictorTask, data: FitData, optimization: OptimizationConfig, *, output: FitOutput | None = None,
+          seed: int = 0, margin: Callable[[Any], Any] | None = None) -> Solved:
+    """Fit ``task``'s network on ``data``, the one step of every fit that tells closed form from SGD.
+
+    ``closed_form``: :func:`solve_closed_form` (``margin``: ``weights -> interval``, :func:`bind_margin`), then
+    Lightning's ``validate`` on the validation batches (on the training ones when there are none but a checkpoint is
+    to be written: validating attaches the trainer that saves). ``sgd``: Lightning's ``fit``, or with
+    ``optimization.search`` the budgeted search (each trial seeded with ``seed``). The fit's provenance
+    (``task.hparams["info"]``) gets the alpha and its choice, or the search.
+    """
+    output = output or FitOutput()
+    info = task.hparams["info"]
+    trainer = ridge_path = None
+    try:
+        if optimization.fit_method == "closed_form":
+            solved = solve_closed_form(task.network, data.train, data.validation, optimization, margin)
+            metrics = {"train_loss": solved.train_loss, "condition": solved.condition, "alpha": solved.alpha}
+            info["alpha"] = solved.alpha
+            if solved.choice is not None:
+                info["alpha_choice"] = solved.choice.summary()
+                ridge_path = solved.choice.path
+            task.hparams["info"] = info
+            if data.validation is not None or output.checkpoint_path is not None:
+                trainer = make_trainer(optimization, output.progress)
+                checked = data.train if data.validation is None else data.validation
+                validated = trainer.validate(task, dataloaders=_loader(checked), verbose=False, weights_only=True)[0]
+                if data.validation is not None:
+                    metrics.update(validated)
+        elif optimization.search is not None:
+            hp = task.hparams
+            task, trainer, searched = run_search(
+                check_search(optimization.search, optimization.lr), hp.network, optimization,
+                lambda net_cfg, opt: PredictorTask(net_cfg, hp.n_actuators, hp.spec, hp.grid,
+                                                   resolve_normalize(net_cfg, asdict(opt)), info),
+                lambda t, tr: tr.fit(t, train_dataloaders=_loader(data.train),
+                                     val_dataloaders=_loader(data.validation), weights_only=True),
+                lambda opt, callbacks: make_trainer(opt, output.progress, callbacks), seed, data.frames)
+            info["search"] = searched
+            task.hparams["info"] = info
+            metrics = {"val_loss": searched["chosen"]["val_loss"], "lr": searched["chosen"]["lr"]}
+        else:
+            trainer = make_trainer(optimization, output.progress)
+            trainer.fit(task, train_dataloaders=_loader(data.train), val_dataloaders=_loader(data.validation),
+                        weights_only=True)
+            metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    except SystemExit:
+        # Lightning answers Ctrl-C inside fit/validate with its own shutdown and sys.exit(1): it is an interruption.
+        raise KeyboardInterrupt from None
+    return Solved(task, trainer, metrics, data, ridge_path)
+
+
+def _loader(batches: Iterable | None) -> DataLoader | None:
+    """Lightning's view of ``batches``: a DataLoader as it is, any other iterable of ready batches wrapped (no
+    batching of its own)."""
+    if batches is None or isinstance(batches, DataLoader):
+        return batches
+    return DataLoader(batches, batch_size=None)
 
 
 def solve_closed_form(network: nn.Module, train, validation, optimization: OptimizationConfig,

@@ -9,60 +9,52 @@ which is what the study's open-loop EOF does and why it fails under a DM gain er
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from dataclasses import asdict, dataclass
 
-import lightning as L
 import torch
 from torch import nn
-from torch.utils.data import DataLoader
 
-from eofnn.control.baselines import Dithered, Integrator
-from eofnn.control.predictive import PredictiveController
+from eofnn.control.baselines import record_dithered
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig
 from eofnn.data.targets import AnyTelemetry, TelemetryBatches, check_sequences, telemetry_grid, telemetry_items
-from eofnn.errors import ConfigError, DivergedError, TelemetryError
-from eofnn.outputs import check_output_file, staged_file
+from eofnn.errors import ConfigError, TelemetryError
 from eofnn.resources import require_memory
-from eofnn.seeding import int_seed
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, dm_model, layout_to_dict
-from eofnn.sim.loop import run_loop
 from eofnn.sim.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction
-from eofnn.training.fit import DEFAULT_NETWORK, TrainedPredictor, bind_margin, make_trainer, solve_closed_form
+from eofnn.training.fit import DEFAULT_NETWORK, FitData, FitOutput, FitResult, bind_margin, new_task, solve
 from eofnn.training.identify import IdentifiedPlant, identify_plant
-from eofnn.training.search import check_search, run_search
-from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
+from eofnn.training.task import OptimizationConfig
 
 
 @dataclass
-class TelemetryFit:
-    """A predictor fitted from telemetry, the DM model it was fitted through, its losses (nm² of command) and
-    checkpoint."""
+class TelemetryDataConfig:
+    """How recorded telemetry is read and split for a fit.
 
-    predictor: TrainedPredictor
-    dm_gain: float
-    model_errors: dict
-    plant_source: str
-    train_loss: float | None
-    val_loss: float | None
-    checkpoint: Path | None = None
-    info: dict = field(default_factory=dict)
+    Parameters
+    ----------
+    batch_frames : int
+        Frames per streamed batch.
+    val_frames : int
+        The last ``val_frames`` frames (before ``stop``) of each sequence are held out as validation.
+    stop : int, optional
+        Train on frames before ``stop`` only (keep the rest for :func:`eofnn.evaluation.replay.replay`).
+    seed : int
+        Seed of network initialisation and SGD.
+    """
 
-    @property
-    def network(self) -> nn.Module:
-        return self.predictor.network
+    batch_frames: int = 1024
+    val_frames: int = 0
+    stop: int | None = None
+    seed: int = 0
 
-    @property
-    def spec(self) -> HistorySpec:
-        return self.predictor.spec
-
-    def controller(self) -> PredictiveController:
-        """Loop-side controller; open loop reconstructs POL values with the DM gain the fit assumed."""
-        return self.predictor.controller(self.dm_gain if self.spec.kind == "open_loop" else 1.0)
+    @classmethod
+    def of(cls, data: DataConfig, val_frames: int) -> TelemetryDataConfig:
+        """The telemetry twin of a predictor's ``data`` (its batches and seed), holding out ``val_frames``."""
+        return cls(data.batch_frames, val_frames, seed=data.seed)
 
 
 def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int | float,
@@ -82,17 +74,16 @@ def resolve_plant(plant: IdentifiedPlant | dict | None, delay_frames: int | floa
 
 def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: HistorySpec, network: dict | None = None,
                        *, plant: IdentifiedPlant | dict | None = None, grid: ActuatorGrid | None = None,
-                       optimization: OptimizationConfig | None = None, batch_frames: int = 1024, stop: int | None = None,
-                       val_frames: int = 0, seed: int = 0, checkpoint_path: str | Path | None = None,
-                       overwrite: bool = False, progress: bool = False, info: dict | None = None,
-                       margin: MarginFunction | None = None) -> TelemetryFit:
+                       data: TelemetryDataConfig | None = None, optimization: OptimizationConfig | None = None,
+                       output: FitOutput | None = None, info: dict | None = None,
+                       margin: MarginFunction | None = None) -> FitResult:
     """Train a predictor on telemetry alone (the telemetry twin of :func:`eofnn.training.fit.fit_predictor`).
 
     Parameters
     ----------
     telemetry : Telemetry, StreamedTelemetry or a sequence of them
         Recorded ``y`` and ``wfs`` (nm): one or several files, batched or not. A
-        :class:`~eofnn.sim.telemetry_file.StreamedTelemetry` is read ``batch_frames`` frames at a time (plus the
+        :class:`~eofnn.sim.telemetry_file.StreamedTelemetry` is read ``data.batch_frames`` frames at a time (plus the
         history's overlap), so the fit never holds the file: memory is set by ``batch_frames``, the actuators and the
         network's normal equations (refused up front when that does not fit).
     spec : HistorySpec
@@ -105,18 +96,12 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
     grid : ActuatorGrid or ActuatorLayout, optional
         The actuator layout, when the telemetry holds no positions (neighbourhood filters and misregistered DM models
         need it).
+    data : TelemetryDataConfig
+        Batches, the validation frames held out, the last frame trained on, and the seed.
     optimization : OptimizationConfig
         Closed form (linear networks, one streamed pass) or SGD (any network, e.g. the MLP).
-    batch_frames : int
-        Frames per streamed batch.
-    stop : int, optional
-        Train on frames before ``stop`` only (keep the rest for :func:`eofnn.evaluation.replay.replay`).
-    val_frames : int
-        The last ``val_frames`` frames (before ``stop``) of each sequence are held out as validation.
-    seed : int
-        Seed of network initialisation and SGD.
-    checkpoint_path : path, optional
-        Where to write a checkpoint that :func:`eofnn.training.checkpoint.load_predictor` reads.
+    output : FitOutput
+        Where to write a checkpoint that :func:`eofnn.training.checkpoint.load_predictor` reads, and the progress bar.
     info : dict, optional
         Provenance recorded in the checkpoint (e.g. the telemetry files).
     margin : callable, optional
@@ -124,79 +109,40 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
         loop the fit believes in: the identified or given DM gain).
     """
     sequences = check_sequences(telemetry, spec)
+    data = data or TelemetryDataConfig()
     optimization = optimization or OptimizationConfig()
-    if checkpoint_path is not None:
-        checkpoint_path = check_output_file(checkpoint_path, overwrite, "checkpoint")
+    output = (output or FitOutput()).checked()
     n_act, n_frames = sequences[0].y.shape[-1], min(seq.y.shape[0] for seq in sequences)
     first_item = telemetry_items(telemetry)[0]
     grid = telemetry_grid(first_item, grid)
     dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, grid)
+    stop, val_frames, batch_frames = data.stop, data.val_frames, data.batch_frames
     train_stop = (stop if stop is not None else n_frames) - val_frames
     span = spec.first_frame + spec.target_lead
     if train_stop <= span or (val_frames and val_frames <= span):
         raise TelemetryError(f"stop={stop}, val_frames={val_frames}: {n_frames} frames leave no training or "
                              f"validation history (each needs more than {span} frames)")
-    grid_dict = None if grid is None else layout_to_dict(grid)
     info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
             "n_sequences": len(sequences), **(info or {})}
     if first_item.modal_basis is not None:  # a modal predictor: actuator commands are modal_basis @ y
         info["modal_basis_shape"] = list(first_item.modal_basis.shape)
     if first_item.measurement:
         info["measurement"] = first_item.measurement
-    L.seed_everything(seed, workers=True, verbose=False)
-    task = PredictorTask(network or DEFAULT_NETWORK, n_act, spec.to_dict(), grid_dict,
-                         resolve_normalize(network or DEFAULT_NETWORK, asdict(optimization)), info)
+    task = new_task(network or DEFAULT_NETWORK, n_act, spec, None if grid is None else layout_to_dict(grid),
+                    optimization, info, data.seed)
     require_memory(fit_working_bytes(task.network, spec, n_act, batch_frames),
                    f"fitting from telemetry ({n_act} actuators, {spec.n_taps} taps, batches of {batch_frames} frames)")
     train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
                            stop=train_stop + val_frames) if val_frames else None
-    needs_trainer = optimization.fit_method != "closed_form" or val is not None or checkpoint_path is not None
-    trainer = make_trainer(optimization, progress) if needs_trainer else None
-    train_loss = val_loss = ridge_path = None
-    if optimization.fit_method == "closed_form":
-        if optimization.alpha_for(val is not None) == "auto" and val is None:
-            raise ConfigError("optimization.alpha: auto chooses alpha on held-out telemetry: give val_frames > 0 "
-                              "(or a fixed optimization.alpha)")
-        solved = solve_closed_form(task.network, train, val, optimization,
-                                   bind_margin(margin, task.network, spec, dm_gain or 1.0, dm_gain or 1.0))
-        train_loss = solved.train_loss
-        info["alpha"] = solved.alpha
-        if solved.choice is not None:
-            info["alpha_choice"] = solved.choice.summary()
-            ridge_path = solved.choice.path
-        task.hparams["info"] = info
-        if val is not None or checkpoint_path is not None:  # validating also attaches the trainer that saves
-            metrics = trainer.validate(task, dataloaders=DataLoader(val or train, batch_size=None), verbose=False)[0]
-            val_loss = metrics["val_loss"] if val is not None else None
-    elif optimization.search is not None:
-        if val is None:
-            raise ConfigError("optimization.search chooses on held-out telemetry: give val_frames > 0")
-        task, trainer, searched = run_search(
-            check_search(optimization.search, optimization.lr), network or DEFAULT_NETWORK, optimization,
-            lambda net_cfg, opt: PredictorTask(net_cfg, n_act, spec.to_dict(), grid_dict,
-                                               resolve_normalize(net_cfg, asdict(opt)), info),
-            lambda t, tr: tr.fit(t, train_dataloaders=DataLoader(train, batch_size=None),
-                                 val_dataloaders=DataLoader(val, batch_size=None)),
-            lambda opt, callbacks: make_trainer(opt, progress, callbacks), seed, train_stop * len(sequences))
-        info["search"] = searched
-        task.hparams["info"] = info
-        val_loss = searched["chosen"]["val_loss"]
-    else:
-        trainer.fit(task, train_dataloaders=DataLoader(train, batch_size=None),
-                    val_dataloaders=DataLoader(val, batch_size=None) if val is not None else None)
-        metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-        train_loss, val_loss = metrics.get("train_loss"), metrics.get("val_loss")
-    sgd = optimization.fit_method != "closed_form"
-    check_fit(task, train_loss, None if val_loss is None else float(val_loss),
-              DataLoader(val, batch_size=None) if sgd and val is not None else None)
-    network_config = task.hparams.network
-    predictor = TrainedPredictor(task.network.eval(), spec, network_config, n_act, info, ridge_path)
-    if checkpoint_path is not None:
-        with staged_file(checkpoint_path, overwrite) as partial:
-            trainer.save_checkpoint(partial)
-    return TelemetryFit(predictor, dm_gain, errors, source, train_loss, None if val_loss is None else float(val_loss),
-                        checkpoint_path, info)
+    if val is None and optimization.fit_method == "closed_form" and optimization.alpha_for(False) == "auto":
+        raise ConfigError("optimization.alpha: auto chooses alpha on held-out telemetry: give val_frames > 0 "
+                          "(or a fixed optimization.alpha)")
+    if val is None and optimization.search is not None:
+        raise ConfigError("optimization.search chooses on held-out telemetry: give val_frames > 0")
+    solved = solve(task, FitData(train, val, train_stop * len(sequences)), optimization, output=output, seed=data.seed,
+                   margin=bind_margin(margin, task.network, spec, dm_gain or 1.0, dm_gain or 1.0))
+    return solved.result(output)
 
 
 def fit_working_bytes(network: nn.Module, spec: HistorySpec, n_act: int, batch_frames: int) -> int:
@@ -232,9 +178,8 @@ def telemetry_sequences(data: DataConfig) -> tuple[int, int, int]:
 
 def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", history_length: int = 4,
                                 network: dict | None = None, *, data: DataConfig | None = None,
-                                optimization: OptimizationConfig | None = None,
-                                checkpoint_path: str | Path | None = None, overwrite: bool = False,
-                                progress: bool = False, margin: MarginFunction | None = None) -> TelemetryFit:
+                                optimization: OptimizationConfig | None = None, output: FitOutput | None = None,
+                                margin: MarginFunction | None = None) -> FitResult:
     """What an observatory would do in ``scenario``: record telemetry, identify the plant, fit from telemetry alone.
 
     The telemetry twin of :func:`eofnn.training.fit.fit_predictor` for studies (``compare`` with a predictor that
@@ -247,23 +192,19 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
     ``s`` or the plant.
     """
     data = data or DataConfig()
+    output = output or FitOutput()
     spec = HistorySpec.from_scenario(history, history_length, scenario)
     if data.dither_nm <= 0:
         raise ConfigError(f"data.dither_nm={data.dither_nm!r} is invalid for telemetry training: the plant is "
                           "identified from the dither, so it must be > 0 (nm)")
-    recorder = Dithered(Integrator(data.integrator_gain), data.dither_nm, int_seed(data.seed, "telemetry-dither"))
     n_sequences, n_frames, val_frames = telemetry_sequences(data)
     scenario.require_stream_frames(n_frames, f"telemetry training ({n_sequences} sequence(s) of {n_frames} frames)")
-    result = run_loop(scenario.turbulence(data.seed, "telemetry-train", n_sequences * data.realisations),
-                      scenario.plant, recorder, n_frames, noise_seed=int_seed(data.seed, "telemetry-noise"),
-                      record=("y", "wfs"), progress=progress)
-    if result.diverged:
-        raise DivergedError(f"the recording integrator diverged at frame {result.diverged_frame} in the scenario's "
-                            "plant: lower data.integrator_gain or data.dither_nm")
+    streams = ("telemetry-train", "telemetry-dither", "telemetry-noise")
+    result = record_dithered(scenario, data, n_frames, streams, n_sequences * data.realisations,
+                             progress=output.progress, where=" in the scenario's plant")
     plant = identify_plant(result.telemetry)
     plant.require_identified()
-    return fit_from_telemetry(result.telemetry, spec, network, plant=plant, optimization=optimization,
-                              batch_frames=data.batch_frames, val_frames=val_frames, seed=data.seed,
-                              checkpoint_path=checkpoint_path, overwrite=overwrite, progress=progress, margin=margin,
-                              info={"scenario": scenario.to_dict(), "data": asdict(data),
+    return fit_from_telemetry(result.telemetry, spec, network, plant=plant,
+                              data=TelemetryDataConfig.of(data, val_frames), optimization=optimization,
+                              output=output, margin=margin, info={"scenario": scenario.to_dict(), "data": asdict(data),
                                     "identified_plant": plant.model_errors()})
