@@ -249,15 +249,9 @@ def _classical_config(tmp_path, predictor: dict) -> Path:
     ({"controller": "lqg", "modes": 500, "data": {"frames": 2048}}, "modes=500 is invalid"),
     ({"controller": "integrator", "modes": 5}, "modes=5 is for controller"),
 ])
-def test_bad_classical_configs_are_one_line_and_write_nothing(capsys, tmp_path, predictor, expected):
+def test_bad_classical_configs_are_one_line_and_write_nothing(cli_error, tmp_path, predictor, expected):
     out = tmp_path / "out"
-    code = main(["compare", "--config", str(_classical_config(tmp_path, predictor)), "--out", str(out)])
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("eofnn: error:"), err
-    assert expected in lines[0], lines[0]
-    assert not out.exists()
+    cli_error(["compare", "--config", _classical_config(tmp_path, predictor), "--out", out], expected, out)
 
 
 def test_compare_records_the_classical_models(tmp_path, small_scenario):

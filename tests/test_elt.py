@@ -13,7 +13,6 @@ import torch
 
 from eofnn.analysis import block
 from eofnn.analysis.stability import LoopSetup, analyse
-from eofnn.main import main
 from eofnn.sim import anywind
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant
@@ -128,24 +127,13 @@ def test_the_elt_grid_is_ten_times_beyond_the_coupled_limit_but_per_actuator_is_
     assert block.companion_rows(ActuatorGrid(8.0, 40).n_actuators, "closed_loop", 5, 2, 2) <= block.COMPANION_LIMIT
 
 
-def run_bad(capsys, args, expected, out):
-    code = main([str(a) for a in args])
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("eofnn: error:") and "Traceback" not in err, err
-    assert expected in lines[0], lines[0]
-    assert not Path(out).exists()
-    return lines[0]
-
-
 @pytest.mark.parametrize("change, key", [("wind_direction_deg: .nan", "wind_direction_deg=nan"),
                                          ("wind_direction_deg: .inf", "wind_direction_deg=inf"),
                                          ("wind_speed_mps: .nan", "wind_speed_mps=nan"),
                                          ("wind_speed_mps: -.inf", "wind_speed_mps=-inf")])
-def test_a_non_finite_wind_change_is_refused(capsys, tmp_path, change, key):
-    line = run_bad(capsys, ["compare", "--config", CONFIGS / "elt_small.yaml", "--scenario.atmosphere.changes",
-                            f"[{{at_s: 0.5, layer: 1, {change}}}]", "--out", tmp_path / "o"], key, tmp_path / "o")
+def test_a_non_finite_wind_change_is_refused(cli_error, tmp_path, change, key):
+    line = cli_error(["compare", "--config", CONFIGS / "elt_small.yaml", "--scenario.atmosphere.changes",
+                      f"[{{at_s: 0.5, layer: 1, {change}}}]", "--out", tmp_path / "o"], key, tmp_path / "o")
     assert "finite" in line
 
 
@@ -158,7 +146,7 @@ GIB = 2**30
     (["--evaluation.realisations", "8"], "evaluation.frames=2000: the set of exact screens of non-lattice winds (24 screen(s)"),
     (["--scenario.grid.n_across", "400"], "of memory"),
 ])
-def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(capsys, tmp_path, monkeypatch, args,
+def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(cli_error, tmp_path, monkeypatch, args,
                                                                               expected):
     """On a machine with 4 GiB available (whatever this one has), with the number needed and what is allowed."""
     import eofnn.resources
@@ -168,8 +156,8 @@ def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(ca
         raise AssertionError("a screen was built before the refusal")
 
     monkeypatch.setattr(anywind.AnyWindFrozenFlow, "__init__", never)
-    line = run_bad(capsys, ["compare", "--config", CONFIGS / "elt_small.yaml", *args, "--out", tmp_path / "o"],
-                   expected, tmp_path / "o")
+    line = cli_error(["compare", "--config", CONFIGS / "elt_small.yaml", *args, "--out", tmp_path / "o"],
+                     expected, tmp_path / "o")
     needed = float(line.split("needs about ")[1].split(" GiB")[0]) if "GiB of memory" in line else math.inf
     assert needed > 0.8 * 4 and "3.2 GiB available" in line
 

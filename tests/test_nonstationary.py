@@ -140,11 +140,9 @@ def test_bad_drifts_are_one_line_errors(drift, match):
     assert match in str(err.value) and "\n" not in str(err.value)
 
 
-def test_bad_change_on_the_command_line_is_one_line(capsys, tmp_path):
-    code = main(["compare", "--scenario.atmosphere.changes", "[{at_s: 1.0, layer: 3, cn2_scale: 2.0}]",
-                 "--predictors", "{i: {controller: integrator}}", "--out", str(tmp_path / "o")])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "layer=3 is invalid" in err[0], err
+def test_bad_change_on_the_command_line_is_one_line(cli_error, tmp_path):
+    cli_error(["compare", "--scenario.atmosphere.changes", "[{at_s: 1.0, layer: 3, cn2_scale: 2.0}]",
+               "--predictors", "{i: {controller: integrator}}", "--out", tmp_path / "o"], "layer=3 is invalid")
 
 
 def test_reconvergence_definition():
