@@ -31,12 +31,14 @@ CASES = [(key, value) for key in NUMERIC_KEYS for value in NON_FINITE
          if not (value == "null" and key.endswith(("dm_gain_model", "alpha")))]
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("key, value", CASES)
 def test_non_finite_and_null_values(cli_error, tmp_path, key, value):
     cli_error(["compare", "--config", TINY, f"--{key}={value}", "--out", tmp_path / "o"], key.rsplit(".", 1)[-1],
               tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("layer", ["{cn2_fraction: .inf}", "{wind_speed_mps: .nan}", "{wind_direction_deg: .inf}",
                                    "{wind_direction_deg: .nan}", "{wind_speed_mps: .inf}", "{cn2_fraction: -1}",
                                    "{wind_speed_mps: 'fast'}", "{speed: 3}"])
@@ -46,6 +48,7 @@ def test_bad_layers(cli_error, tmp_path, layer):
               key, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("changes, expected", [
     ({"dm_gain": "two"}, "dm_gain='two'"), ({"dm_gain": [0.1]}, "dm_gain=[0.1]"), ({"dm_gain": True}, "dm_gain=True"),
     ({"dm_gain": None}, "dm_gain=None"), ({"wfs_noise_nm": "1 nm"}, "wfs_noise_nm='1 nm'"),
@@ -57,6 +60,7 @@ def test_wrong_types_in_scenario_variants(cli_error, tmp_path, changes, expected
                "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.plant.dm_gain", "two"], "dm_gain"),
     (["--evaluation.frames", "1.5"], "frames"),
@@ -75,6 +79,7 @@ def test_wrong_types_and_choices(cli_error, tmp_path, args, expected):
     cli_error(["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.grid.obstruction", "0.97"], "obstruction=0.97"),
     (["--scenario.grid.obstruction", "1.0"], "obstruction=1.0"),
@@ -89,6 +94,7 @@ def test_impossible_geometry_and_timing(cli_error, tmp_path, args, expected):
     cli_error(["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.grid.n_across", "100000"], "n_across=100000"),
     (["--evaluation.frames", str(10**12)], "frames=1000000000000"),
@@ -112,6 +118,7 @@ def _alias_bomb(levels: int = 7) -> str:
     return "\n".join(lines) + "\n"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("content, expected", [
     (_alias_bomb(), "YAML nodes"),
     (bytes(range(256)) * 8, "not text"),
@@ -125,12 +132,14 @@ def test_unreadable_or_hostile_config_files(cli_error, tmp_path, content, expect
     cli_error(["compare", "--config", path, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 def test_a_missing_config_or_scenario_file(cli_error, tmp_path):
     cli_error(["compare", "--config", tmp_path / "none.yaml", "--out", tmp_path / "o"], "does not exist",
               tmp_path / "o")
     cli_error(["compare", "--config", tmp_path, "--out", tmp_path / "o"], "does not exist", tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("content", [b"not a checkpoint", b"PK\x03\x04truncated zip", b"", bytes(range(256))])
 def test_unreadable_checkpoints(cli_error, tmp_path, content):
     ckpt = tmp_path / "bad.ckpt"
@@ -139,6 +148,8 @@ def test_unreadable_checkpoints(cli_error, tmp_path, content):
                "--out", tmp_path / "o"], "not an eofnn predictor checkpoint", tmp_path / "o")
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_output_paths_that_cannot_be_written(capsys, cli_error, tmp_path):
     a_file = tmp_path / "file.txt"
     a_file.write_text("mine")
@@ -154,6 +165,7 @@ def test_output_paths_that_cannot_be_written(capsys, cli_error, tmp_path):
     assert a_file.read_text() == "mine"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--predictor.checkpoint", "runs/cl.ckpt"], "does not run a checkpoint"),
     (["--predictor.controller", "predictor"], "simulate runs a baseline or a checkpoint"),
@@ -167,11 +179,13 @@ def test_simulate_never_runs_something_else(cli_error, tmp_path, args, expected)
               expected, tmp_path / "run.fits")
 
 
+@pytest.mark.cli
 def test_a_psd_segment_longer_than_the_settled_frames(cli_error, tmp_path):
     cli_error(["compare", "--config", TINY, "--evaluation.psd_segment_frames", "4096", "--out", tmp_path / "o"],
               "psd_segment_frames=4096", tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("drift, expected", [
     ("{start_s: 2, stop_s: 1, to: 2}", "plant.dm_gain_drift.stop_s=1.0 is invalid: it must be at least start_s"),
     ("{start_s: 0, stop_s: 1e9, to: 2}", "plant.dm_gain_drift.stop_s=1000000000.0 is invalid"),
@@ -216,6 +230,7 @@ def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_d
     assert (out / "notes.txt").read_text() == "mine" and (out / "metrics.json").read_text() == "new"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("override, expected", [
     (["--scenario.plant.dm_gain_drift", "{start_s: 100, stop_s: 101, to: 2}"],
      "plant.dm_gain_drift starts at 100 s (frame 100000), after the run of"),

@@ -10,6 +10,8 @@ import yaml
 
 from eofnn.main import main
 
+pytestmark = pytest.mark.cli
+
 TINY = Path(__file__).parent / "conf" / "tiny_compare.yaml"
 TINY_EVAL = Path(__file__).parent / "conf" / "tiny_evaluate.yaml"
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
@@ -22,6 +24,7 @@ def tiny_results(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_compare_writes_metrics_table_config_and_figures(tiny_results):
     metrics = json.loads((tiny_results / "metrics.json").read_text())
     scenarios = metrics["scenarios"]
@@ -56,6 +59,7 @@ def test_compare_writes_metrics_table_config_and_figures(tiny_results):
         "cl_eof__dm_gain_2.ckpt", "cl_eof__nominal.ckpt", "ol_eof__nominal.ckpt"]
 
 
+@pytest.mark.slow
 def test_compare_refuses_a_non_empty_folder(tiny_results, cli):
     before = (tiny_results / "metrics.json").read_text()
     code, err = cli("compare", "--config", TINY, "--out", tiny_results)
@@ -64,6 +68,7 @@ def test_compare_refuses_a_non_empty_folder(tiny_results, cli):
     assert (tiny_results / "metrics.json").read_text() == before
 
 
+@pytest.mark.slow
 def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results, tmp_path, cli):
     ckpt = tiny_results / "checkpoints" / "ol_eof__nominal.ckpt"
     out = tmp_path / "eval"
@@ -78,6 +83,7 @@ def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results,
     assert "training" not in err  # nothing retrained
 
 
+@pytest.mark.slow
 def test_fit_then_evaluate_under_another_plant(tmp_path, cli):
     ckpt = tmp_path / "cl.ckpt"
     code, err = cli("fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
@@ -98,6 +104,7 @@ def test_fit_then_evaluate_under_another_plant(tmp_path, cli):
     assert metrics["diverged"] or metrics["median_rms_nm"] > 0
 
 
+@pytest.mark.slow
 def test_a_users_own_module_plugs_in_by_class_path(tmp_path, cli):
     out = tmp_path / "user"
     predictors = {"mine": {"history_length": 3, "network": {"class_path": "user_networks.TapMixer"},
@@ -129,6 +136,7 @@ def test_config_errors_are_one_line_and_nothing_runs(tmp_path, cli_error, args, 
     cli_error(["compare", "--config", TINY, *args, "--out", out], expected, out)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_that_does_not_fit_the_scenario(tiny_results, tmp_path, cli):
     ckpt = tiny_results / "checkpoints" / "ol_eof__nominal.ckpt"
     code, err = cli("evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"x": str(ckpt)}),
@@ -184,6 +192,7 @@ def test_shipped_configs_parse(command, config, capsys):
     assert resolved["scenario"]["grid"]["n_across"] == 40
 
 
+@pytest.mark.slow
 def test_tiny_compare_numbers_are_pinned(tiny_results):
     """Refactors must not move a number: the tiny experiment's metrics are reproduced to 1e-9 (update the file only
     for a deliberate change of the physics). Not bit for bit: library builds (BLAS, FFT) move the last digits."""
@@ -202,6 +211,7 @@ def test_tiny_compare_numbers_are_pinned(tiny_results):
     assert {k: measured[k] for k in pinned.keys() - numbers} == {k: pinned[k] for k in pinned.keys() - numbers}
 
 
+@pytest.mark.slow
 def test_compare_can_train_from_the_scenarios_telemetry_alone(tmp_path, cli):
     """data.truth: false: record dithered telemetry, identify the plant, fit from y and wfs only."""
     predictors = {"integrator": {"controller": "integrator", "gain": 0.4},

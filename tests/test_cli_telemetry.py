@@ -5,7 +5,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from eofnn.runtime import PredictiveFilter
+
+pytestmark = pytest.mark.cli
 
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 
@@ -18,6 +22,7 @@ def simulate(cli, out: Path, seed: int, dither_nm: float = 10.0) -> None:
     assert code == 0, err
 
 
+@pytest.mark.slow
 def test_identify_fit_replay_export(tmp_path, cli, cli_error):
     recorded, held_out = tmp_path / "run.fits", tmp_path / "held_out.npz"
     simulate(cli, recorded, 1)

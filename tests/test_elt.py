@@ -30,6 +30,7 @@ def _oblique_scenario(screen_frames: int = 256) -> Scenario:
                     plant=Plant(delay_frames=2))
 
 
+@pytest.mark.slow
 def test_any_wind_screens_are_built_once_per_realisation_and_shared(monkeypatch):
     monkeypatch.setattr(anywind, "_SCREEN_CACHE", {})
     scenario = _oblique_scenario()
@@ -49,6 +50,7 @@ def test_any_wind_screens_are_built_once_per_realisation_and_shared(monkeypatch)
     assert torch.equal(frames, rebuilt.frames(0, 200))
 
 
+@pytest.mark.slow
 def test_the_screen_cache_keeps_within_its_budget(monkeypatch):
     monkeypatch.setattr(anywind, "_SCREEN_CACHE", {})
     one = _oblique_scenario().turbulence(0, "a")._strips[0][0].screen_nbytes
@@ -66,6 +68,7 @@ def _self_slot(neighbours: torch.Tensor) -> torch.Tensor:
     return own.int().argmax(1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, p, delay", [("closed_loop", 3, 2), ("open_loop", 4, 2), ("open_loop", 3, 3),
                                             ("open_loop", 4, 1.5), ("closed_loop", 3, 2.5)])
 def test_an_uncoupled_neighbourhood_filter_has_the_per_actuator_margins(kind, p, delay):
@@ -127,6 +130,8 @@ def test_the_elt_grid_is_ten_times_beyond_the_coupled_limit_but_per_actuator_is_
     assert block.companion_rows(ActuatorGrid(8.0, 40).n_actuators, "closed_loop", 5, 2, 2) <= block.COMPANION_LIMIT
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 @pytest.mark.parametrize("change, key", [("wind_direction_deg: .nan", "wind_direction_deg=nan"),
                                          ("wind_direction_deg: .inf", "wind_direction_deg=inf"),
                                          ("wind_speed_mps: .nan", "wind_speed_mps=nan"),
@@ -140,6 +145,8 @@ def test_a_non_finite_wind_change_is_refused(cli_error, tmp_path, change, key):
 GIB = 2**30
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.atmosphere.screen_frames", "1000000"], "exact screens of non-lattice winds (3 screen(s) of 5024 "
                                                           "actuators x screen_frames=1000000) needs about"),

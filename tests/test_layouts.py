@@ -85,6 +85,7 @@ def test_too_few_actuators_for_a_shift_model_and_no_positions():
     assert abs(bare.dm_gain / 2 - 1) < 0.02 and "no actuator positions" in bare.warnings[0]
 
 
+@pytest.mark.slow
 def test_fit_on_fried_with_neighbourhoods_beats_the_integrator_and_checkpoints_reload(tmp_path):
     pos = fried_positions()
     train, held_out = record(pos, 3000, seed=0, noise_nm=1.0), record(pos, 1500, seed=5, noise_nm=1.0)
@@ -100,6 +101,7 @@ def test_fit_on_fried_with_neighbourhoods_beats_the_integrator_and_checkpoints_r
     assert torch.equal(loaded.network.weight, fit.network.weight)
 
 
+@pytest.mark.cli
 def test_identify_from_the_command_line_on_a_hexagonal_file(tmp_path, capsys):
     tel = record(hex_positions(), 2500)
     np.savez(tmp_path / "hex.npz", y=tel.y.numpy(), wfs=tel.wfs.numpy(), positions_m=hex_positions(), delay_frames=2)
@@ -108,6 +110,7 @@ def test_identify_from_the_command_line_on_a_hexagonal_file(tmp_path, capsys):
     assert abs(plant["dm_gain"] / 2 - 1) < 0.02 and abs(plant["misregistration_x"]) < 0.01
 
 
+@pytest.mark.cli
 def test_bad_positions_and_sparse_layouts(tmp_path, cli_error):
     tel = record(hex_positions(), 600)
     y, wfs, pos = tel.y.numpy(), tel.wfs.numpy(), hex_positions()
