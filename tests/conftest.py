@@ -1,7 +1,10 @@
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
+from eofnn.cli.main import main
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant
 from eofnn.sim.scenario import Scenario
 
@@ -19,3 +22,37 @@ def small_scenario() -> Scenario:
         frame_rate_hz=1000.0,
         plant=Plant(delay_frames=2),
     )
+
+
+@pytest.fixture
+def cli(capsys):
+    """eofnn's command line run in this process: ``cli(*args)`` gives (exit code, what it wrote on stderr)."""
+
+    def run(*args) -> tuple[int, str]:
+        code = main([str(a) for a in args])
+        return code, capsys.readouterr().err
+
+    return run
+
+
+@pytest.fixture
+def cli_error(cli):
+    """``cli_error(args, expected, out)`` runs a command that must be refused and gives its error line.
+
+    Refused means exit code 2, one line ``eofnn: error: ...`` that holds ``expected``, no traceback, and nothing
+    written at ``out`` (when given).  ``alone=False`` lets other lines written before the refusal (a command's
+    progress or notes) stand beside the error line; there must still be exactly one error line.
+    """
+
+    def refused(args, expected: str = "", out: Path | str | None = None, *, alone: bool = True) -> str:
+        code, err = cli(*args)
+        lines = err.strip().splitlines()
+        errors = [line for line in lines if line.startswith("eofnn: error:")]
+        assert code == 2, err
+        assert len(errors) == 1 and (not alone or len(lines) == 1), err
+        assert "Traceback" not in err, err
+        assert expected in errors[0], errors[0]
+        assert out is None or not Path(out).exists(), f"{out} was written: {err}"
+        return errors[0]
+
+    return refused

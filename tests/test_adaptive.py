@@ -25,6 +25,7 @@ def tail_rms(scenario, controller, n_frames=4000, plant=None):
     return result, result.residual_rms_nm[0, n_frames // 2:].median().item()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, history_length", [("open_loop", 4), ("closed_loop", 5)])
 def test_rls_and_blend_converge_to_the_fitted_filter(noisy, kind, history_length):
     spec = HistorySpec(kind, history_length, 2)
@@ -43,6 +44,7 @@ def test_rls_and_blend_converge_to_the_fitted_filter(noisy, kind, history_length
     assert static < 0.5 * start
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make", [
     lambda spec, w: RLSController(spec, w, forgetting=0.999, integrator_gain=0.2),
     lambda spec, w: BlendController(spec, w, every_frames=200, integrator_gain=0.2),
@@ -77,6 +79,7 @@ class SteppedTurbulence:
             yield first, frames + after.view(1, -1, 1) * self.shape_nm
 
 
+@pytest.mark.slow
 def test_a_transient_does_not_trigger_the_fallback_unless_patience_is_one(noisy):
     spec = HistorySpec("open_loop", 4, 2)
     fitted = fit_predictor(noisy, "open_loop", 4, data=FAST).predictor
@@ -141,6 +144,7 @@ def test_blend_refit_is_the_sliding_window_ridge_blended():
     torch.testing.assert_close(blend.weights[0], 0.75 * before[0] + 0.25 * solution, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_dithered_adaptation_is_reproducible(noisy):
     spec = HistorySpec("closed_loop", 3, 2)
 

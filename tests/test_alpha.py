@@ -11,7 +11,6 @@ import torch
 
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse
-from eofnn.cli.main import main
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
 from eofnn.errors import ConfigError
@@ -41,6 +40,7 @@ def test_the_default_path_spans_1e_14_to_1e_2():
     assert OptimizationConfig().ridge_alpha == "auto"
 
 
+@pytest.mark.slow
 def test_auto_alpha_is_the_brute_force_minimum_of_the_validation_error(small_scenario):
     scenario = small_scenario.with_plant(wfs_noise_nm=2.0)
     spec = HistorySpec.from_scenario("open_loop", 4, scenario)
@@ -65,6 +65,7 @@ def test_a_fixed_alpha_means_that_alpha(small_scenario):
     assert result.rounds[-1]["alpha"] == 1e-6
 
 
+@pytest.mark.slow
 def test_select_keeps_the_best_alpha_that_meets_the_interval(small_scenario):
     spec = HistorySpec.from_scenario("open_loop", 4, small_scenario)
     interval = [0.7, 1.3]
@@ -109,15 +110,14 @@ def test_bad_tuning_options_are_one_line(options, expected):
     assert expected in str(err.value) and "\n" not in str(err.value)
 
 
-def test_bad_tuning_options_on_the_command_line(capsys, tmp_path):
+@pytest.mark.cli
+def test_bad_tuning_options_on_the_command_line(cli_error, tmp_path):
     out = tmp_path / "out"
-    code = main(["compare", "--config", str(TINY), "--out", str(out),
-                 "--predictors.ol_eof.optimization.alpha_path", "[1e-3, 1e-6]"])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "strictly increasing" in err[0], err
-    assert not out.exists()
+    cli_error(["compare", "--config", TINY, "--out", out, "--predictors.ol_eof.optimization.alpha_path", "[1e-3, 1e-6]"],
+              "strictly increasing", out)
 
 
+@pytest.mark.slow
 def test_a_budgeted_search_keeps_the_best_trial_and_reports_its_budget(small_scenario):
     """SGD's twin of alpha: auto: learning rate x width with early stopping, chosen on validation data."""
     from eofnn.training.search import check_search

@@ -36,6 +36,8 @@ def _theory(layers, grid, rate: float, f: np.ndarray) -> np.ndarray:
         f, lay.wind_speed_mps, grid.pitch_m, "subaperture", 20.0, rate, lay.wind_direction_deg) for lay in layers)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("direction", [17.0, 30.0, 120.0])
 def test_screen_spectrum_is_theory_from_1_to_300_hz(direction):
     """The screen's own temporal PSD through the subaperture (its line spectrum: expected, no sampling noise):
@@ -53,6 +55,8 @@ def test_screen_spectrum_is_theory_from_1_to_300_hz(direction):
     np.testing.assert_allclose(bands, 1.0, atol=0.03)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("layers", PSD_CASES, ids=PSD_IDS)
 def test_temporal_psd_matches_theory_at_non_lattice_angles(layers):
     """Uncorrected s of each actuator through its subaperture, measured (Welch, 4 realisations of 8 s): within 15%
@@ -71,6 +75,8 @@ def test_temporal_psd_matches_theory_at_non_lattice_angles(layers):
     np.testing.assert_allclose(ratios, 1.0, atol=0.15)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("kernel, directions", [("subaperture", (17.0, 30.0, 120.0, 200.0)), ("point", (30.0, 120.0))])
 def test_structure_function_is_theory_and_equal_in_every_direction(kernel, directions):
     """Variance and structure function at 1-3 pitches along x and y: within 10% of the kernel-filtered theory at
@@ -96,6 +102,7 @@ def test_structure_function_is_theory_and_equal_in_every_direction(kernel, direc
     assert (table.max(0) / table.min(0)).max() < 1.1
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("direction", [17.0, 30.0, 120.0])
 def test_frozen_flow_holds_at_shifted_positions(direction):
     """Frame n + j at an actuator is frame n at the point j wind steps upwind of it (to float32 rounding)."""
@@ -112,6 +119,7 @@ def test_frozen_flow_holds_at_shifted_positions(direction):
     assert (s[j:, :k] - s[:-j, :k]).abs().mean() > 0.05 * s.std()  # ...and the screen did move
 
 
+@pytest.mark.slow
 def test_lattice_directions_keep_the_lines_model():
     grid = ActuatorGrid(2.0, 10)
     args = (R0, WAVELENGTH, 20.0, 7.3)
@@ -120,6 +128,7 @@ def test_lattice_directions_keep_the_lines_model():
                       AnyWindFrozenFlow)
 
 
+@pytest.mark.slow
 def test_boiling_changes_and_vibrations_work_at_any_angle():
     """A boiling layer at 30 degrees turning to 75, and a tip vibration: any chunking gives the same frames."""
     grid = ActuatorGrid(2.0, 10)

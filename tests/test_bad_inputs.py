@@ -25,50 +25,42 @@ NUMERIC_KEYS = [
 NON_FINITE = [".inf", "-.inf", ".nan", "null"]
 
 
-def run_bad(capsys, args, expected, out):
-    code = main([str(a) for a in args])
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("eofnn: error:"), err
-    assert "Traceback" not in err
-    assert expected in lines[0], lines[0]
-    assert not Path(out).exists()
-    return lines[0]
-
-
 # null is allowed for dm_gain_model (the predictor's own DM model) and alpha (chosen on validation data), so those
 # pairs are not bad inputs.
 CASES = [(key, value) for key in NUMERIC_KEYS for value in NON_FINITE
          if not (value == "null" and key.endswith(("dm_gain_model", "alpha")))]
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("key, value", CASES)
-def test_non_finite_and_null_values(capsys, tmp_path, key, value):
-    run_bad(capsys, ["compare", "--config", TINY, f"--{key}={value}", "--out", tmp_path / "o"], key.rsplit(".", 1)[-1],
-            tmp_path / "o")
+def test_non_finite_and_null_values(cli_error, tmp_path, key, value):
+    cli_error(["compare", "--config", TINY, f"--{key}={value}", "--out", tmp_path / "o"], key.rsplit(".", 1)[-1],
+              tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("layer", ["{cn2_fraction: .inf}", "{wind_speed_mps: .nan}", "{wind_direction_deg: .inf}",
                                    "{wind_direction_deg: .nan}", "{wind_speed_mps: .inf}", "{cn2_fraction: -1}",
                                    "{wind_speed_mps: 'fast'}", "{speed: 3}"])
-def test_bad_layers(capsys, tmp_path, layer):
+def test_bad_layers(cli_error, tmp_path, layer):
     key = layer.strip("{}").split(":")[0]
-    run_bad(capsys, ["compare", "--config", TINY, "--scenario.atmosphere.layers", f"[{layer}]", "--out", tmp_path / "o"],
-            key, tmp_path / "o")
+    cli_error(["compare", "--config", TINY, "--scenario.atmosphere.layers", f"[{layer}]", "--out", tmp_path / "o"],
+              key, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("changes, expected", [
     ({"dm_gain": "two"}, "dm_gain='two'"), ({"dm_gain": [0.1]}, "dm_gain=[0.1]"), ({"dm_gain": True}, "dm_gain=True"),
     ({"dm_gain": None}, "dm_gain=None"), ({"wfs_noise_nm": "1 nm"}, "wfs_noise_nm='1 nm'"),
     ({"nonlinearity": 3}, "nonlinearity=3"), ({"delay_frames": 0.5}, "delay_frames=0.5"),
     ({"dm_gian": 2.0}, "unknown model error 'dm_gian'"), ({"dm_gain": float("inf")}, "dm_gain=inf"),
 ])
-def test_wrong_types_in_scenario_variants(capsys, tmp_path, changes, expected):
-    run_bad(capsys, ["compare", "--config", TINY, "--scenarios", json.dumps({"bad": changes}).replace("Infinity", ".inf"),
-                     "--out", tmp_path / "o"], expected, tmp_path / "o")
+def test_wrong_types_in_scenario_variants(cli_error, tmp_path, changes, expected):
+    cli_error(["compare", "--config", TINY, "--scenarios", json.dumps({"bad": changes}).replace("Infinity", ".inf"),
+               "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.plant.dm_gain", "two"], "dm_gain"),
     (["--evaluation.frames", "1.5"], "frames"),
@@ -83,10 +75,11 @@ def test_wrong_types_in_scenario_variants(capsys, tmp_path, changes, expected):
     (["--predictors.ol_eof.optimization.fit_method", "magic"], "fit_method"),
     (["--predictors.integrator.leak", "2"], "leak=2"),
 ])
-def test_wrong_types_and_choices(capsys, tmp_path, args, expected):
-    run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
+def test_wrong_types_and_choices(cli_error, tmp_path, args, expected):
+    cli_error(["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.grid.obstruction", "0.97"], "obstruction=0.97"),
     (["--scenario.grid.obstruction", "1.0"], "obstruction=1.0"),
@@ -97,10 +90,11 @@ def test_wrong_types_and_choices(capsys, tmp_path, args, expected):
     (["--scenario.frame_rate_hz", "0"], "frame_rate_hz=0"),
     (["--scenario.plant.delay_frames", "0"], "delay_frames=0"),
 ])
-def test_impossible_geometry_and_timing(capsys, tmp_path, args, expected):
-    run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
+def test_impossible_geometry_and_timing(cli_error, tmp_path, args, expected):
+    cli_error(["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.grid.n_across", "100000"], "n_across=100000"),
     (["--evaluation.frames", str(10**12)], "frames=1000000000000"),
@@ -113,8 +107,8 @@ def test_impossible_geometry_and_timing(capsys, tmp_path, args, expected):
     (["--scenario.grid.n_across", "40", "--evaluation.frames", "10000000", "--evaluation.realisations", "4"],
      "--allow_long true"),
 ])
-def test_sizes_that_cannot_fit_are_refused_up_front(capsys, tmp_path, args, expected):
-    run_bad(capsys, ["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
+def test_sizes_that_cannot_fit_are_refused_up_front(cli_error, tmp_path, args, expected):
+    cli_error(["compare", "--config", TINY, *args, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
 def _alias_bomb(levels: int = 7) -> str:
@@ -124,6 +118,7 @@ def _alias_bomb(levels: int = 7) -> str:
     return "\n".join(lines) + "\n"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("content, expected", [
     (_alias_bomb(), "YAML nodes"),
     (bytes(range(256)) * 8, "not text"),
@@ -131,41 +126,46 @@ def _alias_bomb(levels: int = 7) -> str:
     ("scenario: !!python/object/apply:os.system ['echo hi']\n", "python/object/apply:os.system is refused"),
     ("scenario: {grid: {n_across: 8}}\npredictors: {x: {controller: uncorrected}}\nsurprise: 1\n", "surprise"),
 ])
-def test_unreadable_or_hostile_config_files(capsys, tmp_path, content, expected):
+def test_unreadable_or_hostile_config_files(cli_error, tmp_path, content, expected):
     path = tmp_path / "bad.yaml"
     path.write_bytes(content if isinstance(content, bytes) else content.encode())
-    run_bad(capsys, ["compare", "--config", path, "--out", tmp_path / "o"], expected, tmp_path / "o")
+    cli_error(["compare", "--config", path, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
-def test_a_missing_config_or_scenario_file(capsys, tmp_path):
-    run_bad(capsys, ["compare", "--config", tmp_path / "none.yaml", "--out", tmp_path / "o"], "does not exist",
-            tmp_path / "o")
-    run_bad(capsys, ["compare", "--config", tmp_path, "--out", tmp_path / "o"], "does not exist", tmp_path / "o")
+@pytest.mark.cli
+def test_a_missing_config_or_scenario_file(cli_error, tmp_path):
+    cli_error(["compare", "--config", tmp_path / "none.yaml", "--out", tmp_path / "o"], "does not exist",
+              tmp_path / "o")
+    cli_error(["compare", "--config", tmp_path, "--out", tmp_path / "o"], "does not exist", tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("content", [b"not a checkpoint", b"PK\x03\x04truncated zip", b"", bytes(range(256))])
-def test_unreadable_checkpoints(capsys, tmp_path, content):
+def test_unreadable_checkpoints(cli_error, tmp_path, content):
     ckpt = tmp_path / "bad.ckpt"
     ckpt.write_bytes(content)
-    run_bad(capsys, ["evaluate", "--config", CONF / "tiny_evaluate.yaml", "--checkpoints", json.dumps({"x": str(ckpt)}),
-                     "--out", tmp_path / "o"], "not an eofnn predictor checkpoint", tmp_path / "o")
+    cli_error(["evaluate", "--config", CONF / "tiny_evaluate.yaml", "--checkpoints", json.dumps({"x": str(ckpt)}),
+               "--out", tmp_path / "o"], "not an eofnn predictor checkpoint", tmp_path / "o")
 
 
-def test_output_paths_that_cannot_be_written(capsys, tmp_path):
+@pytest.mark.cli
+@pytest.mark.slow
+def test_output_paths_that_cannot_be_written(capsys, cli_error, tmp_path):
     a_file = tmp_path / "file.txt"
     a_file.write_text("mine")
-    run_bad(capsys, ["compare", "--config", TINY, "--out", a_file / "sub"], "is a file", a_file / "sub")
-    run_bad(capsys, ["compare", "--config", TINY, "--out", "/proc/eofnn_results"], "cannot be written",
-            "/proc/eofnn_results")
-    run_bad(capsys, ["simulate", "--scenario", CONF / "tiny_scenario.yaml", "--out", tmp_path / "run.txt"],
-            "suffix '.txt'", tmp_path / "run.txt")
-    run_bad(capsys, ["fit", "--scenario", CONF / "tiny_scenario.yaml", "--out", tmp_path], "is a folder",
-            tmp_path / "never")
+    cli_error(["compare", "--config", TINY, "--out", a_file / "sub"], "is a file", a_file / "sub")
+    cli_error(["compare", "--config", TINY, "--out", "/proc/eofnn_results"], "cannot be written",
+              "/proc/eofnn_results")
+    cli_error(["simulate", "--scenario", CONF / "tiny_scenario.yaml", "--out", tmp_path / "run.txt"],
+              "suffix '.txt'", tmp_path / "run.txt")
+    cli_error(["fit", "--scenario", CONF / "tiny_scenario.yaml", "--out", tmp_path], "is a folder",
+              tmp_path / "never")
     code = main(["compare", "--config", str(TINY), "--out", str(a_file)])
     assert code == 2 and "is a file" in capsys.readouterr().err
     assert a_file.read_text() == "mine"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args, expected", [
     (["--predictor.checkpoint", "runs/cl.ckpt"], "does not run a checkpoint"),
     (["--predictor.controller", "predictor"], "simulate runs a baseline or a checkpoint"),
@@ -174,24 +174,26 @@ def test_output_paths_that_cannot_be_written(capsys, tmp_path):
     (["--realisations", "100000"], "realisations=100000"),
     (["--frames", "10000000", "--scenario.grid.n_across", "64"], "of memory"),
 ])
-def test_simulate_never_runs_something_else(capsys, tmp_path, args, expected):
-    run_bad(capsys, ["simulate", "--scenario", CONF / "tiny_scenario.yaml", *args, "--out", tmp_path / "run.fits"],
-            expected, tmp_path / "run.fits")
+def test_simulate_never_runs_something_else(cli_error, tmp_path, args, expected):
+    cli_error(["simulate", "--scenario", CONF / "tiny_scenario.yaml", *args, "--out", tmp_path / "run.fits"],
+              expected, tmp_path / "run.fits")
 
 
-def test_a_psd_segment_longer_than_the_settled_frames(capsys, tmp_path):
-    run_bad(capsys, ["compare", "--config", TINY, "--evaluation.psd_segment_frames", "4096", "--out", tmp_path / "o"],
-            "psd_segment_frames=4096", tmp_path / "o")
+@pytest.mark.cli
+def test_a_psd_segment_longer_than_the_settled_frames(cli_error, tmp_path):
+    cli_error(["compare", "--config", TINY, "--evaluation.psd_segment_frames", "4096", "--out", tmp_path / "o"],
+              "psd_segment_frames=4096", tmp_path / "o")
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("drift, expected", [
     ("{start_s: 2, stop_s: 1, to: 2}", "plant.dm_gain_drift.stop_s=1.0 is invalid: it must be at least start_s"),
     ("{start_s: 0, stop_s: 1e9, to: 2}", "plant.dm_gain_drift.stop_s=1000000000.0 is invalid"),
     ("{start_s: 0, stop_s: 1, to_gain: 2}", "scenario.plant.dm_gain_drift: Option 'to_gain' is not accepted"),
 ])
-def test_a_nested_optional_config_names_its_field_and_rule(tmp_path, capsys, drift, expected):
-    line = run_bad(capsys, ["compare", "--config", TINY, "--scenario.plant.dm_gain_drift", drift,
-                            "--out", tmp_path / "o"], expected, tmp_path / "o")
+def test_a_nested_optional_config_names_its_field_and_rule(tmp_path, cli_error, drift, expected):
+    line = cli_error(["compare", "--config", TINY, "--scenario.plant.dm_gain_drift", drift,
+                      "--out", tmp_path / "o"], expected, tmp_path / "o")
     assert "Union subtypes" not in line and "NoneType" not in line
 
 
@@ -228,6 +230,7 @@ def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_d
     assert (out / "notes.txt").read_text() == "mine" and (out / "metrics.json").read_text() == "new"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("override, expected", [
     (["--scenario.plant.dm_gain_drift", "{start_s: 100, stop_s: 101, to: 2}"],
      "plant.dm_gain_drift starts at 100 s (frame 100000), after the run of"),
@@ -237,8 +240,8 @@ def test_overwrite_of_a_folder_from_before_manifests_keeps_what_the_new_output_d
     (["--scenario.plant.misregistration_x", "9.5", "--scenario.grid.n_across", "8"],
      "plant.misregistration_x=9.5 is invalid: it shifts the DM by more than the grid's 8 actuators across"),
 ])
-def test_values_that_cannot_mean_what_they_say(tmp_path, capsys, override, expected):
-    run_bad(capsys, ["compare", "--config", TINY, *override, "--out", tmp_path / "o"], expected, tmp_path / "o")
+def test_values_that_cannot_mean_what_they_say(tmp_path, cli_error, override, expected):
+    cli_error(["compare", "--config", TINY, *override, "--out", tmp_path / "o"], expected, tmp_path / "o")
 
 
 def test_a_neighbourhood_table_is_counted_before_it_is_built():

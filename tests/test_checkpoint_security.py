@@ -53,6 +53,8 @@ def test_a_checkpoint_naming_an_unknown_module_is_refused_before_import(foreign_
     assert not marker.exists() and "planted_module" not in sys.modules
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_the_cli_refuses_it_too_and_trusting_it_by_name_lets_it_load(foreign_checkpoint, tmp_path, capsys):
     forged, marker = foreign_checkpoint
     args = ["evaluate", "--scenario", str(tmp_path / "scenario.yaml"), "--checkpoints", json.dumps({"x": str(forged)}),

@@ -51,6 +51,7 @@ def test_extrapolator_weights_of_the_issue():
     torch.testing.assert_close(extrapolation_weights(1, 1.5), torch.tensor([2.5, -1.5], dtype=F64))
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("order, delay", [(1, 2), (2, 2), (1, 1.5)])
 def test_extrapolator_error_on_a_sinusoid_is_the_analytic_one(order, delay):
     omega = 0.2  # rad/frame
@@ -66,6 +67,7 @@ def test_extrapolator_error_on_a_sinusoid_is_the_analytic_one(order, delay):
     assert float(error.pow(2).mean().sqrt()) == pytest.approx(amplitude / math.sqrt(2), rel=2e-3)
 
 
+@pytest.mark.physics
 def test_extrapolator_in_the_loop_leaves_exactly_its_prediction_error(small_scenario):
     """Noise-free nominal loop: the POL values are the turbulence, so eps(n) = s(n) - 3 s(n-2) + 2 s(n-3)."""
     result = run_loop(small_scenario.turbulence(3, "test"), small_scenario.plant, Extrapolator(1), 300,
@@ -75,6 +77,7 @@ def test_extrapolator_in_the_loop_leaves_exactly_its_prediction_error(small_scen
     torch.testing.assert_close(eps[3:], expected, rtol=0, atol=1e-9)
 
 
+@pytest.mark.physics
 def test_extrapolator_stability_is_that_of_its_open_loop_filter(small_scenario):
     result = controller_stability(PredictorConfig(controller="extrapolator", order=1), None, small_scenario)
     assert result.stable and result.kind == "open_loop"
@@ -89,12 +92,14 @@ def test_extrapolator_stability_is_that_of_its_open_loop_filter(small_scenario):
 
 
 # -- modal integrator ---------------------------------------------------------------------------------------------
+@pytest.mark.physics
 @pytest.mark.parametrize("delay", [1, 2, 3])
 def test_critical_gain_matches_the_closed_form(delay):
     assert critical_integrator_gain(delay) == pytest.approx(critical_gain(delay), abs=1e-9)
     assert critical_integrator_gain(delay, dm_gain=2.0) == pytest.approx(critical_gain(delay) / 2, abs=1e-9)
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("delay", [2, 1.5])
 def test_integrator_transfer_matches_the_stability_analysis(delay):
     gains = torch.tensor([0.2, 0.5], dtype=F64)
@@ -108,6 +113,8 @@ def test_integrator_transfer_matches_the_stability_analysis(delay):
     torch.testing.assert_close(noise, analysis.noise_transfer.abs() ** 2)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_optimal_modal_gains_follow_signal_to_noise():
     """A random walk with little noise wants a high gain; pure white noise the lowest one searched."""
     gen = torch.Generator().manual_seed(0)
@@ -144,6 +151,7 @@ def _ar2_autocovariance(a1: float, a2: float, q: float) -> list[float]:
     return [c0, c0 * rho1, c0 * (a1 * rho1 + a2)]
 
 
+@pytest.mark.physics
 def test_yule_walker_recovers_an_ar2_with_the_noise_subtracted():
     a1, a2, q, noise = 1.8, -0.9, 2.0, 3.0
     autocov = torch.tensor([_ar2_autocovariance(a1, a2, q)], dtype=F64)
@@ -153,6 +161,8 @@ def test_yule_walker_recovers_an_ar2_with_the_noise_subtracted():
     assert float(q_hat) == pytest.approx(q, rel=1e-9)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_kalman_gain_matches_scipy_and_the_simulated_prediction_errors():
     from scipy.linalg import solve_discrete_are
 
@@ -195,6 +205,8 @@ def lqg_model():
     return scenario, build_lqg(scenario, DataConfig(frames=2048, dither_nm=5.0, integrator_gain=0.4))
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_lqg_analytic_roots_agree_with_the_simulated_loop(lqg_model):
     scenario, model = lqg_model
     result = modal_stability(model, LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz))
@@ -210,6 +222,8 @@ def test_lqg_analytic_roots_agree_with_the_simulated_loop(lqg_model):
         assert analytic.stable != diverges
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_lqg_beats_the_integrator_where_it_is_servo_lag_limited(lqg_model):
     from eofnn.control.baselines import Integrator
 
@@ -223,6 +237,7 @@ def test_lqg_beats_the_integrator_where_it_is_servo_lag_limited(lqg_model):
     assert model.info["dm_gain_from_dither"] == pytest.approx(1.0, abs=0.05)
 
 
+@pytest.mark.physics
 def test_modal_integrator_polynomials_and_loop_agree(small_scenario):
     k = small_scenario.grid.n_actuators
     modes = torch.linalg.qr(torch.randn(k, k, generator=torch.Generator().manual_seed(0), dtype=F64))[0]
@@ -241,6 +256,7 @@ def _classical_config(tmp_path, predictor: dict) -> Path:
     return path
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("predictor, expected", [
     ({"controller": "extrapolator", "order": 3}, "order=3 is invalid"),
     ({"controller": "extrapolator", "order": 1.5}, "Got value: 1.5"),  # jsonargparse types it: order::
@@ -249,17 +265,12 @@ def _classical_config(tmp_path, predictor: dict) -> Path:
     ({"controller": "lqg", "modes": 500, "data": {"frames": 2048}}, "modes=500 is invalid"),
     ({"controller": "integrator", "modes": 5}, "modes=5 is for controller"),
 ])
-def test_bad_classical_configs_are_one_line_and_write_nothing(capsys, tmp_path, predictor, expected):
+def test_bad_classical_configs_are_one_line_and_write_nothing(cli_error, tmp_path, predictor, expected):
     out = tmp_path / "out"
-    code = main(["compare", "--config", str(_classical_config(tmp_path, predictor)), "--out", str(out)])
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("eofnn: error:"), err
-    assert expected in lines[0], lines[0]
-    assert not out.exists()
+    cli_error(["compare", "--config", _classical_config(tmp_path, predictor), "--out", out], expected, out)
 
 
+@pytest.mark.slow
 def test_compare_records_the_classical_models(tmp_path, small_scenario):
     predictors = {"lqg": PredictorConfig(controller="lqg", modes=20, data=DataConfig(frames=1024, dither_nm=5.0)),
                   "modal": PredictorConfig(controller="modal_integrator", data=DataConfig(frames=1024, dither_nm=5.0)),
@@ -316,6 +327,7 @@ def test_lqg_polynomials_are_the_controller_it_runs(delay):
     torch.testing.assert_close(torch.stack(commands), expected, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_classical_models_use_the_dm_gain_their_dither_measures(lqg_model):
     """Built from telemetry, the LQG believes the plant it identified: a DM applying 2x the command is learnt, not
     assumed away (a dm_gain_model given in the config is kept instead)."""
@@ -332,6 +344,8 @@ def test_classical_models_use_the_dm_gain_their_dither_measures(lqg_model):
     assert given.dm_gain_model == 1.0 and given.info["warnings"]
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_eofnn_stability_analyses_classical_controllers(tmp_path, capsys):
     out = tmp_path / "stab"
     assert main(["stability", "--scenario", str(TINY_SCENARIO), "--controller", "{controller: extrapolator, order: 1}",
@@ -347,6 +361,7 @@ def test_eofnn_stability_analyses_classical_controllers(tmp_path, capsys):
         assert code == 2 and len(err) == 1 and "either --checkpoint" in err[0] and not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow
 def test_the_modal_gain_cap_is_chosen_in_closed_loop(lqg_model):
     """How near its critical gain a mode may go is chosen on a stream of its own, like the integrator's gain."""
     from eofnn.control.modal import GAIN_MARGIN_CANDIDATES, build_modal_integrator

@@ -10,14 +10,11 @@ import yaml
 
 from eofnn.cli.main import main
 
+pytestmark = pytest.mark.cli
+
 TINY = Path(__file__).parent / "conf" / "tiny_compare.yaml"
 TINY_EVAL = Path(__file__).parent / "conf" / "tiny_evaluate.yaml"
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
-
-
-def run(capsys, *args) -> tuple[int, str]:
-    code = main([str(a) for a in args])
-    return code, capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +24,7 @@ def tiny_results(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_compare_writes_metrics_table_config_and_figures(tiny_results):
     metrics = json.loads((tiny_results / "metrics.json").read_text())
     scenarios = metrics["scenarios"]
@@ -61,18 +59,20 @@ def test_compare_writes_metrics_table_config_and_figures(tiny_results):
         "cl_eof__dm_gain_2.ckpt", "cl_eof__nominal.ckpt", "ol_eof__nominal.ckpt"]
 
 
-def test_compare_refuses_a_non_empty_folder(tiny_results, capsys):
+@pytest.mark.slow
+def test_compare_refuses_a_non_empty_folder(tiny_results, cli):
     before = (tiny_results / "metrics.json").read_text()
-    code, err = run(capsys, "compare", "--config", TINY, "--out", tiny_results)
+    code, err = cli("compare", "--config", TINY, "--out", tiny_results)
     assert code == 2
     assert "is not empty" in err and len(err.strip().splitlines()) == 1
     assert (tiny_results / "metrics.json").read_text() == before
 
 
-def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results, tmp_path, capsys):
+@pytest.mark.slow
+def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results, tmp_path, cli):
     ckpt = tiny_results / "checkpoints" / "ol_eof__nominal.ckpt"
     out = tmp_path / "eval"
-    code, err = run(capsys, "evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"ol_eof": str(ckpt)}),
+    code, err = cli("evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"ol_eof": str(ckpt)}),
                     "--baselines", "[pseudo_integrator]", "--out", out)
     assert code == 0, err
     reused = json.loads((out / "metrics.json").read_text())["scenarios"]
@@ -83,19 +83,20 @@ def test_checkpoint_reuse_gives_the_numbers_of_training_in_process(tiny_results,
     assert "training" not in err  # nothing retrained
 
 
-def test_fit_then_evaluate_under_another_plant(tmp_path, capsys):
+@pytest.mark.slow
+def test_fit_then_evaluate_under_another_plant(tmp_path, cli):
     ckpt = tmp_path / "cl.ckpt"
-    code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
+    code, err = cli("fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
                     "--predictor.history_length", "5", "--predictor.data.frames", "2000",
                     "--predictor.data.sequence_frames", "1000", "--predictor.data.val_frames", "300",
                     "--out", ckpt)
     assert code == 0, err
     assert ckpt.exists() and (tmp_path / "cl.ckpt.yaml").exists()
     assert json.loads(err.strip().splitlines()[-1])["val_loss_nm2"] < 10.0  # ~1.7 nm RMS; the integrator: ~28 nm
-    code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--out", ckpt)
+    code, err = cli("fit", "--scenario", TINY_SCENARIO, "--out", ckpt)
     assert code == 2 and "exists" in err
     out = tmp_path / "eval"
-    code, err = run(capsys, "evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"cl": str(ckpt)}),
+    code, err = cli("evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"cl": str(ckpt)}),
                     "--scenarios", json.dumps({"misregistered": {"misregistration_x": 0.1}}), "--out", out,
                     "--baselines", "[]")
     assert code == 0, err
@@ -103,12 +104,13 @@ def test_fit_then_evaluate_under_another_plant(tmp_path, capsys):
     assert metrics["diverged"] or metrics["median_rms_nm"] > 0
 
 
-def test_a_users_own_module_plugs_in_by_class_path(tmp_path, capsys):
+@pytest.mark.slow
+def test_a_users_own_module_plugs_in_by_class_path(tmp_path, cli):
     out = tmp_path / "user"
     predictors = {"mine": {"history_length": 3, "network": {"class_path": "user_networks.TapMixer"},
                            "data": {"frames": 1000, "val_frames": 200, "sequence_frames": 500},
                            "optimization": {"fit_method": "sgd", "epochs": 1, "lr": 0.01}}}
-    code, err = run(capsys, "compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors),
+    code, err = cli("compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors),
                     "--scenarios", '{"nominal": {}}', "--evaluation.frames", "400", "--evaluation.settle_frames",
                     "50", "--evaluation.psd_segment_frames", "64", "--out", out)
     assert code == 0, err
@@ -129,19 +131,15 @@ def test_a_users_own_module_plugs_in_by_class_path(tmp_path, capsys):
         (["--scenario.atmosphere.r0_m", "-1"], "r0_m=-1"),
     ],
 )
-def test_config_errors_are_one_line_and_nothing_runs(tmp_path, capsys, args, expected):
+def test_config_errors_are_one_line_and_nothing_runs(tmp_path, cli_error, args, expected):
     out = tmp_path / "never"
-    code, err = run(capsys, "compare", "--config", TINY, *args, "--out", out)
-    assert code == 2
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("eofnn: error:"), err
-    assert expected in lines[0]
-    assert not out.exists()
+    cli_error(["compare", "--config", TINY, *args, "--out", out], expected, out)
 
 
-def test_a_checkpoint_that_does_not_fit_the_scenario(tiny_results, tmp_path, capsys):
+@pytest.mark.slow
+def test_a_checkpoint_that_does_not_fit_the_scenario(tiny_results, tmp_path, cli):
     ckpt = tiny_results / "checkpoints" / "ol_eof__nominal.ckpt"
-    code, err = run(capsys, "evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"x": str(ckpt)}),
+    code, err = cli("evaluate", "--config", TINY_EVAL, "--checkpoints", json.dumps({"x": str(ckpt)}),
                     "--scenario.grid.n_across", "12", "--out", tmp_path / "never")
     assert code == 2
     assert "n_actuators=80 but the scenario has n_actuators=112" in err and len(err.strip().splitlines()) == 1
@@ -158,11 +156,11 @@ def test_help(command, capsys):
         assert "--predictors" in text and "--scenario.atmosphere.r0_m" in text
 
 
-def test_simulate_writes_loadable_telemetry_and_a_plot(tmp_path, capsys):
+def test_simulate_writes_loadable_telemetry_and_a_plot(tmp_path, cli):
     from eofnn.sim import Telemetry
 
     out = tmp_path / "run.fits"
-    code, err = run(capsys, "simulate", "--scenario", TINY_SCENARIO, "--predictor.controller", "pseudo_integrator",
+    code, err = cli("simulate", "--scenario", TINY_SCENARIO, "--predictor.controller", "pseudo_integrator",
                     "--frames", "200", "--out", out)
     assert code == 0, err
     tel = Telemetry.load(out)
@@ -170,12 +168,12 @@ def test_simulate_writes_loadable_telemetry_and_a_plot(tmp_path, capsys):
     assert (tel.eps[2:] - (tel.s[2:] - tel.s[:-2])).abs().max() < 1e-9
     assert tel.config["eofnn"]["frames"] == 200
     assert (tmp_path / "run.fits.png").read_bytes()[:4] == b"\x89PNG"
-    code, err = run(capsys, "simulate", "--scenario", TINY_SCENARIO, "--frames", "200", "--out", out)
+    code, err = cli("simulate", "--scenario", TINY_SCENARIO, "--frames", "200", "--out", out)
     assert code == 2 and "exists" in err
 
 
-def test_a_diverging_data_controller_is_reported_not_raised(tmp_path, capsys):
-    code, err = run(capsys, "fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
+def test_a_diverging_data_controller_is_reported_not_raised(tmp_path, cli):
+    code, err = cli("fit", "--scenario", TINY_SCENARIO, "--predictor.history", "closed_loop",
                     "--predictor.data.integrator_gain", "1.5", "--predictor.data.frames", "1000",
                     "--predictor.data.sequence_frames", "1000", "--out", tmp_path / "x.ckpt")
     assert code == 2
@@ -194,6 +192,7 @@ def test_shipped_configs_parse(command, config, capsys):
     assert resolved["scenario"]["grid"]["n_across"] == 40
 
 
+@pytest.mark.slow
 def test_tiny_compare_numbers_are_pinned(tiny_results):
     """Refactors must not move a number: the tiny experiment's metrics are reproduced to 1e-7 (update the file only
     for a deliberate change of the physics). Not bit for bit: library builds (BLAS, FFT) move the last digits, and a
@@ -214,14 +213,15 @@ def test_tiny_compare_numbers_are_pinned(tiny_results):
     assert {k: measured[k] for k in pinned.keys() - numbers} == {k: pinned[k] for k in pinned.keys() - numbers}
 
 
-def test_compare_can_train_from_the_scenarios_telemetry_alone(tmp_path, capsys):
+@pytest.mark.slow
+def test_compare_can_train_from_the_scenarios_telemetry_alone(tmp_path, cli):
     """data.truth: false: record dithered telemetry, identify the plant, fit from y and wfs only."""
     predictors = {"integrator": {"controller": "integrator", "gain": 0.4},
                   "cl_tel": {"history": "closed_loop", "history_length": 5,
                              "data": {"frames": 2000, "val_frames": 400, "dither_nm": 10.0, "integrator_gain": 0.25,
                                       "truth": False}}}
     out = tmp_path / "tel"
-    code, err = run(capsys, "compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors), "--scenarios",
+    code, err = cli("compare", "--config", TINY_EVAL, "--predictors", json.dumps(predictors), "--scenarios",
                     '{"dm_gain_2": {"dm_gain": 2.0}}', "--out", out)
     assert code == 0, err
     assert "telemetry alone" in err

@@ -11,6 +11,8 @@ import torch
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.sim.grid import ActuatorGrid
 
+pytestmark = pytest.mark.physics
+
 GRID = ActuatorGrid(8.0, 40)
 WAVELENGTH_M = 1.65e-6
 
@@ -21,6 +23,7 @@ def test_a_flat_wavefront_leaves_no_light():
     assert all(v == pytest.approx(0.0, abs=1e-20) for v in contrast.at().values())
 
 
+@pytest.mark.slow
 def test_white_residuals_give_the_flat_halo_of_theory():
     sigma_nm = 20.0
     contrast = RawContrast(GRID, WAVELENGTH_M, every=1)

@@ -7,6 +7,7 @@ import re
 import subprocess
 from pathlib import Path
 
+import pytest
 from test_layering import BASE, FLOORS, STANDALONE
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -39,6 +40,7 @@ def test_every_path_the_design_names_exists():
     assert missing == []
 
 
+@pytest.mark.cli
 def test_the_readme_links_the_design_and_nothing_links_outside_the_repository():
     assert "docs/design.md" in (ROOT / "README.md").read_text()
     tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()

@@ -34,6 +34,7 @@ def _scenario(vibrations=(), layers=FROZEN, remove_ptt=False, r0_m=0.1, **plant)
                     vibrations=list(vibrations))
 
 
+@pytest.mark.physics
 def test_modes_are_zernikes_of_unit_rms_over_the_pupil():
     x, y = GRID.positions_m.T
     assert np.allclose(mode_shape(GRID, "tip"), x / np.sqrt(np.mean(x**2)))
@@ -45,6 +46,7 @@ def test_modes_are_zernikes_of_unit_rms_over_the_pupil():
     assert np.allclose(mode_shape(GRID, "focus"), (r2 - r2.mean()) / np.std(r2))
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("damping", [0.0, 0.05])
 def test_vibration_psd_peaks_at_its_frequency_with_its_rms(damping):
     vib = Vibration("tip", frequency_hz=40.0, amplitude_nm=30.0, damping=damping)
@@ -116,6 +118,7 @@ def test_bad_boiling_is_a_one_line_error():
     assert Atmosphere(model="strip", layers=[Layer(boiling_time_s=0.0)]).layers[0].boiling_time_s == 0.0  # frozen
 
 
+@pytest.mark.physics
 def test_boiling_keeps_the_variance_and_decorrelates_as_exp_minus_t_over_tau():
     tau_frames, frames, realisations = 20, 4096, 4
     layers = [Layer(1.0, 10.0, 0.0, boiling_time_s=tau_frames / RATE)]
@@ -142,6 +145,7 @@ def test_boiling_keeps_the_variance_and_decorrelates_as_exp_minus_t_over_tau():
         assert np.cos(walk[lag:] - walk[:-lag]).mean() == pytest.approx(math.exp(-lag / tau_frames), abs=0.02)
 
 
+@pytest.mark.physics
 def test_an_integrator_leaves_the_vibration_peak_that_a_predictor_removes():
     """The on-sky problem predictive control is used for: a 40 Hz tip vibration in weak turbulence."""
     scenario = _scenario([Vibration("tip", 40.0, 30.0, 0.01)], r0_m=0.3)
@@ -158,6 +162,7 @@ def test_an_integrator_leaves_the_vibration_peak_that_a_predictor_removes():
     assert rms["predictor"] < 0.3 * rms["integrator"]
 
 
+@pytest.mark.cli
 def test_the_cli_runs_vibrations_and_boiling_from_yaml_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
     from eofnn.cli.main import main
     from eofnn.sim import Telemetry

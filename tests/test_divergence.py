@@ -63,6 +63,8 @@ def test_a_short_run_is_not_judged():
     assert feed(GrowthMonitor(RATE, settle_frames=500), torch.zeros(1000, 5)) is None
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_open_loop_eof_just_past_its_analytic_bound_is_diverging(small_scenario):
     """The issue's case: largest closed-loop root ~1.001 grows for thousands of frames below 10x the turbulence."""
     scenario = small_scenario.with_plant(wfs_noise_nm=1.0)
@@ -88,6 +90,8 @@ def test_open_loop_eof_just_past_its_analytic_bound_is_diverging(small_scenario)
     assert not nominal.diverging and not nominal.diverged
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_simulated_margins_bracket_the_analytic_interval(small_scenario):
     """The simulation route (for networks) checked where the answer is known: a linear filter's analytic interval."""
     from eofnn.evaluation.margins import simulated_dm_gain_interval

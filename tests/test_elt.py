@@ -13,7 +13,6 @@ import torch
 
 from eofnn.analysis import block
 from eofnn.analysis.stability import LoopSetup, analyse
-from eofnn.cli.main import main
 from eofnn.sim import anywind
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.plant import Plant
@@ -31,6 +30,7 @@ def _oblique_scenario(screen_frames: int = 256) -> Scenario:
                     plant=Plant(delay_frames=2))
 
 
+@pytest.mark.slow
 def test_any_wind_screens_are_built_once_per_realisation_and_shared(monkeypatch):
     monkeypatch.setattr(anywind, "_SCREEN_CACHE", {})
     scenario = _oblique_scenario()
@@ -50,6 +50,7 @@ def test_any_wind_screens_are_built_once_per_realisation_and_shared(monkeypatch)
     assert torch.equal(frames, rebuilt.frames(0, 200))
 
 
+@pytest.mark.slow
 def test_the_screen_cache_keeps_within_its_budget(monkeypatch):
     monkeypatch.setattr(anywind, "_SCREEN_CACHE", {})
     one = _oblique_scenario().turbulence(0, "a")._strips[0][0].screen_nbytes
@@ -67,6 +68,7 @@ def _self_slot(neighbours: torch.Tensor) -> torch.Tensor:
     return own.int().argmax(1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, p, delay", [("closed_loop", 3, 2), ("open_loop", 4, 2), ("open_loop", 3, 3),
                                             ("open_loop", 4, 1.5), ("closed_loop", 3, 2.5)])
 def test_an_uncoupled_neighbourhood_filter_has_the_per_actuator_margins(kind, p, delay):
@@ -128,37 +130,30 @@ def test_the_elt_grid_is_ten_times_beyond_the_coupled_limit_but_per_actuator_is_
     assert block.companion_rows(ActuatorGrid(8.0, 40).n_actuators, "closed_loop", 5, 2, 2) <= block.COMPANION_LIMIT
 
 
-def run_bad(capsys, args, expected, out):
-    code = main([str(a) for a in args])
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("eofnn: error:") and "Traceback" not in err, err
-    assert expected in lines[0], lines[0]
-    assert not Path(out).exists()
-    return lines[0]
-
-
+@pytest.mark.cli
+@pytest.mark.slow
 @pytest.mark.parametrize("change, key", [("wind_direction_deg: .nan", "wind_direction_deg=nan"),
                                          ("wind_direction_deg: .inf", "wind_direction_deg=inf"),
                                          ("wind_speed_mps: .nan", "wind_speed_mps=nan"),
                                          ("wind_speed_mps: -.inf", "wind_speed_mps=-inf")])
-def test_a_non_finite_wind_change_is_refused(capsys, tmp_path, change, key):
-    line = run_bad(capsys, ["compare", "--config", CONFIGS / "elt_small.yaml", "--scenario.atmosphere.changes",
-                            f"[{{at_s: 0.5, layer: 1, {change}}}]", "--out", tmp_path / "o"], key, tmp_path / "o")
+def test_a_non_finite_wind_change_is_refused(cli_error, tmp_path, change, key):
+    line = cli_error(["compare", "--config", CONFIGS / "elt_small.yaml", "--scenario.atmosphere.changes",
+                      f"[{{at_s: 0.5, layer: 1, {change}}}]", "--out", tmp_path / "o"], key, tmp_path / "o")
     assert "finite" in line
 
 
 GIB = 2**30
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 @pytest.mark.parametrize("args, expected", [
     (["--scenario.atmosphere.screen_frames", "1000000"], "exact screens of non-lattice winds (3 screen(s) of 5024 "
                                                           "actuators x screen_frames=1000000) needs about"),
     (["--evaluation.realisations", "8"], "evaluation.frames=2000: the set of exact screens of non-lattice winds (24 screen(s)"),
     (["--scenario.grid.n_across", "400"], "of memory"),
 ])
-def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(capsys, tmp_path, monkeypatch, args,
+def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(cli_error, tmp_path, monkeypatch, args,
                                                                               expected):
     """On a machine with 4 GiB available (whatever this one has), with the number needed and what is allowed."""
     import eofnn.resources
@@ -168,8 +163,8 @@ def test_an_elt_size_that_does_not_fit_memory_is_refused_before_anything_runs(ca
         raise AssertionError("a screen was built before the refusal")
 
     monkeypatch.setattr(anywind.AnyWindFrozenFlow, "__init__", never)
-    line = run_bad(capsys, ["compare", "--config", CONFIGS / "elt_small.yaml", *args, "--out", tmp_path / "o"],
-                   expected, tmp_path / "o")
+    line = cli_error(["compare", "--config", CONFIGS / "elt_small.yaml", *args, "--out", tmp_path / "o"],
+                     expected, tmp_path / "o")
     needed = float(line.split("needs about ")[1].split(" GiB")[0]) if "GiB of memory" in line else math.inf
     assert needed > 0.8 * 4 and "3.2 GiB available" in line
 

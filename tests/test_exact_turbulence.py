@@ -64,6 +64,7 @@ def exact_atmosphere(layers, outer_scale_m=20.0, kernel="subaperture", screen_fr
                       remove_ptt=remove_ptt, model="exact", kernel=kernel, screen_frames=screen_frames)
 
 
+@pytest.mark.physics
 def test_von_karman_psd_is_hcipys():
     f = np.geomspace(1e-3, 1e3, 50)
     grid = hcipy.CartesianGrid(hcipy.UnstructuredCoords((2 * np.pi * f, np.zeros_like(f))))
@@ -71,6 +72,8 @@ def test_von_karman_psd_is_hcipys():
     np.testing.assert_allclose(von_karman_psd(f, R0, 20.0), hcipy_psd, rtol=1e-3)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("direction", [0.0, 45.0])
 def test_temporal_psd_matches_subaperture_frozen_flow_theory_without_comb(direction):
     """Uncorrected s of each actuator: within 15% of theory in log bands 1-300 Hz, and no comb in 4 Hz bands."""
@@ -91,6 +94,8 @@ def test_temporal_psd_matches_subaperture_frozen_flow_theory_without_comb(direct
     assert 0.8 < min(narrow) and max(narrow) < 1.25
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_the_b_spline_strip_fails_the_same_comparison():
     """The check above can fail: the strip's piecewise-polynomial series collapse between multiples of v / pitch."""
     speed, rate = 10.0, 1000.0
@@ -104,6 +109,8 @@ def test_the_b_spline_strip_fails_the_same_comparison():
     assert measured.mean(axis=(0, 2))[band].mean() < 1e-3 * theory[band].mean()
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "kernel, layers",
     [("subaperture", (Layer(1.0, 20.0, 0.0),)), ("point", (Layer(1.0, 20.0, 0.0),)),
@@ -133,6 +140,7 @@ def test_structure_function_and_variance_match_kernel_filtered_theory(kernel, la
         np.testing.assert_allclose(structure, 2 * (c[0] - c[1:]) * NM_PER_RAD**2, rtol=2e-3)
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("direction", [0.0, 90.0, 180.0, 270.0])
 def test_integer_sample_shift_is_exact(direction):
     """4 m/s at 100 Hz: 5 frames move the screen one pitch, so s(x, n + 5) = s(x - pitch along the wind, n)."""
@@ -151,6 +159,8 @@ def test_integer_sample_shift_is_exact(direction):
     assert (maps[5:][ok] - maps[:-5][ok]).abs().mean() > 10.0  # ...and the screen did move
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("direction", [45.0, 225.0])
 def test_integer_sample_shift_is_exact_along_a_diagonal(direction):
     """5.657 m/s at 100 Hz along 45 degrees: 5 frames move the screen one pitch along x and one along y."""
@@ -169,6 +179,7 @@ def test_integer_sample_shift_is_exact_along_a_diagonal(direction):
     assert (maps[5:][ok] - maps[:-5][ok]).abs().mean() > 10.0
 
 
+@pytest.mark.slow
 def test_fractional_positions_are_the_fourier_series_itself():
     """The non-uniform FFT evaluation equals the direct Fourier sum at each actuator's exact position."""
     grid = ActuatorGrid(2.0, 10)
@@ -187,6 +198,7 @@ def test_fractional_positions_are_the_fourier_series_itself():
     assert max(errors) < 1e-10 * s.std().item()
 
 
+@pytest.mark.slow
 def test_any_frame_range_and_chunking_give_the_same_frames():
     grid = ActuatorGrid(2.0, 10)
     atm = exact_atmosphere((Layer(0.6, 10.0, 0.0), Layer(0.4, 7.0, 90.0)), screen_frames=5000, remove_ptt=True)
@@ -212,6 +224,8 @@ def test_any_frame_range_and_chunking_give_the_same_frames():
         Turbulence(atm, grid, 1000.0, seed=5).frames(4990, 5001)
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_hcipy_pupil_is_hcipys_layer_and_near_theory():
     grid = ActuatorGrid(4.0, 20)
     atm = Atmosphere(r0_m=R0, r0_wavelength_m=WAVELENGTH, outer_scale_m=20.0, layers=(Layer(1.0, 20.0, 30.0),),

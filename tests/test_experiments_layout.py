@@ -109,6 +109,7 @@ RAW_SUFFIXES = (".ckpt", ".ckpt.yaml", ".npz", ".fits", ".pt", ".pth")
 
 
 @pytest.mark.skipif(not TRACKED, reason="not a git checkout")
+@pytest.mark.cli
 def test_no_raw_output_is_tracked_under_experiments():
     raw = [f for f in TRACKED if f.startswith("experiments/")
            and ("/points/" in f or f.startswith("experiments/runs/") or Path(f).name in RAW_NAMES
@@ -135,6 +136,7 @@ def test_every_collected_experiment_has_a_committed_summary():
 
 
 @pytest.mark.skipif(not TRACKED, reason="not a git checkout")
+@pytest.mark.cli
 def test_the_page_regenerates_from_the_committed_summaries_alone(tmp_path):
     copy = tmp_path / "experiments"  # the committed files only (no runs/), figures left out
     for f in TRACKED:

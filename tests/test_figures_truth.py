@@ -61,6 +61,7 @@ def test_the_stability_figure_marks_the_bounds_of_its_title(figures, tmp_path):
     assert any(label.startswith(f"DM gain {upper:.3g} ") for label in labels), labels
 
 
+@pytest.mark.slow
 def test_the_replay_map_uses_a_robust_colour_range_and_says_so(figures, tmp_path):
     from eofnn.evaluation.replay import ErrorStats, ReplayResult
     from eofnn.reporting.replay import replay_figure

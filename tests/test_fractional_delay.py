@@ -125,6 +125,7 @@ def test_the_loop_controller_sees_the_histories_training_builds(kind):
     torch.testing.assert_close(seen[: len(expected)], expected)
 
 
+@pytest.mark.physics
 def test_integrator_critical_gain_at_delay_1_5_matches_the_analysis():
     """By hand: d = 1, f = 1/2. y(n) = y(n-1) - k m(n-1) with m = eps = s + (y(n) + y(n-1)) / 2 gives
     (1 - z^-1) + k z^-1 (1 + z^-1) / 2 = 0, i.e. z^2 + (k/2 - 1) z + k/2 = 0. Jury: P(1) = k > 0,
@@ -158,11 +159,15 @@ def loops():
     return out
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["integrator", "open_loop", "closed_loop"])
 def test_delay_1_5_sits_between_delays_1_and_2(loops, name):
     assert loops[1][name] < loops[1.5][name] < loops[2][name]
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 def test_eof_at_1_5_is_stable_beats_the_integrator_and_the_analysis_agrees(loops):
     row = loops[1.5]
     for kind in ("open_loop", "closed_loop"):
@@ -177,6 +182,7 @@ def test_eof_at_1_5_is_stable_beats_the_integrator_and_the_analysis_agrees(loops
     assert median_rms(scen.with_plant(dm_gain=1.2 * upper), predictor.controller(), 3000) == math.inf
 
 
+@pytest.mark.slow
 def test_delay_mismatches_and_unsupported_uses_are_one_line_errors(loops, tmp_path):
     predictor = loops[2]["open_loop_predictor"]
     with pytest.raises(ConfigError, match="trained for delay_frames=2 but the plant has delay_frames=1.5"):
@@ -197,6 +203,7 @@ def test_delay_mismatches_and_unsupported_uses_are_one_line_errors(loops, tmp_pa
         RLSController(HistorySpec("open_loop", 4, 1.5))
 
 
+@pytest.mark.slow
 def test_a_checkpoint_records_the_fractional_delay(tmp_path):
     scen = scenario(1.5, 6)
     path = tmp_path / "ol.ckpt"
@@ -208,6 +215,8 @@ def test_a_checkpoint_records_the_fractional_delay(tmp_path):
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_compare_runs_at_delay_1_5_from_the_cli(tmp_path, capsys):
     out = tmp_path / "run"
     code = main(["compare", "--config", str(CONF / "tiny_compare.yaml"), "--scenario.plant.delay_frames", "1.5",
@@ -232,6 +241,7 @@ def test_compare_runs_at_delay_1_5_from_the_cli(tmp_path, capsys):
     assert len(err.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_replay_at_1_5_predicts_the_closed_loop_residual(loops):
     """Offline replay of the OL EOF on telemetry recorded at 1.5 (nominal DM, no noise) gives the residual of the
     loop the predictor closes: the averaged predicted commands against the averaged recorded ones."""

@@ -70,6 +70,7 @@ def unknown_plant():
     return sc, tel, identify_plant(tel)
 
 
+@pytest.mark.slow
 def test_closed_loop_eof_from_telemetry_matches_truth(unknown_plant):
     sc, tel, plant = unknown_plant
     spec = SPEC["closed_loop"]
@@ -80,6 +81,7 @@ def test_closed_loop_eof_from_telemetry_matches_truth(unknown_plant):
     assert from_telemetry == pytest.approx(from_truth, rel=0.2)
 
 
+@pytest.mark.slow
 def test_open_loop_eof_needs_the_identified_plant(unknown_plant):
     sc, tel, plant = unknown_plant
     spec = SPEC["open_loop"]
@@ -93,6 +95,7 @@ def test_open_loop_eof_needs_the_identified_plant(unknown_plant):
     assert nominal > 3 * identified and nominal > integrator
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["open_loop", "closed_loop"])
 def test_replay_agrees_with_closed_loop(kind, tmp_path):
     """Replayed error (noise removed in quadrature) against the closed-loop residual of the same filter.
@@ -158,6 +161,7 @@ def test_mlp_by_sgd_and_checkpoints(unknown_plant, tmp_path):
     assert torch.equal(load_predictor(tmp_path / "eof.ckpt").network.weight, linear.network.weight)
 
 
+@pytest.mark.slow
 def test_fit_from_the_telemetry_a_scenario_produces():
     """compare's predictor that does not learn from simulator truth: record, identify, fit, all inside eofnn."""
     sc = scenario(dm_gain=2.0, wfs_noise_nm=2.0)

@@ -6,6 +6,7 @@ import ast
 import importlib.util
 from pathlib import Path
 
+import pytest
 from astropy.io import fits
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "hcipy_loop.py"
@@ -19,6 +20,8 @@ def test_loop_module_uses_no_eofnn_simulator():
     assert modules == {"__future__", "argparse", "tempfile", "pathlib", "hcipy", "numpy", "astropy.io", "eofnn.runtime"}
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_exported_filter_beats_the_integrator_in_an_hcipy_loop(tmp_path, capsys):
     spec = importlib.util.spec_from_file_location("hcipy_loop", EXAMPLE)
     example = importlib.util.module_from_spec(spec)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.cli
+
 ROOT = Path(__file__).resolve().parent.parent
 HEAVY = ("torch", "lightning", "hcipy", "matplotlib", "scipy")
 PROBE = """
@@ -35,6 +37,7 @@ def test_help_and_version_import_nothing_heavy(args):
     assert result["code"] in (0, 2)
 
 
+@pytest.mark.slow
 def test_a_subcommand_still_gets_all_its_arguments():
     proc = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "simulate", "--help"], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)

@@ -121,6 +121,7 @@ def test_bad_input(telemetry):
         identify_plant(tel)
 
 
+@pytest.mark.slow
 def test_batches_and_several_files_pool(telemetry):
     """Realisations of a batch and separate files are independent sequences of one plant: errors shrink."""
     sc = scenario(**PLANTS["gain"])

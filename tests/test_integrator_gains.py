@@ -10,6 +10,7 @@ from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import Experiment
 
 
+@pytest.mark.slow
 def test_the_best_gain_is_chosen_per_scenario_and_used_everywhere(small_scenario):
     gains = [0.05, 0.4, 1.5]  # 1.5 is beyond the critical gain of a two-frame delay (1): it diverges
     assert gains[-1] > critical_gain(2)
@@ -34,6 +35,7 @@ def test_the_best_gain_is_chosen_per_scenario_and_used_everywhere(small_scenario
     assert result.to_json()["integrator_gains"]["nominal"]["integrator"]["gain"] == nominal["gain"]
 
 
+@pytest.mark.slow
 def test_a_grid_whose_best_is_its_top_is_extended_towards_the_critical_gain(small_scenario):
     experiment = Experiment(
         small_scenario, {"nominal": {}},

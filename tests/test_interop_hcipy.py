@@ -36,6 +36,7 @@ def test_the_dm_is_a_fried_layout_in_metres(sim):
     assert np.isclose(np.abs(sim.positions_m).max(), 1.0)  # actuators at the subaperture corners, the rim included
 
 
+@pytest.mark.slow
 def test_telemetry_carries_what_eofnn_needs(sim):
     record = run_closed_loop(sim, IntegratorControl(0.25, dither_nm=10.0), 300, 5)
     telemetry = record.telemetry(start=50)
@@ -45,15 +46,18 @@ def test_telemetry_carries_what_eofnn_needs(sim):
     assert np.array_equal(record.residual_rms_nm, again.residual_rms_nm)  # seeded: bit-for-bit
 
 
+@pytest.mark.slow
 def test_dm_gain_is_identified_within_two_percent(study):
     assert abs(study["identified"]["dm_gain_error"]) < 0.02
     assert study["identified"]["lag_frames"] == 0
 
 
+@pytest.mark.slow
 def test_replayed_eof_predicts_better_than_the_integrator(study):
     assert study["replay"]["predictor_median_rms_nm"] < 0.7 * study["replay"]["integrator_median_rms_nm"]
 
 
+@pytest.mark.slow
 def test_eof_beats_the_best_gain_integrator_in_hcipys_loop(study):
     assert not study["eof"]["diverged"]
     assert study["eof"]["median_rms_nm"] < 0.97 * study["integrator"]["median_rms_nm"]
@@ -87,6 +91,8 @@ def test_mismatched_sizes_are_refused_with_one_line(sim):
         StudyConfig(warmup_frames=500, settle_frames=300)
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_importing_eofnn_and_the_shared_interop_part_needs_no_oopao():
     import subprocess
     import sys

@@ -37,6 +37,7 @@ def test_the_system_is_a_fried_shack_hartmann(sim):
     assert np.allclose(np.diff(pitch), 0.2) and np.isclose(pitch.max(), 1.0)  # corners of the 0.2 m subapertures
 
 
+@pytest.mark.slow
 def test_dm_gain_is_identified_within_two_percent_of_what_telemetry_can_see(sim, study):
     # Telemetry sees the DM gain times the Shack-Hartmann's optical gain (below 1 on a turbulent residual).
     optical = measure_sensor_gain(sim, CONFIG.record_gain, 1000, 0, dither_nm=CONFIG.dither_nm)
@@ -46,10 +47,12 @@ def test_dm_gain_is_identified_within_two_percent_of_what_telemetry_can_see(sim,
     assert study["identified"]["lag_frames"] == 0
 
 
+@pytest.mark.slow
 def test_replayed_eof_predicts_better_than_the_integrator(study):
     assert study["replay"]["predictor_median_rms_nm"] < 0.8 * study["replay"]["integrator_median_rms_nm"]
 
 
+@pytest.mark.slow
 def test_eof_beats_the_best_gain_integrator_in_oopaos_loop(study):
     scan = {float(g): v for g, v in study["integrator"]["scan"].items()}
     assert study["integrator"]["median_rms_nm"] == min(v for v in scan.values() if v is not None)

@@ -10,6 +10,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+pytestmark = [pytest.mark.cli, pytest.mark.slow]
+
 CONF = Path(__file__).parent / "conf"
 
 

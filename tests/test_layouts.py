@@ -86,6 +86,7 @@ def test_too_few_actuators_for_a_shift_model_and_no_positions():
     assert abs(bare.dm_gain / 2 - 1) < 0.02 and "no actuator positions" in bare.warnings[0]
 
 
+@pytest.mark.slow
 def test_fit_on_fried_with_neighbourhoods_beats_the_integrator_and_checkpoints_reload(tmp_path):
     pos = fried_positions()
     train, held_out = record(pos, 3000, seed=0, noise_nm=1.0), record(pos, 1500, seed=5, noise_nm=1.0)
@@ -101,6 +102,7 @@ def test_fit_on_fried_with_neighbourhoods_beats_the_integrator_and_checkpoints_r
     assert torch.equal(loaded.network.weight, fit.network.weight)
 
 
+@pytest.mark.cli
 def test_identify_from_the_command_line_on_a_hexagonal_file(tmp_path, capsys):
     tel = record(hex_positions(), 2500)
     np.savez(tmp_path / "hex.npz", y=tel.y.numpy(), wfs=tel.wfs.numpy(), positions_m=hex_positions(), delay_frames=2)
@@ -109,15 +111,8 @@ def test_identify_from_the_command_line_on_a_hexagonal_file(tmp_path, capsys):
     assert abs(plant["dm_gain"] / 2 - 1) < 0.02 and abs(plant["misregistration_x"]) < 0.01
 
 
-def _one_error(capsys, args) -> str:
-    code = main([str(a) for a in args])
-    err = capsys.readouterr().err
-    errors = [line for line in err.splitlines() if line.startswith("eofnn: error:")]
-    assert code == 2 and len(errors) == 1 and "Traceback" not in err, err
-    return errors[0]
-
-
-def test_bad_positions_and_sparse_layouts(tmp_path, capsys):
+@pytest.mark.cli
+def test_bad_positions_and_sparse_layouts(tmp_path, cli_error):
     tel = record(hex_positions(), 600)
     y, wfs, pos = tel.y.numpy(), tel.wfs.numpy(), hex_positions()
     duplicate, nan = pos.copy(), pos.copy()
@@ -128,7 +123,7 @@ def test_bad_positions_and_sparse_layouts(tmp_path, capsys):
     for name, (bad, message) in cases.items():
         path = tmp_path / f"{name}.npz"
         np.savez(path, y=y, wfs=wfs, positions_m=bad, delay_frames=2)
-        assert message in _one_error(capsys, ["identify", "--telemetry", path, "--out", tmp_path / f"{name}.json"])
+        assert message in cli_error(["identify", "--telemetry", path, "--out", tmp_path / f"{name}.json"], alone=False)
         assert not (tmp_path / f"{name}.json").exists()
     # A sparse layout: one actuator far from the others has no neighbour within the radius.
     sparse = np.concatenate([fried_positions(4), [[3.0, 3.0]]])
@@ -140,8 +135,8 @@ def test_bad_positions_and_sparse_layouts(tmp_path, capsys):
     k = len(sparse)
     np.savez(path, y=np.random.default_rng(0).standard_normal((600, k)), wfs=np.zeros((600, k)), positions_m=sparse,
              delay_frames=2)
-    line = _one_error(capsys, ["fit", "--telemetry", path, "--plant", "nominal", "--predictor.network",
-                               json.dumps(NEIGHBOURHOOD), "--out", tmp_path / "sparse.ckpt"])
+    line = cli_error(["fit", "--telemetry", path, "--plant", "nominal", "--predictor.network",
+                      json.dumps(NEIGHBOURHOOD), "--out", tmp_path / "sparse.ckpt"], alone=False)
     assert "too sparse" in line and not (tmp_path / "sparse.ckpt").exists()
 
 

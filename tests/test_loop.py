@@ -36,6 +36,7 @@ def test_integrator_recursion(small_scenario):
     torch.testing.assert_close(tel.y[:, 10], expected)
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("delay", [1, 2, 3])
 def test_integrator_stability_boundary_matches_theory(small_scenario, delay):
     scenario = small_scenario.with_plant(delay_frames=delay)
@@ -52,6 +53,7 @@ def test_integrator_stability_boundary_matches_theory(small_scenario, delay):
     assert torch.isfinite(unstable.residual_rms_nm).all()
 
 
+@pytest.mark.physics
 def test_dm_gain_shifts_the_critical_gain(small_scenario):
     plant = Plant(delay_frames=2, dm_gain=2.0)
     assert run_loop(small_scenario.turbulence(0), plant, Integrator(0.6), 1500).diverged

@@ -5,8 +5,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from eofnn.cli.main import main
 from eofnn.sim import Telemetry
+
+pytestmark = pytest.mark.cli
 
 CONF = Path(__file__).parent / "conf"
 
@@ -25,6 +29,7 @@ class Plain(torch.nn.Module):
 '''
 
 
+@pytest.mark.slow
 def test_a_float32_module_beside_the_config_trains_and_runs(tmp_path, capsys):
     (tmp_path / "mynet.py").write_text(MODULE)
     config = tmp_path / "mine.yaml"
@@ -53,6 +58,7 @@ def test_a_config_without_layers_gives_no_serialisation_warning(tmp_path, capsys
     assert "Unable to serialize" not in captured.err and "wind_speed_mps: 5.1" in captured.out
 
 
+@pytest.mark.slow
 def test_float32_telemetry_is_half_the_size_and_fits_and_npz_keep_their_own_plots(tmp_path, capsys):
     sizes = {}
     for dtype in ("float64", "float32"):

@@ -35,6 +35,7 @@ def structure(s: torch.Tensor, lag: int) -> float:
     return float((s[:, lag:] - s[:, :-lag]).pow(2).mean())
 
 
+@pytest.mark.physics
 def test_wind_speed_change_at_the_asked_frame_and_the_lag_scales_as_one_over_v():
     change = {"at_s": 0.5, "layer": 0, "wind_speed_mps": 20.0}
     s = turbulence(atmosphere([change]), n_realisations=2).frames(0, 1000)
@@ -76,6 +77,7 @@ def test_any_chunking_and_any_start_give_the_same_frames():
     assert int((weights > 0).sum(0).max()) == 2 and bool((weights[:2, 301:350] > 0).all())
 
 
+@pytest.mark.physics
 def test_wind_change_is_a_variance_preserving_cross_fade_to_the_new_screen():
     """Over the ramp: cos(pi/2 p) times the old layer plus sin(pi/2 p) times the new screen, which a change with
     no ramp switches to at once (the same screen: its seed is the change's index); p a smoothstep of time."""
@@ -140,11 +142,10 @@ def test_bad_drifts_are_one_line_errors(drift, match):
     assert match in str(err.value) and "\n" not in str(err.value)
 
 
-def test_bad_change_on_the_command_line_is_one_line(capsys, tmp_path):
-    code = main(["compare", "--scenario.atmosphere.changes", "[{at_s: 1.0, layer: 3, cn2_scale: 2.0}]",
-                 "--predictors", "{i: {controller: integrator}}", "--out", str(tmp_path / "o")])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "layer=3 is invalid" in err[0], err
+@pytest.mark.cli
+def test_bad_change_on_the_command_line_is_one_line(cli_error, tmp_path):
+    cli_error(["compare", "--scenario.atmosphere.changes", "[{at_s: 1.0, layer: 3, cn2_scale: 2.0}]",
+               "--predictors", "{i: {controller: integrator}}", "--out", tmp_path / "o"], "layer=3 is invalid")
 
 
 def test_reconvergence_definition():
@@ -165,6 +166,8 @@ def test_reconvergence_definition():
     assert "reconvergence" not in LoopMetrics(1.0, 1.0, 1.0, 1.0, False, None, 0, 10).summary()  # stationary runs
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_compare_with_a_change_reports_reconvergence(tmp_path):
     config = {
         "scenario": {"grid": {"diameter_m": 2.0, "n_across": 10}, "frame_rate_hz": RATE,

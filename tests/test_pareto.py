@@ -5,7 +5,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from eofnn.cli.main import main
+
+pytestmark = [pytest.mark.cli, pytest.mark.slow]
 
 SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 

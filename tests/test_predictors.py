@@ -152,6 +152,7 @@ def test_streamed_closed_form_equals_direct_ridge(small_scenario, structure):
     torch.testing.assert_close(ne.solve(0.0).weights, lstsq, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_sgd_reaches_the_closed_form_loss(small_scenario):
     noisy = small_scenario.with_plant(wfs_noise_nm=20.0)
     spec = HistorySpec("open_loop", 3, 2)
@@ -167,6 +168,7 @@ def test_sgd_reaches_the_closed_form_loss(small_scenario):
     assert loss_sgd < 1.01 * loss_closed
 
 
+@pytest.mark.slow
 def test_study_orderings_in_a_frozen_flow_loop(small_scenario):
     """OL EOF beats the pseudo-integrator 5x; CL EOF ~ OL EOF nominally; under a 2x DM gain CL holds, OL fails."""
     pseudo = median_rms(small_scenario, PseudoIntegrator())
@@ -183,6 +185,7 @@ def test_study_orderings_in_a_frozen_flow_loop(small_scenario):
     assert result.diverged or result.residual_rms_nm[:, 100:].median().item() > 10 * ol_nominal
 
 
+@pytest.mark.slow
 def test_unexcited_closed_loop_data_is_flagged(small_scenario):
     with pytest.warns(CollinearityWarning):
         result = fit(small_scenario, "closed_loop", 4, dither_nm=0.0, **FAST)
@@ -192,12 +195,14 @@ def test_unexcited_closed_loop_data_is_flagged(small_scenario):
     assert loop.diverged or torch.isfinite(loop.residual_rms_nm).all()
 
 
+@pytest.mark.slow
 def test_refit_rounds_record_with_the_fitted_predictor(small_scenario):
     result = fit(small_scenario, "closed_loop", 5, dither_nm=10.0, refit_rounds=1, **FAST)
     assert [r["round"] for r in result.rounds] == [0, 1]
     assert median_rms(small_scenario, result.predictor.controller()) < median_rms(small_scenario, PseudoIntegrator()) / 5
 
 
+@pytest.mark.slow
 def test_mlp_trains_through_the_same_loop_and_runs_closed_loop(small_scenario):
     pseudo = median_rms(small_scenario, PseudoIntegrator())
     result = fit(small_scenario, "open_loop", 4,
@@ -209,6 +214,7 @@ def test_mlp_trains_through_the_same_loop_and_runs_closed_loop(small_scenario):
         fit(small_scenario, "open_loop", 4, {"class_path": "MLP"}, **FAST)
 
 
+@pytest.mark.slow
 def test_sgd_fits_are_reproducible_bit_for_bit(small_scenario):
     def weights(seed):
         return fit(small_scenario, "open_loop", 3, {"class_path": "MLP", "init_args": {"hidden": [8]}},
@@ -220,6 +226,8 @@ def test_sgd_fits_are_reproducible_bit_for_bit(small_scenario):
     assert not all(torch.equal(first[k], other[k]) for k in first)
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_checkpoint_round_trip_in_another_process(small_scenario, tmp_path):
     path = tmp_path / "ol.ckpt"
     result = fit(small_scenario, "open_loop", 4, checkpoint_path=path, **FAST)
@@ -239,6 +247,7 @@ def test_checkpoint_round_trip_in_another_process(small_scenario, tmp_path):
         fit(small_scenario, "open_loop", 4, checkpoint_path=path, **FAST)
 
 
+@pytest.mark.slow
 def test_checkpoint_into_an_incompatible_setup_fails_clearly(small_scenario, tmp_path):
     path = tmp_path / "ol.ckpt"
     fit(small_scenario, "open_loop", 4, checkpoint_path=path, **FAST)
@@ -257,6 +266,7 @@ def test_checkpoint_into_an_incompatible_setup_fails_clearly(small_scenario, tmp
         load_predictor(tmp_path / "junk.ckpt")
 
 
+@pytest.mark.slow
 def test_workers_never_share_frames_and_seeds_reproduce(small_scenario):
     spec = HistorySpec("open_loop", 3, 2)
     dm = LoopDataModule(small_scenario, spec, DataConfig(frames=1200, val_frames=300, sequence_frames=300, seed=4,
@@ -284,6 +294,7 @@ def test_batches_are_windows_of_the_whole_sequence(small_scenario, kind):
     assert torch.equal(x, history[0]) and torch.equal(t, target[0])
 
 
+@pytest.mark.slow
 def test_an_mlp_with_a_neighbourhood_trains_and_reloads(small_scenario, tmp_path):
     """The neighbourhood MLP (radius > 0) of the fair contest's structure x nonlinearity table."""
     network = {"class_path": "eofnn.models.mlp.MLP", "init_args": {"hidden": [8], "radius": 1.5}}

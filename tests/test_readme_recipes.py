@@ -55,6 +55,7 @@ def test_the_readme_has_commands_to_check():
     assert {"compare", "evaluate", "fit", "simulate", "sweep", "stability", "identify", "replay", "export"} <= names
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args", [c for c in ALL if c and c[0] != "--help" and "--help" not in c],
                          ids=lambda c: " ".join(c)[:60])
 def test_every_readme_command_parses(args, monkeypatch):
@@ -70,6 +71,8 @@ def test_every_readme_command_parses(args, monkeypatch):
         assert out.split("/")[0] in ("results", "runs") or out.startswith("experiments/"), out
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_the_telemetry_recipe_runs_in_order(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "configs").symlink_to(ROOT / "configs")

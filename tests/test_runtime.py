@@ -95,6 +95,7 @@ def test_file_layout_and_y_last(small_scenario, tmp_path):
     assert np.abs(runtime.step(ones, y_last=outputs[-1] + 100.0) - again[0]).max() > 1e-6
 
 
+@pytest.mark.cli
 def test_runtime_imports_numpy_and_astropy_only():
     tree = ast.parse((ROOT / "eofnn" / "runtime.py").read_text())
     modules = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}

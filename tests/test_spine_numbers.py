@@ -19,6 +19,8 @@ def _flat(tree, prefix=""):
     return {prefix: tree}
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_every_command_gives_the_numbers_of_before():
     """Bit for bit on this machine's libraries (the numbers were written by ``tests/golden/spine.py`` on main before
     the re-cut); a difference is listed by its path, e.g. ``compare/scenarios/nominal/lqg/median_rms_nm``."""

@@ -40,6 +40,7 @@ def fractional_integrator_peak(gain: float, delay_frames: float, n_frames: int =
     return float(np.abs(eps[-500:]).max())
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("delay", [1, 2, 3])
 def test_integrator_critical_gain_is_the_closed_form(delay):
     result = analyse_integrator(0.5, 0.0, LoopSetup(delay_frames=delay))
@@ -54,6 +55,7 @@ def test_integrator_critical_gain_is_the_closed_form(delay):
     assert int(result.integer_delay_margin_frames[0]) == expected
 
 
+@pytest.mark.physics
 def test_fractional_delay_integrator_matches_its_derivation_and_a_simulation():
     """Delay 1.5: z^2 + (k/2 - 1) z + k/2 has a pole pair on the unit circle (at +-i, fs/4) when k/2 = 1: k = 2."""
     result = analyse_integrator(1.0, 0.0, LoopSetup(delay_frames=1.5))
@@ -65,6 +67,7 @@ def test_fractional_delay_integrator_matches_its_derivation_and_a_simulation():
     assert fractional_integrator_peak(1.05 * 2.0, 1.5) > 1e4
 
 
+@pytest.mark.physics
 def test_delay_margin_lands_on_the_critical_delay():
     """At the plant delay plus the fractional delay margin, the same gain is exactly critical."""
     result = analyse_integrator(0.5, 0.0, LoopSetup(delay_frames=2))
@@ -82,6 +85,8 @@ def simulated_divergence(scenario, controller, dm_gain: float, predicted_modulus
     return run_loop(scenario.turbulence(9), plant, controller, n_frames, record=()).diverged
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, history_length", [("open_loop", 4), ("closed_loop", 5)])
 def test_fitted_eof_gain_margin_matches_simulation(small_scenario, kind, history_length):
     scenario = small_scenario.with_plant(wfs_noise_nm=5.0)
@@ -103,6 +108,7 @@ def test_fitted_eof_gain_margin_matches_simulation(small_scenario, kind, history
         assert simulated_divergence(scenario, predictor.controller(), gain, modulus)
 
 
+@pytest.mark.slow
 def test_neighbourhood_block_system():
     """A coupled integrator y = y(n-1) - k (I + e A) u: modes of I + e A are integrators of gain k (1 + e lambda)."""
     grid = ActuatorGrid(2.0, 6)
@@ -134,6 +140,7 @@ def test_neighbourhood_block_system():
     assert float(block.delay_margin_frames[0]) == pytest.approx(float(single.delay_margin_frames.min()), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_transfer_functions_json_and_figure(tmp_path):
     result = analyse_integrator(0.5, 0.0, LoopSetup(delay_frames=2))
     s, n = result.rejection[0], result.noise_transfer[0]

@@ -51,6 +51,8 @@ def in_process(tmp_path_factory) -> Path:
     return tmp / "one"
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_sweep_writes_a_csv_row_per_point_and_predictor_and_figures(in_process):
     table = read_csv(in_process / "sweep.csv")
     assert [(r["predictors.ol_eof.history_length"], r["predictor"]) for r in table] == [
@@ -73,17 +75,23 @@ def test_sweep_writes_a_csv_row_per_point_and_predictor_and_figures(in_process):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_two_worker_processes_give_the_same_csv(in_process, tmp_path):
     assert sweep(tmp_path, HISTORY_GRID, "two", "--workers", "2") == 0
     assert (tmp_path / "two" / "sweep.csv").read_bytes() == (in_process / "sweep.csv").read_bytes()
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_ray_gives_the_same_csv(in_process, tmp_path):
     pytest.importorskip("ray")
     assert sweep(tmp_path, HISTORY_GRID, "ray", "--backend", "ray", "--workers", "1") == 0
     assert (tmp_path / "ray" / "sweep.csv").read_bytes() == (in_process / "sweep.csv").read_bytes()
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_a_failed_point_is_recorded_and_resuming_reruns_only_unfinished_points(tmp_path, monkeypatch, capsys):
     # integrator_gain 3 makes the loop that records the closed-loop training data diverge: compare fails.
     grid = {"predictors.ol_eof.history": ["closed_loop"], "predictors.ol_eof.data.integrator_gain": [0.4, 3.0]}
@@ -111,6 +119,8 @@ def test_a_failed_point_is_recorded_and_resuming_reruns_only_unfinished_points(t
     assert (good / "run" / "metrics.json").stat().st_mtime_ns == stamp
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp_path, capsys):
     grid = write_grid(tmp_path, {"predictors.ol_eof.history_length": [2, 3, 4]})
     out = tmp_path / "s"
@@ -135,6 +145,8 @@ def test_ctrl_c_exits_130_with_a_consistent_csv_and_resume_finishes_the_rest(tmp
     assert {r["status"] for r in read_csv(out / "sweep.csv")} == {"done"}
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 @pytest.mark.parametrize("grid, message", [
     ({"predictors.nope.alpha": [1e-9]}, "grid key 'predictors.nope.alpha' is unknown: predictors has no 'nope'"),
     ({"predictors.ol_eof.histry_length": [2]}, "Option 'histry_length' is not accepted"),
@@ -156,6 +168,8 @@ def test_bad_grids_stop_with_one_line_before_anything_runs(tmp_path, capsys, gri
     assert not (tmp_path / "s").exists()
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_a_folder_holding_something_else_or_another_configuration_is_refused(in_process, tmp_path, capsys):
     (tmp_path / "s").mkdir()
     (tmp_path / "s" / "notes.txt").write_text("mine")
@@ -170,6 +184,8 @@ def test_a_folder_holding_something_else_or_another_configuration_is_refused(in_
     assert "evaluation.frames 300 -> 320" in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_rerunning_a_finished_sweep_is_a_no_op_that_rewrites_nothing(in_process, tmp_path, capsys):
     files = [p for p in in_process.rglob("*") if p.is_file()]
     stamps = {p: p.stat().st_mtime_ns for p in files}
@@ -180,6 +196,7 @@ def test_rerunning_a_finished_sweep_is_a_no_op_that_rewrites_nothing(in_process,
     assert {p: p.stat().st_mtime_ns for p in in_process.rglob("*") if p.is_file()} == stamps
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("grid, message", [
     ({f"predictors.ol_eof.k{i}": list(range(10)) for i in range(10)}, "has 10000000000 points (10 x 10"),
     ({"predictors.ol_eof.optimization.alpha": {"log_range": [1e-9, 1e-3, 10**9]}}, "count=1000000000 values, at most"),
@@ -190,6 +207,8 @@ def test_grid_sizes_are_counted_before_they_are_built(tmp_path, capsys, grid, me
     assert err.startswith("eofnn: error: ") and len(err.splitlines()) == 1 and message in err, err
 
 
+@pytest.mark.cli
+@pytest.mark.slow
 def test_an_unwritable_sweep_folder_is_one_line(tmp_path, capsys):
     (tmp_path / "a_file").write_text("not a folder")  # unwritable even for root, unlike a chmod 500 folder
     assert sweep(tmp_path, HISTORY_GRID, "a_file/s") == 2
@@ -211,6 +230,7 @@ def test_grid_expansion_log_range_and_stable_ids():
         parse_grid({"predictors.ol_eof": [{"history_length": 2}], "predictors.ol_eof.alpha": [1e-9]})
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("grid, n_points", [("grid_alpha.yaml", 4), ("grid_history.yaml", 4), ("grid_frames.yaml", 3)])
 def test_shipped_grids_plan(grid, n_points):
     sweeps = ROOT / "experiments" / "sweeps"

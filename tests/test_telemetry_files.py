@@ -91,6 +91,7 @@ def recording():
     return ao, record
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".fits", ".npz"])
 def test_hand_written_file_identifies_trains_replays_and_exports(recording, tmp_path, suffix):
     ao, record = recording

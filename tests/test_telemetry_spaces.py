@@ -62,6 +62,7 @@ def test_slopes_with_an_invertible_interaction_matrix_give_the_actuator_space_fi
     assert torch.allclose(by_r.wfs, tel.wfs, atol=1e-9) and "given reconstructor" in by_r.measurement
 
 
+@pytest.mark.cli
 def test_a_fried_shack_hartmann_loses_piston_and_waffle_only(fried, tmp_path, capsys):
     pos, tel, _ = fried
     im = fried_shack_hartmann(pos)
@@ -86,6 +87,7 @@ def test_a_fried_shack_hartmann_loses_piston_and_waffle_only(fried, tmp_path, ca
     assert json.loads((tmp_path / "plant2.json").read_text())["dm_gain"] == pytest.approx(plant["dm_gain"], rel=1e-9)
 
 
+@pytest.mark.cli
 def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried, tmp_path, capsys):
     pos, tel, held_out = fried
     # 60 smooth modes: the leading eigenvectors of a Gaussian covariance over the actuators.
@@ -118,15 +120,8 @@ def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried, tmp_p
     assert load_predictor(tmp_path / "cl.ckpt").network.weight.shape[0] == 60
 
 
-def _one_error(capsys, path, out) -> str:
-    code = main(["identify", "--telemetry", str(path), "--out", str(out)])
-    err = capsys.readouterr().err
-    errors = [line for line in err.splitlines() if line.startswith("eofnn: error:")]
-    assert code == 2 and len(errors) == 1 and "Traceback" not in err and not out.exists(), err
-    return errors[0]
-
-
-def test_bad_spaces_are_one_line_and_nothing_written(fried, tmp_path, capsys):
+@pytest.mark.cli
+def test_bad_spaces_are_one_line_and_nothing_written(fried, tmp_path, cli_error):
     pos, tel, _ = fried
     k = len(pos)
     y = tel.y.numpy()[:600]
@@ -153,4 +148,5 @@ def test_bad_spaces_are_one_line_and_nothing_written(fried, tmp_path, capsys):
     for name, (arrays, message) in cases.items():
         path = tmp_path / f"{name}.npz"
         np.savez(path, delay_frames=2, **arrays)
-        assert message in _one_error(capsys, path, tmp_path / f"{name}.json"), name
+        out = tmp_path / f"{name}.json"
+        assert message in cli_error(["identify", "--telemetry", path, "--out", out], out=out, alone=False), name

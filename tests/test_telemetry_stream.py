@@ -149,6 +149,7 @@ def test_memory_is_bounded_by_the_block(recorded, tmp_path, monkeypatch):
     assert peak < streamed.stored_bytes / 4, (peak, streamed.stored_bytes)
 
 
+@pytest.mark.cli
 def test_bad_files_one_line(recorded, tmp_path, capsys):
     path = save(recorded, tmp_path / "t.fits", "float32")
     data = path.read_bytes()

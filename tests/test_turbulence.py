@@ -22,6 +22,8 @@ def theory_structure_function_nm2(r_m: np.ndarray, r0_m: float, wavelength_m: fl
     return rad2 * (wavelength_m / (2 * np.pi) * 1e9) ** 2
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "layers",
     [(Layer(1.0, 20.0, 0.0),), (Layer(1.0, 20.0, 30.0),), (Layer(0.7, 20.0, 0.0), Layer(0.3, 25.0, 120.0))],
@@ -49,6 +51,7 @@ def test_structure_function_matches_von_karman(layers):
     assert 2.6 < measured[1] / measured[0] < 2 ** (5 / 3) + 0.1
 
 
+@pytest.mark.physics
 def test_frozen_flow_integer_shift_is_exact():
     grid = ActuatorGrid(4.0, 20)
     # 4 m/s at 100 Hz: 0.04 m per frame, so 5 frames move the screen exactly one 0.2 m pitch along +x.
@@ -64,6 +67,7 @@ def test_frozen_flow_integer_shift_is_exact():
     assert (later[ok] - maps[2:-5, :, 1:][ok]).abs().mean() > 10.0
 
 
+@pytest.mark.physics
 @pytest.mark.parametrize("direction", [37.0, 200.0])
 def test_frozen_flow_subpixel_translation(direction):
     """Frame n+k at x equals frame n at x - v k dt: one continuous screen, translated."""
@@ -79,6 +83,7 @@ def test_frozen_flow_subpixel_translation(direction):
     torch.testing.assert_close(s[k:, :n], s[:-k, n:], rtol=0, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_any_frame_range_and_chunking_give_the_same_frames():
     grid = ActuatorGrid(2.0, 10)
     atm = Atmosphere(layers=(Layer(0.7, 30.0, 10.0), Layer(0.3, 12.0, 250.0)), model="strip")
@@ -105,6 +110,8 @@ def test_piston_tip_tilt_removed():
     assert (s @ basis).abs().max() < 1e-8 * s.abs().max()
 
 
+@pytest.mark.physics
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_reference_scenario_reproduces_the_study(seed):
     """Uncorrected 1.2-1.8 um and pseudo-integrator 23-26 nm (study: 1534 nm and 24.3 nm)."""

@@ -65,6 +65,7 @@ def fit(scenario, name, tmp_path=None, **optimization):
                          output=FitOutput(None if tmp_path is None else tmp_path / "net.ckpt"))
 
 
+@pytest.mark.slow
 def test_plain_sgd_diverges_on_nanometres_and_learns_when_normalised(small_scenario, user_module, tmp_path):
     # Histories of ~300 nm make the squared-error gradient ~1e5 times too large for plain SGD: it blows up.
     with pytest.raises(ConfigError, match=r"network my_nets.Plain gave a training loss of (nan|inf) \(not finite\)"):
@@ -96,6 +97,7 @@ def test_trivial_losses_are_the_zero_command_and_the_scaled_last_value():
     assert set(trivial_losses([(history, target)], "closed_loop")) == {"zero command"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, message", [
     ("WrongShape", "network my_nets.WrongShape returned shape (2, 80, 2) for a history of shape (2, 80, 3)"),
     ("Raises", "network my_nets.Raises: forward raised RuntimeError: my bug"),
