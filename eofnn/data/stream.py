@@ -205,10 +205,8 @@ class LoopDataModule(L.LightningDataModule):
 
     Parameters
     ----------
-    scenario : Scenario
-        Where the data is recorded.
-    spec : HistorySpec
-        History kind, length and delay.
+    scenario, spec : Scenario, HistorySpec
+        Where the data is recorded, and the history (kind, length, delay), as for :class:`SimulatedTelemetry`.
     data : DataConfig
         Frames, sequences, batches, seed and workers.
     data_controller : Controller, optional

@@ -142,20 +142,10 @@ class AnyWindFrozenFlow:
 
     Parameters
     ----------
-    grid : ActuatorGrid
-        Actuators (their positions, unless ``positions_m`` is given, and the pitch that sets the kernel).
-    r0_m, r0_wavelength_m, outer_scale_m : float
-        Layer's Fried parameter (m) at a wavelength (m), and the outer scale (m, finite).
+    grid, r0_m, r0_wavelength_m, outer_scale_m, frame_period_s, kernel, screen_frames, seed
+        As for :class:`eofnn.sim.exact.ExactFrozenFlow` (``grid`` gives the positions unless ``positions_m`` does).
     wind_speed_mps, wind_direction_deg : float
         Wind speed (m/s, > 0) and direction (degrees from +x towards +y; any finite value).
-    frame_period_s : float
-        Time between frames in seconds.
-    kernel : {"subaperture", "point"}
-        Sensing kernel.
-    screen_frames : int
-        Frames the screen holds: frames ``0 .. screen_frames - 1`` can be asked for, in any order.
-    seed : SeedSequence
-        Seed of this realisation.
     positions_m : ndarray, optional
         ``(n, 2)`` positions (m) to evaluate instead of the grid's actuators (tests probe the field with them).
     """
