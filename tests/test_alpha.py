@@ -59,6 +59,7 @@ def test_auto_alpha_is_the_brute_force_minimum_of_the_validation_error(small_sce
     assert torch.allclose(result.predictor.network.weight.detach(), direct, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_a_fixed_alpha_means_that_alpha(small_scenario):
     result = fit_predictor(small_scenario, "open_loop", 3, data=DATA, optimization=OptimizationConfig(alpha=1e-6))
     assert "alpha_choice" not in result.predictor.info
@@ -87,6 +88,7 @@ def test_select_keeps_the_best_alpha_that_meets_the_interval(small_scenario):
             assert not (result_a.stable and lo <= interval[0] and hi >= interval[1])
 
 
+@pytest.mark.slow
 def test_an_interval_no_alpha_meets_names_the_widest_reached(small_scenario):
     opt = OptimizationConfig(alpha_path=[1e-12, 1e-9], select={"dm_gain_interval": [0.01, 50.0]})
     with pytest.raises(ConfigError, match=r"cannot be met on the alpha path .*widest reached is \["):

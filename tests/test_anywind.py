@@ -154,6 +154,7 @@ def test_non_finite_winds_are_refused_in_one_line(field, value):
         assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow
 def test_thirty_degrees_runs_with_the_default_model():
     atm = Atmosphere(layers=[Layer(1.0, 7.0, 30.0)], screen_frames=100)
     assert atm.model == "exact"

@@ -156,6 +156,7 @@ def test_help(command, capsys):
         assert "--predictors" in text and "--scenario.atmosphere.r0_m" in text
 
 
+@pytest.mark.slow
 def test_simulate_writes_loadable_telemetry_and_a_plot(tmp_path, cli):
     from eofnn.sim import Telemetry
 

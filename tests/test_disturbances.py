@@ -118,6 +118,7 @@ def test_bad_boiling_is_a_one_line_error():
     assert Atmosphere(model="strip", layers=[Layer(boiling_time_s=0.0)]).layers[0].boiling_time_s == 0.0  # frozen
 
 
+@pytest.mark.slow
 @pytest.mark.physics
 def test_boiling_keeps_the_variance_and_decorrelates_as_exp_minus_t_over_tau():
     tau_frames, frames, realisations = 20, 4096, 4
@@ -145,6 +146,7 @@ def test_boiling_keeps_the_variance_and_decorrelates_as_exp_minus_t_over_tau():
         assert np.cos(walk[lag:] - walk[:-lag]).mean() == pytest.approx(math.exp(-lag / tau_frames), abs=0.02)
 
 
+@pytest.mark.slow
 @pytest.mark.physics
 def test_an_integrator_leaves_the_vibration_peak_that_a_predictor_removes():
     """The on-sky problem predictive control is used for: a 40 Hz tip vibration in weak turbulence."""
@@ -162,6 +164,7 @@ def test_an_integrator_leaves_the_vibration_peak_that_a_predictor_removes():
     assert rms["predictor"] < 0.3 * rms["integrator"]
 
 
+@pytest.mark.slow
 @pytest.mark.cli
 def test_the_cli_runs_vibrations_and_boiling_from_yaml_and_refuses_bad_ones_in_one_line(tmp_path, capsys):
     from eofnn.cli.main import main

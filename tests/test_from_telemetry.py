@@ -141,6 +141,7 @@ def test_batches_and_bad_telemetry(unknown_plant):
     assert torch.isfinite(fit_from_telemetry(tel, spec, plant={"dm_gain": 2.0}).network.weight).all()
 
 
+@pytest.mark.slow
 def test_mlp_by_sgd_and_checkpoints(unknown_plant, tmp_path):
     """Any network trains on telemetry through the one Lightning task; the checkpoint says it learnt from telemetry."""
     sc, tel, plant = unknown_plant

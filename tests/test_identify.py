@@ -40,6 +40,7 @@ def telemetry() -> dict[str, Telemetry]:
     return {name: record(errors) for name, errors in PLANTS.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(PLANTS))
 def test_identifies_gain_misregistration_lag_and_noise(telemetry, name):
     truth = {"dm_gain": 1.0, "misregistration_x": 0.0, "misregistration_y": 0.0, "wfs_noise_nm": 0.0, **PLANTS[name]}
@@ -64,6 +65,7 @@ def test_identifies_gain_misregistration_lag_and_noise(telemetry, name):
     assert (gains[interior] / truth["dm_gain"] - 1).abs().median() < 0.03
 
 
+@pytest.mark.slow
 def test_identified_response_reproduces_the_plant(telemetry):
     plant = identify_plant(telemetry["both_noisy"])
     sc = scenario(**PLANTS["both_noisy"])
@@ -76,6 +78,7 @@ def test_identified_response_reproduces_the_plant(telemetry):
     assert plant.plant().dm_gain == pytest.approx(plant.dm_gain)
 
 
+@pytest.mark.slow
 def test_json_round_trip(telemetry, tmp_path):
     plant = identify_plant(telemetry["gain"])
     path = tmp_path / "plant.json"
@@ -86,6 +89,7 @@ def test_json_round_trip(telemetry, tmp_path):
         plant.to_json(path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("late", [1, 2])
 def test_finds_a_late_wfs_and_realigns(telemetry, late):
     tel = telemetry["both_noisy"]
@@ -105,6 +109,7 @@ def test_no_dither_is_flagged():
     assert '"identified": false' in plant.to_json()
 
 
+@pytest.mark.slow
 def test_bad_input(telemetry):
     tel = telemetry["gain"]
     # Without positions the gain and lag are identified (they need no geometry), the misregistration is skipped.

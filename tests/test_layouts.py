@@ -61,6 +61,7 @@ def test_layout_tables():
     assert distance.max() <= 2.0 + 1e-9 and (np.diff(np.where(table < jittered.n_actuators, distance, 9), 1) >= 0).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(LAYOUTS))
 def test_identify_gain_2_and_misregistration_on_layouts(name):
     tel = record(LAYOUTS[name](), 3000, misregistration=(0.2, -0.1), noise_nm=2.0)
@@ -102,6 +103,7 @@ def test_fit_on_fried_with_neighbourhoods_beats_the_integrator_and_checkpoints_r
     assert torch.equal(loaded.network.weight, fit.network.weight)
 
 
+@pytest.mark.slow
 @pytest.mark.cli
 def test_identify_from_the_command_line_on_a_hexagonal_file(tmp_path, capsys):
     tel = record(hex_positions(), 2500)
@@ -140,6 +142,7 @@ def test_bad_positions_and_sparse_layouts(tmp_path, cli_error):
     assert "too sparse" in line and not (tmp_path / "sparse.ckpt").exists()
 
 
+@pytest.mark.slow
 def test_lag_is_found_on_a_layout_and_without_positions():
     """A file whose wfs is logged one frame late: the lag (and then the gain) needs no geometry."""
     pos = hex_positions()

@@ -14,6 +14,7 @@ from eofnn.sim import Plant, run_loop
 from eofnn.sim.plant import PlantModel
 
 
+@pytest.mark.slow
 def test_pseudo_integrator_convention(small_scenario):
     result = run_loop(small_scenario.turbulence(0, n_realisations=2), small_scenario.plant, PseudoIntegrator(), 300)
     tel = result.telemetry
@@ -36,6 +37,7 @@ def test_integrator_recursion(small_scenario):
     torch.testing.assert_close(tel.y[:, 10], expected)
 
 
+@pytest.mark.slow
 @pytest.mark.physics
 @pytest.mark.parametrize("delay", [1, 2, 3])
 def test_integrator_stability_boundary_matches_theory(small_scenario, delay):
@@ -53,6 +55,7 @@ def test_integrator_stability_boundary_matches_theory(small_scenario, delay):
     assert torch.isfinite(unstable.residual_rms_nm).all()
 
 
+@pytest.mark.slow
 @pytest.mark.physics
 def test_dm_gain_shifts_the_critical_gain(small_scenario):
     plant = Plant(delay_frames=2, dm_gain=2.0)

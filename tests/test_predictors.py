@@ -102,6 +102,7 @@ class _Forward(nn.Module):
         return self.net(history)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, structure, history_length, dm_gain", [
     ("closed_loop", "per_actuator", 3, 1.0), ("closed_loop", "shared", 1, 1.0),
     ("open_loop", "per_actuator", 4, 1.0), ("open_loop", "shared", 1, 1.5), ("open_loop", "per_actuator", 3, 1.5)])
@@ -128,6 +129,7 @@ def test_linear_filter_fast_path_gives_the_commands_of_forward_bit_for_bit(small
     assert torch.equal(runs["fast"].telemetry.y, runs["general"].telemetry.y)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("structure", ["per_actuator", "shared", "neighbourhood"])
 def test_streamed_closed_form_equals_direct_ridge(small_scenario, structure):
     noisy = small_scenario.with_plant(wfs_noise_nm=5.0)
@@ -284,6 +286,7 @@ def test_workers_never_share_frames_and_seeds_reproduce(small_scenario):
     assert not torch.isin(val[:, 0], one_worker[:, 0]).any()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["open_loop", "closed_loop"])
 def test_batches_are_windows_of_the_whole_sequence(small_scenario, kind):
     dataset = SimulatedTelemetry(small_scenario, HistorySpec(kind, 3, 2), 500,

@@ -46,6 +46,7 @@ class RuntimeController:
         return torch.from_numpy(self.runtime.step(inp.wfs[0].numpy()))[None]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind,structure,gain", [("closed_loop", "per_actuator", 1.0), ("open_loop", "per_actuator", 2.0),
                                                  ("closed_loop", "neighbourhood", 1.0), ("open_loop", "shared", 1.5)])
 def test_runtime_matches_predictive_controller(small_scenario, tmp_path, kind, structure, gain):

@@ -62,6 +62,7 @@ def test_slopes_with_an_invertible_interaction_matrix_give_the_actuator_space_fi
     assert torch.allclose(by_r.wfs, tel.wfs, atol=1e-9) and "given reconstructor" in by_r.measurement
 
 
+@pytest.mark.slow
 @pytest.mark.cli
 def test_a_fried_shack_hartmann_loses_piston_and_waffle_only(fried, tmp_path, capsys):
     pos, tel, _ = fried
@@ -87,6 +88,7 @@ def test_a_fried_shack_hartmann_loses_piston_and_waffle_only(fried, tmp_path, ca
     assert json.loads((tmp_path / "plant2.json").read_text())["dm_gain"] == pytest.approx(plant["dm_gain"], rel=1e-9)
 
 
+@pytest.mark.slow
 @pytest.mark.cli
 def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried, tmp_path, capsys):
     pos, tel, held_out = fried
@@ -120,6 +122,7 @@ def test_modal_telemetry_predicts_in_modes_and_replays_on_actuators(fried, tmp_p
     assert load_predictor(tmp_path / "cl.ckpt").network.weight.shape[0] == 60
 
 
+@pytest.mark.slow
 @pytest.mark.cli
 def test_bad_spaces_are_one_line_and_nothing_written(fried, tmp_path, cli_error):
     pos, tel, _ = fried

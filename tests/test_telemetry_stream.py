@@ -55,6 +55,7 @@ def relative(a: torch.Tensor, b: torch.Tensor) -> float:
 FILES = [(".npz", "float32", False), (".fits", "float32", False), (".npz", "float64", True), (".fits", "float64", False)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("suffix", "dtype", "compressed"), FILES)
 def test_streamed_fit_equals_in_memory_fit(recorded, tmp_path, suffix, dtype, compressed):
     path = save(recorded, tmp_path / f"t{suffix}", dtype, compressed)
@@ -85,6 +86,7 @@ def test_blocks_shorter_than_the_history_and_fractional_delay(recorded, tmp_path
     assert relative(ours.network.weight, reference.network.weight) < 1e-10
 
 
+@pytest.mark.slow
 def test_streamed_identification_equals_in_memory(recorded, tmp_path):
     path = save(recorded, tmp_path / "t.npz", "float32")
     whole = Telemetry.load(path, required=("y", "wfs"))
@@ -102,6 +104,7 @@ def test_streamed_identification_equals_in_memory(recorded, tmp_path):
     assert ours.dm_gain == pytest.approx(reference.dm_gain, rel=1e-10)
 
 
+@pytest.mark.slow
 def test_slopes_stream_through_the_reconstructor(recorded, tmp_path):
     rng = np.random.default_rng(0)
     im = rng.normal(size=(120, 80))
