@@ -11,7 +11,7 @@ from eofnn.cli.groups import SimulationCommand
 from eofnn.cli.telemetry import PLANT_HELP, fit_telemetry
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
-from eofnn.evaluation.experiment import fit_from_config
+from eofnn.evaluation.contenders import fit_from_config
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.training.fit import FitOutput
 

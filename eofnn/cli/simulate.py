@@ -13,7 +13,7 @@ from eofnn.cli.groups import SimulationCommand
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
-from eofnn.evaluation.experiment import load_configured_checkpoint, trusted_class_paths
+from eofnn.evaluation.contenders import load_configured_checkpoint, trusted_class_paths
 from eofnn.evaluation.metrics import loop_metrics
 from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.evaluation.results import ExperimentResult

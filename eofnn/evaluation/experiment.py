@@ -10,70 +10,20 @@ from pathlib import Path
 from typing import Any
 
 from eofnn.analysis.block import CoupledAnalysisTooLarge
-from eofnn.analysis.linear import controller_stability, dm_gain_margin
+from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.linear import summary as stability_summary
-from eofnn.analysis.stability import LoopSetup, analyse_integrator
-from eofnn.control.baselines import Integrator
-from eofnn.control.modal import require_telemetry
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
-from eofnn.data.history import HistorySpec
-from eofnn.data.stream import require_training_memory
-from eofnn.errors import CheckpointError, ConfigError, require
+from eofnn.errors import require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.contenders import build_scenarios, check_experiment, fit_from_config, scan_integrator_gains
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
-from eofnn.evaluation.nonstationary import reconvergence, require_changes_within, scenario_changes
+from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
-from eofnn.resources import peak_resident_bytes, require_memory, require_time
+from eofnn.resources import peak_resident_bytes
 from eofnn.sim.loop import Controller, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.training.checkpoint import load_predictor
-from eofnn.training.fit import FitOutput, FitResult, TrainedPredictor, fit_predictor
-from eofnn.training.from_telemetry import fit_from_scenario_telemetry, telemetry_sequences
-
-
-def fit_from_config(scenario: Scenario, cfg: PredictorConfig, output: FitOutput | None = None) -> FitResult:
-    """Train the predictor ``cfg`` describes on telemetry simulated in ``scenario``: against the simulator's truth,
-    or (``data.truth: false``) from the telemetry alone, through the plant identified from its dither."""
-    margin = dm_gain_margin(scenario.frame_rate_hz) if cfg.optimization.select is not None else None
-    fit = fit_predictor if cfg.data.truth else fit_from_scenario_telemetry
-    return fit(scenario, cfg.history, cfg.history_length, cfg.network, data=cfg.data, optimization=cfg.optimization,
-               output=output, margin=margin)
-
-
-def build_scenarios(base: Scenario, scenarios: dict[str, dict[str, Any]]) -> dict[str, Scenario]:
-    """The base scenario with each entry's plant changes (``{}`` is the base plant)."""
-    require(isinstance(scenarios, dict) and len(scenarios) >= 1,
-            "scenarios is empty: give at least one, e.g. nominal: {}")
-    out = {}
-    for name, changes in scenarios.items():
-        if changes is not None and not isinstance(changes, dict):
-            raise ConfigError(f"scenario {name!r}: {changes!r} is invalid: give a mapping of plant fields, e.g. "
-                              "{dm_gain: 2.0}")
-        try:
-            out[name] = base.with_plant(**(changes or {}))
-        except (ConfigError, TypeError) as err:
-            raise ConfigError(f"scenario {name!r}: {err}") from None
-    return out
-
-
-def trusted_class_paths(predictors: dict[str, PredictorConfig], extra: Collection[str] = ()) -> set[str]:
-    """Network class paths the user named (in the config or on the command line): checkpoints may name these."""
-    named = {cfg.network["class_path"] for cfg in predictors.values() if cfg.network is not None}
-    return named | set(extra)
-
-
-def load_configured_checkpoint(name: str, cfg: PredictorConfig, scenarios: dict[str, Scenario],
-                               trusted: Collection[str]) -> TrainedPredictor:
-    """The checkpoint of controller ``name``, checked against its config (history) and every scenario it runs in."""
-    predictor = load_predictor(cfg.checkpoint, trusted_networks=trusted)
-    where = f"predictor {name!r}: checkpoint {cfg.checkpoint!r}"
-    if cfg.history is not None and cfg.history != predictor.spec.kind:
-        raise CheckpointError(f"{where} holds a {predictor.spec.kind} predictor but history={cfg.history!r} was "
-                              "asked for")
-    for scenario_name, scenario in scenarios.items():
-        predictor.check_fits(scenario, f"{where} in scenario {scenario_name!r}", cfg.history_length)
-    return predictor
+from eofnn.training.fit import FitOutput, TrainedPredictor
 
 
 class Experiment:
@@ -109,16 +59,9 @@ class Experiment:
         self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
                            for name, cfg in predictors.items()}
         self.evaluation = evaluation
-        n_act = max(s.grid.n_actuators for s in self.scenarios.values())
-        # Per frame and realisation two RMS values are kept; per realisation a turbulence chunk of 1024 frames
-        # and the arrays of that chunk (s, y, eps, wfs) are in flight.
-        require_memory(8 * evaluation.realisations * (2 * evaluation.frames + 5 * 1024 * n_act),
-                       f"evaluation with evaluation.frames={evaluation.frames}, evaluation.realisations="
-                       f"{evaluation.realisations} and {n_act} actuators")
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.progress, self.log = progress, log
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
-        self._loaded: dict[str, TrainedPredictor] = {}
         #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
         self.gain_scans: dict[tuple[str, str], dict] = {}
         #: Ridge alphas chosen on validation data (``alpha: auto``): (controller, training scenario) -> choice.
@@ -128,50 +71,7 @@ class Experiment:
         #: Classical models built from telemetry (modal integrator, LQG): (controller, scenario) -> model.
         self.classical_models: dict[tuple[str, str], Any] = {}
         self.checkpoints: dict[str, str] = {}
-        trusted = trusted_class_paths(self.predictors, trusted_networks)
-        for name, cfg in self.predictors.items():
-            if cfg.trains:
-                for scenario_value in self.scenarios.values():
-                    spec = HistorySpec.from_scenario(cfg.history, cfg.history_length, scenario_value)
-                    require_training_memory(scenario_value, spec, cfg.data)
-            if cfg.train_in is not None and cfg.train_in not in self.scenarios:
-                raise ConfigError(f"predictor {name!r}: train_in={cfg.train_in!r} is not a scenario: allowed are "
-                                  f"{', '.join(self.scenarios)}")
-            if cfg.checkpoint is not None:
-                self._loaded[name] = load_configured_checkpoint(name, cfg, self.scenarios, trusted)
-        # Time: every controller runs in every scenario; each trained predictor simulates its data once per scenario
-        # (or once where train_in says).
-        work = evaluation.frames * evaluation.realisations * n_act * len(self.predictors) * len(self.scenarios)
-        work += sum(len(cfg.gains) * cfg.data.frames * n_act * len(self.scenarios)
-                    for cfg in self.predictors.values() if cfg.gains is not None)
-        work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
-                    * n_act * (1 if cfg.train_in else len(self.scenarios))
-                    for cfg in self.predictors.values() if cfg.trains)
-        require_time(work, f"this experiment ({len(self.predictors)} controllers x {len(self.scenarios)} scenarios, "
-                     f"{n_act} actuators)", allow_long)
-        # Streams the exact turbulence screen must hold (training sequences are checked with their memory).
-        for scenario_name, scenario_value in self.scenarios.items():
-            scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}",
-                                                 evaluation.realisations)
-            require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
-            for name, cfg in self.predictors.items():
-                if cfg.gains is not None:
-                    scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
-                                                         f"{cfg.data.frames} (the gain scan)")
-                elif cfg.controller in FROM_TELEMETRY:
-                    require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
-                    scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
-                                                         f"{cfg.data.frames} (its telemetry)")
-                elif cfg.trains and not cfg.data.truth:
-                    n_sequences, n, _ = telemetry_sequences(cfg.data)
-                    scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training ({n_sequences} "
-                                                         f"sequence(s) of {n} frames, data.sequence_frames="
-                                                         f"{cfg.data.sequence_frames})",
-                                                         n_sequences * cfg.data.realisations)
-
-    #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
-    #: tried, climbing towards the critical gain).
-    MAX_REFINE_ROUNDS = 6
+        self._loaded = check_experiment(self.scenarios, self.predictors, evaluation, trusted_networks, allow_long)
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
@@ -224,7 +124,9 @@ class Experiment:
             return cfg
         key = (name, scenario_name)
         if key not in self.gain_scans:
-            self.gain_scans[key] = self._scan_gains(cfg, self.scenarios[scenario_name])
+            self.gain_scans[key] = scan_integrator_gains(cfg, self.scenarios[scenario_name],
+                                                         self.evaluation.settle_frames,
+                                                         self.evaluation.divergence_factor)
             scan = self.gain_scans[key]
             edge = (f" — at the edge of the gains tried (critical gain {scan['critical_gain']:.3g}): extend gains"
                     if scan["at_edge"] else "")
@@ -234,50 +136,6 @@ class Experiment:
                      f"{', '.join(f'{g:g}' for g in cfg.gains)}, refined with {', '.join(f'{g:g}' for g in scan['refined'])}"
                      f"{edge}")
         return replace(cfg, gains=None, gain=self.gain_scans[key]["gain"])
-
-    def _scan_gains(self, cfg: PredictorConfig, scenario: Scenario) -> dict:
-        """Close the loop with each of ``cfg.gains`` on a stream of its own; the lowest median residual wins, after
-        ``cfg.refine_rounds`` rounds of refinement between the best gain and its neighbours (past the grid's top
-        up to the analytic critical gain, below its bottom down to 0), so the choice is never an edge of the grid
-        unless it is the edge of what is stable (then ``at_edge`` says so)."""
-        settle = min(self.evaluation.settle_frames, cfg.data.frames // 2)
-        # The critical integrator gain: the loop gain at which an integrator goes unstable in a nominal plant of
-        # this delay (a small gain's DM-gain margin times that gain), over this plant's DM and WFS gains.
-        nominal = LoopSetup(scenario.plant.delay_frames, frame_rate_hz=scenario.frame_rate_hz)
-        critical = (0.01 * float(analyse_integrator(0.01, cfg.leak, nominal).gain_margin[1])
-                    / (scenario.plant.dm_gain * scenario.plant.wfs_gain))
-        scanned: dict[float, float | None] = {}
-
-        def run(gain: float) -> None:
-            scanned[gain] = scenario.median_residual_nm(Integrator(gain, cfg.leak), cfg.data.frames, cfg.data.seed,
-                                                        "gain-scan", settle,
-                                                        divergence_factor=self.evaluation.divergence_factor)
-
-        for gain in cfg.gains:
-            run(gain)
-        require(any(v is not None for v in scanned.values()),
-                f"every integrator gain of gains={cfg.gains!r} diverged: give smaller gains")
-        refined = []
-        for round_index in range(self.MAX_REFINE_ROUNDS if cfg.refine_rounds else 0):
-            gains = sorted(scanned)
-            best = min((rms, g) for g, rms in scanned.items() if rms is not None)[1]
-            i = gains.index(best)
-            top = i + 1 == len(gains)
-            if round_index >= cfg.refine_rounds and not (top and best < 0.98 * critical):
-                break  # refined enough, and not still climbing towards the critical gain
-            left = gains[i - 1] if i > 0 else 0.0
-            right = min(gains[i + 1] if not top else critical, 0.99 * critical)
-            for candidate in ((left + best) / 2, (best + right) / 2):
-                candidate = float(f"{candidate:.4g}")
-                if candidate > 0 and candidate not in scanned and candidate < critical:
-                    run(candidate)
-                    refined.append(candidate)
-        finite = sorted((rms, g) for g, rms in scanned.items() if rms is not None)
-        best = finite[0][1]
-        gains = sorted(scanned)
-        at_edge = best == gains[0] or (best == gains[-1] and best < 0.98 * critical)
-        return {"gain": best, "scanned": {f"{g:g}": scanned[g] for g in gains}, "refined": refined,
-                "critical_gain": critical, "at_edge": at_edge}
 
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
