@@ -86,6 +86,42 @@ def test_blocks_shorter_than_the_history_and_fractional_delay(recorded, tmp_path
     assert relative(ours.network.weight, reference.network.weight) < 1e-10
 
 
+@pytest.mark.parametrize(("kind", "delay"), [("open_loop", 1.5), ("closed_loop", 2)])
+def test_streamed_replay_in_blocks_equals_in_memory(recorded, tmp_path, monkeypatch, kind, delay):
+    """A replay reads the file in blocks of frames, each with the history before it (a fractional delay's block also
+    predicts the frame before it): the same errors, frame by frame, as the whole recording in memory, and no read
+    larger than a block."""
+    from eofnn.evaluation import replay as replay_module
+    from eofnn.models.linear import LinearFilter
+
+    both = Telemetry(y=recorded.y, wfs=recorded.wfs, delay_frames=delay,  # a batch: two sequences of 1500 frames
+                     positions_m=recorded.positions_m)
+    path = both.save(tmp_path / "held.fits", dtype="float64")
+    spec = HistorySpec(kind, 3, delay)
+    network = LinearFilter(80, spec.n_taps, structure="per_actuator")
+    with torch.no_grad():
+        network.weight.normal_(0.0, 0.1, generator=torch.Generator().manual_seed(1))
+    whole = replay_module.replay(network, spec, both, plant=PLANT, settle_frames=20)
+    reads = []
+    original = RawReader.read
+
+    def spy(self, batch, start, stop):
+        reads.append(stop - start)
+        return original(self, batch, start, stop)
+
+    monkeypatch.setattr(RawReader, "read", spy)
+    monkeypatch.setattr(replay_module, "REPLAY_BLOCK_ELEMENTS", 97 * 80 * spec.n_taps)  # blocks of 97 frames
+    streamed = replay_module.replay(network, spec, StreamedTelemetry.open(path), plant=PLANT, settle_frames=20)
+    for ours, reference in ((streamed.predictor, whole.predictor), (streamed.own_controller, whole.own_controller)):
+        assert ours.rms_nm == pytest.approx(reference.rms_nm, rel=1e-12)
+        assert ours.map_rms_nm == pytest.approx(reference.map_rms_nm, rel=1e-12)
+        assert ours.psd_nm2_per_hz == pytest.approx(reference.psd_nm2_per_hz, rel=1e-12)
+    assert streamed.n_frames == whole.n_frames == 2 * (1500 - whole.first_frame - spec.target_lead - (delay % 1 > 0))
+    window = 97 + spec.first_frame + 1 + spec.target_lead  # a block, its history, the frame before, the lead
+    assert max(reads) <= SCAN_FRAMES  # the finiteness scan's blocks, and the replay's windows
+    assert sum(r <= window for r in reads) >= 2 * (1500 // 97)
+
+
 @pytest.mark.slow
 def test_streamed_identification_equals_in_memory(recorded, tmp_path):
     path = save(recorded, tmp_path / "t.npz", "float32")

@@ -183,7 +183,7 @@ def replay(cfg: ReplayConfig, config_dump: str | None = None) -> dict:
     check_value("settle_frames", cfg.settle_frames, Interval(0, 10**9, integer=True))
     out = check_output_folder(cfg.out, cfg.overwrite)
     predictor = load_predictor(cfg.checkpoint, trusted_networks=cfg.trusted_networks)
-    telemetry = _load(cfg)
+    telemetry = _load(cfg, streamed=True)  # replayed in blocks of frames, never whole
     check_checkpoint_fits(predictor, cfg.checkpoint, telemetry)
     plant = resolve_plant_option(cfg.plant, telemetry)
     result = replay_telemetry(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,

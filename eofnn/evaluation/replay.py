@@ -32,13 +32,19 @@ import torch
 from torch import nn
 
 from eofnn.data.history import HistorySpec, applied_command
-from eofnn.data.targets import check_sequences, pol_reconstruction, telemetry_grid, telemetry_history
+from eofnn.data.targets import (
+    AnyTelemetry,
+    check_sequences,
+    pol_reconstruction,
+    telemetry_grid,
+    telemetry_history,
+    telemetry_items,
+)
 from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.spaces import modal_to_actuators
-from eofnn.sim.telemetry import Telemetry
 from eofnn.training.from_telemetry import resolve_plant
 from eofnn.training.identify import IdentifiedPlant
 
@@ -84,23 +90,36 @@ class ReplayResult:
         return text
 
 
-def _stats(error: list[torch.Tensor], noise_nm: float, psd: WelchPSD) -> ErrorStats:
-    rms = torch.cat([e.pow(2).mean(-1) for e in error]).sqrt()
-    per_actuator = torch.cat(error).pow(2).mean(0).sqrt()
-    median = float(rms.median())
-    if noise_nm <= 0:
-        corrected, note = median, "no WFS noise estimate (plant not identified): equal to the raw median RMS"
-    elif median <= noise_nm:
-        # Removing more noise than the error holds would print 0 nm, which no predictor reaches: say so instead.
-        corrected, note = None, (f"cannot be estimated: the median RMS ({median:.3g} nm) is within the WFS noise "
-                                 f"({noise_nm:.3g} nm) that the POL values carry")
-    else:
-        corrected = float((rms.pow(2) - noise_nm ** 2).clamp(min=0).sqrt().median())
-        note = f"median RMS with {noise_nm:.3g} nm of WFS noise removed in quadrature"
-    for e in error:
-        psd(0, {"eps": e.unsqueeze(0)})
-    return ErrorStats(median, float(rms.mean()), corrected, rms.tolist(), per_actuator.tolist(), psd.result()[1],
-                      note)
+class _ErrorAccumulator:
+    """One controller's replayed error, block by block of frames: the RMS of each frame, the sum of squares of each
+    actuator and the temporal PSD; nothing of the error itself is kept."""
+
+    def __init__(self, psd: WelchPSD) -> None:
+        self.psd, self.rms2, self.sum2, self.frames = psd, [], None, 0
+
+    def add(self, error: torch.Tensor) -> None:
+        """``(frames, K)`` errors (nm) of consecutive frames."""
+        squared = error.pow(2)
+        self.rms2.append(squared.mean(-1))
+        self.sum2 = squared.sum(0) if self.sum2 is None else self.sum2 + squared.sum(0)
+        self.frames += error.shape[0]
+        self.psd(0, {"eps": error.unsqueeze(0)})
+
+    def stats(self, noise_nm: float) -> ErrorStats:
+        rms = torch.cat(self.rms2).sqrt()
+        per_actuator = (self.sum2 / self.frames).sqrt()
+        median = float(rms.median())
+        if noise_nm <= 0:
+            corrected, note = median, "no WFS noise estimate (plant not identified): equal to the raw median RMS"
+        elif median <= noise_nm:
+            # Removing more noise than the error holds would print 0 nm, which no predictor reaches: say so instead.
+            corrected, note = None, (f"cannot be estimated: the median RMS ({median:.3g} nm) is within the WFS noise "
+                                     f"({noise_nm:.3g} nm) that the POL values carry")
+        else:
+            corrected = float((rms.pow(2) - noise_nm ** 2).clamp(min=0).sqrt().median())
+            note = f"median RMS with {noise_nm:.3g} nm of WFS noise removed in quadrature"
+        return ErrorStats(median, float(rms.mean()), corrected, rms.tolist(), per_actuator.tolist(),
+                          self.psd.result()[1], note)
 
 
 #: History elements (frames x actuators x taps) a replayed network reads at once.
@@ -108,7 +127,7 @@ REPLAY_BLOCK_ELEMENTS = 2**23
 
 
 @torch.no_grad()
-def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequence[Telemetry], *,
+def replay(network: nn.Module, spec: HistorySpec, telemetry: AnyTelemetry | Sequence[AnyTelemetry], *,
            plant: IdentifiedPlant | dict | None = None, noise_nm: float | None = None, grid: ActuatorGrid | None = None,
            start: int = 0, settle_frames: int = 0, segment_frames: int = 256,
            frame_rate_hz: float | None = None) -> ReplayResult:
@@ -120,8 +139,9 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
         Maps ``(batch, K, spec.n_taps)`` histories to commands (nm).
     spec : HistorySpec
         The history it reads (delay must be the telemetry's).
-    telemetry : Telemetry or sequence of Telemetry
-        Held-out ``y`` and ``wfs``.
+    telemetry : Telemetry, StreamedTelemetry or a sequence of them
+        Held-out ``y`` and ``wfs``; read in blocks of frames (each with the history before it), so a file is never
+        held whole: memory is set by :data:`REPLAY_BLOCK_ELEMENTS`.
     plant : IdentifiedPlant, dict or None
         DM model for the POL reconstruction (see :func:`eofnn.training.from_telemetry.resolve_plant`).
     noise_nm : float, optional
@@ -136,7 +156,7 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
         For the PSD axis; default the telemetry's, else 1000.
     """
     sequences = check_sequences(telemetry, spec)
-    first_item = telemetry if isinstance(telemetry, Telemetry) else telemetry[0]
+    first_item = telemetry_items(telemetry)[0]
     dm_response, dm_gain, errors, source = resolve_plant(plant, spec.delay_frames, telemetry_grid(first_item, grid))
     if noise_nm is None:
         noise_nm = float(plant.wfs_noise_nm or 0.0) if isinstance(plant, IdentifiedPlant) else 0.0
@@ -147,28 +167,33 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: Telemetry | Sequenc
     params = list(network.parameters())
     dtype = params[0].dtype if params else torch.float64
     network.eval()
-    predicted, own, f = [], [], spec.delay_fraction
+    f, span = spec.delay_fraction, spec.first_frame
+    lengths = [seq.y.shape[0] - first - spec.target_lead - (1 if f else 0) for seq in sequences]  # per sequence
+    segment = min(segment_frames, *lengths)
+    predicted, own = _ErrorAccumulator(WelchPSD(segment, rate)), _ErrorAccumulator(WelchPSD(segment, rate))
+    # In blocks of frames, each read with the history before it: a file is never held whole, and a neighbourhood
+    # filter gathers (frames, K, M x taps) at once (2000 frames of 5024 actuators, 9 neighbours, 10 taps in one
+    # call peaked at 15.8 GB).
+    block = max(1, REPLAY_BLOCK_ELEMENTS // max(1, sequences[0].y.shape[-1] * spec.n_taps))
     for seq in sequences:
-        window = slice(first - spec.first_frame, None)
-        y, wfs = seq.y[window], seq.wfs[window]
-        history = telemetry_history(wfs, y, spec, dm_response)
-        # In blocks of frames: a neighbourhood filter gathers (frames, K, M x taps) at once, and replaying 2000
-        # frames of 5024 actuators (9 neighbours, 10 taps) in one call peaked at 15.8 GB.
-        block = max(1, REPLAY_BLOCK_ELEMENTS // max(1, history[0].numel()))
-        y_pred = torch.cat([network(history[a: a + block].to(dtype)).to(torch.float64)
-                            for a in range(0, len(history), block)])
-        s_hat = pol_reconstruction(wfs, y, dm_response, f)[spec.first_frame:][:len(y_pred)]
-        measured = wfs[spec.first_frame:][:len(y_pred)]
-        if f:  # the DM shape over frame n averages the predicted commands of frames n and n - 1
-            y_pred, s_hat, measured = applied_command(y_pred, f)[1:], s_hat[1:], measured[1:]
-        error = s_hat + dm_gain * y_pred
-        if seq.modal_basis is not None:  # modal telemetry: errors are reported on the actuators, B @ e
-            error, measured = modal_to_actuators(error, seq.modal_basis), modal_to_actuators(measured, seq.modal_basis)
-        predicted.append(error)
-        own.append(measured)
-    segment = min(segment_frames, min(e.shape[0] for e in predicted))
-    psd_pred, psd_own = WelchPSD(segment, rate), WelchPSD(segment, rate)
-    result = ReplayResult(_stats(predicted, noise_nm, psd_pred), _stats(own, noise_nm, psd_own), noise_nm,
-                          sum(e.shape[0] for e in predicted), first, rate, psd_pred.result()[0],
-                          {"source": source, "dm_gain": dm_gain, **errors})
+        for begin in range(first, seq.y.shape[0], block):
+            # A fractional delay's DM shape over frame n averages the commands of frames n and n - 1: a block after
+            # the first also predicts the frame before it (the first block's first frame has no predecessor).
+            extra = 1 if f and begin > first else 0
+            # The window ends target_lead frames after the block: a fractional delay's history reads one frame on.
+            window = slice(begin - span - extra, min(begin + block + spec.target_lead, seq.y.shape[0]))
+            y, wfs = seq.y[window], seq.wfs[window]
+            y_pred = network(telemetry_history(wfs, y, spec, dm_response).to(dtype)).to(torch.float64)
+            s_hat = pol_reconstruction(wfs, y, dm_response, f)[span:][:len(y_pred)]
+            measured = wfs[span:][:len(y_pred)]
+            if f:
+                y_pred, s_hat, measured = applied_command(y_pred, f)[1:], s_hat[1:], measured[1:]
+            error = s_hat + dm_gain * y_pred
+            if seq.modal_basis is not None:  # modal telemetry: errors are reported on the actuators, B @ e
+                error = modal_to_actuators(error, seq.modal_basis)
+                measured = modal_to_actuators(measured, seq.modal_basis)
+            predicted.add(error)
+            own.add(measured)
+    result = ReplayResult(predicted.stats(noise_nm), own.stats(noise_nm), noise_nm, predicted.frames, first, rate,
+                          predicted.psd.result()[0], {"source": source, "dm_gain": dm_gain, **errors})
     return result
