@@ -61,6 +61,11 @@ def aliasing_budget(perfect: dict, shack_hartmann: dict, photon_noise: dict) -> 
     return out
 
 
+def _nm(value: float | None) -> str:
+    """A median RMS in the table, or ``diverged`` where the loop did not hold."""
+    return "diverged" if value is None else f"{value:.2f}"
+
+
 def write_results(folder: str | Path, simulator: str, metrics: dict, command: str) -> Path:
     """``folder/metrics.json`` (everything) and ``folder/results.md`` (the table), replacing earlier ones."""
     folder = Path(folder)
@@ -75,8 +80,8 @@ def write_results(folder: str | Path, simulator: str, metrics: dict, command: st
         truth = ident.get("dm_gain_times_optical_gain", ident.get("dm_gain_true"))
         fit = run.get("fitting_error", {}).get("median_rms_nm")
         lines.append(f"| {name} | {ident['dm_gain']:.4f} ({truth:.4f}) | {rep['predictor_median_rms_nm']:.2f} / "
-                     f"{rep['integrator_median_rms_nm']:.2f} | {run['eof']['median_rms_nm']:.2f} / "
-                     f"{integ['median_rms_nm']:.2f} ({integ['best_gain']}) | "
+                     f"{rep['integrator_median_rms_nm']:.2f} | {_nm(run['eof']['median_rms_nm'])} / "
+                     f"{_nm(integ['median_rms_nm'])} ({integ['best_gain']}) | "
                      f"{'' if fit is None else f'{fit:.2f}'} |")
     if "budget" in metrics:
         b = metrics["budget"]
