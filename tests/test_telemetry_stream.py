@@ -52,6 +52,20 @@ def relative(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max())
 
 
+@pytest.fixture
+def reads(monkeypatch) -> list[int]:
+    """The length (frames) of every read of a telemetry file, in order."""
+    lengths: list[int] = []
+    original = RawReader.read
+
+    def spy(self, batch, start, stop):
+        lengths.append(stop - start)
+        return original(self, batch, start, stop)
+
+    monkeypatch.setattr(RawReader, "read", spy)
+    return lengths
+
+
 FILES = [(".npz", "float32", False), (".fits", "float32", False), (".npz", "float64", True), (".fits", "float64", False)]
 
 
@@ -87,7 +101,7 @@ def test_blocks_shorter_than_the_history_and_fractional_delay(recorded, tmp_path
 
 
 @pytest.mark.parametrize(("kind", "delay"), [("open_loop", 1.5), ("closed_loop", 2)])
-def test_streamed_replay_in_blocks_equals_in_memory(recorded, tmp_path, monkeypatch, kind, delay):
+def test_streamed_replay_in_blocks_equals_in_memory(recorded, tmp_path, monkeypatch, reads, kind, delay):
     """A replay reads the file in blocks of frames, each with the history before it (a fractional delay's block also
     predicts the frame before it): the same errors, frame by frame, as the whole recording in memory, and no read
     larger than a block."""
@@ -102,14 +116,6 @@ def test_streamed_replay_in_blocks_equals_in_memory(recorded, tmp_path, monkeypa
     with torch.no_grad():
         network.weight.normal_(0.0, 0.1, generator=torch.Generator().manual_seed(1))
     whole = replay_module.replay(network, spec, both, plant=PLANT, settle_frames=20)
-    reads = []
-    original = RawReader.read
-
-    def spy(self, batch, start, stop):
-        reads.append(stop - start)
-        return original(self, batch, start, stop)
-
-    monkeypatch.setattr(RawReader, "read", spy)
     monkeypatch.setattr(replay_module, "REPLAY_BLOCK_ELEMENTS", 97 * 80 * spec.n_taps)  # blocks of 97 frames
     streamed = replay_module.replay(network, spec, StreamedTelemetry.open(path), plant=PLANT, settle_frames=20)
     for ours, reference in ((streamed.predictor, whole.predictor), (streamed.own_controller, whole.own_controller)):
@@ -161,19 +167,11 @@ def test_slopes_stream_through_the_reconstructor(recorded, tmp_path):
     assert relative(ours.network.weight, reference.network.weight) < 1e-10
 
 
-def test_memory_is_bounded_by_the_block(recorded, tmp_path, monkeypatch):
+def test_memory_is_bounded_by_the_block(recorded, tmp_path, reads):
     """Every read is one window (batch plus history), and what numpy allocates at once stays a few windows."""
     long = Telemetry(y=recorded.y.reshape(-1, 80).repeat(4, 1), wfs=recorded.wfs.reshape(-1, 80).repeat(4, 1),
                      delay_frames=2)  # 12000 frames: 7.7 MB in float32
     path = long.save(tmp_path / "long.npz", dtype="float32")
-    reads = []
-    original = RawReader.read
-
-    def spy(self, batch, start, stop):
-        reads.append(stop - start)
-        return original(self, batch, start, stop)
-
-    monkeypatch.setattr(RawReader, "read", spy)
     streamed = StreamedTelemetry.open(path)
     spec = HistorySpec("open_loop", 4, 2)
     tracemalloc.start()
