@@ -72,7 +72,7 @@ def test_identify_gain_2_and_misregistration_on_layouts(name):
     assert plant.wfs_noise_nm == pytest.approx(2.0, rel=0.2)
     # plant.json holds the layout; the model it rebuilds applies what the loop applied.
     assert plant.grid == {"positions_m": LAYOUTS[name]().tolist()}
-    y = torch.randn(5, len(plant.grid["positions_m"]), dtype=torch.float64)
+    y = torch.randn(5, len(plant.grid["positions_m"]), dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     truth = 2 * apply_shift(y, layout_from_dict(plant.grid).shift_operator(0.2, -0.1))
     assert torch.allclose(plant.dm_response()(y), truth, atol=0.05)
 
