@@ -80,6 +80,12 @@ def test_undithered_telemetry_and_bad_files(tmp_path, cli, cli_error):
     assert json.loads((tmp_path / "plant.json").read_text())["identified"] is False
     code, err = cli("fit", "--telemetry", f"[{quiet}]", "--out", tmp_path / "x.ckpt")
     assert code == 2 and "not identified" in err
+    # A dither drowned in the WFS noise identifies a DM gain of any size and sign: refused where it would be used
+    # (it had been turned into a replay error of 143 um, or "dm_gain=231 is invalid").
+    faint = tmp_path / "faint.fits"
+    simulate(cli, faint, 5, dither_nm=1e-4)
+    cli_error(["fit", "--telemetry", f"[{faint}]", "--out", tmp_path / "f.ckpt"],
+              "the plant identified from this telemetry is unusable", alone=False)
     (tmp_path / "junk.fits").write_bytes(b"junk" * 100)
     for command in (["identify", "--out", tmp_path / "p.json"], ["fit", "--out", tmp_path / "y.ckpt"]):
         cli_error([*command, "--telemetry", f"[{tmp_path / 'junk.fits'}]"], "not readable as fits", alone=False)

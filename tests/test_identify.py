@@ -136,3 +136,13 @@ def test_batches_and_several_files_pool(telemetry):
     pooled = identify_plant([telemetry["gain"], batch])
     assert pooled.n_sequences == 3 and abs(pooled.dm_gain / 2.0 - 1) < 0.01
     assert pooled.dm_gain_se < 0.75 * single.dm_gain_se
+
+
+@pytest.mark.parametrize(("gain", "se", "message"), [(231.4, 210.0, "unusable: DM gain 231 with a standard error"),
+                                                     (-34.6, 80.0, "unusable: DM gain -34.6"),
+                                                     (-1.0, 0.01, "unusable: DM gain -1: either wfs has the opposite sign")])
+def test_a_plant_identified_too_poorly_to_use_is_refused_in_one_line(gain, se, message):
+    plant = IdentifiedPlant(identified=True, delay_frames=2, grid={}, dm_gain=gain, dm_gain_se=se)
+    with pytest.raises(TelemetryError, match=message) as err:
+        plant.model_errors()
+    assert "\n" not in str(err.value)

@@ -14,6 +14,9 @@ from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.layout import dm_model, layout_from_dict
 from eofnn.sim.plant import Plant
 
+#: The largest standard error of an identified DM gain, relative to the gain, that the fits and replays use.
+USABLE_GAIN_ERROR = 0.25
+
 
 class PlantNotIdentifiedWarning(UserWarning):
     """The telemetry holds no excitation (dither): the plant cannot be identified from it."""
@@ -79,9 +82,24 @@ class IdentifiedPlant:
             raise ConfigError(f"plant file {str(path)!r} is not an eofnn plant.json ({type(err).__name__})") from None
 
     def require_identified(self) -> None:
-        """One-line :class:`TelemetryError` unless the plant was identified."""
+        """One-line :class:`TelemetryError` unless the plant was identified, and well enough to use: a DM gain that is
+        positive and known to :data:`USABLE_GAIN_ERROR` of itself (a dither drowned by noise, or numerical residue
+        where there was none, gives a gain of any size and sign, and POL values and replays that mean nothing)."""
         if not self.identified:
             raise TelemetryError("the plant was not identified (the telemetry holds no dither): give a plant instead")
+        gain, se = float(self.dm_gain), float(self.dm_gain_se or 0.0)
+        if se > USABLE_GAIN_ERROR * abs(gain):
+            raise TelemetryError(f"the plant identified from this telemetry is unusable: DM gain {gain:.3g} with a "
+                                 f"standard error of {se:.2g} (more than {USABLE_GAIN_ERROR:.0%} of it): the dither is "
+                                 "too weak for the noise and length of the recording; record longer or with a larger "
+                                 "dither, or give a plant instead")
+        if gain <= 0:
+            raise TelemetryError(f"the plant identified from this telemetry is unusable: DM gain {gain:.3g}: either wfs "
+                                 "has the opposite sign of the documented convention (eps = s + DM(y): negate the "
+                                 "reconstructor, R @ IM = -I, or the wfs), or the dither "
+                                 f"({self.excitation_rms_nm:.2g} nm RMS) is too weak for the WFS noise "
+                                 f"({float(self.wfs_noise_nm or 0.0):.2g} nm): record with a larger dither, or give a "
+                                 "plant instead")
 
     def model_errors(self) -> dict[str, float]:
         """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`
