@@ -101,3 +101,16 @@ def test_importing_eofnn_and_the_shared_interop_part_needs_no_oopao():
             "print(any(m.split('.')[0] == 'OOPAO' for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_the_integrator_scan_climbs_past_the_top_of_its_grid(sim):
+    """A grid whose best gain is its highest is no best-gain integrator: the scan climbs on by the grid's step until
+    a gain does worse (or diverges)."""
+    from eofnn.interop.loop import scan_integrator
+
+    scan = scan_integrator(sim, (0.3, 0.35), 300, 7, 100)
+    tried = sorted(scan["scan"])
+    assert tried[:2] == [0.3, 0.35] and len(tried) > 2 and np.allclose(np.diff(tried), 0.05)
+    assert scan["gain"] < tried[-1]  # it stopped one step past the best
+    last = scan["scan"][tried[-1]]
+    assert last is None or last > scan["median_rms_nm"]

@@ -240,14 +240,33 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
                       float(sim.frame_rate_hz), sim.describe(), diverged)
 
 
+#: Gains a scan adds past the top of its grid while the best gain is still the highest one tried.
+MAX_EXTRA_GAINS = 6
+
+
 def scan_integrator(sim: SimulatorAdapter, gains, n_frames: int, seed: int, settle_frames: int) -> dict:
     """The simulator's best-gain integrator: each gain in ``gains`` closes the loop on the same realisation
-    ``seed``; returns ``{"gain": best, "median_rms_nm": its median, "scan": {gain: median or None if diverged}}``."""
+    ``seed``, and while the best is the highest gain tried the scan climbs on by the grid's last step (at most
+    :data:`MAX_EXTRA_GAINS` more, until a gain diverges or does worse), so the choice is not the grid's edge unless
+    it is the edge of what helps; returns ``{"gain": best, "median_rms_nm": its median, "scan": {gain: median or
+    None if diverged}}``."""
     scan = {}
+
+    def run(gain: float) -> None:
+        record = run_closed_loop(sim, IntegratorControl(gain), n_frames, seed)
+        scan[gain] = record.metrics(settle_frames).median_rms_nm
+
     for gain in gains:
-        record = run_closed_loop(sim, IntegratorControl(float(gain)), n_frames, seed)
-        scan[float(gain)] = record.metrics(settle_frames).median_rms_nm
+        run(float(gain))
     stable = {g: v for g, v in scan.items() if v is not None}
     require(bool(stable), f"every integrator gain of {list(scan)} diverged in {sim.name}'s loop: give smaller gains")
+    ordered = sorted(scan)
+    step = ordered[-1] - ordered[-2] if len(ordered) > 1 else 0.5 * ordered[-1]
+    for _ in range(MAX_EXTRA_GAINS):
+        best = min(stable, key=stable.get)
+        if best != max(scan) or step <= 0:
+            break
+        run(round(best + step, 6))
+        stable = {g: v for g, v in scan.items() if v is not None}
     best = min(stable, key=stable.get)
     return {"gain": best, "median_rms_nm": stable[best], "scan": scan}
