@@ -94,9 +94,11 @@ def interop_section() -> str:
 a DM applying 2x the command, one 20 m/s layer) records telemetry with its integrator and a dither; eofnn
 identifies the plant from it, fits closed-loop EOF from that telemetry alone (one refit on telemetry the EOF
 recorded itself), replays it on a held-out realisation, and runs it (the exported `eofnn.runtime` filter) in the
-simulator's loop against the best-gain integrator of a scan in that loop. With a Shack-Hartmann the telemetry
-sees the DM gain times the sensor's optical gain, which the adapter measures with probes (the target in brackets).
-Median residual OPD in nm:
+simulator's loop against the best-gain integrator of a scan in that loop. Each contender is tuned on data it is not
+scored on (the EOF's ridge alpha on validation frames; the integrator's gain on a realisation of its own, the scan
+climbing past the top of its grid while that is best), and both are scored on the same further realisation.
+With a Shack-Hartmann the telemetry sees the DM gain times the sensor's optical gain, which the adapter measures
+with probes (the target in brackets). Median residual OPD in nm:
 
 | system | DM gain identified (target) | replay: EOF / integrator | in the loop: EOF / best integrator |
 |---|---|---|---|
@@ -115,6 +117,5 @@ without noise and with photon noise):
   20 x 20 and {big['rcond']:g} at 40 x 40 ({big['n_seen_modes']} of {big['n_actuators']} modes), because a zonal
   Shack-Hartmann's smooth modes have the smallest singular values and their share of the spectrum shrinks as
   1 / n (at 0.15 the 40 x 40 loop dropped smooth modes that neither controller could then correct).
-- *Limits*: the integrator's gain is chosen on the realisation it is scored on (favouring it); one realisation;
-  1600-2000 frames per recording.
+- *Limits*: one scored realisation per system; 1600-2000 frames per recording; one wind (20 m/s, one layer).
 """
