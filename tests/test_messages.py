@@ -8,14 +8,16 @@ import torch
 
 from eofnn.evaluation.experiment import _describe
 from eofnn.evaluation.metrics import WelchPSD
-from eofnn.evaluation.replay import _stats
+from eofnn.evaluation.replay import _ErrorAccumulator
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.reporting.report import markdown_table
 
 
 def stats(sigma_nm: float, noise_nm: float):
-    error = [torch.randn(400, 50, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * sigma_nm]
-    return _stats(error, noise_nm, WelchPSD(64, 1000.0))
+    error = torch.randn(400, 50, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * sigma_nm
+    accumulated = _ErrorAccumulator(WelchPSD(64, 1000.0))
+    accumulated.add(error)
+    return accumulated.stats(noise_nm)
 
 
 def test_a_noise_corrected_error_within_the_noise_is_not_reported_as_zero():
