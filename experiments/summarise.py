@@ -26,7 +26,7 @@ RUNS = HERE / "runs"
 COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy", "fair/paper_gap/exact",
             "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
-            "adaptive/dm_gain_drift_2.0", "elt_small")
+            "adaptive/dm_gain_drift_2.0", "elt_small", "elt")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing")  # experiments/interop/<name>, written by experiments/interop/run.sh
 PAGES = ("results.md", "pareto.md")
