@@ -155,8 +155,12 @@ def staged_file(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file, so a reader never sees half of it."""
+    """Write ``text`` to ``path`` through a temporary file, flushed to disk before it replaces ``path``, so a reader
+    (or a crash) sees the old file or the new one, never half of it."""
     path = Path(path)
     partial = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    partial.write_text(text)
+    with open(partial, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(partial, path)

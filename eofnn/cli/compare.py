@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -69,15 +70,17 @@ class EvaluateConfig(ExperimentCommand):
     baselines: list[str] = field(default_factory=lambda: ["uncorrected", "pseudo_integrator", "integrator"])
 
 
-def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None
-                   ) -> ExperimentResult:
-    """Validate everything and check the output folder, then run and write the results in one move."""
+def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None, *,
+                   robustness: dict[str, list[float]] | None = None, simulated_margins: Sequence[str] = (),
+                   pareto_scenario: bool | str = False) -> ExperimentResult:
+    """Validate everything and check the output folder, then run and write the results in one move (the analyses
+    ``robustness``, ``simulated_margins`` and ``pareto_scenario`` as :class:`CompareConfig` describes them)."""
     out = check_output_folder(cfg.out, cfg.overwrite)
-    grid = check_grid(getattr(cfg, "robustness", None))
-    pareto_scenario = getattr(cfg, "pareto", False)
+    grid = check_grid(robustness)
+    simulated_margins = list(simulated_margins)
     if pareto_scenario is True:
         pareto_scenario = next(iter(cfg.scenarios))
-    for scenario_name in getattr(cfg, "simulated_margins", []) + ([pareto_scenario] if pareto_scenario else []):
+    for scenario_name in simulated_margins + ([pareto_scenario] if pareto_scenario else []):
         if scenario_name not in cfg.scenarios:
             raise ConfigError(f"simulated_margins or pareto: {scenario_name!r} is not a scenario: allowed are "
                               f"{', '.join(cfg.scenarios)}")
@@ -88,7 +91,7 @@ def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig
         experiment.checkpoint_dir = staging / "checkpoints"
         (staging / "config.yaml").write_text(config_yaml(cfg, config_dump))
         result = experiment.run()
-        for scenario_name in getattr(cfg, "simulated_margins", []):
+        for scenario_name in simulated_margins:
             for name in experiment.predictors:
                 if name not in result.stability.get(scenario_name, {}) and name not in ("uncorrected",
                                                                                        "pseudo_integrator"):
@@ -115,7 +118,8 @@ def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig
 def compare(cfg: CompareConfig, config_dump: str | None = None) -> ExperimentResult:
     """Run ``cfg.predictors`` in every scenario and write the results into ``cfg.out`` (``config_dump``: the resolved
     YAML written as ``config.yaml``; the config's own YAML when called from Python)."""
-    return run_experiment(cfg, cfg.predictors, config_dump)
+    return run_experiment(cfg, cfg.predictors, config_dump, robustness=cfg.robustness,
+                          simulated_margins=cfg.simulated_margins, pareto_scenario=cfg.pareto)
 
 
 def evaluate(cfg: EvaluateConfig, config_dump: str | None = None) -> ExperimentResult:

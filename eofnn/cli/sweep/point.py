@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import shutil
 import signal
 import threading
@@ -20,6 +19,8 @@ import traceback
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
+
+from eofnn.outputs import write_text_atomic
 
 STATUS_FILE = "status.json"
 CONFIG_FILE = "point.yaml"
@@ -31,22 +32,14 @@ ERROR_PREFIX = "eofnn: error: "
 
 
 def write_atomic(path: Path, text: str) -> bool:
-    """Write ``text`` to ``path`` so that a reader (or a crash) sees the old file or the new one, never half.
-
-    A file that already holds ``text`` is left alone (not rewritten, its time stamp kept); returns whether it was
-    written.
-    """
+    """Write ``text`` to ``path`` atomically (:func:`eofnn.outputs.write_text_atomic`), unless the file already holds
+    it: then it is left alone (not rewritten, its time stamp kept). Returns whether it was written."""
     try:
         if path.is_file() and path.read_text() == text:
             return False
     except (OSError, UnicodeDecodeError):
         pass
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_text_atomic(path, text)
     return True
 
 
@@ -54,11 +47,6 @@ def first_line(err: BaseException) -> str:
     """``Type: first line of the message`` of an unexpected error."""
     text = str(err).strip().splitlines()
     return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
-
-
-def _last_error(log_path: Path) -> str:
-    lines = [line for line in log_path.read_text().splitlines() if line.startswith(ERROR_PREFIX)]
-    return lines[-1][len(ERROR_PREFIX):] if lines else "compare failed (see log.txt)"
 
 
 def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
@@ -103,19 +91,16 @@ def run_point(config_yaml: str, folder: str, threads: int = 1) -> dict:
             try:
                 parsed = parse(["compare", "--config", str(config), "--out", str(out / RUN_DIR), "--progress", "false"])
                 compare(parsed.config, parsed.dump)
-                code = 0
             except USER_ERRORS as err:  # a value compare refuses: its one line, as ``eofnn compare`` prints it
-                print(f"{ERROR_PREFIX}{one_line(err)}", file=log)
-                code = 2
+                error = one_line(err)
+                print(f"{ERROR_PREFIX}{error}", file=log)
             except SystemExit:
                 # Lightning answers Ctrl-C during training with sys.exit(1) (and ignores SIGINT from then on):
                 # for the sweep it is the interruption it is.
                 raise KeyboardInterrupt from None
             except Exception as err:  # a bug, not a bad value: keep the traceback in the log, one line in the status
                 traceback.print_exc(file=log)
-                code, error = 1, first_line(err)
-        if code != 0 and error is None:
-            error = _last_error(out / LOG_FILE)
+                error = first_line(err)
     finally:
         torch.set_num_threads(previous_threads)
         blas.restore_original_limits()
