@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 
 from eofnn.interop.hcipy import HcipyLoop
-from eofnn.interop.report import example_parser, parse_example, write_results
+from eofnn.interop.report import example_parser, parse_example, split_text, write_results
 from eofnn.interop.study import StudyConfig, run_study
 
 
@@ -28,14 +29,15 @@ def main(argv: list[str] | None = None) -> dict:
     started = time.time()
     sim = HcipyLoop(args.n_subapertures, args.diameter, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
                     wfs_noise_nm=args.noise)
-    config = StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45))
+    config = replace(StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)),
+                     scored_realisations=args.realisations)
     run = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
     run["seconds"] = round(time.time() - started, 1)
     print(f"DM gain identified {run['identified']['dm_gain']:.4f} (true {args.dm_gain}); replay: EOF "
           f"{run['replay']['predictor_median_rms_nm']:.2f} nm vs integrator "
           f"{run['replay']['integrator_median_rms_nm']:.2f} nm; in HCIPy's loop: EOF {run['eof']['median_rms_nm']:.2f} "
           f"nm vs best-gain integrator {run['integrator']['median_rms_nm']:.2f} nm (gain "
-          f"{run['integrator']['best_gain']}) ({run['seconds']} s)")
+          f"{run['integrator']['best_gain']}); split {split_text(run.get('split'))} ({run['seconds']} s)")
     metrics = {"runs": {"phase_projection": run}}
     if args.out:
         write_results(args.out, "HCIPy", metrics, " ".join(["python examples/hcipy_interop.py", *argv]))

@@ -46,12 +46,14 @@ METRICS = {
     "peak_memory_bytes": True,
 }
 ROBUSTNESS = {"keys", "values", "median_rms_nm", "analytic_dm_gain_interval"}
+SCORED = ("median_rms_nm", "realisations_median_rms_nm", "mean_of_realisations_nm")  # a contender in the loop
 INTEROP_METRICS = {
     "runs": {"*": {"identified": {"dm_gain", "dm_gain_times_optical_gain", "dm_gain_true"},
                    "simulator": {"n_subapertures", "diameter_m", "rcond", "n_seen_modes", "n_actuators"},
-                   "eof": {"diverged", "median_rms_nm"},
+                   "eof": {"diverged", "median_rms_nm", "refits", *SCORED},
+                   "split": {"integrated_modes", "mix", "gain", "scan", "scan_median_rms_nm", "n_modes", *SCORED},
                    "replay": {"predictor_median_rms_nm", "integrator_median_rms_nm"},
-                   "integrator": {"median_rms_nm", "best_gain"}}},
+                   "integrator": {"best_gain", "scan", "scan_median_rms_nm", *SCORED}}},
     "budget": {"fitting_error_nm": True, "controllers": {"*": {
         "residual_perfect_sensor_nm", "residual_shack_hartmann_nm", "residual_photon_noise_nm", "temporal_nm",
         "aliasing_nm", "noise_nm"}}},

@@ -17,7 +17,8 @@ from eofnn.runtime import PredictiveFilter
 from eofnn.sim.layout import ActuatorLayout
 
 CONFIG = StudyConfig(record_frames=3000, val_frames=600, heldout_frames=1200, loop_frames=1200, settle_frames=200,
-                     warmup_frames=100, gains=(0.3, 0.35, 0.4, 0.45))
+                     warmup_frames=100, gains=(0.3, 0.35, 0.4, 0.45),
+                     integrated_modes=())  # the split is tested in OOPAO's loop (test_interop_oopao.py)
 
 
 @pytest.fixture(scope="module")

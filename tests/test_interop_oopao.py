@@ -63,6 +63,22 @@ def test_eof_beats_the_best_gain_integrator_in_oopaos_loop(study):
     assert study["eof"]["median_rms_nm"] < study["integrator"]["median_rms_nm"]
 
 
+@pytest.mark.slow
+def test_the_split_is_tuned_on_the_scan_realisation_and_beats_the_integrator(study):
+    split = study["split"]
+    scan = {(int(k.split(", ")[0]), float(k.split(", ")[1])): v for k, v in split["scan"].items()}
+    assert set(scan) == {(m, x) for m in (0, 1, 6) for x in (0.25, 0.5, 1.0)}  # "auto" at 101 actuators
+    assert split["scan_median_rms_nm"] == min(scan.values()) == scan[split["integrated_modes"], split["mix"]]
+    assert split["gain"] == study["integrator"]["best_gain"] and split["n_modes"] == 101
+    assert split["median_rms_nm"] < study["integrator"]["median_rms_nm"]
+    assert len(split["realisations_median_rms_nm"]) == 1
+
+
+def test_a_split_that_leaves_the_filter_nothing_is_refused_before_simulating(sim):
+    with pytest.raises(ConfigError, match="integrated_modes holds 101: the integrator can keep at most 100"):
+        run_study(sim, StudyConfig(integrated_modes=(0, 101)))
+
+
 def test_mismatched_sizes_are_refused_with_one_line(sim):
     with pytest.raises(ConfigError, match=r"command has shape \(99,\): the simulator has 101 actuators"):
         sim.advance(np.zeros(99))

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from eofnn.control.predictive import PredictiveController
-from eofnn.data.history import HistorySpec
+from eofnn.data.history import HistorySpec, pseudo_open_loop
 from eofnn.errors import ConfigError, require
 from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
 from eofnn.models.linear import LinearFilter
@@ -38,7 +38,7 @@ from eofnn.runtime import PredictiveFilter
 from eofnn.sim.loop import LoopInput, LoopResult
 from eofnn.sim.telemetry import Telemetry
 from eofnn.training.export import filter_coefficients, filter_taps
-from eofnn.validation import COUNT, Interval, check_value
+from eofnn.validation import COUNT, FRACTION, Interval, check_value
 
 #: A loop whose residual exceeds this times its first frames' turbulence RMS (or is not finite) has diverged.
 DIVERGENCE_FACTOR = 10.0
@@ -95,6 +95,12 @@ def check_command(command_nm, n_actuators: int, what: str = "command") -> np.nda
     return command
 
 
+def _check_filter_size(runtime: PredictiveFilter, n_actuators: int) -> None:
+    if runtime.n_actuators != n_actuators:
+        raise ConfigError(f"the filter has {runtime.n_actuators} actuators but the simulator has {n_actuators}: fit "
+                          "it on telemetry of this simulator")
+
+
 # -- controllers ----------------------------------------------------------------------------------------------
 class IntegratorControl:
     """``y(n) = y(n-1) - gain * m(n)`` on the delayed measurement ``m``, plus white dither of ``dither_nm`` RMS
@@ -133,9 +139,7 @@ class FilterControl:
         self._dither = IntegratorControl(0.0, dither_nm, seed)  # white dither alone (a zero-gain integrator)
 
     def reset(self, n_actuators: int) -> None:
-        if self.runtime.n_actuators != n_actuators:
-            raise ConfigError(f"the filter has {self.runtime.n_actuators} actuators but the simulator has "
-                              f"{n_actuators}: fit it on telemetry of this simulator")
+        _check_filter_size(self.runtime, n_actuators)
         self.runtime.reset()
         self._warmup.reset(n_actuators)
         self._dither.reset(n_actuators)
@@ -167,6 +171,60 @@ class TorchControl:
         inp = LoopInput(self._frame, torch.from_numpy(np.asarray(measurement, dtype=np.float64))[None], self._zeros)
         self._frame += 1
         return self.controller.step(inp)[0].numpy()
+
+
+class SplitControl:
+    """A predictive filter on the modes where prediction pays, the integrator on the rest.
+
+    ``modes`` ``(K, M)`` (orthonormal columns) span what ``runtime`` (an :class:`eofnn.runtime.PredictiveFilter`)
+    commands; the integrator of ``gain`` commands the orthogonal complement, ``y(n) = i(n) + mix B Bᵀ (f(n) - i(n))``
+    with ``i(n) = y(n-1) - gain m(n)`` (``y(n-1)`` the command really applied) and ``f(n)`` the filter's command:
+    ``mix`` (0 to 1) is the share of the filter's command on its modes, the rest the integrator's (a smaller share
+    lowers the bandwidth at which the filter passes what it predicts of the aliasing).
+    The filter reads every measurement and applied command, so its histories are whole wherever it acts. The first
+    ``warmup_frames`` frames are the integrator's alone. ``M = K``: the filter everywhere; ``M = 0``: the integrator.
+
+    With a Shack-Hartmann and a zonal reconstructor the lowest-order modes carry the most propagated aliasing
+    (their singular values are the smallest), which a filter fitted to predict the measurement predicts too;
+    :func:`pol_modes` orders the modes so that the integrator can keep the lowest ones (``docs/interop.md``).
+    """
+
+    def __init__(self, runtime: PredictiveFilter, modes: np.ndarray, gain: float, warmup_frames: int = 0,
+                 mix: float = 1.0) -> None:
+        check_value("integrator gain", gain, Interval(0, 10))
+        check_value("mix", mix, FRACTION)
+        check_value("warmup_frames", warmup_frames, Interval(0, None, integer=True, unit="frames"))
+        modes = np.asarray(modes, dtype=np.float64)
+        if modes.ndim != 2 or modes.shape[0] != runtime.n_actuators or modes.shape[1] > modes.shape[0]:
+            raise ConfigError(f"modes have shape {modes.shape}: they must be ({runtime.n_actuators}, M) with "
+                              f"M <= {runtime.n_actuators}, one column per mode the filter commands")
+        self.runtime, self.modes, self.gain, self.warmup_frames = runtime, modes, float(gain), warmup_frames
+        self.mix = float(mix)
+
+    def reset(self, n_actuators: int) -> None:
+        _check_filter_size(self.runtime, n_actuators)
+        self.runtime.reset()
+        self._last, self._frame = np.zeros(n_actuators), 0
+
+    def step(self, measurement: np.ndarray) -> np.ndarray:
+        predicted = self.runtime.step(measurement, y_last=self._last)
+        integrated = self._last - self.gain * measurement
+        self._frame += 1
+        if self._frame <= self.warmup_frames or not self.modes.shape[1]:
+            return integrated
+        return integrated + self.mix * (self.modes @ (self.modes.T @ (predicted - integrated)))
+
+    def applied(self, command: np.ndarray) -> None:
+        self._last = command
+
+
+def pol_modes(telemetry: Telemetry, dm_gain: float) -> np.ndarray:
+    """``(K, K)`` orthonormal modes of the pseudo-open-loop residual ``wfs - dm_gain y`` of ``telemetry`` (its
+    principal components, a measured Karhunen-Loeve basis: smooth modes first), by decreasing variance."""
+    pol = pseudo_open_loop(telemetry.wfs.double(), telemetry.y.double(), float(dm_gain)).numpy()
+    pol = pol - pol.mean(0)
+    variance, modes = np.linalg.eigh(pol.T @ pol / max(len(pol) - 1, 1))
+    return modes[:, np.argsort(variance)[::-1]]
 
 
 def runtime_filter(network: LinearFilter, spec: HistorySpec, dm_gain_model: float = 1.0) -> PredictiveFilter:

@@ -21,6 +21,8 @@ def example_parser(description: str) -> argparse.ArgumentParser:
     parser.add_argument("--dm-gain", type=float, default=2.0)
     parser.add_argument("--wind", type=float, default=20.0, help="m/s")
     parser.add_argument("--frames", type=int, default=3000, help="frames of telemetry per recording")
+    parser.add_argument("--realisations", type=int, default=1,
+                        help="turbulence realisations every contender is scored on (after tuning on another)")
     parser.add_argument("--out", type=Path, help="folder for metrics.json and results.md")
     return parser
 
@@ -44,12 +46,15 @@ def aliasing_budget(perfect: dict, shack_hartmann: dict, photon_noise: dict) -> 
     ``fitting_error``): a perfect (non-aliasing, noise-free) sensor, the Shack-Hartmann noise-free, and with photon
     noise. Residual OPD medians (nm) split in quadrature: fitting error (the DM cannot make it), temporal (what is
     left with a perfect sensor: servo lag, which prediction attacks), aliasing (SH minus perfect) and noise (photon
-    noise minus noise-free); ``eof_removes_nm``: integrator minus EOF in quadrature, per sensor. Quadrature
+    noise minus noise-free), per controller (the split one too where every run has it); ``eof_removes_nm``:
+    integrator minus EOF in quadrature, per sensor. Quadrature
     differences assume independent terms; a negative one means the term helped (printed with its sign)."""
     fit = perfect["fitting_error"]["median_rms_nm"]
     out = {"fitting_error_nm": fit, "controllers": {}, "eof_removes_nm": {}}
-    for name in ("integrator", "eof"):
-        p, s, n = (run[name]["median_rms_nm"] for run in (perfect, shack_hartmann, photon_noise))
+    runs = (perfect, shack_hartmann, photon_noise)
+    split = all((run.get("split") or {}).get("median_rms_nm") is not None for run in runs)
+    for name in ("integrator", "eof", "split") if split else ("integrator", "eof"):
+        p, s, n = (run[name]["median_rms_nm"] for run in runs)
         out["controllers"][name] = {
             "residual_perfect_sensor_nm": p, "residual_shack_hartmann_nm": s, "residual_photon_noise_nm": n,
             "temporal_nm": quadrature_difference(p, fit), "aliasing_nm": quadrature_difference(s, p),
@@ -66,6 +71,15 @@ def _nm(value: float | None) -> str:
     return "diverged" if value is None else f"{value:.2f}"
 
 
+def split_text(split: dict | None) -> str:
+    """The split controller's median RMS and the modes it left to the integrator, or why there is none."""
+    if not split:
+        return "not run"
+    if split["integrated_modes"] is None:
+        return "every split diverged"
+    return f"{_nm(split['median_rms_nm'])} nm ({split['integrated_modes']} modes integrated, mix {split['mix']:g})"
+
+
 def write_results(folder: str | Path, simulator: str, metrics: dict, command: str) -> Path:
     """``folder/metrics.json`` (everything) and ``folder/results.md`` (the table), replacing earlier ones."""
     folder = Path(folder)
@@ -74,14 +88,15 @@ def write_results(folder: str | Path, simulator: str, metrics: dict, command: st
     write_text_atomic(folder / "metrics.json", json.dumps(metrics, indent=1))
     lines = [f"# eofnn inside {simulator}", "", f"`{command}`", "",
              "| run | DM gain identified (DM gain x sensor optical gain) | replay EOF / integrator (nm) "
-             "| in-loop EOF / best integrator (nm, gain) | fitting error (nm) |", "|---|---|---|---|---|"]
+             "| in-loop EOF / best integrator (nm, gain) | in-loop split (nm, modes integrated) | fitting error (nm) |",
+             "|---|---|---|---|---|---|"]
     for name, run in metrics["runs"].items():
         ident, rep, integ = run["identified"], run["replay"], run["integrator"]
         truth = ident.get("dm_gain_times_optical_gain", ident.get("dm_gain_true"))
         fit = run.get("fitting_error", {}).get("median_rms_nm")
         lines.append(f"| {name} | {ident['dm_gain']:.4f} ({truth:.4f}) | {rep['predictor_median_rms_nm']:.2f} / "
                      f"{rep['integrator_median_rms_nm']:.2f} | {_nm(run['eof']['median_rms_nm'])} / "
-                     f"{_nm(integ['median_rms_nm'])} ({integ['best_gain']}) | "
+                     f"{_nm(integ['median_rms_nm'])} ({integ['best_gain']}) | {split_text(run.get('split'))} | "
                      f"{'' if fit is None else f'{fit:.2f}'} |")
     if "budget" in metrics:
         b = metrics["budget"]

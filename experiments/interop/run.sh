@@ -12,13 +12,14 @@ cd "$(dirname "$0")/../.."
 PY=${PYTHON:-.venv/bin/python}
 what=${1:-all}
 if [ "$what" = all ] || [ "$what" = oopao ]; then
-    $PY examples/oopao_loop.py --n-subapertures 40 --diameter 8 --frames 1600 --rcond 0.075 \
+    $PY examples/oopao_loop.py --n-subapertures 40 --diameter 8 --frames 1600 --rcond 0.075 --realisations 3 \
         --out experiments/runs/interop/oopao
 fi
 if [ "$what" = all ] || [ "$what" = oopao_aliasing ]; then
-    $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --aliasing \
+    $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --aliasing --realisations 3 \
         --out experiments/runs/interop/oopao_aliasing
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
-    $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --out experiments/runs/interop/hcipy
+    $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
+        --out experiments/runs/interop/hcipy
 fi
