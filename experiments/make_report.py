@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
 
 Regenerate everything on this page with one command (well over two hours on 2 cores: sections 1, 3 and 4 took
 about 40 minutes; the fair contest of section 2 took 24-34 minutes, its alpha check 31, its MLP budget check 36 and
-the paper-gap runs about 10 each, on a shared machine; section 5 about 5 minutes and section 6 about 30):
+the paper-gap runs about 10 each, on a shared machine; section 5 about 5 minutes and section 6 about 46):
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 

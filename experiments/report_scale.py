@@ -240,8 +240,8 @@ measures with probes (the target in brackets).
 |---|---|---|---|---|---|---|
 {chr(10).join(rows)}
 
-**Where the residual goes** (OOPAO, 20 x 20 on 4 m; the same loop with a perfect sensor, the Shack-Hartmann
-without noise and with photon noise):
+**Where the residual goes** (OOPAO, 20 x 20 on 4 m, the first scored realisation; the same loop with a perfect
+sensor, the Shack-Hartmann without noise and with photon noise):
 
 {chr(10).join(budget_lines) if budget_lines else '(not run)'}
 

@@ -69,6 +69,6 @@ $eofnn compare --config $x/adaptive/dm_gain_drift.yaml --scenario.plant.dm_gain_
 # 7. An ELT-class loop (5024 actuators, three non-lattice layers), every predictor from telemetry alone.
 $eofnn compare --config configs/elt_small.yaml --out $r/elt_small --overwrite true
 $eofnn compare --config configs/elt_scao.yaml --out $r/elt --overwrite true --simulated_margins '[nominal]'
-# 8. eofnn's controllers inside OOPAO's and HCIPy's own loops (about 30 min of one core).
+# 8. eofnn's controllers inside OOPAO's and HCIPy's own loops (about 46 min on 2 cores).
 bash $x/interop/run.sh
 .venv/bin/python $x/make_report.py --collect

@@ -2,11 +2,11 @@
 # eofnn's controllers inside OOPAO's and HCIPy's closed loops (docs/interop.md): writes the raw runs
 # experiments/runs/interop/<sim>/{metrics.json,results.md}; make_report.py --collect summarises them into
 # experiments/interop/<sim>/. Needs the interop extra (bash scripts/setup.sh installs it).
-#   - oopao: the issue's system (8 m, 40 x 40 Shack-Hartmann, 1 kHz, two frames, DM applying 2x), 2000 frames per
-#     recording (about 7 min of one core);
+#   - oopao: the issue's system (8 m, 40 x 40 Shack-Hartmann, 1 kHz, two frames, DM applying 2x), 1600 frames per
+#     recording, every contender scored on 3 realisations (about 17 min on 2 cores, 2026-12-02);
 #   - oopao_aliasing: the error budget (perfect sensor, SH noise-free, SH with photon noise) at 20 x 20 on 4 m
-#     (the 40 x 40 budget is three times the run above);
-#   - hcipy: 8 m, 40 x 40 phase-projection loop.
+#     (about 9 min);
+#   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PYTHON:-.venv/bin/python}
