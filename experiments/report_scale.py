@@ -193,9 +193,9 @@ def _split_finding(big_runs: dict, small_runs: dict) -> str:
   {split['mix']:g} of the EOF's command on the rest. On that scan realisation the EOF alone left {
       scan['0, 1']:.1f} nm, the integrator {integ['scan_median_rms_nm']:.1f}; keeping the {split['integrated_modes']}
   lowest-order modes on the integrator took the unmixed EOF to {scan[f"{split['integrated_modes']}, 1"]:.1f} nm and
-  the mix to {split['scan_median_rms_nm']:.1f}. {small_text}{perfect_text}The mix lowers the bandwidth at which the EOF passes
-  what it predicts of the aliasing (frozen flow too, so predictable); the gain is a few percent, not the temporal
-  error's halving that the perfect sensor shows."""
+  the mix to {split['scan_median_rms_nm']:.1f}. {small_text}{perfect_text}Our reading: the mix lowers the
+  bandwidth at which the EOF passes what it predicts of the aliasing (frozen flow too, so predictable); the gain is
+  a few percent, not the temporal error's halving that the perfect sensor shows."""
 
 
 def interop_section() -> str:
