@@ -137,12 +137,15 @@ def _interop_rows(path: str, title: str) -> list[str]:
     return rows
 
 
-def _wins(run: dict, contender: str) -> tuple[int, int]:
-    """On how many of the scored realisations ``contender`` left less than the integrator (a divergence loses)."""
-    pairs = zip(run[contender]["realisations_median_rms_nm"], run["integrator"]["realisations_median_rms_nm"],
-                strict=True)
-    pairs = list(pairs)
-    return sum(a is not None and a < b for a, b in pairs), len(pairs)
+def _pairs(run: dict, contender: str) -> list[tuple[float | None, float]]:
+    """``contender``'s median on each scored realisation beside the integrator's (None where it diverged)."""
+    return list(zip(run[contender]["realisations_median_rms_nm"], run["integrator"]["realisations_median_rms_nm"],
+                    strict=True))
+
+
+def _wins(pairs: list[tuple[float | None, float]]) -> int:
+    """On how many realisations the contender left less than the integrator (a divergence loses)."""
+    return sum(a is not None and a < b for a, b in pairs)
 
 
 def _small_split_text(small_runs: dict) -> str:
@@ -152,9 +155,9 @@ def _small_split_text(small_runs: dict) -> str:
         run = small_runs.get(name)
         if not run or not (run.get("split") or {}).get("mean_of_realisations_nm"):
             continue
-        wins, n = _wins(run, "split")
+        pairs = _pairs(run, "split")
         parts.append(f"{label} {run['split']['mean_of_realisations_nm']:.1f} against "
-                     f"{run['integrator']['mean_of_realisations_nm']:.1f} nm (lower on {wins} of {n})")
+                     f"{run['integrator']['mean_of_realisations_nm']:.1f} nm (lower on {_wins(pairs)} of {len(pairs)})")
     return f"At 20 x 20 the split leaves {'; '.join(parts)}. " if parts else ""
 
 
@@ -179,12 +182,13 @@ def _split_finding(big_runs: dict, small_runs: dict) -> str:
         return "- (the 40 x 40 split was not run)"
     split, integ, eof = run["split"], run["integrator"], run["eof"]
     scan, small_text = split["scan"], _small_split_text(small_runs)
-    pairs = list(zip(split["realisations_median_rms_nm"], integ["realisations_median_rms_nm"], strict=True))
-    wins = sum(a < b for a, b in pairs)
+    pairs = _pairs(run, "split")
+    wins = _wins(pairs)
     removed = math.sqrt(max(integ["mean_of_realisations_nm"] ** 2 - split["mean_of_realisations_nm"] ** 2, 0))
     verdict = ("beats the best-gain integrator" if wins == len(pairs) else
                f"does not beat the best-gain integrator on every realisation ({wins} of {len(pairs)})")
-    low, high = min(b - a for a, b in pairs), max(b - a for a, b in pairs)
+    differences = [b - a for a, b in pairs if a is not None]
+    low, high = min(differences), max(differences)
     mean_split, mean_integ = split["mean_of_realisations_nm"], integ["mean_of_realisations_nm"]
     return f"""- **The split {verdict} in OOPAO's 40 x 40 Shack-Hartmann loop**: {mean_split:.1f} against
   {mean_integ:.1f} nm, lower on {wins} of {len(pairs)} realisations (differences {low:.1f} to {high:.1f} nm;
@@ -202,10 +206,10 @@ def interop_section() -> str:
     rows = (_interop_rows("interop/hcipy", "HCIPy")
             + _interop_rows("interop/oopao_aliasing", "OOPAO")
             + _interop_rows("interop/oopao", "OOPAO"))
-    budget = (load("interop/oopao_aliasing") or {}).get("budget")
+    small = load("interop/oopao_aliasing") or {"runs": {}}
+    budget, small_runs = small.get("budget"), small["runs"]
     big_runs = (load("interop/oopao") or {"runs": {}})["runs"]
     big = next(iter(big_runs.values()))["simulator"] if big_runs else {"rcond": 0, "n_seen_modes": 0, "n_actuators": 0}
-    small_runs = (load("interop/oopao_aliasing") or {"runs": {}})["runs"]
     sh_runs = [(f"at 20 x 20 {k.replace('_', ' ')}", r) for k, r in small_runs.items() if k.startswith("shack")]
     sh_runs += [(f"at 40 x 40 {k.replace('_', ' ')}", r) for k, r in big_runs.items()]
     n_scored = len(next(iter(big_runs.values()), {}).get("integrator", {}).get("realisations_median_rms_nm", [0]))

@@ -50,7 +50,7 @@ SCORED = ("median_rms_nm", "realisations_median_rms_nm", "mean_of_realisations_n
 INTEROP_METRICS = {
     "runs": {"*": {"identified": {"dm_gain", "dm_gain_times_optical_gain", "dm_gain_true"},
                    "simulator": {"n_subapertures", "diameter_m", "rcond", "n_seen_modes", "n_actuators"},
-                   "eof": {"diverged", "median_rms_nm", "refits", *SCORED},
+                   "eof": {"diverged", "refits", *SCORED},
                    "split": {"integrated_modes", "mix", "gain", "scan", "scan_median_rms_nm", "n_modes", *SCORED},
                    "replay": {"predictor_median_rms_nm", "integrator_median_rms_nm"},
                    "integrator": {"best_gain", "scan", "scan_median_rms_nm", *SCORED}}},
