@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import sys
+import threading
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,6 +124,25 @@ def sweep(cfg: SweepConfig, config_dump: str | None = None) -> int:
         return INTERRUPTED
 
 
+def _settle(out: Path, points: list[Point], folders: dict[str, Path], results: dict[str, dict]) -> None:
+    """After Ctrl-C: take in every point that finished on disk but had not reached the loop yet, then rewrite sweep.csv.
+
+    A point is finished once its ``status.json`` is written; Ctrl-C can land between that and the loop's own
+    update, so the table is rebuilt from the folders. A second Ctrl-C meanwhile is ignored: the table is always
+    whole.
+    """
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if threading.current_thread() is threading.main_thread() \
+        else None
+    try:
+        for p in points:
+            if p.id not in results and (r := read_point(folders[p.id], p.config_yaml)) is not None:
+                results[p.id] = r
+        write_csv(out / CSV_FILE, points, results)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
 def _run(cfg: SweepConfig) -> int:
     _check_options(cfg)
     grid = load_grid(cfg.grid)
@@ -156,6 +177,7 @@ def _run(cfg: SweepConfig) -> int:
                     _log(f"point {point.id} failed: {result['error']}")
                 bar.update()
     except KeyboardInterrupt:
+        _settle(out, points, folders, results)
         done = sum(r["status"] == "done" for r in results.values())
         print(f"eofnn: interrupted: {done} of {len(points)} points done, kept in {out}: rerun the same command to "
               "resume", file=sys.stderr)
