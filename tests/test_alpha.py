@@ -51,12 +51,30 @@ def test_auto_alpha_is_the_brute_force_minimum_of_the_validation_error(small_sce
     brute = [val.loss(train.solve(a).weights) for a in PATH]
     assert choice["path"]["alpha"] == PATH
     assert choice["path"]["val_loss"] == pytest.approx(brute, rel=1e-6)
+    assert choice["unregularised_val_loss"] == pytest.approx(val.loss(train.solve(0.0).weights), rel=1e-6)
     best = PATH[min(range(len(PATH)), key=brute.__getitem__)]
     assert choice["alpha"] == best
     # With 2 nm of noise the optimum is interior: neither the smallest nor the largest alpha.
     assert PATH[0] < best < PATH[-1]
     direct = train.solve(best).weights
     assert torch.allclose(result.predictor.network.weight.detach(), direct, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("alpha, zero, says", [
+    (1e-9, 5.0, ""),  # inside the path: nothing to say
+    (1e-2, 5.0, "at an end of the path: extend alpha_path"),  # the upper end
+    (1e-14, 10.0 * (1 + 2e-5), "differs by +2.0e-05 of it: a smaller alpha would barely matter"),
+    (1e-14, 10.5, "differs by +5.00%: extend alpha_path below it"),
+    (1e-14, None, "at an end of the path: extend alpha_path"),  # the unregularised fit is not finite
+])
+def test_an_alpha_at_the_lower_end_is_judged_by_the_unregularised_fit(alpha, zero, says):
+    from eofnn.reporting.report import _alpha_edge
+
+    path = [1e-14, 1e-9, 1e-2]
+    choice = {"alpha": alpha, "val_loss": 10.0, "at_edge": alpha in (path[0], path[-1]), "path": {"alpha": path},
+              "unregularised_val_loss": zero}
+    text = _alpha_edge(choice)
+    assert (says in text) if says else text == "", text
 
 
 @pytest.mark.slow

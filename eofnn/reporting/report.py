@@ -190,6 +190,22 @@ def _gains(result: ExperimentResult) -> str:
     return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n"
 
 
+def _alpha_edge(choice: dict) -> str:
+    """What an alpha at an end of its path means: the unregularised fit's validation error beside it at the lower
+    end (when they agree, no smaller alpha can matter), a hint to extend the path otherwise."""
+    if not choice.get("at_edge"):
+        return ""
+    path, zero = choice["path"]["alpha"], choice.get("unregularised_val_loss")
+    if choice["alpha"] != path[0] or path[0] == 0 or zero is None or not choice["val_loss"]:
+        return "; at an end of the path: extend alpha_path to look beyond it"
+    change = zero / choice["val_loss"] - 1
+    if abs(change) < 1e-3:
+        return (f"; at the path's lower end, where the unregularised fit's validation error differs by {change:+.1e} "
+                "of it: a smaller alpha would barely matter")
+    return (f"; at the path's lower end, and the unregularised fit's validation error differs by {change:+.2%}: "
+            "extend alpha_path below it")
+
+
 def _alphas(result: ExperimentResult) -> str:
     """A line per ridge alpha chosen on validation data (``alpha: auto``)."""
     lines = []
@@ -197,8 +213,7 @@ def _alphas(result: ExperimentResult) -> str:
         for name, choice in choices.items():
             where = ("" if "dm_gain_interval" not in choice
                      else "; stable for DM gain {:.3g} to {:.3g}".format(*choice["dm_gain_interval"]))
-            if choice.get("at_edge"):
-                where += "; at an end of the path: extend alpha_path to look beyond it"
+            where += _alpha_edge(choice)
             lines.append(f"- {name} trained in {scenario}: alpha {choice['alpha']:g} (least validation error of "
                          f"{len(choice['path']['alpha'])} from {choice['path']['alpha'][0]:g} to "
                          f"{choice['path']['alpha'][-1]:g}{where})")

@@ -79,6 +79,8 @@ class RidgePath:
     _eigenvalues: torch.Tensor = field(repr=False)
     _rotated_cross: torch.Tensor = field(repr=False)
     _scale: torch.Tensor = field(repr=False)
+    #: Validation error of the unregularised solution (alpha 0; ``inf`` where it is not finite).
+    unregularised_loss: float = math.inf
 
     @classmethod
     def compute(cls, train, validation, alphas: Sequence[float], relative: bool = True) -> RidgePath:
@@ -93,14 +95,15 @@ class RidgePath:
         cross = (vt @ train.cross.unsqueeze(-1)).squeeze(-1)  # (groups, features)
         val_cross = (vt @ validation.cross.unsqueeze(-1)).squeeze(-1)
         val_gram = vt @ validation.gram @ vectors
-        alpha = torch.tensor(alphas, dtype=torch.float64)
+        alpha = torch.tensor((*alphas, 0.0), dtype=torch.float64)  # and the unregularised limit, for the report
         denominator = eigenvalues.unsqueeze(1) + alpha.view(1, -1, 1) * scale.view(-1, 1, 1)  # (groups, A, features)
         rotated = cross.unsqueeze(1) / denominator.clamp(min=torch.finfo(torch.float64).tiny)
         sse = (validation.target_power.unsqueeze(1) - 2 * (rotated * val_cross.unsqueeze(1)).sum(-1)
                + torch.einsum("gaf,gfh,gah->ga", rotated, val_gram, rotated))
         loss = sse.sum(0) / (validation.n_samples * gram.shape[0])
         val_loss = [float(v) if math.isfinite(v) else math.inf for v in loss.tolist()]
-        return cls(tuple(float(a) for a in alphas), val_loss, relative, vectors, eigenvalues, cross, scale)
+        return cls(tuple(float(a) for a in alphas), val_loss[:-1], relative, vectors, eigenvalues, cross, scale,
+                   val_loss[-1])
 
     @property
     def condition(self) -> float:
@@ -158,6 +161,8 @@ class AlphaChoice:
         """JSON-ready: the choice and the validation curve."""
         out = {"alpha": self.alpha, "val_loss": self.val_loss, "relative": self.path.relative,
                "at_edge": self.alpha in (self.path.alphas[0], self.path.alphas[-1]),
+               "unregularised_val_loss": (self.path.unregularised_loss if math.isfinite(self.path.unregularised_loss)
+                                          else None),
                "path": {"alpha": list(self.path.alphas),
                         "val_loss": [v if math.isfinite(v) else None for v in self.path.val_loss]}}
         if self.dm_gain_interval is not None:
