@@ -30,8 +30,8 @@ import torch
 import yaml
 
 from benchmarks.common import Row, fmt_seconds, time_interleaved, time_once
-from eofnn.cli.sweep import load_grid, plan
 from eofnn.cli.main import main as eofnn_main
+from eofnn.cli.sweep import load_grid, plan
 
 TINY_POINT = {
     "scenario": {"grid": {"diameter_m": 1.0, "n_across": 8},

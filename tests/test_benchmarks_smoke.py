@@ -122,3 +122,13 @@ def test_table_lists_every_row_and_the_checker_flags_bad_ratios(quick):
     broken["rows"][0]["ratio"] = float("nan")
     broken["scaling"][0]["exponent"] = float("inf")
     assert len(run.check_results(broken)) == 2
+
+
+def test_the_cpu_time_anywind_benchmark_runs_and_its_floor_is_part_of_the_run(capsys):
+    from benchmarks import anywind_cpu
+
+    torch.set_num_threads(1)
+    hcipy_s, eofnn_s, (draws, transforms) = anywind_cpu.measure(10, 1024)
+    assert all(math.isfinite(t) and t > 0 for t in (hcipy_s, eofnn_s, draws, transforms))
+    # The floor is two of the run's own steps: together below the whole run (up to timer noise).
+    assert draws + transforms < 1.5 * eofnn_s

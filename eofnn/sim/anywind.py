@@ -230,16 +230,18 @@ class AnyWindFrozenFlow:
             for a in range(first, stop, rows):
                 q = np.arange(a, min(a + rows, stop))
                 f_u = torch.as_tensor(q / self.period_m, dtype=torch.float32).unsqueeze(1)
-                # Single precision: the weights of a random field need no more.
-                variance = (f_u**2 + f_w**2 + outer_scale_m**-2) ** (-11 / 6)
+                # Single precision: the weights of a random field need no more. The square root of the variance is
+                # taken factor by factor (no pass over the table for it).
+                amplitude = (f_u**2 + f_w**2 + outer_scale_m**-2).pow_(-11 / 12)
                 if self.kernel == "subaperture":  # telescope-frame frequencies of (f_u, f_w)
                     d = self.pitch_m
-                    variance *= (torch.sinc(d * (f_u * cos - f_w * sin)) * torch.sinc(d * (f_u * sin + f_w * cos))) ** 2
-                variance *= f_w.abs() <= torch.as_tensor(self._f_w_max[q], dtype=torch.float32).unsqueeze(1)
+                    sincs = torch.sinc(d * (f_u * cos - f_w * sin)).mul_(torch.sinc(d * (f_u * sin + f_w * cos)))
+                    amplitude.mul_(sincs.abs_())
+                amplitude.masked_fill_(f_w.abs() > torch.as_tensor(self._f_w_max[q], dtype=torch.float32)[:, None], 0)
                 # q > 0 carries -q too (sqrt(2) Re of the series); q = 0 keeps both signs of l itself.
                 scale = nm2 / (self.period_m * across_period) / 2
-                variance *= torch.where(torch.as_tensor(q) > 0, 2 * scale, scale).float().unsqueeze(1)
-                out.append((q, across_period, variance.sqrt_().numpy()))
+                amplitude.mul_(torch.where(torch.as_tensor(q) > 0, 2 * scale, scale).sqrt().float().unsqueeze(1))
+                out.append((q, across_period, amplitude.numpy()))
         if 4 * self.n_coefficients <= _MAX_SHARED_AMPLITUDE_BYTES:
             _AMPLITUDE_CACHE.clear()  # one table kept: the latest layer's
             _AMPLITUDE_CACHE[key] = out
@@ -250,36 +252,51 @@ class AnyWindFrozenFlow:
         """``(screen_frames, n_actuators)`` float32 OPD (nm) of every frame at every position."""
         import finufft  # noqa: PLC0415 (only this model needs it)
 
-        folded = torch.zeros(self.n_period, self.n_actuators, dtype=torch.complex64)
+        folded = np.zeros((self.n_period, self.n_actuators), dtype=np.complex64)
+        spectrum = torch.from_numpy(folded)  # the same memory
         u = torch.as_tensor(self._u)
-        ramps: dict[int, torch.Tensor] = {}
-        for q, across_period, amplitude in self._amplitudes(r0_m, r0_wavelength_m, outer_scale_m):
+        chunks = self._amplitudes(r0_m, r0_wavelength_m, outer_scale_m)
+        # exp(2 pi i j u_k / P) for rows j = 0, 1, ...: one table for every chunk.
+        turns = torch.remainder(torch.arange(max(len(q) for q, _, _ in chunks), dtype=torch.float64).unsqueeze(1)
+                                * u / self.period_m, 1.0)
+        ramp = torch.polar(torch.ones_like(turns), 2 * math.pi * turns).to(torch.complex64)
+        for q, across_period, amplitude in chunks:
             # E|c|² = variance; single precision draws: the field is exactly the series of whatever is drawn.
             draws = rng.standard_normal((*amplitude.shape, 2), dtype=np.float32).view(np.complex64)[..., 0]
             coefficients = draws * amplitude
             # In [-pi, pi] (the spread is below the period); float32 points for FINUFFT's single precision.
             x = (2 * np.pi * self._w / across_period).astype(np.float32)
-            across = finufft.nufft1d2(x, coefficients, eps=_NUFFT_EPS, isign=1, nthreads=_NUFFT_THREADS)
-            across = torch.as_tensor(np.atleast_2d(across))
+            rows, m0 = len(q), int(q[0]) % self.n_period
+            # Rows not written yet (q increases; only q >= n_period folds onto a written row) take it in place.
+            fresh = int(q[-1]) < self.n_period
+            target = folded[m0: m0 + rows] if fresh else np.empty((rows, self.n_actuators), dtype=np.complex64)
+            finufft.nufft1d2(x, coefficients, out=target.reshape(amplitude.shape[:-1] + (self.n_actuators,)),
+                             eps=_NUFFT_EPS, isign=1, nthreads=_NUFFT_THREADS)
+            across = torch.from_numpy(target)
             # Frozen flow's phase ramp: frame n reads u_k - n step, so q's coefficient at u_k gains
-            # exp(2 pi i q u_k / P), written exp(2 pi i q0 u_k / P) exp(2 pi i j u_k / P) for rows q = q0 + j.
-            rows = len(q)
-            if rows not in ramps:
-                turns = torch.remainder(torch.arange(rows, dtype=torch.float64).unsqueeze(1) * u / self.period_m, 1.0)
-                ramps[rows] = torch.polar(torch.ones_like(turns), 2 * math.pi * turns)
+            # exp(2 pi i q u_k / P), written exp(2 pi i q0 u_k / P) exp(2 pi i j u_k / P) for rows q = q0 + j (the
+            # phases in double precision, rounded once to the series' single precision).
             first = torch.remainder(int(q[0]) * u / self.period_m, 1.0)
-            # (the phases in double precision; the product in the series' single precision)
-            across *= (ramps[rows] * torch.polar(torch.ones_like(first), 2 * math.pi * first)).to(torch.complex64)
-            m0 = int(q[0]) % self.n_period
-            if m0 + rows <= self.n_period:
-                folded[m0: m0 + rows] += across
-            else:
-                folded.index_add_(0, torch.as_tensor(q % self.n_period), across)
+            across.mul_(ramp[:rows]).mul_(torch.polar(torch.ones_like(first), 2 * math.pi * first).to(torch.complex64))
+            if not fresh:
+                spectrum.index_add_(0, torch.as_tensor(q % self.n_period), across)
+        return self._frames_of(spectrum)
+
+    def _frames_of(self, folded: torch.Tensor) -> torch.Tensor:
+        """``sqrt(2) Re sum_m B_k(m) exp(-2 pi i m n / M)`` for the first ``screen_frames`` frames ``n``.
+
+        The real part of a complex transform is the inverse real transform of the sequence's Hermitian part
+        ``H(m) = (conj B(m) + B(-m)) / 2``: half the work of the complex FFT (and contiguous in memory).
+        """
+        m = self.n_period
+        half = m // 2 + 1
+        mirror = torch.remainder(-torch.arange(half), m)
         series = torch.empty(self.screen_frames, self.n_actuators, dtype=torch.float32)
-        columns = max(1, _CHUNK_ELEMENTS // self.n_period)
+        columns = max(1, _CHUNK_ELEMENTS // m)
         for a in range(0, self.n_actuators, columns):
-            values = torch.fft.fft(folded[:, a: a + columns], dim=0)[: self.screen_frames]
-            series[:, a: a + columns] = values.real * math.sqrt(2)
+            block = folded[:, a: a + columns]
+            hermitian = torch.conj_physical(block[:half]).add_(block[mirror]).mul_(0.5 * m * math.sqrt(2))
+            series[:, a: a + columns] = torch.fft.irfft(hermitian, n=m, dim=0)[: self.screen_frames]
         return series
 
     def expected_psd(self, frame_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
