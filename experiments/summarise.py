@@ -39,7 +39,7 @@ METRICS = {
     "stability": _PER({"stable", "dm_gain_interval"}),
     "simulated_stability": _PER({"dm_gain_interval", "tolerance"}),
     "integrator_gains": _PER({"gain"}),
-    "ridge_alphas": _PER({"alpha": True, "path": {"alpha"}}),
+    "ridge_alphas": _PER({"alpha": True, "val_loss": True, "unregularised_val_loss": True, "path": {"alpha"}}),
     "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
     "classical_models": _PER({"frames", "modes", "gain_margin"}),
     "timings_s": True,
