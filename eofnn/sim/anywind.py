@@ -29,7 +29,7 @@ coefficient has the variance of its frequency cell, ``Phi |K|² / (P W_q)``; fre
 
 The whole screen (``screen_frames x n_actuators``, float32: rounding 6e-8 of the RMS, far below any floor a
 predictor reaches) is computed when the layer is built, so frames are then copies; set-up time and memory grow as
-``screen_frames x n_actuators`` (about ``12 bytes`` per actuator-frame at the peak, refused up front when it does
+``screen_frames x n_actuators`` (about ``8 bytes`` per actuator-frame at the peak, refused up front when it does
 not fit: :func:`eofnn.resources.require_memory`).
 """
 
@@ -131,9 +131,10 @@ def screen_bytes(grid: ActuatorGrid, outer_scale_m: float, wind_speed_mps: float
 
 
 def _peak_bytes(n_period: int, screen_frames: int, n_positions: int) -> int:
-    """The fold buffer (complex64) and the float32 screen, plus one chunk's working arrays (about six complex128
-    arrays of ``_CHUNK_ELEMENTS``) and the shared amplitude table (at most ``_MAX_SHARED_AMPLITUDE_BYTES``)."""
-    return (8 * n_period * n_positions + 4 * screen_frames * n_positions + 100 * _CHUNK_ELEMENTS
+    """The folded series' Hermitian half (complex64, ``n_period / 2 + 1`` rows) and the float32 screen, plus one
+    chunk's working arrays (about six complex128 arrays of ``_CHUNK_ELEMENTS``) and the shared amplitude table (at
+    most ``_MAX_SHARED_AMPLITUDE_BYTES``)."""
+    return (8 * (n_period // 2 + 1) * n_positions + 4 * screen_frames * n_positions + 100 * _CHUNK_ELEMENTS
             + _MAX_SHARED_AMPLITUDE_BYTES)
 
 
@@ -252,13 +253,18 @@ class AnyWindFrozenFlow:
         """``(screen_frames, n_actuators)`` float32 OPD (nm) of every frame at every position."""
         import finufft  # noqa: PLC0415 (only this model needs it)
 
-        folded = np.zeros((self.n_period, self.n_actuators), dtype=np.complex64)
-        spectrum = torch.from_numpy(folded)  # the same memory
+        m_period, n = self.n_period, self.n_actuators
+        # The frames are sqrt(2) Re sum_m B_k(m) exp(-2 pi i m n / M), B_k(m) the sum of the coefficients of the
+        # frequencies q = m (mod M) at actuator k: the inverse real FFT of B's Hermitian part, so only that part is
+        # accumulated, 2 H(m) = conj B(m) + B(-m) for m = 0 .. M / 2 (half the memory of B).
+        half = m_period // 2 + 1
+        hermitian = torch.zeros(half, n, dtype=torch.complex64)
         u = torch.as_tensor(self._u)
         chunks = self._amplitudes(r0_m, r0_wavelength_m, outer_scale_m)
+        tallest = max(len(q) for q, _, _ in chunks)
+        buffer = np.empty((tallest, n), dtype=np.complex64)  # each chunk's transform, written by FINUFFT in place
         # exp(2 pi i j u_k / P) for rows j = 0, 1, ...: one table for every chunk.
-        turns = torch.remainder(torch.arange(max(len(q) for q, _, _ in chunks), dtype=torch.float64).unsqueeze(1)
-                                * u / self.period_m, 1.0)
+        turns = torch.remainder(torch.arange(tallest, dtype=torch.float64).unsqueeze(1) * u / self.period_m, 1.0)
         ramp = torch.polar(torch.ones_like(turns), 2 * math.pi * turns).to(torch.complex64)
         for q, across_period, amplitude in chunks:
             # E|c|² = variance; single precision draws: the field is exactly the series of whatever is drawn.
@@ -266,37 +272,31 @@ class AnyWindFrozenFlow:
             coefficients = draws * amplitude
             # In [-pi, pi] (the spread is below the period); float32 points for FINUFFT's single precision.
             x = (2 * np.pi * self._w / across_period).astype(np.float32)
-            rows, m0 = len(q), int(q[0]) % self.n_period
-            # Rows not written yet (q increases; only q >= n_period folds onto a written row) take it in place.
-            fresh = int(q[-1]) < self.n_period
-            target = folded[m0: m0 + rows] if fresh else np.empty((rows, self.n_actuators), dtype=np.complex64)
-            finufft.nufft1d2(x, coefficients, out=target.reshape(amplitude.shape[:-1] + (self.n_actuators,)),
+            rows = len(q)
+            finufft.nufft1d2(x, coefficients, out=buffer[:rows].reshape(amplitude.shape[:-1] + (n,)),
                              eps=_NUFFT_EPS, isign=1, nthreads=_NUFFT_THREADS)
-            across = torch.from_numpy(target)
+            across = torch.from_numpy(buffer[:rows])
             # Frozen flow's phase ramp: frame n reads u_k - n step, so q's coefficient at u_k gains
             # exp(2 pi i q u_k / P), written exp(2 pi i q0 u_k / P) exp(2 pi i j u_k / P) for rows q = q0 + j (the
             # phases in double precision, rounded once to the series' single precision).
             first = torch.remainder(int(q[0]) * u / self.period_m, 1.0)
             across.mul_(ramp[:rows]).mul_(torch.polar(torch.ones_like(first), 2 * math.pi * first).to(torch.complex64))
-            if not fresh:
-                spectrum.index_add_(0, torch.as_tensor(q % self.n_period), across)
-        return self._frames_of(spectrum)
+            m = torch.as_tensor(q % m_period)
+            mirror = torch.remainder(-m, m_period)
+            low, high = m < half, mirror < half  # both at m = 0 and m = M / 2
+            hermitian.index_add_(0, m[low], torch.conj_physical(across[low]))
+            hermitian.index_add_(0, mirror[high], across[high])
+        return self._frames_of(hermitian)
 
-    def _frames_of(self, folded: torch.Tensor) -> torch.Tensor:
-        """``sqrt(2) Re sum_m B_k(m) exp(-2 pi i m n / M)`` for the first ``screen_frames`` frames ``n``.
-
-        The real part of a complex transform is the inverse real transform of the sequence's Hermitian part
-        ``H(m) = (conj B(m) + B(-m)) / 2``: half the work of the complex FFT (and contiguous in memory).
-        """
+    def _frames_of(self, hermitian: torch.Tensor) -> torch.Tensor:
+        """The first ``screen_frames`` frames from twice the Hermitian part of the folded series (``(M / 2 + 1, n)``):
+        ``sqrt(2) Re sum_m B_k(m) exp(-2 pi i m n / M) = sqrt(2) M irfft(H)``."""
         m = self.n_period
-        half = m // 2 + 1
-        mirror = torch.remainder(-torch.arange(half), m)
+        hermitian.mul_(0.5 * m * math.sqrt(2))
         series = torch.empty(self.screen_frames, self.n_actuators, dtype=torch.float32)
         columns = max(1, _CHUNK_ELEMENTS // m)
         for a in range(0, self.n_actuators, columns):
-            block = folded[:, a: a + columns]
-            hermitian = torch.conj_physical(block[:half]).add_(block[mirror]).mul_(0.5 * m * math.sqrt(2))
-            series[:, a: a + columns] = torch.fft.irfft(hermitian, n=m, dim=0)[: self.screen_frames]
+            series[:, a: a + columns] = torch.fft.irfft(hermitian[:, a: a + columns], n=m, dim=0)[: self.screen_frames]
         return series
 
     def expected_psd(self, frame_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
