@@ -7,6 +7,8 @@ import textwrap
 
 from report_common import NAMES, cell, load, margin
 
+from eofnn.training.alpha import NEGLIGIBLE_CHANGE, unregularised_change
+
 NAMES_ELT = {**NAMES, "cl_eof_nb": "closed-loop EOF, neighbourhood"}
 
 
@@ -110,15 +112,14 @@ def _lower_end(result: dict) -> str:
             if c["alpha"] == c["path"]["alpha"][0]]
     if not ends:
         return ""
-    changes = [c["unregularised_val_loss"] / c["val_loss"] - 1 for c in ends
-               if c.get("unregularised_val_loss") is not None and c.get("val_loss")]
+    changes = [unregularised_change(c) for c in ends]
     total = sum(len(choices) for choices in result["ridge_alphas"].values())
     text = f"- {len(ends)} of the {total} ridge alphas sit at the lower end of the path ({ends[0]['alpha']:g})"
-    if len(changes) < len(ends):
+    if None in changes:
         return text + "; the path could be extended below.\n"
     worst = max(changes, key=abs)
     verdict = ("the telemetry is long enough that these fits need no ridge, and a smaller alpha would not change them "
-               "measurably" if abs(worst) < 1e-3 else "the path should be extended below")
+               "measurably" if abs(worst) < NEGLIGIBLE_CHANGE else "the path should be extended below")
     return textwrap.fill(text + f"; the unregularised fit's validation error differs from theirs by at most "
                          f"{abs(worst):.1e} (relative): {verdict}.", 117, subsequent_indent="  ") + "\n"
 

@@ -8,6 +8,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from eofnn.evaluation.results import ExperimentResult
+from eofnn.training.alpha import NEGLIGIBLE_CHANGE, unregularised_change
 
 
 def _cell(m) -> str:
@@ -195,11 +196,10 @@ def _alpha_edge(choice: dict) -> str:
     end (when they agree, no smaller alpha can matter), a hint to extend the path otherwise."""
     if not choice.get("at_edge"):
         return ""
-    path, zero = choice["path"]["alpha"], choice.get("unregularised_val_loss")
-    if choice["alpha"] != path[0] or path[0] == 0 or zero is None or not choice["val_loss"]:
+    change = unregularised_change(choice)
+    if change is None:
         return "; at an end of the path: extend alpha_path to look beyond it"
-    change = zero / choice["val_loss"] - 1
-    if abs(change) < 1e-3:
+    if abs(change) < NEGLIGIBLE_CHANGE:
         return (f"; at the path's lower end, where the unregularised fit's validation error differs by {change:+.1e} "
                 "of it: a smaller alpha would barely matter")
     return (f"; at the path's lower end, and the unregularised fit's validation error differs by {change:+.2%}: "

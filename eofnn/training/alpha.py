@@ -21,6 +21,20 @@ from eofnn.errors import ConfigError, require
 #: The default path of relative alphas: 1e-14 to 1e-2, two values per decade.
 DEFAULT_ALPHA_PATH = tuple(float(f"{10 ** (e / 2):.3g}") for e in range(-28, -3))
 
+#: An alpha at its path's lower end and the unregularised fit agree when their validation errors differ by less than
+#: this (relative): a smaller alpha would then barely matter.
+NEGLIGIBLE_CHANGE = 1e-3
+
+
+def unregularised_change(choice: dict) -> float | None:
+    """``unregularised validation error / chosen one - 1`` of a choice's summary (:meth:`AlphaChoice.summary`) made at
+    its path's lower end (above 0); ``None`` for any other choice, or when either error is unknown."""
+    path, zero = choice["path"]["alpha"], choice.get("unregularised_val_loss")
+    if choice["alpha"] != path[0] or path[0] == 0 or zero is None or not choice.get("val_loss"):
+        return None
+    return zero / choice["val_loss"] - 1
+
+
 #: ``margin(network, weights, spec, plant_dm_gain, dm_gain_model) -> (lower, upper)``: the stable DM-gain interval
 #: (relative to the plant's gain) of ``network`` with ``weights`` in its loop, ``None`` if unstable. Built above the
 #: training floor (:func:`eofnn.analysis.linear.dm_gain_margin`), which knows the stability analysis.
