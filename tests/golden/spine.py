@@ -1,6 +1,7 @@
 """The numbers the "one spine" re-cut must not move: every command on the tiny scenario, fixed seeds.
 
-``python tests/golden/spine.py OUT.json`` writes them; ``tests/test_spine_numbers.py`` compares a fresh run with the
+``python tests/golden/spine.py tests/golden/spine.json`` writes them (on purpose only: after a change that is meant to
+move numbers, said in its commit) and records the machine in ``spine_machine.json``; ``tests/test_spine_numbers.py`` compares a fresh run with the
 committed ``tests/golden/spine.json``. Every controller kind, both fit methods (closed form and SGD), a gain scan,
 ``alpha: auto``, training from telemetry alone, a robustness map, the DM-gain margins, and the telemetry commands
 (simulate, identify, fit --telemetry, replay, export, stability), so a moved rule shows as a moved number.
@@ -121,4 +122,9 @@ def _spine_numbers() -> dict:
 
 
 if __name__ == "__main__":
+    # Also records the machine that wrote them (tests/golden/agreement.py): there the check is bit for bit.
+    sys.path.insert(0, str(Path(__file__).parent.parent))
+    from golden.agreement import MACHINE, machine
+
     Path(sys.argv[1]).write_text(json.dumps(spine_numbers(), indent=1, sort_keys=True) + "\n")
+    MACHINE.write_text(json.dumps(machine(), indent=1) + "\n")
