@@ -2,7 +2,7 @@
 
     .venv/bin/python -m benchmarks.anywind_cpu [--frames 8192] [--sizes 40,80]
 
-One thread each. eofnn: build an :class:`~eofnn.sim.anywind.AnyWindFrozenFlow` screen (30 degrees, 10 m/s, 1 kHz,
+One thread each. eofnn: build an :class:`~eofnn.sim.atmosphere.anywind.AnyWindFrozenFlow` screen (30 degrees, 10 m/s, 1 kHz,
 subaperture kernel) and read every frame in 1024-frame blocks; HCIPy: the plain ``InfiniteAtmosphericLayer`` loop of
 :mod:`benchmarks.baselines` blowing the same way (300 frames after 5 of warm-up). Prints CPU ms per frame and the
 ratio HCIPy / eofnn (higher is better; the goal of issue "Any wind, ELT-class grids": >= 10 at 40 across, >= 5 at 80),
@@ -20,9 +20,9 @@ import threadpoolctl
 import torch
 
 from benchmarks.baselines import HcipyTurbulence
-from eofnn.sim import anywind
+from eofnn.sim.atmosphere import anywind
+from eofnn.sim.atmosphere.turbulence import Atmosphere
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.turbulence import Atmosphere
 
 
 def measure(n_across: int, frames: int, repeats: int = 3) -> tuple[float, float, tuple[float, float]]:

@@ -12,8 +12,8 @@ import math
 import hcipy
 import numpy as np
 
+from eofnn.sim.atmosphere.turbulence import Atmosphere
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.turbulence import Atmosphere
 
 #: HCIPy phase (rad) at wavelength lambda times lambda / (2 pi) is the OPD in metres.
 _NM_PER_M = 1e9

@@ -20,7 +20,7 @@ from eofnn.control.adaptive import RLSController, integrator_filter
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.models.linear import LinearFilter
-from eofnn.sim.loop import LoopInput
+from eofnn.sim.loop.runner import LoopInput
 
 #: One frame of a 2 kHz loop leaves 0.5 ms for the controller.
 RLS_BUDGET_S = 0.5e-3

@@ -11,7 +11,7 @@ from benchmarks.bench_turbulence import scenario_with_grid
 from benchmarks.common import Row, Timing, time_interleaved
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig
-from eofnn.sim.loop import run_loop
+from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import fit_predictor
 

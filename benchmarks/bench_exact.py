@@ -12,8 +12,8 @@ from pathlib import Path
 from benchmarks.baselines import HcipyTurbulence
 from benchmarks.bench_turbulence import scenario_with_grid, time_against_hcipy
 from benchmarks.common import Row, Timing, reset_peak_memory, status_bytes, time_once
+from eofnn.sim.atmosphere.turbulence import Turbulence
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.turbulence import Turbulence
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -70,7 +70,7 @@ def bench_exact(scenario: Scenario, n_across: tuple[int, ...] = (40, 80), chunk_
 
 def bench_any_wind(scenario: Scenario, n: int, direction_deg: float, goal: float, chunk_frames: int,
                    chunks_per_repeat: int, hcipy_frames: int, repeat: int, seed: int) -> list[Row]:
-    """Rows at a non-lattice wind direction (eofnn.sim.anywind: the whole screen is computed at set-up).
+    """Rows at a non-lattice wind direction (eofnn.sim.atmosphere.anywind: the whole screen is computed at set-up).
 
     ``anywind-frame/<n>``: steady-state s/frame streaming chunks, against HCIPy's layer blowing the same way;
     ``anywind-setup/<n>``: building one realisation's screen of ``screen_frames`` frames;

@@ -25,8 +25,8 @@ import torch
 from benchmarks.common import Row, time_interleaved
 from eofnn.data.history import HistorySpec
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.plant import Plant, PlantModel
-from eofnn.sim.telemetry import Telemetry
+from eofnn.sim.loop.plant import Plant, PlantModel
+from eofnn.telemetry.record import Telemetry
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 

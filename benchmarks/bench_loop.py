@@ -11,9 +11,9 @@ from benchmarks.common import Row, Skipped, Timing, copy_bandwidth, synchronizer
 from eofnn.control import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.models.linear import LinearFilter
-from eofnn.sim.loop import LoopInput, run_loop
+from eofnn.sim.atmosphere.turbulence import Turbulence
+from eofnn.sim.loop.runner import LoopInput, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.turbulence import Turbulence
 
 #: The controller step must fit in a frame with room to spare; the brief's budget at 1 kHz.
 STEP_BUDGET_S = 0.5e-3

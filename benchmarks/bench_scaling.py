@@ -10,7 +10,7 @@ from benchmarks.bench_turbulence import scenario_with_grid
 from benchmarks.common import Series, time_interleaved
 from eofnn.control import PredictiveController
 from eofnn.data.history import HistorySpec
-from eofnn.sim.loop import LoopInput, run_loop
+from eofnn.sim.loop.runner import LoopInput, run_loop
 from eofnn.sim.scenario import Scenario
 
 #: "Linear" allows some slack for noise and cache effects.

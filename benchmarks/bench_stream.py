@@ -8,7 +8,7 @@ does not depend on the values): ``y`` white (10 nm), ``wfs`` a random walk per a
 written block by block (never whole in memory), deleted afterwards.
 
 - ``memory/<GB>``: peak resident memory added (``VmHWM`` in a fresh process, reset after the imports) by
-  :func:`eofnn.training.from_telemetry.fit_from_telemetry` on a :class:`~eofnn.sim.telemetry_file.StreamedTelemetry`
+  :func:`eofnn.training.from_telemetry.fit_from_telemetry` on a :class:`~eofnn.telemetry.file.StreamedTelemetry`
   of the big file (open-loop EOF, history 4, per actuator, ``batch_frames`` 256), against a memory budget of
   ``budget_fraction`` of the file. ``ratio = budget / peak`` (higher is better); goal >= 1: within the budget.
   ``info`` has the file size, the peak, and for contrast the peaks on the small file of the in-memory fit
@@ -67,8 +67,8 @@ def _fit(path: str, mode: str, batch_frames: int):
     """The fit measured: streamed (open, scan, fit) or in memory (load whole, fit); with ``identify_`` in front of
     the mode, plant identification instead."""
     from eofnn.data.history import HistorySpec
-    from eofnn.sim.telemetry import Telemetry
-    from eofnn.sim.telemetry_file import StreamedTelemetry
+    from eofnn.telemetry.file import StreamedTelemetry
+    from eofnn.telemetry.record import Telemetry
     from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
     from eofnn.training.identify import identify_plant
 
@@ -88,7 +88,7 @@ def _peak_child(path: str, mode: str, batch_frames: int) -> dict:
     import astropy.io.fits  # noqa: F401  (imports before the baseline reading)
 
     from eofnn.data.history import HistorySpec
-    from eofnn.sim.telemetry import Telemetry
+    from eofnn.telemetry.record import Telemetry
     from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 
     # Lazy initialisation (torch kernels, Lightning's seeding) on 8 actuators: no buffer of the fit's size is kept.

@@ -6,9 +6,9 @@ import dataclasses
 
 from benchmarks.baselines import HcipyTurbulence
 from benchmarks.common import Row, Timing, time_interleaved, time_once
+from eofnn.sim.atmosphere.turbulence import Turbulence
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.turbulence import Turbulence
 
 
 def scenario_with_grid(scenario: Scenario, n_across: int, diameter_m: float | None = None) -> Scenario:

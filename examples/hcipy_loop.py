@@ -101,7 +101,7 @@ def write_telemetry(path: Path, record: dict[str, np.ndarray], ao: HcipyAO) -> P
 def train_filter(telemetry_path: Path, filter_path: Path, history_length: int = 4) -> Path:
     """eofnn's part (what ``eofnn identify``, ``fit --telemetry`` and ``export`` do): file in, filter file out."""
     from eofnn.data.history import HistorySpec
-    from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
+    from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
     from eofnn.training.export import export_filter
     from eofnn.training.from_telemetry import fit_from_telemetry
     from eofnn.training.identify import identify_plant

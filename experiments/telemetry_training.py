@@ -24,7 +24,7 @@ from eofnn.control import Dithered, Integrator, PredictiveController
 from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.models.linear import LinearFilter
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, run_loop
-from eofnn.sim.plant import Plant
+from eofnn.sim.loop.plant import Plant
 from eofnn.sim.scenario import Scenario
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from eofnn.sim.layout import ActuatorLayout, apply_shift
-from eofnn.sim.telemetry import Telemetry
+from eofnn.telemetry.record import Telemetry
 
 PITCH_M = 0.2
 

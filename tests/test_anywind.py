@@ -1,4 +1,4 @@
-"""Exact frozen flow along non-lattice wind directions (eofnn.sim.anywind): physics against theory."""
+"""Exact frozen flow along non-lattice wind directions (eofnn.sim.atmosphere.anywind): physics against theory."""
 
 from __future__ import annotations
 
@@ -19,10 +19,10 @@ from test_exact_turbulence import (
 from eofnn.errors import ConfigError
 from eofnn.seeding import stream_seed
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Turbulence
-from eofnn.sim.anywind import AnyWindFrozenFlow, frozen_flow_layer
-from eofnn.sim.changes import AtmosphereChange
-from eofnn.sim.disturbances import Vibration
-from eofnn.sim.exact import ExactFrozenFlow
+from eofnn.sim.atmosphere.anywind import AnyWindFrozenFlow, frozen_flow_layer
+from eofnn.sim.atmosphere.changes import AtmosphereChange
+from eofnn.sim.atmosphere.disturbances import Vibration
+from eofnn.sim.atmosphere.exact import ExactFrozenFlow
 
 BANDS_HZ = np.geomspace(1.0, 300.0, 12)
 PSD_CASES = [(Layer(1.0, 10.0, 17.0),), (Layer(1.0, 10.0, 30.0),), (Layer(0.5, 10.0, 0.0), Layer(0.5, 8.0, 120.0))]

@@ -274,7 +274,7 @@ def test_all_zero_telemetry_is_refused_before_a_fit(tmp_path):
 
     from eofnn.data.history import HistorySpec
     from eofnn.errors import TelemetryError
-    from eofnn.sim.telemetry import Telemetry
+    from eofnn.telemetry.record import Telemetry
     from eofnn.training.fit import FitOutput
     from eofnn.training.from_telemetry import fit_from_telemetry
 

@@ -22,7 +22,7 @@ from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.experiment import Experiment
-from eofnn.sim.loop import run_loop
+from eofnn.sim.loop.runner import run_loop
 
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 F64 = torch.float64
@@ -304,7 +304,7 @@ def test_lqg_polynomials_are_the_controller_it_runs(delay):
     """The impulse response of ``N / D`` (what the analysis sees) is the command sequence the controller computes
     from a unit WFS reading, with its POL coupling to its own past commands, for integer and fractional delays."""
     from eofnn.control.classical import ModalLQG
-    from eofnn.sim.loop import LoopInput
+    from eofnn.sim.loop.runner import LoopInput
 
     ar = torch.tensor([[1.7, -0.75], [0.3, 0.1]], dtype=F64)
     q, r = torch.tensor([1.0, 2.0], dtype=F64), torch.tensor([0.5, 1.0], dtype=F64)

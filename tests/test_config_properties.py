@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig
+from eofnn.sim.atmosphere.turbulence import Atmosphere, Layer
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.plant import Plant
-from eofnn.sim.turbulence import Atmosphere, Layer
+from eofnn.sim.loop.plant import Plant
 from eofnn.training.task import OptimizationConfig
 from eofnn.validation import Interval, OneOf
 

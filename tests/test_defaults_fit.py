@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from eofnn.data.stream import DataConfig
-from eofnn.sim.turbulence import Atmosphere
+from eofnn.sim.atmosphere.turbulence import Atmosphere
 from eofnn.training.from_telemetry import fit_from_scenario_telemetry, telemetry_sequences
 
 

@@ -17,7 +17,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.seeding import stream_seed
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop
-from eofnn.sim.disturbances import MODES, BoilingLayer, Vibration, VibrationSeries, mode_shape
+from eofnn.sim.atmosphere.disturbances import MODES, BoilingLayer, Vibration, VibrationSeries, mode_shape
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import fit_predictor
 

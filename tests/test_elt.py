@@ -13,11 +13,11 @@ import torch
 
 from eofnn.analysis import block
 from eofnn.analysis.stability import LoopSetup, analyse
-from eofnn.sim import anywind
+from eofnn.sim.atmosphere import anywind
+from eofnn.sim.atmosphere.turbulence import Atmosphere, Layer
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.plant import Plant
+from eofnn.sim.loop.plant import Plant
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.turbulence import Atmosphere, Layer
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -176,7 +176,7 @@ def test_replay_in_blocks_of_frames_equals_one_block(monkeypatch, small_scenario
     from eofnn.data.history import HistorySpec
     from eofnn.evaluation import replay as replay_module
     from eofnn.models.linear import LinearFilter
-    from eofnn.sim.loop import run_loop
+    from eofnn.sim.loop.runner import run_loop
 
     scen = small_scenario
     telemetry = run_loop(scen.turbulence(4, "test"), scen.plant, Integrator(0.5), 400).telemetry

@@ -12,10 +12,11 @@ from scipy.signal import welch
 
 from eofnn.errors import ConfigError
 from eofnn.seeding import stream_seed
-from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Turbulence, exact
-from eofnn.sim.exact import ExactFrozenFlow, von_karman_psd, wind_axes
+from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Turbulence
+from eofnn.sim.atmosphere import exact
+from eofnn.sim.atmosphere.exact import ExactFrozenFlow, von_karman_psd, wind_axes
+from eofnn.sim.atmosphere.strip import NM_PER_SCREEN_UNIT
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.strip import NM_PER_SCREEN_UNIT
 
 R0, WAVELENGTH, NM_PER_RAD = 0.1, 500e-9, 500e-9 / (2 * np.pi) * 1e9
 

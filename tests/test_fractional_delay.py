@@ -23,7 +23,7 @@ from eofnn.errors import CheckpointError, ConfigError, TelemetryError
 from eofnn.evaluation.replay import replay
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
+from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.export import export_filter
 from eofnn.training.fit import FitOutput, fit_predictor

@@ -16,7 +16,7 @@ from eofnn.evaluation.replay import replay
 from eofnn.models.linear import LinearFilter
 from eofnn.reporting.replay import replay_figure
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
-from eofnn.sim.plant import Plant
+from eofnn.sim.loop.plant import Plant
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import FitOutput

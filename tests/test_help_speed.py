@@ -80,7 +80,7 @@ def test_controller_help_lists_every_registered_controller(fit_help):
 
 
 def test_units_and_values_are_in_the_help(fit_help):
-    from eofnn.sim.turbulence import MODELS
+    from eofnn.sim.atmosphere.turbulence import MODELS
 
     assert "actuator pitches" in option_help(fit_help, "--scenario.plant.misregistration_x")
     assert "actuator pitches" in option_help(fit_help, "--scenario.plant.misregistration_y")
@@ -91,7 +91,7 @@ def test_units_and_values_are_in_the_help(fit_help):
 def test_help_shows_no_sphinx_markup(fit_help):
     from eofnn.cli.commands import plain_text
 
-    assert plain_text("a :class:`~eofnn.sim.disturbances.Vibration` or :mod:`eofnn.sim.changes`, ``x``") == (
-        "a Vibration or eofnn.sim.changes, x")
+    assert plain_text("a :class:`~eofnn.sim.atmosphere.disturbances.Vibration` or "
+                      ":mod:`eofnn.sim.atmosphere.changes`, ``x``") == "a Vibration or eofnn.sim.atmosphere.changes, x"
     for markup in (":class:", ":mod:", ":attr:", ":func:", "``"):
         assert markup not in fit_help, markup

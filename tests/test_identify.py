@@ -10,7 +10,7 @@ import torch
 from eofnn.control import Dithered, Integrator
 from eofnn.errors import OutputExistsError, TelemetryError
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
-from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.loop.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.training.identify import IdentifiedPlant, PlantNotIdentifiedWarning, identify_plant
 

@@ -11,7 +11,7 @@ from eofnn.errors import ConfigError
 from eofnn.interop.loop import SplitControl, pol_modes
 from eofnn.interop.study import StudyConfig, split_candidates
 from eofnn.runtime import PredictiveFilter
-from eofnn.sim.telemetry import Telemetry
+from eofnn.telemetry.record import Telemetry
 
 K = 6
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 #: Floors from the bottom up; a module may import its own floor and those below it.
-FLOORS = ["sim", "data", "models", "control", "analysis", "training", "evaluation", "interop", "reporting", "cli"]
+FLOORS = ["telemetry", "sim", "data", "models", "control", "analysis", "training", "evaluation", "interop", "reporting", "cli"]
 #: Leaf modules anyone may import; they import nothing of eofnn above themselves.
-BASE = {"errors", "validation", "seeding", "outputs", "resources"}
+BASE = {"errors", "validation", "seeding", "outputs", "resources", "delay"}
 #: Modules that must stand alone (copied into a real-time computer): no eofnn import at all.
 STANDALONE = {"runtime"}
 
@@ -151,3 +151,44 @@ def test_figures_live_in_one_room():
     choosers = [str(path.relative_to(root)) for path in sorted(root.rglob("*.py")) if ".use(" in path.read_text()
                 and "matplotlib" in path.read_text()]
     assert choosers == ["cli/main.py"]
+
+
+def module_graph(root: Path) -> dict[str, set[str]]:
+    """Module -> the eofnn modules it imports (files; a package is its ``__init__``), imports inside functions and
+    ``TYPE_CHECKING`` blocks included: a circle of files within a floor is a circle even when it is deferred."""
+    modules = {".".join(p.relative_to(root.parent).with_suffix("").parts).removesuffix(".__init__"): p
+               for p in sorted(root.rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                # "from eofnn.sim.atmosphere import anywind" imports the submodule when there is one
+                names = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+                         for a in node.names]
+            else:
+                continue
+            for name in names:
+                while name and name not in modules:
+                    name = name.rpartition(".")[0]
+                if name and name != module and name != root.name:
+                    graph.setdefault(module, set()).add(name)
+    return graph
+
+
+def test_no_circle_of_imports_between_files():
+    """Within a floor too: ``turbulence -> strip -> turbulence`` (a type hint's import) was one."""
+    assert cycles(module_graph(Path(__file__).parent.parent / "eofnn")) == []
+
+
+def test_the_file_circle_check_finds_a_circle(tmp_path):
+    root = tmp_path / "eofnn"
+    (root / "sim" / "atmosphere").mkdir(parents=True)
+    (root / "sim" / "atmosphere" / "a.py").write_text("from eofnn.sim.atmosphere import b\n")
+    (root / "sim" / "atmosphere" / "b.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from eofnn.sim.atmosphere.a import X\n")
+    (root / "sim" / "c.py").write_text("import eofnn.sim.atmosphere.a\n")
+    assert cycles(module_graph(root)) == [["eofnn.sim.atmosphere.a", "eofnn.sim.atmosphere.b",
+                                           "eofnn.sim.atmosphere.a"]]

@@ -17,7 +17,7 @@ from eofnn.evaluation.replay import replay
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, apply_shift, layout_from_dict, layout_from_positions
-from eofnn.sim.telemetry import Telemetry
+from eofnn.telemetry.record import Telemetry
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.fit import FitOutput
 from eofnn.training.from_telemetry import fit_from_telemetry

@@ -11,7 +11,7 @@ import torch
 from eofnn.control import Dithered, Integrator, PseudoIntegrator, Uncorrected, critical_gain
 from eofnn.errors import ConfigError
 from eofnn.sim import Plant, run_loop
-from eofnn.sim.plant import PlantModel
+from eofnn.sim.loop.plant import PlantModel
 
 
 @pytest.mark.slow

@@ -16,7 +16,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import TelemetryError
 from eofnn.evaluation.replay import replay
 from eofnn.runtime import PredictiveFilter
-from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
+from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
 from eofnn.training.export import export_filter
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant

@@ -13,8 +13,8 @@ from layout_telemetry import PITCH_M, fried_positions, record
 from eofnn.cli.main import main
 from eofnn.data.history import HistorySpec
 from eofnn.evaluation.replay import replay
-from eofnn.sim.spaces import max_unseen
-from eofnn.sim.telemetry import Telemetry
+from eofnn.telemetry.record import Telemetry
+from eofnn.telemetry.spaces import max_unseen
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.from_telemetry import fit_from_telemetry
 from eofnn.training.identify import identify_plant

@@ -1,4 +1,4 @@
-"""Telemetry files read in blocks of frames (eofnn.sim.telemetry_file): the same fits and identifications as the
+"""Telemetry files read in blocks of frames (eofnn.telemetry.file): the same fits and identifications as the
 whole file in memory, memory bounded by the block, and one line for what cannot be read."""
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from eofnn.data.targets import TelemetryBatches, load_telemetry
 from eofnn.errors import ConfigError, TelemetryError
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant, Telemetry, run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.telemetry_file import SCAN_FRAMES, StreamedTelemetry
-from eofnn.sim.telemetry_readers import RawReader
+from eofnn.telemetry.file import SCAN_FRAMES, StreamedTelemetry
+from eofnn.telemetry.readers import RawReader
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 

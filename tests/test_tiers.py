@@ -15,9 +15,9 @@ TESTS = Path(__file__).resolve().parent
 MODULES = sorted(TESTS.glob("test_*.py"))
 ENTRY_POINTS = {"main", "console", "build_parser"}  # eofnn's command line, an example's or a benchmark's main
 TIERS = {"physics", "cli", "slow"}
-#: Modules with no fast test: one benchmark run that every test reads (12 s), one Pareto comparison (8 s), real
-#: Ctrl-C's to eofnn in subprocesses (1.4 s to 11 s each), and every command's numbers on one thread (30 s).
-ALL_SLOW = {"test_benchmarks_smoke.py", "test_pareto.py", "test_interrupt.py", "test_spine_numbers.py"}
+#: Modules with no fast test: one benchmark run that every test reads (12 s), one Pareto comparison (8 s), and real
+#: Ctrl-C's to eofnn in subprocesses (1.4 s to 11 s each).
+ALL_SLOW = {"test_benchmarks_smoke.py", "test_pareto.py", "test_interrupt.py"}
 
 
 def mark_names(node: ast.expr) -> set[str]:

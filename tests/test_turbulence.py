@@ -9,8 +9,8 @@ import torch
 
 from eofnn.errors import ConfigError
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Turbulence
+from eofnn.sim.atmosphere.turbulence import FrozenFlowStrip, stream_seed
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.turbulence import FrozenFlowStrip, stream_seed
 
 
 def theory_structure_function_nm2(r_m: np.ndarray, r0_m: float, wavelength_m: float, outer_scale_m: float):
@@ -76,7 +76,7 @@ def test_frozen_flow_subpixel_translation(direction):
     angle = np.radians(direction)
     shift = speed * k * dt * np.array([np.cos(angle), np.sin(angle)])
     positions = np.concatenate([grid.positions_m, grid.positions_m - shift])
-    strip = FrozenFlowStrip(positions, grid.pitch_m, 0.1, 500e-9, 20.0, Layer(1.0, speed, direction), dt, 5,
+    strip = FrozenFlowStrip(positions, grid.pitch_m, 0.1, 500e-9, 20.0, speed, direction, dt, 5,
                             stream_seed(0, "t"))
     s = strip.frames(0, 200)
     n = grid.n_actuators

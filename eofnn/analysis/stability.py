@@ -92,7 +92,7 @@ class LoopSetup:
     @classmethod
     def from_plant(cls, plant, frame_rate_hz: float = 1000.0, dm_gain_model: float = 1.0,
                    controller_delay_frames: float | None = None, **kwargs) -> LoopSetup:
-        """The setup of a :class:`~eofnn.sim.plant.Plant` (its delay, DM gain and WFS gain)."""
+        """The setup of a :class:`~eofnn.sim.loop.plant.Plant` (its delay, DM gain and WFS gain)."""
         return cls(plant.delay_frames, plant.dm_gain, plant.wfs_gain, dm_gain_model, controller_delay_frames,
                    frame_rate_hz, **kwargs)
 

@@ -5,7 +5,7 @@ from typing import Any
 
 from eofnn.cli.common import Output
 from eofnn.evaluation.config import EvaluationConfig
-from eofnn.sim.plant import Plant
+from eofnn.sim.loop.plant import Plant
 from eofnn.sim.scenario import Scenario
 
 

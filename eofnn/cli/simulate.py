@@ -20,7 +20,7 @@ from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.reporting.report import plot_rms_vs_time
 from eofnn.resources import require_memory
-from eofnn.sim.loop import run_loop
+from eofnn.sim.loop.runner import run_loop
 from eofnn.validation import Interval, OneOf, check_value
 
 DESCRIPTION = ("Run one controller (a baseline or a checkpoint) in a scenario and save its telemetry (s, y, eps, wfs "

@@ -29,7 +29,7 @@ from eofnn.control.predictive import HistoryRing
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError, require
 from eofnn.seeding import torch_generator
-from eofnn.sim.loop import LoopInput
+from eofnn.sim.loop.runner import LoopInput
 from eofnn.validation import COUNT, FINITE, FRACTION, NON_NEGATIVE, POSITIVE, Interval, check_value
 
 #: Controlled frames before the fallback's running median is trusted.
@@ -114,7 +114,7 @@ class AdaptiveController(ABC):
         self.dither_nm, self.integrator_gain, self.seed = dither_nm, integrator_gain, seed
         self.fallback_factor, self.fallback_patience, self.median_frames = fallback_factor, fallback_patience, median_frames
 
-    # -- the protocol of eofnn.sim.loop ------------------------------------------------------------------------
+    # -- the protocol of eofnn.sim.loop.runner ------------------------------------------------------------------------
     def reset(self, batch: int, n_actuators: int, delay_frames: int, dtype: torch.dtype) -> None:
         if delay_frames != self.spec.delay_frames:
             raise ConfigError(f"adaptive controller is set up for delay_frames={self.spec.delay_frames} but the plant "

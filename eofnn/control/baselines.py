@@ -8,7 +8,7 @@ import torch
 
 from eofnn.errors import require
 from eofnn.seeding import int_seed, torch_generator
-from eofnn.sim.loop import LoopInput, LoopResult, record_loop
+from eofnn.sim.loop.runner import LoopInput, LoopResult, record_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import Interval, check_value
 

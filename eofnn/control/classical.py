@@ -24,10 +24,10 @@ import torch
 
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
+from eofnn.delay import check_delay, split_delay
 from eofnn.errors import ConfigError
 from eofnn.models.linear import LinearFilter
-from eofnn.sim.delay import check_delay, split_delay
-from eofnn.sim.loop import LoopInput
+from eofnn.sim.loop.runner import LoopInput
 from eofnn.validation import Interval, OneOf, check_value
 
 #: Polynomial orders of the POL extrapolator: 0 is a POL zero-order hold, 1 linear, 2 quadratic.

@@ -41,10 +41,10 @@ from eofnn.control.baselines import record_dithered
 from eofnn.control.classical import DTYPE, ModalIntegrator, ModalLQG, check_modes, dm_response_polynomial
 from eofnn.control.kalman import fit_ar2, kalman_gain, prediction_error_variance
 from eofnn.data.history import pseudo_open_loop
+from eofnn.delay import split_delay
 from eofnn.errors import ConfigError, DivergedError
 from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
-from eofnn.sim.delay import split_delay
 from eofnn.sim.scenario import Scenario
 
 #: Frames per Welch segment of the modal PSDs, and the fewest segments a PSD is estimated from.

@@ -11,7 +11,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.models.build import input_dtype
 from eofnn.models.linear import LinearFilter
-from eofnn.sim.loop import LoopInput
+from eofnn.sim.loop.runner import LoopInput
 
 
 class HistoryRing:

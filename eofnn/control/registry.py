@@ -16,7 +16,7 @@ from eofnn.control.classical import Extrapolator
 from eofnn.control.modal import build_lqg, build_modal_integrator
 from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.errors import ConfigError
-from eofnn.sim.loop import Controller
+from eofnn.sim.loop.runner import Controller
 
 ControllerBuilder = Callable[[Any, Any], Controller]
 _BUILDERS: dict[str, ControllerBuilder] = {}

@@ -6,7 +6,7 @@ The same functions serve training, evaluation and real telemetry. Taps run from 
 - closed loop: ``[y(n-1), ..., y(n-p), eps(n-d), ..., eps(n-d-p+1)]`` (``eps`` as the WFS reported it);
 - target: the command that cancels the turbulence, ``-s(n) / g``.
 
-A fractional delay ``d + f`` (:mod:`eofnn.sim.delay`) keeps the taps (``d`` is the whole part) and changes what
+A fractional delay ``d + f`` (:mod:`eofnn.delay`) keeps the taps (``d`` is the whole part) and changes what
 the DM applied: the POL value is ``s_hat(n) = wfs(n) - g_model ((1 - f) y(n) + f y(n-1))``, and since ``y(n)``
 acts over frame ``n`` with weight ``1 - f`` and over frame ``n + 1`` with weight ``f``, its target is the command
 that cancels the turbulence averaged over those frames, ``-((1 - f) s(n) + f s(n+1)) / g`` (to first order in the
@@ -21,8 +21,8 @@ from typing import ClassVar, Literal
 
 import torch
 
+from eofnn.delay import DELAY, check_delay, split_delay
 from eofnn.errors import ConfigError
-from eofnn.sim.delay import DELAY, check_delay, split_delay
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import Constraint, Interval, OneOf, validated
 

@@ -15,7 +15,7 @@ from eofnn.data.history import HistorySpec, build_history, targets
 from eofnn.errors import require
 from eofnn.resources import require_memory
 from eofnn.seeding import int_seed, torch_generator
-from eofnn.sim.loop import Controller, record_loop
+from eofnn.sim.loop.runner import Controller, record_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, check_value, validated
 

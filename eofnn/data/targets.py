@@ -7,7 +7,7 @@ DM response ``DM_model`` identified from the dither (:func:`eofnn.training.ident
   right, since ``wfs(n) = s(n) + DM(y(n)) + noise``);
 - target of frame ``n``: the command that would have cancelled it, ``-s_hat(n) / g`` with the identified global
   gain ``g`` (the telemetry twin of the simulator-truth :func:`eofnn.data.history.targets` ``-s(n) / g``);
-- a fractional delay ``d + f`` (:mod:`eofnn.sim.delay`): the DM term is the average over the frame,
+- a fractional delay ``d + f`` (:mod:`eofnn.delay`): the DM term is the average over the frame,
   ``(1 - f) DM_model(y(n)) + f DM_model(y(n-1))``, and the target ``-((1 - f) s_hat(n) + f s_hat(n+1)) / g``;
 - open-loop histories from ``s_hat``; closed-loop histories from ``y`` and ``wfs`` as recorded (no model needed).
 
@@ -29,9 +29,9 @@ from eofnn.errors import TelemetryError
 from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, layout_from_dict, layout_from_positions
-from eofnn.sim.spaces import read_matrix
-from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry
-from eofnn.sim.telemetry_file import NotStreamableError, StreamedTelemetry
+from eofnn.telemetry.file import NotStreamableError, StreamedTelemetry
+from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
+from eofnn.telemetry.spaces import read_matrix
 
 #: One recording (in memory, or a file read in blocks of frames).
 AnyTelemetry = Telemetry | StreamedTelemetry

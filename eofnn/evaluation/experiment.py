@@ -21,7 +21,7 @@ from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
 from eofnn.resources import peak_resident_bytes
-from eofnn.sim.loop import Controller, run_loop
+from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import FitOutput, TrainedPredictor
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from eofnn.sim.loop import LoopResult
+from eofnn.sim.loop.runner import LoopResult
 
 
 class WelchPSD:

@@ -22,7 +22,7 @@ from eofnn.control.predictive import PredictiveController
 from eofnn.control.registry import build_controller, dm_gain_model_of
 from eofnn.evaluation.experiment import Experiment
 from eofnn.models.linear import LinearFilter
-from eofnn.sim.loop import Controller
+from eofnn.sim.loop.runner import Controller
 
 #: Most points drawn along one ridge path (evenly spaced over it, the chosen alpha always among them).
 MAX_PATH_POINTS = 9

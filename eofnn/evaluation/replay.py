@@ -44,7 +44,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.spaces import modal_to_actuators
+from eofnn.telemetry.spaces import modal_to_actuators
 from eofnn.training.from_telemetry import resolve_plant
 from eofnn.training.identify import IdentifiedPlant
 

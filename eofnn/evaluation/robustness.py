@@ -14,7 +14,7 @@ import numpy as np
 
 from eofnn.errors import ConfigError
 from eofnn.evaluation.experiment import Experiment
-from eofnn.sim.plant import Plant
+from eofnn.sim.loop.plant import Plant
 from eofnn.validation import Interval, check_value
 
 #: Most grid points of one map (each runs every controller once).

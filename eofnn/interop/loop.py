@@ -11,7 +11,7 @@ with eofnn's conventions (``docs/telemetry.md``):
     wfs(n)  the simulator's reconstructed measurement of eps(n), in nm on the actuators
 
 so ``d = 2`` is OOPAO's "store the slopes after computing the commands". The recorded ``y`` and ``wfs`` (plus the
-actuator positions, delay and frame rate) are an eofnn :class:`~eofnn.sim.telemetry.Telemetry`; the residual OPD
+actuator positions, delay and frame rate) are an eofnn :class:`~eofnn.telemetry.record.Telemetry`; the residual OPD
 RMS per frame (nm, piston removed, over the pupil: the simulator's own number, not eofnn's) is summarised with
 eofnn's loop metrics (:func:`eofnn.evaluation.metrics.loop_metrics`: median RMS after the settling frames).
 
@@ -35,8 +35,8 @@ from eofnn.errors import ConfigError, require
 from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
 from eofnn.models.linear import LinearFilter
 from eofnn.runtime import PredictiveFilter
-from eofnn.sim.loop import LoopInput, LoopResult
-from eofnn.sim.telemetry import Telemetry
+from eofnn.sim.loop.runner import LoopInput, LoopResult
+from eofnn.telemetry.record import Telemetry
 from eofnn.training.export import filter_coefficients, filter_taps
 from eofnn.validation import COUNT, FRACTION, Interval, check_value
 

@@ -11,13 +11,13 @@ import yaml
 from eofnn.errors import ConfigError
 from eofnn.resources import require_memory
 from eofnn.seeding import int_seed
-from eofnn.sim.anywind import screen_bytes
-from eofnn.sim.changes import layer_winds
-from eofnn.sim.disturbances import Vibration, build_vibrations
+from eofnn.sim.atmosphere.anywind import screen_bytes
+from eofnn.sim.atmosphere.changes import layer_winds
+from eofnn.sim.atmosphere.disturbances import Vibration, build_vibrations
+from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.loop import Controller, run_loop
-from eofnn.sim.plant import Plant
-from eofnn.sim.turbulence import Atmosphere, Turbulence
+from eofnn.sim.loop.plant import Plant
+from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.validation import Constraint, Interval, from_mapping, validated
 
 
@@ -39,7 +39,7 @@ class Scenario:
     vibrations : list of Vibration
         Telescope vibrations added to the turbulence ``s(n)`` (after the atmosphere's piston/tip/tilt removal, so
         they are seen): e.g. ``[{mode: tip, frequency_hz: 40, amplitude_nm: 30, damping: 0.01}]``; fields in
-        :class:`~eofnn.sim.disturbances.Vibration`. None by default.
+        :class:`~eofnn.sim.atmosphere.disturbances.Vibration`. None by default.
     """
 
     grid: ActuatorGrid = field(default_factory=ActuatorGrid)

@@ -32,7 +32,7 @@ from eofnn.data.stream import DataConfig, LoopDataModule
 from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.layout import layout_to_dict
-from eofnn.sim.loop import Controller
+from eofnn.sim.loop.runner import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction, RidgePath
 from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form

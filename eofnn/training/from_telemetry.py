@@ -22,7 +22,7 @@ from eofnn.errors import ConfigError, TelemetryError
 from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, dm_model, layout_to_dict
-from eofnn.sim.plant import Plant, PlantModel
+from eofnn.sim.loop.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction
 from eofnn.training.fit import DEFAULT_NETWORK, FitData, FitOutput, FitResult, bind_margin, new_task, solve
@@ -83,7 +83,7 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
     ----------
     telemetry : Telemetry, StreamedTelemetry or a sequence of them
         Recorded ``y`` and ``wfs`` (nm): one or several files, batched or not. A
-        :class:`~eofnn.sim.telemetry_file.StreamedTelemetry` is read ``data.batch_frames`` frames at a time (plus the
+        :class:`~eofnn.telemetry.file.StreamedTelemetry` is read ``data.batch_frames`` frames at a time (plus the
         history's overlap), so the fit never holds the file: memory is set by ``batch_frames``, the actuators and the
         network's normal equations (refused up front when that does not fit).
     spec : HistorySpec

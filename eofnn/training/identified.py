@@ -12,7 +12,7 @@ import torch
 from eofnn.errors import ConfigError, TelemetryError, require
 from eofnn.outputs import check_output_file, write_text_atomic
 from eofnn.sim.layout import dm_model, layout_from_dict
-from eofnn.sim.plant import Plant
+from eofnn.sim.loop.plant import Plant
 
 #: The largest standard error of an identified DM gain, relative to the gain, that the fits and replays use.
 USABLE_GAIN_ERROR = 0.25
@@ -102,7 +102,7 @@ class IdentifiedPlant:
                                  "plant instead")
 
     def model_errors(self) -> dict[str, float]:
-        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.plant.Plant.with_errors`
+        """``{dm_gain, misregistration_x, misregistration_y}`` for :meth:`eofnn.sim.loop.plant.Plant.with_errors`
         (without the misregistrations where none was identified)."""
         self.require_identified()
         if self.misregistration_x is None:
@@ -111,7 +111,7 @@ class IdentifiedPlant:
                 "misregistration_y": self.misregistration_y}
 
     def plant(self) -> Plant:
-        """The identified plant as an eofnn :class:`~eofnn.sim.plant.Plant` (linear DM, no noise)."""
+        """The identified plant as an eofnn :class:`~eofnn.sim.loop.plant.Plant` (linear DM, no noise)."""
         return Plant(delay_frames=self.delay_frames).with_errors(**self.model_errors())
 
     def dm_response(self, kind: str = "model"):

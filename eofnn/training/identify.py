@@ -31,7 +31,7 @@ remainder of past dither in ``u``; raising ``nuisance_lags`` to its history leng
 
 From the coupling rows ``G_k.``: per-actuator gains (row sums), and, pooled over actuators whose neighbourhood is
 complete, the global gain ``g = sum P`` and the misregistration of a bilinear shift as
-:func:`eofnn.sim.plant._shift_operator` applies it, whose weights ``tri(a + dy) tri(b + dx)`` have first moments
+:func:`eofnn.sim.loop.plant._shift_operator` applies it, whose weights ``tri(a + dy) tri(b + dx)`` have first moments
 ``dx = -sum_b b P / g``, ``dy = -sum_a a P / g`` (exact for shifts within the neighbourhood; standard errors by
 the delta method, taking actuators as independent). The WFS lag is where the pooled response of ``Dwfs(n + l)``
 to ``u(n)`` peaks over ``l = 0..max_lag``: 0 in the documented convention (``wfs(n)`` measures ``eps(n)``); a file
@@ -61,8 +61,8 @@ from eofnn.errors import CollinearityWarning, TelemetryError, require
 from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, coupling_stencils, layout_to_dict
-from eofnn.sim.telemetry import Telemetry
-from eofnn.sim.telemetry_file import StreamedTelemetry
+from eofnn.telemetry.file import StreamedTelemetry
+from eofnn.telemetry.record import Telemetry
 from eofnn.training.identified import IdentifiedPlant, PlantNotIdentifiedWarning
 from eofnn.training.ridge import NormalEquations
 
@@ -111,7 +111,7 @@ def identify_plant(telemetry: AnyTelemetry | Sequence[AnyTelemetry], grid: Actua
     telemetry : Telemetry, StreamedTelemetry or a sequence of them
         Recorded ``y`` and ``wfs`` (nm); several files or batches are independent sequences of one plant. Every
         pass (whitening, excitation and lag, response, noise) reads ``batch_frames`` frames at a time plus the
-        lags it needs, so a :class:`~eofnn.sim.telemetry_file.StreamedTelemetry` is never held whole.
+        lags it needs, so a :class:`~eofnn.telemetry.file.StreamedTelemetry` is never held whole.
     grid : ActuatorGrid or ActuatorLayout, optional
         The actuator layout; by default from the telemetry's ``positions_m`` or its eofnn scenario. Without one the
         DM gain and the lag are still identified (from each actuator's response to its own dither), the

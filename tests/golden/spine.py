@@ -1,10 +1,11 @@
 """The numbers the "one spine" re-cut must not move: every command on the tiny scenario, fixed seeds.
 
 ``python tests/golden/spine.py tests/golden/spine.json`` writes them (on purpose only: after a change that is meant to
-move numbers, said in its commit) and records the machine in ``spine_machine.json``; ``tests/test_spine_numbers.py`` compares a fresh run with the
-committed ``tests/golden/spine.json``. Every controller kind, both fit methods (closed form and SGD), a gain scan,
-``alpha: auto``, training from telemetry alone, a robustness map, the DM-gain margins, and the telemetry commands
-(simulate, identify, fit --telemetry, replay, export, stability), so a moved rule shows as a moved number.
+move numbers, said in its commit) and records the machine in ``spine_machine.json``; ``tests/test_spine_numbers.py``
+compares a fresh run with the committed ``tests/golden/spine.json``. Every controller kind, both fit methods (closed
+form and SGD), a gain scan, ``alpha: auto``, training from telemetry alone, a robustness map, the DM-gain margins, and
+the telemetry commands (simulate, identify, fit --telemetry, replay, export, stability), so a moved rule shows as a
+moved number.
 """
 
 from __future__ import annotations

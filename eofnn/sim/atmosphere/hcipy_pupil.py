@@ -18,8 +18,8 @@ import hcipy
 import numpy as np
 import torch
 
+from eofnn.sim.atmosphere.strip import NM_PER_SCREEN_UNIT
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.strip import NM_PER_SCREEN_UNIT
 
 
 class HcipyPupilLayer:

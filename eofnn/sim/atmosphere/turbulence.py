@@ -2,19 +2,20 @@
 
 Three models build a layer (``Atmosphere.model``):
 
-- ``exact`` (:mod:`eofnn.sim.exact`, :mod:`eofnn.sim.anywind`): a von Kármán screen synthesised in the Fourier
-  domain and evaluated at every actuator's exact position, frame ``n`` at ``x - n v dt``, seen through the sensing
-  kernel (``subaperture``: the mean over each actuator's subaperture; ``point``), for any wind direction (lattice
-  directions by lines of actuators, others by a non-uniform FFT across the wind). No interpolation: the physics to
-  judge predictors with.
-- ``hcipy_pupil`` (:mod:`eofnn.sim.hcipy_pupil`): HCIPy's ``InfiniteAtmosphericLayer`` on the actuator-pitch pupil
-  grid advanced with ``layer.t``, as the reference study did (its rim extrusion and sub-pixel interpolation kept).
-- ``strip`` (:mod:`eofnn.sim.strip`): a strip at the actuator pitch translated with B-splines. Fast, any wind
+- ``exact`` (:mod:`eofnn.sim.atmosphere.exact`, :mod:`eofnn.sim.atmosphere.anywind`): a von Kármán screen synthesised
+  in the Fourier domain and evaluated at every actuator's exact position, frame ``n`` at ``x - n v dt``, seen through
+  the sensing kernel (``subaperture``: the mean over each actuator's subaperture; ``point``), for any wind direction
+  (lattice directions by lines of actuators, others by a non-uniform FFT across the wind). No interpolation: the
+  physics to judge predictors with.
+- ``hcipy_pupil`` (:mod:`eofnn.sim.atmosphere.hcipy_pupil`): HCIPy's ``InfiniteAtmosphericLayer`` on the
+  actuator-pitch pupil grid advanced with ``layer.t``, as the reference study did (its rim extrusion and sub-pixel
+  interpolation kept).
+- ``strip`` (:mod:`eofnn.sim.atmosphere.strip`): a strip at the actuator pitch translated with B-splines. Fast, any wind
   direction, right spatial statistics; but every series is piecewise polynomial (comb peaks at multiples of
   ``v / pitch`` in temporal PSDs), which makes prediction look almost perfect.
 
 Layers add (Cn² fractions set each layer's r0); piston, tip and tilt are removed unless asked otherwise.
-Telescope vibrations (added after that removal) and boiling layers are in :mod:`eofnn.sim.disturbances`.
+Telescope vibrations (added after that removal) and boiling layers are in :mod:`eofnn.sim.atmosphere.disturbances`.
 """
 
 from __future__ import annotations
@@ -29,13 +30,14 @@ import torch
 
 from eofnn.errors import require
 from eofnn.seeding import stream_seed, sub_seed
-from eofnn.sim.anywind import frozen_flow_layer
-from eofnn.sim.changes import AtmosphereChange, build_changes, layer_winds, with_changes
-from eofnn.sim.disturbances import BoilingLayer, Vibration, VibrationSeries
-from eofnn.sim.exact import KERNELS, project_out
+from eofnn.sim.atmosphere.anywind import frozen_flow_layer
+from eofnn.sim.atmosphere.changes import AtmosphereChange, build_changes, layer_winds, with_changes
+from eofnn.sim.atmosphere.disturbances import BoilingLayer, Vibration, VibrationSeries
+from eofnn.sim.atmosphere.exact import project_out
+from eofnn.sim.atmosphere.hcipy_pupil import HcipyPupilLayer
+from eofnn.sim.atmosphere.strip import FrozenFlowStrip
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.hcipy_pupil import HcipyPupilLayer
-from eofnn.sim.strip import FrozenFlowStrip
+from eofnn.sim.sensing.kernels import KERNELS
 from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, OrNone, check_value, from_mapping, validated
 
 MODELS = ("exact", "hcipy_pupil", "strip")
@@ -57,7 +59,7 @@ class Layer:
     boiling_time_s : float or None
         E-folding time (s) of the screen's own decorrelation (model ``exact`` only; ``None`` or 0: frozen flow).
         A stress test: the layer's variance and structure function are unchanged and its temporal covariance is
-        frozen flow's times ``exp(-|t| / boiling_time_s)`` (construction: :mod:`eofnn.sim.disturbances`).
+        frozen flow's times ``exp(-|t| / boiling_time_s)`` (construction: :mod:`eofnn.sim.atmosphere.disturbances`).
     """
 
     cn2_fraction: float = 1.0
@@ -107,7 +109,7 @@ class Atmosphere:
         Frames one realisation of the ``exact`` model holds (frames ``0 .. screen_frames - 1``); memory and set-up
         time grow with it.
     changes : list of AtmosphereChange
-        Layers' wind or strength changing at given times (:mod:`eofnn.sim.changes`), e.g.
+        Layers' wind or strength changing at given times (:mod:`eofnn.sim.atmosphere.changes`), e.g.
         ``[{at_s: 5.0, layer: 0, wind_speed_mps: 20.0, ramp_s: 0.1}]``; none by default (stationary).
     """
 
@@ -191,7 +193,7 @@ class Turbulence:
         Independent realisations generated side by side (the batch dimension).
     vibrations : sequence of Vibration
         Telescope vibrations added to every frame after the piston/tip/tilt projection (so they are always seen),
-        drawn from the stream ``"vibration:" + stream`` (see :mod:`eofnn.sim.disturbances`).
+        drawn from the stream ``"vibration:" + stream`` (see :mod:`eofnn.sim.atmosphere.disturbances`).
     """
 
     def __init__(
@@ -268,4 +270,5 @@ def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, f
         return HcipyPupilLayer(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
                                frame_period_s, seed)
     return FrozenFlowStrip(grid.positions_m, grid.pitch_m / atmosphere.oversampling, r0_m, wavelength_m, outer_m,
-                           layer, frame_period_s, atmosphere.interpolation_order, seed)
+                           layer.wind_speed_mps, layer.wind_direction_deg, frame_period_s,
+                           atmosphere.interpolation_order, seed)

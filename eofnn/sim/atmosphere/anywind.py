@@ -1,7 +1,7 @@
 """Exact frozen flow along any wind direction: a von Kármán screen evaluated where each actuator looks, every frame.
 
 A wind along a lattice direction of the grid keeps the actuators on a few lines parallel to it
-(:class:`~eofnn.sim.exact.ExactFrozenFlow`); any other direction puts every actuator on a line of its own. This
+(:class:`~eofnn.sim.atmosphere.exact.ExactFrozenFlow`); any other direction puts every actuator on a line of its own. This
 module handles those directions (and any other positions), with the same physics: one layer is a Fourier series in
 its own frame (``u`` along the wind, ``w`` across it), with HCIPy's von Kármán spectrum times the sensing kernel's
 squared transform as the variance of each coefficient, and frame ``n`` at actuator ``k`` is that series at
@@ -42,17 +42,17 @@ import torch
 
 from eofnn.errors import require
 from eofnn.resources import available_memory_bytes, require_memory
-from eofnn.sim.exact import (
+from eofnn.sim.atmosphere.exact import (
     _PERIOD_OUTER_SCALES,
     _SPATIAL_BAND,
     _TEMPORAL_BAND,
-    KERNELS,
     VON_KARMAN_COEFFICIENT,
     ExactFrozenFlow,
     lattice_direction,
     nice_fft_size,
 )
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.kernels import KERNELS, apply_kernel_amplitude_
 
 #: Across-wind band (cycles per pitch): at least ``_ACROSS_BAND``, else ``_RIDGE |f_u|`` up to ``_ACROSS_CAP``.
 _ACROSS_BAND = {"subaperture": 4.0, "point": 10.0}
@@ -144,7 +144,7 @@ class AnyWindFrozenFlow:
     Parameters
     ----------
     grid, r0_m, r0_wavelength_m, outer_scale_m, frame_period_s, kernel, screen_frames, seed
-        As for :class:`eofnn.sim.exact.ExactFrozenFlow` (``grid`` gives the positions unless ``positions_m`` does).
+        As for :class:`eofnn.sim.atmosphere.exact.ExactFrozenFlow` (``grid`` gives the positions unless ``positions_m`` does).
     wind_speed_mps, wind_direction_deg : float
         Wind speed (m/s, > 0) and direction (degrees from +x towards +y; any finite value).
     positions_m : ndarray, optional
@@ -234,10 +234,7 @@ class AnyWindFrozenFlow:
                 # Single precision: the weights of a random field need no more. The square root of the variance is
                 # taken factor by factor (no pass over the table for it).
                 amplitude = (f_u**2 + f_w**2 + outer_scale_m**-2).pow_(-11 / 12)
-                if self.kernel == "subaperture":  # telescope-frame frequencies of (f_u, f_w)
-                    d = self.pitch_m
-                    sincs = torch.sinc(d * (f_u * cos - f_w * sin)).mul_(torch.sinc(d * (f_u * sin + f_w * cos)))
-                    amplitude.mul_(sincs.abs_())
+                apply_kernel_amplitude_(amplitude, self.kernel, self.pitch_m, f_u, f_w, cos, sin)
                 amplitude.masked_fill_(f_w.abs() > torch.as_tensor(self._f_w_max[q], dtype=torch.float32)[:, None], 0)
                 # q > 0 carries -q too (sqrt(2) Re of the series); q = 0 keeps both signs of l itself.
                 scale = nm2 / (self.period_m * across_period) / 2
@@ -321,7 +318,7 @@ class AnyWindFrozenFlow:
 
     def frames(self, start: int, stop: int, basis: torch.Tensor | None = None) -> torch.Tensor:
         """OPD (nm) of frames ``start..stop-1`` at the positions, ``(frames, n)``; ``basis`` projected out."""
-        from eofnn.sim.exact import project_out  # noqa: PLC0415
+        from eofnn.sim.atmosphere.exact import project_out  # noqa: PLC0415
 
         out = self.write_frames(start, stop, torch.empty(stop - start, self.n_actuators, dtype=torch.float64))
         return out if basis is None else project_out(out, basis)

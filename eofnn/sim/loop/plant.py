@@ -13,9 +13,9 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from eofnn.delay import DELAY, check_delay, split_delay
 from eofnn.errors import ConfigError, require
-from eofnn.sim.changes import DmGainDrift, build_drift
-from eofnn.sim.delay import DELAY, check_delay, split_delay
+from eofnn.sim.atmosphere.changes import DmGainDrift, build_drift
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.validation import Constraint, Interval, OneOf, validated
 
@@ -33,7 +33,7 @@ class Plant:
         Loop delay ``tau >= 1`` in frames (2 in the reference study). An integer ``d``: ``y(n)`` uses ``eps`` up to
         ``eps(n - d)``. A fraction ``tau = d + f`` (Keck's 1.5 ms at 1 kHz: 1.5): ``y(n)`` still uses ``eps`` up to
         ``eps(n - d)``, and the DM shape during frame ``n`` is the time average of the commands acting over it,
-        ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` (see :mod:`eofnn.sim.delay`).
+        ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` (see :mod:`eofnn.delay`).
     dm_gain : float
         The DM applies ``dm_gain * y`` (1 is nominal).
     misregistration_x : float
@@ -51,7 +51,7 @@ class Plant:
         The WFS reports ``wfs_gain * eps`` (optical gain; 1 is nominal).
     dm_gain_drift : DmGainDrift, optional
         ``{start_s, stop_s, to}``: the DM gain moves linearly from ``dm_gain`` to ``to`` between the two times
-        (:mod:`eofnn.sim.changes`); the stability analysis and the controllers' model keep the static ``dm_gain``.
+        (:mod:`eofnn.sim.atmosphere.changes`); the stability analysis and the controllers' model keep the static ``dm_gain``.
     """
 
     delay_frames: int | float = 2

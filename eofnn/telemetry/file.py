@@ -14,7 +14,7 @@ in-memory one to rounding). Nothing maps the whole file: a memory map counts eve
   the next, and reopened only when a pass starts again.
 
 ``slopes`` with an interaction matrix or a reconstructor become ``wfs`` block by block
-(:func:`eofnn.sim.spaces.slopes_reconstructor`). Non-finite values and all-zero recordings are found by
+(:func:`eofnn.telemetry.spaces.slopes_reconstructor`). Non-finite values and all-zero recordings are found by
 :meth:`StreamedTelemetry.check` (one pass, block by block) before any fit starts.
 """
 
@@ -29,9 +29,9 @@ import numpy as np
 import torch
 
 from eofnn.errors import TelemetryError
-from eofnn.sim.spaces import RCOND, slopes_reconstructor
-from eofnn.sim.telemetry import TELEMETRY_REQUIRED, Telemetry, _delay, _read_fits, _read_npz, telemetry_path
-from eofnn.sim.telemetry_readers import STREAMED, NotStreamableError, fits_readers, npz_readers
+from eofnn.telemetry.readers import STREAMED, NotStreamableError, fits_readers, npz_readers
+from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry, _delay, _read_fits, _read_npz, telemetry_path
+from eofnn.telemetry.spaces import RCOND, slopes_reconstructor
 
 __all__ = ["FrameArray", "NotStreamableError", "StreamedTelemetry"]
 
@@ -122,7 +122,7 @@ class FrameArray:
 class StreamedTelemetry:
     """A telemetry file read in blocks of frames (the module docstring): ``y`` and ``wfs`` are :class:`FrameArray` s.
 
-    Use it wherever training and identification take :class:`~eofnn.sim.telemetry.Telemetry`
+    Use it wherever training and identification take :class:`~eofnn.telemetry.record.Telemetry`
     (:func:`eofnn.training.from_telemetry.fit_from_telemetry`, :func:`eofnn.training.identify.identify_plant`);
     :meth:`load` reads it whole when something needs tensors.
 
@@ -132,7 +132,7 @@ class StreamedTelemetry:
     y, wfs : FrameArray
         ``(frames, K)`` or ``(batch, frames, K)``, float64 blocks when sliced (nm).
     delay_frames, config, frame_rate_hz, positions_m, modal_basis, measurement
-        As in :class:`~eofnn.sim.telemetry.Telemetry`.
+        As in :class:`~eofnn.telemetry.record.Telemetry`.
     """
 
     def __init__(self, path: Path, y: FrameArray, wfs: FrameArray, meta: Telemetry) -> None:

@@ -5,11 +5,11 @@ Arrays are ``(frames, n_actuators)`` or ``(batch, frames, n_actuators)``, in nm:
 - ``s``: turbulence (piston/tip/tilt removed),
 - ``y``: DM commands as the controller believes them (the command computed for frame ``n``),
 - ``eps``: true residual ``s + DM(y)`` (for a fractional delay ``d + f``, the DM term is the average
-  ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` acting over the frame, :mod:`eofnn.sim.delay`),
+  ``(1 - f) DM(y(n)) + f DM(y(n - 1))`` acting over the frame, :mod:`eofnn.delay`),
 - ``wfs``: what the WFS reported of ``eps`` (equal to ``eps`` for a perfect sensor).
 
 Files from other simulators or a real-time computer need only ``y`` and ``wfs`` (or ``slopes`` with an interaction
-matrix or a reconstructor, :mod:`eofnn.sim.spaces`) and the loop delay; ``y`` and ``wfs`` may be modal coefficients
+matrix or a reconstructor, :mod:`eofnn.telemetry.spaces`) and the loop delay; ``y`` and ``wfs`` may be modal coefficients
 of a ``modal_basis``. The layout (HDU names, header keys, npz keys) is documented in ``docs/telemetry.md``.
 """
 
@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from eofnn.delay import check_delay
 from eofnn.errors import ConfigError, TelemetryError
 from eofnn.outputs import check_output_file
-from eofnn.sim.delay import check_delay
-from eofnn.sim.layout import check_positions
-from eofnn.sim.spaces import RCOND, check_modal_basis, residual_from_slopes
+from eofnn.telemetry.positions import check_positions
+from eofnn.telemetry.spaces import RCOND, check_modal_basis, residual_from_slopes
 
 ARRAYS = ("s", "y", "eps", "wfs")
 #: What training, identification and replay from telemetry alone need.
@@ -50,7 +50,7 @@ class Telemetry:
         ``(frames, K)`` or ``(batch, frames, K)`` float64 arrays in nm (see the module docstring).
     delay_frames : int or float
         Loop delay ``tau = d + f``: ``y(n)`` may use ``wfs`` up to frame ``n - d``; a fraction ``f`` of each frame
-        still sees the previous command (:mod:`eofnn.sim.delay`).
+        still sees the previous command (:mod:`eofnn.delay`).
     config : dict
         What made the run (eofnn writes the plant and scenario here).
     frame_rate_hz : float or None
@@ -112,7 +112,7 @@ class Telemetry:
     def from_slopes(cls, y, slopes, *, interaction_matrix=None, reconstructor=None, rcond: float = RCOND,
                     **fields) -> Telemetry:
         """Telemetry whose ``wfs`` is formed from ``slopes`` (``(..., frames, S)``) with an interaction matrix
-        ``(S, K)`` or a reconstructor ``(K, S)`` (:func:`eofnn.sim.spaces.residual_from_slopes`); ``fields`` are the
+        ``(S, K)`` or a reconstructor ``(K, S)`` (:func:`eofnn.telemetry.spaces.residual_from_slopes`); ``fields`` are the
         other attributes (``delay_frames``, ``positions_m``, ``modal_basis``, ...)."""
         y = _real_tensor(y, "y")
         slopes = _real_tensor(slopes, "slopes")

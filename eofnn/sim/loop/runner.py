@@ -12,9 +12,9 @@ from tqdm.auto import tqdm
 
 from eofnn.errors import DivergedError, require
 from eofnn.seeding import torch_generator
-from eofnn.sim.plant import Plant, PlantModel
-from eofnn.sim.telemetry import Telemetry
-from eofnn.sim.turbulence import Turbulence
+from eofnn.sim.atmosphere.turbulence import Turbulence
+from eofnn.sim.loop.plant import Plant, PlantModel
+from eofnn.telemetry.record import Telemetry
 from eofnn.validation import COUNT, check_value
 
 
@@ -91,7 +91,7 @@ def run_loop(
 
     Per frame ``n``: the controller gets the WFS measurement of ``eps(n - d)`` and returns ``y(n)``; the DM applies
     it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS measures ``eps(n)``. For a fractional delay
-    ``d + f`` (:mod:`eofnn.sim.delay`) the DM term is the time average ``(1 - f) DM(y(n)) + f DM(y(n - 1))``:
+    ``d + f`` (:mod:`eofnn.delay`) the DM term is the time average ``(1 - f) DM(y(n)) + f DM(y(n - 1))``:
     telemetry's ``y`` is the command computed for frame ``n``, its ``eps`` and ``wfs`` include the averaged DM.
 
     Parameters

@@ -18,15 +18,11 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import TYPE_CHECKING
 
 import hcipy
 import numpy as np
 import torch
 from scipy.ndimage import spline_filter1d
-
-if TYPE_CHECKING:
-    from eofnn.sim.turbulence import Layer
 
 #: HCIPy's achromatic screen is phase x wavelength, i.e. 2 pi x OPD in metres; this converts it to OPD in nm.
 NM_PER_SCREEN_UNIT = 1e9 / (2 * np.pi)
@@ -73,8 +69,8 @@ class FrozenFlowStrip:
         Strip sampling pitch in metres.
     r0_m, r0_wavelength_m, outer_scale_m : float
         Layer turbulence strength (Fried parameter at a wavelength) and outer scale.
-    layer : Layer
-        Wind of the layer.
+    wind_speed_mps, wind_direction_deg : float
+        Wind of the layer: speed (m/s) and direction (degrees from +x towards +y).
     frame_period_s : float
         Time between frames in seconds.
     order : int
@@ -90,7 +86,8 @@ class FrozenFlowStrip:
         r0_m: float,
         r0_wavelength_m: float,
         outer_scale_m: float,
-        layer: Layer,
+        wind_speed_mps: float,
+        wind_direction_deg: float,
         frame_period_s: float,
         order: int,
         seed: np.random.SeedSequence,
@@ -100,7 +97,7 @@ class FrozenFlowStrip:
         self._seed = seed
         self._cn2 = hcipy.Cn_squared_from_fried_parameter(r0_m, r0_wavelength_m)
         self._outer_scale_m = outer_scale_m
-        angle = math.radians(layer.wind_direction_deg)
+        angle = math.radians(wind_direction_deg)
         u = positions_m[:, 0] * math.cos(angle) + positions_m[:, 1] * math.sin(angle)
         w = -positions_m[:, 0] * math.sin(angle) + positions_m[:, 1] * math.cos(angle)
         margin = order + 2
@@ -110,7 +107,7 @@ class FrozenFlowStrip:
         # Along the wind: strip coordinate of actuator k at frame n is u_index[k] + n * columns_per_frame.
         self.u_index = torch.as_tensor(_snap((u.max() - u) / pitch_m) + margin + _PREFILTER_MARGIN)
         self._aligned = bool(torch.all(self.u_index == torch.round(self.u_index)))
-        self.columns_per_frame = layer.wind_speed_mps * frame_period_s / pitch_m
+        self.columns_per_frame = wind_speed_mps * frame_period_s / pitch_m
         self._w_weights = _interpolation_matrix(w_index, self.n_rows, order)  # (n_act, n_rows)
         self._n_initial_columns = max(self.n_rows, int(np.ceil(self.u_index.max().item())) + margin + 1)
         self._reset()

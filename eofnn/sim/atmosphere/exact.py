@@ -11,7 +11,7 @@ A field read only on those lines cannot tell an across-wind frequency ``f_w`` fr
 lattice frequency carries the variance of all its aliases (summed over ``|a| <= _ALIASES``): the lines then have
 the cross-covariance of the continuous screen, periodised over ``N_w`` spacings (Poisson summation) — exact once
 ``N_w`` spacings hold several outer scales, where the von Kármán covariance has decayed as ``exp(-2 pi r / L0)``.
-Other directions put every actuator on a line of its own: :mod:`eofnn.sim.anywind` handles them.
+Other directions put every actuator on a line of its own: :mod:`eofnn.sim.atmosphere.anywind` handles them.
 
 *Along the wind* the field on each line is a trigonometric polynomial (frequencies up to ``f_max``: twice the
 frame rate's Nyquist ``1 / (2 v dt)`` and at least ``_SPATIAL_BAND / pitch``). It is evaluated at every
@@ -45,6 +45,7 @@ import torch
 
 from eofnn.errors import require
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.kernels import KERNELS, kernel_power
 
 #: Exact von Kármán coefficient (24/5 Γ(6/5))^(5/6) Γ(11/6)² / (2 π^(11/3)) of 0.023 r0^(-5/3) (f² + L0^-2)^(-11/6).
 VON_KARMAN_COEFFICIENT = 0.022896
@@ -76,7 +77,6 @@ _LATTICE_DIRECTIONS = [(q, p) for q in range(-_MAX_SLOPE, _MAX_SLOPE + 1) for p 
                        if math.gcd(p, q) == 1]
 #: How close (degrees) a wind direction must be to a lattice direction; it is then taken as that direction.
 _DIRECTION_TOLERANCE_DEG = 1e-6
-KERNELS = ("subaperture", "point")
 
 
 def von_karman_psd(f_per_m: np.ndarray, r0_m: float, outer_scale_m: float) -> np.ndarray:
@@ -118,7 +118,7 @@ def lattice_direction(direction_deg: float) -> tuple[int, int] | None:
 
     Such a wind keeps every actuator on a line parallel to it (lines ``pitch / hypot(p, q)`` apart): 0, 90, 180 and
     270 degrees, 45 degrees and its multiples, atan(1/2) = 26.565... degrees, and so on. ``None`` for any other
-    direction (:mod:`eofnn.sim.anywind` evaluates those).
+    direction (:mod:`eofnn.sim.atmosphere.anywind` evaluates those).
     """
     angle = math.radians(direction_deg)
     for q, p in sorted(_LATTICE_DIRECTIONS, key=lambda v: abs(v[0]) + abs(v[1])):
@@ -165,8 +165,9 @@ def lattice_variance_nm2(r0_m: float, r0_wavelength_m: float, outer_scale_m: flo
     for first in range(q_first, q_stop, chunk):
         f_u = (np.arange(first, min(first + chunk, q_stop)) / period_m).astype(np.float32)[:, None, None]
         psd = (f_u**2 + f_w2[None]) ** np.float32(-11 / 6)
-        if kernel == "subaperture":  # telescope-frame frequencies of (f_u, f_w)
-            psd *= (np.sinc(pitch_m * (f_u * e_x - f_w * e_y)) * np.sinc(pitch_m * (f_u * e_y + f_w * e_x))) ** 2
+        power = kernel_power(kernel, pitch_m, f_u, f_w, e_x, e_y)
+        if power is not None:
+            psd *= power
         out[first - q_first: first - q_first + len(f_u)] = psd.sum(-1) * np.float32(
             VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * cell)
     return out
@@ -191,7 +192,7 @@ class ExactFrozenFlow:
         Layer's Fried parameter (m) at a wavelength (m), and the outer scale (m, finite).
     wind_speed_mps, wind_direction_deg : float
         Wind speed (m/s, > 0) and direction (degrees from +x towards +y, along a lattice direction: see
-        :func:`lattice_direction`; :class:`eofnn.sim.anywind.AnyWindFrozenFlow` takes any other).
+        :func:`lattice_direction`; :class:`eofnn.sim.atmosphere.anywind.AnyWindFrozenFlow` takes any other).
     frame_period_s : float
         Time between frames in seconds.
     kernel : {"subaperture", "point"}

@@ -5,7 +5,7 @@
 - :class:`ZipReader`: a compressed npz member, decompressed forward.
 
 :func:`npz_readers` and :func:`fits_readers` locate ``y``, ``wfs`` and ``slopes`` (:data:`STREAMED`) from the
-headers alone; :mod:`eofnn.sim.telemetry_file` builds lazy frame arrays on them.
+headers alone; :mod:`eofnn.telemetry.file` builds lazy frame arrays on them.
 """
 
 from __future__ import annotations
