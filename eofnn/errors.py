@@ -27,6 +27,10 @@ class CollinearityWarning(UserWarning):
     """The regressors are (near-)collinear: the fitted filter is decided by the regularisation, not the data."""
 
 
+class ShiftWarning(UserWarning):
+    """A predictor is used in conditions (WFS noise, DM gain, wind) other than those it was trained in."""
+
+
 def require(condition: bool, message: str) -> None:
     """Raise :class:`ConfigError` with ``message`` unless ``condition`` holds."""
     if not condition:

@@ -18,6 +18,7 @@ from eofnn.evaluation.replay import replay as replay_telemetry
 from eofnn.outputs import check_output_file, check_output_folder, staged_folder
 from eofnn.reporting.replay import replay_figure
 from eofnn.training.checkpoint import load_predictor
+from eofnn.training.conditions import plant_conditions, warn_shift
 from eofnn.training.export import export_filter
 from eofnn.training.fit import FitOutput, FitResult
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
@@ -186,8 +187,14 @@ def replay(cfg: ReplayConfig, config_dump: str | None = None) -> dict:
     telemetry = _load(cfg, streamed=True)  # replayed in blocks of frames, never whole
     check_checkpoint_fits(predictor, cfg.checkpoint, telemetry)
     plant = resolve_plant_option(cfg.plant, telemetry)
+    # Noise and DM gain of this telemetry against the checkpoint's training (a nominal plant knows no noise).
+    shift = [] if plant is None else warn_shift(
+        predictor.info.get("conditions"),
+        plant_conditions(plant, "identified from this telemetry" if cfg.plant == "identify" else f"plant {cfg.plant}"),
+        f"replay of {cfg.checkpoint}")
     result = replay_telemetry(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
                     settle_frames=cfg.settle_frames)
+    result.shift = shift
     with staged_folder(out, cfg.overwrite) as folder:
         result.to_json(folder / "replay.json")
         replay_figure(result, folder / "replay.png", telemetry_grid(telemetry[0]))

@@ -23,6 +23,7 @@ from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.resources import require_memory, require_time
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
+from eofnn.training.conditions import scenario_conditions, warn_shift
 from eofnn.training.fit import FitOutput, FitResult, TrainedPredictor, fit_predictor
 from eofnn.training.from_telemetry import fit_from_scenario_telemetry, telemetry_sequences
 
@@ -68,6 +69,8 @@ def load_configured_checkpoint(name: str, cfg: PredictorConfig, scenarios: dict[
                               "asked for")
     for scenario_name, scenario in scenarios.items():
         predictor.check_fits(scenario, f"{where} in scenario {scenario_name!r}", cfg.history_length)
+        warn_shift(predictor.info.get("conditions"), scenario_conditions(scenario),
+                   f"predictor {name!r} ({cfg.checkpoint}) in scenario {scenario_name!r}")
     return predictor
 
 

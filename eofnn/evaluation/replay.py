@@ -75,13 +75,16 @@ class ReplayResult:
     frame_rate_hz: float
     psd_freq_hz: list[float] = field(repr=False)
     plant: dict = field(default_factory=dict)
+    #: One line per condition (WFS noise, DM gain) in which the telemetry differs from the predictor's training
+    #: (:mod:`eofnn.training.conditions`); empty when none does, or when either is unknown.
+    shift: list[str] = field(default_factory=list)
 
     def summary(self) -> dict:
         """The JSON-ready scalars."""
         pick = ("median_rms_nm", "mean_rms_nm", "median_rms_noise_corrected_nm", "noise_correction")
         return {"predictor": {k: getattr(self.predictor, k) for k in pick},
                 "own_controller": {k: getattr(self.own_controller, k) for k in pick},
-                "noise_nm": self.noise_nm, "n_frames": self.n_frames, "plant": self.plant}
+                "noise_nm": self.noise_nm, "n_frames": self.n_frames, "plant": self.plant, "shift": self.shift}
 
     def to_json(self, path: str | Path | None = None, overwrite: bool = False) -> str:
         text = json.dumps(asdict(self), indent=1)

@@ -35,6 +35,7 @@ from eofnn.sim.layout import layout_to_dict
 from eofnn.sim.loop.runner import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction, RidgePath
+from eofnn.training.conditions import scenario_conditions
 from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
 from eofnn.training.search import check_search, run_search
 from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
@@ -190,7 +191,7 @@ def fit_predictor(
     optimization = optimization or OptimizationConfig()
     spec = HistorySpec.from_scenario(history, history_length, scenario)
     output = (output or FitOutput()).checked()
-    info = {"scenario": scenario.to_dict(), "data": asdict(data)}
+    info = {"scenario": scenario.to_dict(), "data": asdict(data), "conditions": scenario_conditions(scenario).to_dict()}
     task = new_task(network or DEFAULT_NETWORK, scenario.grid.n_actuators, spec, layout_to_dict(scenario.grid),
                     optimization, info, data.seed)
     # The loop the filter is made for: closed-loop EOF learns this plant's DM; open-loop EOF believes 1.

@@ -25,6 +25,7 @@ from eofnn.sim.layout import ActuatorLayout, dm_model, layout_to_dict
 from eofnn.sim.loop.plant import Plant, PlantModel
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction
+from eofnn.training.conditions import Conditions, plant_conditions, scenario_conditions
 from eofnn.training.fit import DEFAULT_NETWORK, FitData, FitOutput, FitResult, bind_margin, new_task, solve
 from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.training.task import OptimizationConfig
@@ -122,8 +123,10 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
     if train_stop <= span or (val_frames and val_frames <= span):
         raise TelemetryError(f"stop={stop}, val_frames={val_frames}: {n_frames} frames leave no training or "
                              f"validation history (each needs more than {span} frames)")
+    conditions = plant_conditions(plant if plant is not None else {}, f"plant {source} from the telemetry"
+                                  if source == "identified" else f"{source} plant")
     info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
-            "n_sequences": len(sequences), **(info or {})}
+            "n_sequences": len(sequences), "conditions": conditions.to_dict(), **(info or {})}
     if first_item.modal_basis is not None:  # a modal predictor: actuator commands are modal_basis @ y
         info["modal_basis_shape"] = list(first_item.modal_basis.shape)
     if first_item.measurement:
@@ -207,4 +210,7 @@ def fit_from_scenario_telemetry(scenario: Scenario, history: str = "open_loop", 
     return fit_from_telemetry(result.telemetry, spec, network, plant=plant,
                               data=TelemetryDataConfig.of(data, val_frames), optimization=optimization,
                               output=output, margin=margin, info={"scenario": scenario.to_dict(), "data": asdict(data),
-                                    "identified_plant": plant.model_errors()})
+                                    "identified_plant": plant.model_errors(), "conditions": Conditions(
+                                        plant.wfs_noise_nm, plant.dm_gain,
+                                        scenario_conditions(scenario).wind_speeds_mps,
+                                        "plant identified from the scenario's telemetry").to_dict()})
