@@ -68,7 +68,7 @@ def test_replay_of_a_noise_free_fit_on_noisy_telemetry_warns_in_one_line(cli, tm
     assert len(warned) == 1, err
     trained, used = map(float, re.search(r"trained at ([\d.e+-]+) nm of WFS noise .* used at ([\d.e+-]+) nm",
                                          warned[0]).groups())
-    assert trained < 0.5 and 2.4 < used < 3.6, warned[0]
+    assert trained < 1.0 and 2.4 < used < 3.6, warned[0]  # identify finds ~0.48 nm in noise-free telemetry
     assert json.loads((tmp_path / "replay" / "replay.json").read_text())["shift"] == [
         warned[0].removeprefix("eofnn: warning: ")]
     # The same fit replayed on noise-free telemetry of its own kind says nothing.
