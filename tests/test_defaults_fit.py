@@ -22,3 +22,25 @@ def test_telemetry_training_longer_than_the_screen_runs(small_scenario):
     data = DataConfig(frames=1200, val_frames=300, sequence_frames=600, truth=False, integrator_gain=0.3)
     fit = fit_from_scenario_telemetry(scenario, "open_loop", 3, data=data)
     assert fit.info["n_sequences"] == 3 and fit.val_loss is not None and fit.val_loss < fit.train_loss * 10
+
+
+def test_modal_and_lqg_defaults_fit_the_default_screen(small_scenario):
+    """``{controller: modal_integrator}`` or ``lqg`` on a scenario as written: data.frames (20000 by default) longer
+    than the screen (10000) is recorded as realisations of at most screen_frames, with one line saying so."""
+    from eofnn.control.modal import within_screen
+    from eofnn.sim.scenario import Scenario
+
+    default = Scenario(atmosphere=Atmosphere())
+    data, note = within_screen(default, DataConfig())
+    assert (data.frames, data.realisations) == (10000, 2) and "recorded as 2 realisation(s) of 10000 frames" in note
+    fits = DataConfig(frames=4000)
+    assert within_screen(default, fits) == (fits, None)
+
+
+def test_modal_integrator_longer_than_the_screen_runs(small_scenario, recwarn):
+    from eofnn.control.modal import build_lqg
+
+    scenario = replace(small_scenario, atmosphere=replace(small_scenario.atmosphere, screen_frames=1500))
+    lqg = build_lqg(scenario, DataConfig(frames=2400, dither_nm=5.0), modes=10)
+    assert lqg.info["frames"] == 1200
+    assert [str(w.message) for w in recwarn if "exceeds atmosphere.screen_frames=1500" in str(w.message)]

@@ -31,6 +31,7 @@ What is estimated, and how (a telescope's telemetry: commands ``y`` and WFS read
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -74,6 +75,31 @@ def require_telemetry(data, n_actuators: int, modes: int | None, what: str) -> N
         raise ConfigError(f"{what}: data.frames={data.frames} is too few: {n_actuators} actuators need at least "
                           f"{needed} frames of telemetry (2 per actuator for the mode covariance, "
                           f"{MIN_SEGMENTS} PSD segments of {SEGMENT_FRAMES})")
+
+
+def within_screen(scenario: Scenario, data):
+    """``(data, note)``: ``data`` (a DataConfig) whose ``frames`` of telemetry fit one realisation of the scenario's
+    exact screen (``atmosphere.screen_frames``), and the line that says how, or ``None`` when they fit as given.
+
+    A telescope records as long as it likes; one realisation of the exact screen holds ``screen_frames`` frames. The
+    same number of frames is then recorded as several realisations (independent turbulence, pooled like
+    ``data.realisations``) of at most ``screen_frames`` each: the defaults (20000 frames) run on a 10000-frame screen.
+    """
+    atm = scenario.atmosphere
+    if atm.model != "exact" or data.frames <= atm.screen_frames:
+        return data, None
+    parts = math.ceil(data.frames / atm.screen_frames)
+    fitted = dataclasses.replace(data, frames=math.ceil(data.frames / parts), realisations=data.realisations * parts)
+    return fitted, (f"data.frames={data.frames} exceeds atmosphere.screen_frames={atm.screen_frames}: the telemetry "
+                    f"is recorded as {fitted.realisations} realisation(s) of {fitted.frames} frames (independent "
+                    f"turbulence, pooled)")
+
+
+def _fitted_to_screen(scenario: Scenario, data):
+    data, note = within_screen(scenario, data)
+    if note is not None:
+        warnings.warn(note, stacklevel=3)
+    return data
 
 
 def record_pol_telemetry(scenario: Scenario, data, dm_gain_model: float | None = None) -> tuple[torch.Tensor, dict]:
@@ -294,6 +320,7 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
     How close to its critical gain a mode may go is chosen like the best-gain integrator's gain: each cap of
     :data:`GAIN_MARGIN_CANDIDATES` closes the loop on a stream of its own (``data.frames`` frames, never the test
     stream) and the lowest median residual wins (``margin_scan`` in the model's info)."""
+    data = _fitted_to_screen(scenario, data)
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
     dm_gain_model = info["dm_gain_model"]
     stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
@@ -323,6 +350,7 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
 def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model: float | None = None) -> ModalLQG:
     """Record telemetry in ``scenario``, fit an AR(2) per KL mode (:func:`fit_ar2`) and its stationary Kalman
     filter (:func:`kalman_gain`); modes past ``modes`` share one AR(2) model fitted on their pooled statistics."""
+    data = _fitted_to_screen(scenario, data)
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
     dm_gain_model = info["dm_gain_model"]
     stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))

@@ -13,7 +13,7 @@ from typing import Any
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
-from eofnn.control.modal import require_telemetry
+from eofnn.control.modal import require_telemetry, within_screen
 from eofnn.control.registry import FROM_TELEMETRY
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
@@ -170,8 +170,9 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
                                                      f"{cfg.data.frames} (the gain scan)")
             elif cfg.controller in FROM_TELEMETRY:
                 require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
-                scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
-                                                     f"{cfg.data.frames} (its telemetry)")
+                data, _ = within_screen(scenario_value, cfg.data)  # split into realisations that fit the screen
+                scenario_value.require_stream_frames(data.frames, f"predictor {name!r}: data.frames="
+                                                     f"{data.frames} (its telemetry)", data.realisations)
             elif cfg.trains and not cfg.data.truth:
                 n_sequences, n, _ = telemetry_sequences(cfg.data)
                 scenario_value.require_stream_frames(n, f"predictor {name!r}: telemetry training ({n_sequences} "

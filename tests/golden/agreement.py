@@ -75,6 +75,7 @@ def moved_numbers(before: dict, now: dict, *, exact: bool) -> dict:
 def machine() -> dict:
     """What sets the last digits: CPU model, torch and numpy builds, the BLAS libraries in use."""
     import numpy as np
+    import scipy.linalg  # noqa: F401  (its own BLAS: loaded by every spine run, so listed whether or not loaded yet)
     import torch
     from threadpoolctl import threadpool_info
 
@@ -87,7 +88,7 @@ def machine() -> dict:
                        if k in info)
     except OSError:
         pass
-    blas = sorted(f"{i.get('internal_api')} {i.get('version')} {i.get('architecture')}" for i in threadpool_info())
+    blas = sorted({f"{i.get('internal_api')} {i.get('version')} {i.get('architecture')}" for i in threadpool_info()})
     return {"cpu": cpu, "torch": torch.__version__, "numpy": np.__version__, "blas": blas,
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability()}
 
