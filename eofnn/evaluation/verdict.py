@@ -162,11 +162,12 @@ def build_verdict(result: ExperimentResult, roles: Mapping[str, dict], realisati
         if best_predictor is not None and best_predictor.get("training") == "retrained in each scenario":
             if scenario == scenarios[0]:
                 best_predictor["nominal_filter_here"] = {"analysed": False, "reason": "this is the nominal scenario"}
+            elif nominal_filter_stability is None:
+                best_predictor["nominal_filter_here"] = {"analysed": False, "reason": "no analysis asked for"}
             else:
-                summary = None if nominal_filter_stability is None else nominal_filter_stability(
-                    best_predictor["name"], scenario)
+                summary = nominal_filter_stability(best_predictor["name"], scenario)
                 best_predictor["nominal_filter_here"] = (
-                    {"analysed": False, "reason": "no linear model (or too large to analyse)"} if summary is None else
+                    {"analysed": False, "reason": "no linear model, or too large to analyse"} if summary is None else
                     {"analysed": True, "stable": bool(summary["stable"]),
                      "dm_gain_interval": summary["dm_gain_interval"] if summary["stable"] else None})
         out["scenarios"][scenario] = {
