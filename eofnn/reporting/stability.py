@@ -10,8 +10,8 @@ from eofnn.analysis.stability import StabilityResult
 
 #: What each panel plots: title and y label. ``s`` is the turbulence, ``v`` the WFS noise and ``eps`` the residual, all
 #: in nm, so both ratios are dimensionless.
-PANELS = (("Turbulence rejection: residual / turbulence", "|eps / s|  (residual per nm of turbulence)"),
-          ("Noise transfer: residual / WFS noise v", "|eps / v|  (residual per nm of WFS noise v)"))
+PANELS = (("Turbulence rejection: residual / turbulence", "|eps / s|  (per nm of turbulence)"),
+          ("Noise transfer: residual / WFS noise v", "|eps / v|  (per nm of WFS noise)"))
 
 #: Below the panels: the symbols, with their units.
 SYMBOLS = ("s: turbulence (nm), v: white WFS noise (nm), eps: residual (nm); the horizontal line at 1 is no "
@@ -69,7 +69,8 @@ def plot_stability(result: StabilityResult, path: str | Path, title: str = "") -
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    status = (f"stable, DM gain in ({max(lower, 0.0) + 0.0:.3g}, {upper:.3g}) for every group, delay margin "
+    each = "actuator" if result.structure == "per_actuator" else "filter"
+    status = (f"stable, DM gain in ({max(lower, 0.0) + 0.0:.3g}, {upper:.3g}) for every {each}, delay margin "
               f"{float(result.delay_margin_frames.min()):.3g} frames" if result.stable else
               f"UNSTABLE (max pole modulus {float(result.max_root_modulus.max()):.4g})")
     # Two lines, inside the figure: one line of this length is wider than the figure and was cut off.
