@@ -78,8 +78,9 @@ def test_the_best_of_each_kind_and_the_ratios():
     # A diverged contender is never best; a reference (pseudo-integrator, truth-fed) is never a classical contender.
     assert doubled["best_predictor"]["name"] == "cl_eof" and doubled["diverged"] == ["ol_eof"]
     assert doubled["best_classical"]["name"] == "integrator"
-    assert doubled["best_gain_integrator"]["near_critical_gain"] and not nominal["best_gain_integrator"][
-        "near_critical_gain"]
+    assert doubled["best_gain_integrator"]["near_instability"] and not nominal["best_gain_integrator"][
+        "near_instability"]
+    assert not doubled["best_predictor"]["near_instability"]
     # Retrained per scenario: the nominal filter's stability in this plant is quoted; trained once: where.
     assert doubled["best_predictor"]["training"] == "retrained in each scenario"
     assert doubled["best_predictor"]["nominal_filter_here"] == {"analysed": True, "stable": False,
@@ -95,12 +96,21 @@ def test_the_markdown_says_what_the_numbers_say():
     assert "integrator (best gain 0.7), 18.6 nm: 3.9x in RMS, 15x in variance" in nominal
     assert "Raw contrast at 3 λ/D: ol_eof 4e-07, extrapolator 1e-05, integrator 3e-05" in nominal
     assert "ol_eof was trained in nominal" in nominal
-    assert "close to its critical gain (gain margin 0.83 dB, delay margin 0.36 frame)" in doubled
+    assert "integrator: 0 to 2.2 (linear analysis): close to its critical gain (gain margin 0.83 dB, delay margin " \
+        "0.36 frame)" in doubled
     assert "not available for integrator" in doubled
     assert "ol_eof diverged: never counted as best" in doubled
     assert ("cl_eof was retrained in this scenario; the nominal filter would be unstable at this plant (no stable "
             "DM-gain interval contains its DM gain, 2)") in doubled
     assert "1 realisation of the test turbulence per run: no spread; set evaluation.realisations for one" in text
+
+
+def test_a_predictor_with_thin_margins_is_said_close_to_instability():
+    r = result()
+    r.stability["dm_gain_2"]["cl_eof"] = stable(1.9, 2.15, margin_db=0.62, delay=0.025)
+    text = verdict_markdown(build_verdict(r, contender_roles(PREDICTORS), 1))
+    assert "cl_eof: 1.9 to 2.15 (linear analysis): close to instability (gain margin 0.62 dB, delay margin 0.025 " \
+        "frame)" in text
 
 
 def test_not_analysed_and_a_losing_predictor_are_said_plainly():

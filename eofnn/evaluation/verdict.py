@@ -22,7 +22,8 @@ from eofnn.evaluation.results import ExperimentResult
 #: (not realisable on a telescope). Every other non-predictor controller counts as classical.
 REFERENCES = ("uncorrected", "pseudo_integrator")
 
-#: A best-gain integrator is said to sit close to its critical gain below these margins.
+#: A linear controller is said to sit close to instability (an integrator: to its critical gain) below these
+#: margins (either one).
 NEAR_CRITICAL_GAIN_MARGIN_DB = 1.0
 NEAR_CRITICAL_DELAY_MARGIN_FRAMES = 0.5
 
@@ -93,12 +94,13 @@ def _entry(result: ExperimentResult, scenario: str, name: str, role: dict) -> di
         entry["gain_scanned"] = scan is not None
         if scan is not None and "critical_gain" in scan:
             entry["critical_gain"] = scan["critical_gain"]
-        stability = entry["stability"]
-        if stability is not None and stability["source"] == "linear analysis" and stability["stable"]:
-            margin_db, delay = stability["gain_margin_db"], stability["delay_margin_frames"]
-            entry["near_critical_gain"] = bool(
-                (margin_db is not None and margin_db < NEAR_CRITICAL_GAIN_MARGIN_DB)
-                or (delay is not None and delay < NEAR_CRITICAL_DELAY_MARGIN_FRAMES))
+    stability = entry["stability"]
+    if stability is not None and stability["source"] == "linear analysis" and stability["stable"]:
+        # Thin margins matter for any linear controller; for an integrator they mean a gain near its critical one.
+        margin_db, delay = stability["gain_margin_db"], stability["delay_margin_frames"]
+        entry["near_instability"] = bool(
+            (margin_db is not None and margin_db < NEAR_CRITICAL_GAIN_MARGIN_DB)
+            or (delay is not None and delay < NEAR_CRITICAL_DELAY_MARGIN_FRAMES))
     return entry
 
 

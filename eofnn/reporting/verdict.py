@@ -50,8 +50,9 @@ def _stability_text(entry: dict, dm_gain: float | None) -> str:
     high = "beyond 8" if stability["source"] == "simulation" and interval[1] is None else None
     text = (f"{interval[0]:.3g} to {high}" if high else dm_gain_interval_text(interval))
     text = f"{entry['name']}: {text} ({stability['source']})"
-    if entry.get("near_critical_gain"):
-        text += (f": close to its critical gain (gain margin {stability['gain_margin_db']:.2g} dB, delay margin "
+    if entry.get("near_instability"):
+        close = "close to its critical gain" if "gain" in entry else "close to instability"
+        text += (f": {close} (gain margin {stability['gain_margin_db']:.2g} dB, delay margin "
                  f"{stability['delay_margin_frames']:.2g} frame)")
     elif stability.get("gain_margin_db") is not None and "gain" in entry:
         text += (f" (gain margin {stability['gain_margin_db']:.2g} dB, delay margin "
