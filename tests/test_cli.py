@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -191,6 +192,49 @@ def test_shipped_configs_parse(command, config, capsys):
     assert info.value.code == 0
     resolved = yaml.safe_load(capsys.readouterr().out)
     assert resolved["scenario"]["grid"]["n_across"] == 40
+
+
+def _numbers_in(line: str) -> list[float]:
+    """The numbers a line of text quotes (not the digits inside names such as dm_gain_2)."""
+    return [float(x) for x in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?:e[-+]\d+)?", line)]
+
+
+@pytest.mark.slow
+def test_the_verdict_in_results_md_agrees_with_metrics_json(tiny_results):
+    """results.md opens with the verdict written from metrics.json's ``verdict``, whose numbers are metrics.json's
+    own: the best predictor and classical controller, their ratio, contrast and stability; the diverged open-loop
+    EOF never best; the closed-loop EOF retrained at twice the DM gain, where the nominal one is unstable."""
+    from eofnn.reporting.verdict import verdict_markdown
+
+    metrics = json.loads((tiny_results / "metrics.json").read_text())
+    verdict, text = metrics["verdict"], (tiny_results / "results.md").read_text()
+    assert text.split("## Median RMS")[0].strip() == ("# Closed-loop comparison\n\n" + verdict_markdown(verdict)).strip()
+    assert verdict["realisations"] == 1 and "1 realisation of the test turbulence per run: no spread" in text
+    scenarios = metrics["scenarios"]
+    for name, v in verdict["scenarios"].items():
+        best, classical = v["best_predictor"], v["best_classical"]
+        held = {p: m["median_rms_nm"] for p, m in scenarios[name].items() if not m["diverged"]}
+        assert best["median_rms_nm"] == min(held[p] for p in ("ol_eof", "cl_eof") if p in held)
+        assert classical["name"] == "integrator" and classical["median_rms_nm"] == held["integrator"]
+        assert not classical["gain_scanned"] and classical["gain"] == 0.4  # tiny_compare.yaml: a fixed gain
+        assert best["raw_contrast_3_lod"] == metrics["raw_contrast"][name][best["name"]]["3"]
+        assert best["stability"]["dm_gain_interval"] == metrics["stability"][name][best["name"]]["dm_gain_interval"]
+        assert v["against_best_classical"]["rms_ratio"] == pytest.approx(held["integrator"] / best["median_rms_nm"])
+        section = text.split(f"**{name}**")[1].split("\n\n")[0]
+        quoted = _numbers_in(next(line for line in section.splitlines() if line.startswith("- Best predictor")))
+        assert quoted[0] == pytest.approx(best["median_rms_nm"], rel=5e-3)
+        assert pytest.approx(v["against_best_classical"]["rms_ratio"], rel=5e-2) in quoted
+        assert pytest.approx(v["against_best_classical"]["variance_ratio"], rel=5e-2) in quoted
+    doubled = verdict["scenarios"]["dm_gain_2"]
+    assert doubled["diverged"] == ["ol_eof"] and doubled["best_predictor"]["name"] == "cl_eof"
+    assert doubled["best_predictor"]["nominal_filter_here"]["analysed"]
+    nominal_cl = metrics["stability"]["nominal"]["cl_eof"]["dm_gain_interval"]
+    assert doubled["best_predictor"]["nominal_filter_here"]["stable"] == (nominal_cl[0] < 2.0 < nominal_cl[1])
+    section = text.split("**dm_gain_2**")[1]
+    assert "ol_eof diverged: never counted as best" in section
+    assert "cl_eof was retrained in this scenario; the nominal filter would be" in section
+    assert "ol_eof in dm_gain_2: unstable at this plant (no stable DM-gain interval contains its DM gain, 2)" in text
+    assert "stable for DM gain unstable" not in text
 
 
 @pytest.mark.slow

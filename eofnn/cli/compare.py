@@ -98,6 +98,8 @@ def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig
                     log(f"{scenario_name:>12s} {name:>18s}: DM-gain interval by simulation ...")
                     result.simulated_stability.setdefault(scenario_name, {})[name] = simulated_dm_gain_interval(
                         experiment, name, scenario_name)
+        if simulated_margins:  # the verdict quotes the intervals found by simulation too
+            result.verdict = experiment.verdict(result)
         write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference,
                      cfg.evaluation.strehl_wavelength_m)
         if grid:

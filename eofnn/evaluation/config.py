@@ -159,7 +159,9 @@ class EvaluationConfig:
     settle_frames : int
         Frames discarded at the start (the loop settling) before statistics.
     realisations : int
-        Independent turbulence realisations run side by side.
+        Independent turbulence realisations run side by side, each a turbulence seed of its own on the test stream:
+        the statistics pool their frames, and the verdict (``results.md``, ``metrics.json``) gives the spread of
+        their medians (with 1, none).
     seed : int
         Seed of the test stream (a stream of its own: never shared with training).
     strehl_wavelength_m : float

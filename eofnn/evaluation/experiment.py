@@ -20,6 +20,7 @@ from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult
+from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
 from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.sim.scenario import Scenario
@@ -183,6 +184,24 @@ class Experiment:
             return None
         return None if result is None else stability_summary(result)
 
+    def nominal_filter_stability(self, name: str, scenario_name: str) -> dict | None:
+        """The analytic stability, in ``scenario_name``'s plant, of predictor ``name`` as trained in the first
+        (nominal) scenario: would the nominal filter hold where it was retrained? ``None`` when that filter was not
+        trained, has no linear model, or is too large to analyse."""
+        trained = self._trained.get((name, next(iter(self.scenarios))))
+        if trained is None:
+            return None
+        try:
+            result = controller_stability(self.config(name, scenario_name), trained, self.scenarios[scenario_name])
+        except CoupledAnalysisTooLarge:
+            return None
+        return None if result is None else stability_summary(result)
+
+    def verdict(self, result: ExperimentResult) -> dict:
+        """The verdict of ``result`` per scenario (:func:`eofnn.evaluation.verdict.build_verdict`)."""
+        return build_verdict(result, contender_roles(self.predictors), self.evaluation.realisations,
+                             self.nominal_filter_stability)
+
     def run(self) -> ExperimentResult:
         metrics: dict[str, dict[str, LoopMetrics]] = {}
         stability: dict[str, dict[str, dict]] = {}
@@ -206,9 +225,13 @@ class Experiment:
                 for name, entries in reconvergence(runs, changes, rate).items():
                     metrics[scenario_name][name].reconvergence = entries
         models = {key: model.info for key, model in self.classical_models.items()}
-        return ExperimentResult(metrics, dict(self.checkpoints), timings, stability, _by_scenario(self.gain_scans),
-                                _by_scenario(self.alpha_choices), _by_scenario(self.searches),
-                                classical_models=_by_scenario(models), peak_memory_bytes=peaks)
+        result = ExperimentResult(metrics, dict(self.checkpoints), timings, stability, _by_scenario(self.gain_scans),
+                                  _by_scenario(self.alpha_choices), _by_scenario(self.searches),
+                                  classical_models=_by_scenario(models), peak_memory_bytes=peaks,
+                                  scenario_dm_gains={name: float(sc.plant.dm_gain)
+                                                     for name, sc in self.scenarios.items()})
+        result.verdict = self.verdict(result)
+        return result
 
 
 def _by_scenario(per_controller: dict[tuple[str, str], dict]) -> dict[str, dict[str, dict]]:

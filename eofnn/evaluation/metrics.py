@@ -147,6 +147,10 @@ class LoopMetrics:
     #: Slow divergence (:class:`GrowthMonitor`): whether the residual keeps growing, and how fast (amplitude, 1/s).
     diverging: bool = False
     growth: dict | None = None
+    #: The median RMS of each turbulence realisation on its own (``evaluation.realisations`` of them, each a different
+    #: turbulence seed of the test stream): the spread the verdict reports. Empty when the loop diverged. Not in
+    #: :meth:`summary` (the pooled median above is the headline number).
+    realisation_median_rms_nm: list[float] = field(default_factory=list, repr=False)
 
     def summary(self) -> dict:
         """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back, ``reconvergence``
@@ -190,4 +194,5 @@ def loop_metrics(result: LoopResult, settle_frames: int, strehl_wavelength_m: fl
         rms_nm=result.residual_rms_nm.mean(0).tolist(),
         psd_freq_hz=freqs,
         psd_nm2_per_hz=power,
+        realisation_median_rms_nm=torch.quantile(rms, 0.5, dim=1).tolist(),
     )

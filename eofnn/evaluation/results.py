@@ -33,9 +33,15 @@ class ExperimentResult:
     #: The process's peak resident memory (bytes) after each scenario/controller step: the step that raised it is the
     #: one that needed it (``None`` where the platform does not say).
     peak_memory_bytes: dict[str, int | None] = field(default_factory=dict)
+    #: The plant's DM gain in each scenario (what a stable DM-gain interval must contain): scenario -> gain.
+    scenario_dm_gains: dict[str, float] = field(default_factory=dict)
+    #: The verdict per scenario (:func:`eofnn.evaluation.verdict.build_verdict`): best predictor against the best
+    #: classical controller and the best-gain integrator; ``None`` when not built (then not in ``metrics.json``).
+    verdict: dict | None = None
 
     def to_json(self) -> dict:
-        return {
+        verdict = {} if self.verdict is None else {"verdict": self.verdict}
+        return {**verdict,
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,

@@ -22,7 +22,10 @@ def replay_figure(result: ReplayResult, path: str | Path, grid: ActuatorGrid | A
         axes[0].plot(stats.rms_nm, style, lw=0.6, label=f"{label} (median {stats.median_rms_nm:.3g} nm)")
         if stats.psd_nm2_per_hz:
             axes[1].loglog(result.psd_freq_hz[1:], stats.psd_nm2_per_hz[1:], style, label=label)
-    axes[0].set(xlabel="replayed frame", ylabel="RMS error (nm)", title="prediction error per frame")
+    # A log axis: the first replayed frames (the filter's history filling) can be 100x the settled error, and a
+    # linear axis would flatten the curve that matters against them.
+    axes[0].set_yscale("log")
+    axes[0].set(xlabel="replayed frame", ylabel="RMS error (nm, log scale)", title="prediction error per frame")
     axes[1].set(xlabel="frequency (Hz)", ylabel="PSD (nm²/Hz)", title="temporal PSD")
     for ax in axes[:2]:
         ax.legend(fontsize=8)

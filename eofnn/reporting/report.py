@@ -8,6 +8,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from eofnn.evaluation.results import ExperimentResult
+from eofnn.reporting.verdict import dm_gain_interval_text, unstable_text, verdict_markdown
 from eofnn.training.alpha import NEGLIGIBLE_CHANGE, unregularised_change
 
 
@@ -60,6 +61,14 @@ def _legend(ax) -> None:
     """Each panel's legend below it, so that it never hides a curve."""
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
+
+
+def _mark_missing(ax, name: str, m, what: str) -> None:
+    """A legend entry (no curve) for a controller a panel cannot draw, so that it is never dropped silently: where it
+    diverged, or that it has no ``what``."""
+    why = (f"diverged (frame {m.diverged_frame})" if m.diverged and m.diverged_frame is not None else
+           "diverged" if m.diverged else f"no {what}")
+    ax.plot([], [], " ", label=f"{name}: {why}")
 
 
 def _figure(result: ExperimentResult, path: Path, title: str, xlabel: str, ylabel: str, draw) -> None:
@@ -131,21 +140,27 @@ def plot_rms_histograms(result: ExperimentResult, path: Path) -> None:
             for name, v in settled.items():
                 ax.hist(v, bins=bins, histtype="step", label=name, **styles[name])
             ax.set_xscale("log")
+        for name, m in preds.items():
+            if m.diverged:
+                _mark_missing(ax, name, m, "settled frames")
 
     _figure(result, path, "Distribution of per-frame RMS residual (after settling)", "RMS residual (nm)", "frames",
             draw)
 
 
 def _curves_figure(result: ExperimentResult, path: Path, x: str, y: str, floor: float, log_x: bool, lw: float,
-                   title: str, xlabel: str, ylabel: str) -> None:
+                   title: str, xlabel: str, ylabel: str, what: str) -> None:
     """One curve per controller that did not diverge, of its ``y`` list against its ``x`` list (first point dropped,
-    log y clipped at ``floor``), one panel per scenario."""
+    log y clipped at ``floor``), one panel per scenario; a controller without a curve (diverged, or no ``what``) is
+    named in the legend with the reason."""
 
     def draw(ax, preds, styles):
         for name, m in preds.items():
             if getattr(m, y) and not m.diverged:
                 xs, ys = np.asarray(getattr(m, x))[1:], np.asarray(getattr(m, y))[1:]
                 (ax.loglog if log_x else ax.semilogy)(xs, np.maximum(ys, floor), lw=lw, label=name, **styles[name])
+            else:
+                _mark_missing(ax, name, m, what)
         ax.grid(True, which="both", alpha=0.3)
 
     _figure(result, path, title, xlabel, ylabel, draw)
@@ -154,13 +169,17 @@ def _curves_figure(result: ExperimentResult, path: Path, x: str, y: str, floor: 
 def plot_psds(result: ExperimentResult, path: Path) -> None:
     """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
     _curves_figure(result, path, "psd_freq_hz", "psd_nm2_per_hz", 1e-30, True, 0.8,
-                   "Temporal power spectrum of the residual", "frequency (Hz)", "PSD (nm²/Hz)")
+                   "Temporal power spectrum of the residual (mean over actuators, after settling)", "frequency (Hz)",
+                   "PSD (nm²/Hz)", "PSD (run shorter than one segment)")
 
 
-def plot_contrast(result: ExperimentResult, path: Path) -> None:
-    """Raw contrast behind a perfect coronagraph against separation, one panel per scenario."""
+def plot_contrast(result: ExperimentResult, path: Path, wavelength_m: float | None) -> None:
+    """Raw contrast behind a perfect coronagraph against separation, one panel per scenario, at ``wavelength_m``
+    (the ``evaluation.strehl_wavelength_m`` the contrast was computed at; a contrast means nothing without it)."""
+    at = "wavelength not given" if wavelength_m is None else f"at {wavelength_m * 1e6:.3g} µm"
     _curves_figure(result, path, "contrast_separation_lod", "contrast", 1e-18, False, 0.9,
-                   "Raw contrast behind a perfect coronagraph", "separation (λ/D)", "raw contrast")
+                   f"Raw contrast behind a perfect coronagraph, {at} (after settling)", "separation (λ/D)",
+                   "raw contrast (intensity / unobstructed PSF peak)", "contrast profile")
 
 
 def _caveat(result: ExperimentResult) -> str:
@@ -238,18 +257,19 @@ def _margins(result: ExperimentResult) -> str:
         for name in preds:
             analytic = result.stability.get(scenario, {}).get(name)
             simulated = result.simulated_stability.get(scenario, {}).get(name)
+            dm_gain = result.scenario_dm_gains.get(scenario)
             if analytic is not None:
-                low, high = analytic["dm_gain_interval"]
-                text = ("unstable" if not analytic["stable"] else
-                        f"{max(low or 0.0, 0.0) + 0.0:.3g} to {'∞' if high is None else f'{high:.3g}'} (linear analysis)")
+                text = (f"{unstable_text(dm_gain)} (linear analysis)" if not analytic["stable"] else
+                        f"stable for DM gain {dm_gain_interval_text(analytic['dm_gain_interval'])} (linear analysis)")
             elif simulated is not None:
                 interval = simulated["dm_gain_interval"]
-                text = ("unstable in simulation" if interval is None else
-                        f"{interval[0]:.3g} to {'beyond 8' if interval[1] is None else f'{interval[1]:.3g}'} "
+                text = (f"{unstable_text(dm_gain)} (simulation)" if interval is None else
+                        f"stable for DM gain {interval[0]:.3g} to "
+                        f"{'beyond 8' if interval[1] is None else f'{interval[1]:.3g}'} "
                         f"(simulation, bounds within {simulated['tolerance']:g})")
             else:
                 continue
-            lines.append(f"- {name} in {scenario}: stable for DM gain {text}")
+            lines.append(f"- {name} in {scenario}: {text}")
     if not lines:
         return ""
     return "\nStable DM-gain intervals (the DM applying g times the command):\n" + "\n".join(lines) + "\n"
@@ -258,13 +278,16 @@ def _margins(result: ExperimentResult) -> str:
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                  reference: dict[str, dict[str, float]] | None = None,
                  strehl_wavelength_m: float | None = None) -> list[Path]:
-    """Write ``results.md`` and the three figures into ``out``; returns the paths written."""
+    """Write ``results.md`` (the verdict first, when ``result`` has one) and the four figures into ``out``; returns the
+    paths written."""
     table = out / "results.md"
-    table.write_text("# Closed-loop comparison\n\n" + markdown_table(result, reference, strehl_wavelength_m)
+    verdict = "" if result.verdict is None else verdict_markdown(result.verdict) + "\n"
+    table.write_text("# Closed-loop comparison\n\n" + verdict + "## Median RMS per scenario\n\n"
+                     + markdown_table(result, reference, strehl_wavelength_m)
                      + _gains(result) + _alphas(result) + _margins(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])
     plot_psds(result, figures[2])
-    plot_contrast(result, figures[3])
+    plot_contrast(result, figures[3], strehl_wavelength_m)
     return [table, *figures]

@@ -1,0 +1,180 @@
+"""The verdict at the top of results.md and in metrics.json: who is best, by how much, how stable, how sure."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
+from eofnn.evaluation.results import ExperimentResult
+from eofnn.evaluation.verdict import build_verdict, contender_roles
+from eofnn.reporting.report import write_report
+from eofnn.reporting.verdict import verdict_markdown
+
+TINY = Path(__file__).parent / "conf" / "tiny_compare.yaml"
+
+
+def held(median, contrast_3=None, realisations=(None,)):
+    """A run that held the loop, with its median RMS and raw contrast at 3 lambda/D."""
+    medians = [median if r is None else r for r in realisations]
+    return LoopMetrics(median, median, 1.2 * median, 0.9, False, None, 10, 100, rms_nm=[median] * 100,
+                       contrast_at={"2": None, "3": contrast_3}, realisation_median_rms_nm=medians)
+
+
+def diverged(frame=7):
+    return LoopMetrics(None, None, None, None, True, frame, 10, 100, rms_nm=[1.0] * 100)
+
+
+def cfg(controller, **kw):
+    """A stand-in of PredictorConfig with the fields the verdict reads."""
+    return SimpleNamespace(controller=controller, checkpoint=kw.get("checkpoint"), train_in=kw.get("train_in"),
+                           gains=kw.get("gains"), gain=kw.get("gain", 0.5))
+
+
+PREDICTORS = {"uncorrected": cfg("uncorrected"), "pseudo_integrator": cfg("pseudo_integrator"),
+              "integrator": cfg("integrator", gains=[0.2, 0.4]), "extrapolator": cfg("extrapolator"),
+              "ol_eof": cfg("predictor", train_in="nominal"), "cl_eof": cfg("predictor")}
+
+
+def stable(low, high, margin_db=3.0, delay=1.0):
+    return {"stable": True, "dm_gain_interval": [low, high], "gain_margin_db": margin_db,
+            "delay_margin_frames": delay}
+
+
+UNSTABLE = {"stable": False, "dm_gain_interval": [None, None], "gain_margin_db": None, "delay_margin_frames": None}
+
+
+def result():
+    """Two scenarios; in dm_gain_2 the open-loop EOF (the best predictor of nominal) diverged, the pseudo-integrator
+    (a reference, not a contender) is better than every classical controller, and the integrator is near critical."""
+    metrics = {
+        "nominal": {"uncorrected": held(300.0), "pseudo_integrator": held(20.0), "integrator": held(18.6, 3e-5),
+                    "extrapolator": held(9.0, 1e-5), "ol_eof": held(4.8, 4e-7), "cl_eof": held(5.0, 5e-7)},
+        "dm_gain_2": {"uncorrected": held(300.0), "pseudo_integrator": held(2.0), "integrator": held(12.0, None),
+                      "extrapolator": held(40.0), "ol_eof": diverged(), "cl_eof": held(6.0, 6e-7)},
+    }
+    stability = {"nominal": {"integrator": stable(0.0, 1.3), "ol_eof": stable(0.95, 1.07), "cl_eof": stable(0.9, 1.1)},
+                 "dm_gain_2": {"integrator": stable(0.0, 2.2, margin_db=0.83, delay=0.36), "ol_eof": UNSTABLE,
+                               "cl_eof": stable(1.9, 2.15)}}
+    gains = {s: {"integrator": {"gain": g, "scanned": {}, "critical_gain": c, "at_edge": False}}
+             for s, g, c in (("nominal", 0.7, 1.0), ("dm_gain_2", 0.45, 0.5))}
+    return ExperimentResult(metrics, stability=stability, integrator_gains=gains,
+                            scenario_dm_gains={"nominal": 1.0, "dm_gain_2": 2.0})
+
+
+def test_the_best_of_each_kind_and_the_ratios():
+    r = result()
+    v = build_verdict(r, contender_roles(PREDICTORS), 1, lambda name, scenario: UNSTABLE)["scenarios"]
+    nominal, doubled = v["nominal"], v["dm_gain_2"]
+    assert nominal["best_predictor"]["name"] == "ol_eof" and nominal["best_classical"]["name"] == "extrapolator"
+    assert nominal["best_gain_integrator"]["name"] == "integrator"
+    assert nominal["against_best_gain_integrator"]["rms_ratio"] == pytest.approx(18.6 / 4.8)
+    assert nominal["against_best_gain_integrator"]["variance_ratio"] == pytest.approx((18.6 / 4.8) ** 2)
+    assert nominal["against_best_classical"]["rms_ratio"] == pytest.approx(9.0 / 4.8)
+    # A diverged contender is never best; a reference (pseudo-integrator, truth-fed) is never a classical contender.
+    assert doubled["best_predictor"]["name"] == "cl_eof" and doubled["diverged"] == ["ol_eof"]
+    assert doubled["best_classical"]["name"] == "integrator"
+    assert doubled["best_gain_integrator"]["near_instability"] and not nominal["best_gain_integrator"][
+        "near_instability"]
+    assert not doubled["best_predictor"]["near_instability"]
+    # Retrained per scenario: the nominal filter's stability in this plant is quoted; trained once: where.
+    assert doubled["best_predictor"]["training"] == "retrained in each scenario"
+    assert doubled["best_predictor"]["nominal_filter_here"] == {"analysed": True, "stable": False,
+                                                                "dm_gain_interval": None}
+    assert nominal["best_predictor"]["training"] == "trained in nominal"
+
+
+def test_the_markdown_says_what_the_numbers_say():
+    text = verdict_markdown(build_verdict(result(), contender_roles(PREDICTORS), 1, lambda n, s: UNSTABLE))
+    nominal, doubled = text.split("**dm_gain_2**")
+    assert "ol_eof 4.8 nm against the best classical controller, extrapolator, 9 nm: 1.9x in RMS, 3.5x in variance" \
+        in nominal
+    assert "integrator (best gain 0.7), 18.6 nm: 3.9x in RMS, 15x in variance" in nominal
+    assert "Raw contrast at 3 λ/D: ol_eof 4e-07, extrapolator 1e-05, integrator 3e-05" in nominal
+    assert "ol_eof was trained in nominal" in nominal
+    assert "integrator: 0 to 2.2 (linear analysis): close to its critical gain (gain margin 0.83 dB, delay margin " \
+        "0.36 frame)" in doubled
+    assert "not available for integrator" in doubled
+    assert "ol_eof diverged: never counted as best" in doubled
+    assert ("cl_eof was retrained in this scenario; the nominal filter would be unstable at this plant (no stable "
+            "DM-gain interval contains its DM gain, 2)") in doubled
+    assert "1 realisation of the test turbulence per run: no spread; set evaluation.realisations for one" in text
+
+
+def test_a_predictor_with_thin_margins_is_said_close_to_instability():
+    r = result()
+    r.stability["dm_gain_2"]["cl_eof"] = stable(1.9, 2.15, margin_db=0.62, delay=0.025)
+    text = verdict_markdown(build_verdict(r, contender_roles(PREDICTORS), 1))
+    assert "cl_eof: 1.9 to 2.15 (linear analysis): close to instability (gain margin 0.62 dB, delay margin 0.025 " \
+        "frame)" in text
+
+
+def test_not_analysed_and_a_losing_predictor_are_said_plainly():
+    r = result()
+    r.metrics["dm_gain_2"]["cl_eof"] = held(30.0)
+    text = verdict_markdown(build_verdict(r, contender_roles(PREDICTORS), 1))
+    doubled = text.split("**dm_gain_2**")[1]
+    assert "the predictor loses: 2.5x higher in RMS, 6.2x in variance" in doubled
+    assert "whether the nominal filter would be stable here is not analysed" in doubled
+
+
+def test_the_spread_over_realisations():
+    r = result()
+    r.metrics["nominal"]["ol_eof"] = held(4.8, 4e-7, realisations=(4.5, 4.9, 5.3))
+    v = build_verdict(r, contender_roles(PREDICTORS), 3)
+    spread = v["scenarios"]["nominal"]["best_predictor"]["realisations"]
+    assert (spread["median_nm"], spread["min_nm"], spread["max_nm"]) == (4.9, 4.5, 5.3)
+    text = verdict_markdown(v)
+    assert "3 realisations of the test turbulence per run" in text and "ol_eof 4.9 nm (4.5 to 5.3)" in text
+
+
+def test_each_realisation_has_its_own_median():
+    rms = torch.tensor([[100.0] * 5 + [1.0, 2.0, 3.0], [100.0] * 5 + [5.0, 6.0, 7.0]])
+    m = loop_metrics(SimpleNamespace(residual_rms_nm=rms, diverged=False, diverged_frame=None), 5, 1.65e-6)
+    assert m.realisation_median_rms_nm == [2.0, 6.0] and m.median_rms_nm == pytest.approx(4.0)
+    assert "realisation_median_rms_nm" not in m.summary()  # metrics.json's scenarios keep their keys
+
+
+def test_the_margins_section_says_unstable_in_words(tmp_path, monkeypatch):
+    import eofnn.reporting.report as report
+
+    for figure in ("plot_rms_vs_time", "plot_rms_histograms", "plot_psds", "plot_contrast"):  # the text only: fast
+        monkeypatch.setattr(report, figure, lambda *args: None)
+    r = result()
+    r.verdict = build_verdict(r, contender_roles(PREDICTORS), 1)
+    write_report(r, tmp_path, 1000.0, strehl_wavelength_m=1.65e-6)
+    text = (tmp_path / "results.md").read_text()
+    assert "stable for DM gain unstable" not in text
+    assert ("- ol_eof in dm_gain_2: unstable at this plant (no stable DM-gain interval contains its DM gain, 2) "
+            "(linear analysis)") in text
+    assert text.index("## Verdict") < text.index("| predictor |")
+
+
+@pytest.mark.slow
+@pytest.mark.cli
+def test_realisations_give_a_spread(tmp_path):
+    """evaluation.realisations: 2 scores each run on two turbulence seeds; the verdict quotes their medians' spread,
+    and the pooled median of the table lies within it."""
+    from eofnn.cli.main import main
+
+    predictors = {"uncorrected": {"controller": "uncorrected"}, "integrator": {"controller": "integrator", "gain": 0.4},
+                  "extrapolator": {"controller": "extrapolator"}}
+    out = tmp_path / "run"
+    assert main(["compare", "--config", str(TINY), "--scenarios", '{"nominal": {}}', "--predictors",
+                 json.dumps(predictors), "--evaluation.frames", "400", "--evaluation.settle_frames", "100",
+                 "--evaluation.psd_segment_frames", "128", "--evaluation.realisations", "2", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    verdict = metrics["verdict"]
+    best = verdict["scenarios"]["nominal"]["best_classical"]
+    spread = best["realisations"]
+    assert verdict["realisations"] == 2 and len(spread["medians_nm"]) == 2
+    assert spread["min_nm"] < spread["max_nm"]  # two seeds, two different turbulences
+    assert spread["min_nm"] <= metrics["scenarios"]["nominal"][best["name"]]["median_rms_nm"] <= spread["max_nm"]
+    text = (out / "results.md").read_text()
+    assert "2 realisations of the test turbulence per run" in text
+    assert f"{best['name']} {spread['median_nm']:.3g} nm ({spread['min_nm']:.3g} to {spread['max_nm']:.3g})" in text
+    assert "No predictor held the loop" in text
