@@ -242,6 +242,36 @@ def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
     return resolved
 
 
+def split_sweep_overrides(args: list[str]) -> tuple[list[str], dict[str, str]]:
+    """``eofnn sweep``'s command line without its dotted options, and those options as the overrides of its base
+    config: ``--evaluation.frames 1500`` (or ``--evaluation.frames=1500``) -> ``{"evaluation.frames": "1500"}``,
+    the value as typed (compare's parser reads it, as ``eofnn compare --evaluation.frames 1500`` would).
+
+    Raises
+    ------
+    ConfigError
+        For a dotted option without a value.
+    """
+    own = {f.name for f in fields(COMMANDS["sweep"].config)}
+    kept: list[str] = []
+    overrides: dict[str, str] = {}
+    index = 0
+    while index < len(args):
+        arg = args[index]
+        name, equals, value = arg[2:].partition("=") if arg.startswith("--") else ("", "", "")
+        if "." in name and name.split(".")[0] not in own:
+            if not equals:
+                if index + 1 >= len(args) or args[index + 1].startswith("--"):
+                    raise ConfigError(f"--{name} has no value: give one, e.g. --{name} VALUE")
+                index += 1
+                value = args[index]
+            overrides[name] = value
+        else:
+            kept.append(arg)
+        index += 1
+    return kept, overrides
+
+
 @contextlib.contextmanager
 def _on_python_path(folders: list[str]):
     """``folders`` first on ``sys.path`` while the command runs, and the path as it was afterwards."""
@@ -285,6 +315,9 @@ def parse(args: list[str]) -> Parsed:
     parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
     folders: list[str] = []
     args = _prepare_config_files(args, folders)
+    overrides: dict[str, str] = {}
+    if args and args[0] == "sweep":  # dotted options are the base config's, set at every point
+        args, overrides = split_sweep_overrides(args)
     with _on_python_path(folders):
         cfg = parser.parse_args(args)
         command = cfg.command
@@ -297,4 +330,6 @@ def parse(args: list[str]) -> Parsed:
             if cause is None:
                 raise
             raise cause from None
+    if overrides:
+        init = dataclasses.replace(init, overrides={**init.overrides, **overrides})
     return Parsed(command, init, sub_dump, tuple(folders))
