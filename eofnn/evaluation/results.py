@@ -33,12 +33,16 @@ class ExperimentResult:
     #: The process's peak resident memory (bytes) after each scenario/controller step: the step that raised it is the
     #: one that needed it (``None`` where the platform does not say).
     peak_memory_bytes: dict[str, int | None] = field(default_factory=dict)
+    #: The gain every integrator ran at: scenario -> controller -> {"gain": loop gain (dimensionless), "scanned":
+    #: whether it was chosen by a best-gain scan (``integrator_gains`` has the scan) or fixed by the config}.
+    integrator_gain_used: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,
+            "integrator_gain_used": self.integrator_gain_used,
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
             "simulated_stability": self.simulated_stability,
