@@ -72,6 +72,9 @@ def test_a_misspelt_key_inside_a_predictor_and_at_the_top_level(cli_error, tmp_p
     # A YAML merge key brings its mapping's keys in: they are checked where they land.
     ("defaults: &d {frames: 100, setle_frames: 10}\n", "line 1: unknown key 'defaults' at the top level"),
     ("evaluation:\n  <<: {frames: 100}\n  setle_frames: 10\n", "line 3: unknown key 'setle_frames' in evaluation"),
+    # A scenario's plant changes: the plant's fields.
+    ("scenarios:\n  nominal: {}\n  doubled: {dm_gian: 2.0}\n",
+     "line 3: unknown key 'dm_gian' in scenarios.doubled: did you mean 'dm_gain'?"),
     # Nothing close: the allowed keys are listed.
     ("evaluation: {zzz: 1}\n", "unknown key 'zzz' in evaluation: allowed are divergence_factor, frames,"),
 ])
@@ -89,7 +92,7 @@ def test_free_mappings_and_known_keys_pass(tmp_path):
     from eofnn.cli.compare import CompareConfig, EvaluateConfig
 
     path = tmp_path / "c.yaml"
-    path.write_text("config: other.yaml\nscenarios: {a: {anything: 1}}\npredictors:\n  n: {network: {class_path: "
+    path.write_text("config: other.yaml\nscenarios: {a: {dm_gain: 2.0}, b: {}}\npredictors:\n  n: {network: {class_path: "
                     "x.Y, init_args: {whatever: 2}}, optimization: {search: {lr: [1.0]}}}\n"
                     "evaluation:\n  <<: {frames: 100}\n  settle_frames: 10\n")
     check_config_keys(path, CompareConfig)

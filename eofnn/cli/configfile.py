@@ -210,9 +210,10 @@ class _KeyChecker:
     """Walks a composed YAML node graph beside a config dataclass and refuses the first key that is not a field.
 
     Only what is certain is checked: mappings read as a config dataclass (directly, as ``X | None``, as items of a
-    ``list[X]`` or values of a ``dict[str, X]``), and the files such a mapping is given as (``scenario:
-    realistic.yaml``). Free mappings (``network``, ``scenarios``' plant changes, ``search``) are left to the checks
-    of the floors that read them.
+    ``list[X]`` or values of a ``dict[str, X]``), the files such a mapping is given as (``scenario:
+    realistic.yaml``), and the values of a free mapping that a dataclass declares as changes of another
+    (``_mapping_value_keys = {"scenarios": Plant}``: each scenario's keys are the plant's fields). Other free
+    mappings (``network``, ``search``) are left to the checks of the floors that read them.
     """
 
     def __init__(self) -> None:
@@ -237,7 +238,15 @@ class _KeyChecker:
             key = key_node.value
             if key not in hints:
                 raise ConfigError(unknown_key_message(path, key_node.start_mark.line + 1, key, where, list(hints)))
-            self.value(value_node, hints[key], path, f"{where}.{key}" if where else key, depth,
+            child_where = f"{where}.{key}" if where else key
+            free_values = getattr(cls, "_mapping_value_keys", {}).get(key)
+            if free_values is not None and isinstance(value_node, yaml.MappingNode):
+                # A free mapping whose values are changes of a dataclass (``scenarios: {name: {dm_gain: 2.0}}``).
+                for name_node, changes in value_node.value:
+                    if isinstance(name_node, yaml.ScalarNode) and isinstance(changes, yaml.MappingNode):
+                        self.mapping(changes, free_values, path, f"{child_where}.{name_node.value}", depth)
+                continue
+            self.value(value_node, hints[key], path, child_where, depth,
                        top_level_key=key if depth == 0 and not where else None)
 
     def value(self, node: yaml.Node, hint, path: Path, where: str, depth: int, top_level_key: str | None) -> None:
