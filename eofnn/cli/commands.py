@@ -233,7 +233,8 @@ def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
             check_config_file(value)
             folders.append(str(Path(value).resolve().parent))
             if args[0] != "sweep":  # sweep's --config is the base of a compare, resolved by the sweep
-                check_config_keys(value, command.config)
+                if command is not None:
+                    check_config_keys(value, command.config)
                 resolved[index] = resolve_config_references(value)
     if command is not None and args[0] != "sweep":
         for name, group, path in _nested_files(args, command.config):
