@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from eofnn.control.baselines import critical_gain
@@ -53,3 +55,57 @@ def test_a_grid_whose_best_is_its_top_is_extended_towards_the_critical_gain(smal
 def test_bad_gain_lists_are_one_line_errors(config, expected):
     with pytest.raises(ConfigError, match=expected.replace("[", r"\[").replace("]", r"\]")):
         PredictorConfig(**config)
+
+
+TINY_EVALUATE = Path(__file__).parent / "conf" / "tiny_evaluate.yaml"
+
+
+@pytest.mark.slow
+def test_evaluate_states_its_integrators_gain_and_runs_the_best_gain_scan_when_asked(small_scenario, tmp_path,
+                                                                                     monkeypatch):
+    """The fixed gain (0.5 unless set) and a scan's choice: in metrics.json, results.md and the progress line."""
+    import json
+
+    from eofnn.cli.compare import EvaluateConfig, evaluate
+
+    lines: list[str] = []
+    common = dict(scenario=small_scenario, checkpoints={}, baselines=["integrator"],
+                  evaluation=EvaluationConfig(frames=400, settle_frames=100, psd_segment_frames=128), progress=False)
+    monkeypatch.setattr("eofnn.cli.compare.log", lines.append)
+    for out, integrator in [("fixed", PredictorConfig(controller="integrator")),
+                            ("scan", {"gains": [0.3, 0.6], "refine_rounds": 0, "data": {"frames": 400}})]:
+        evaluate(EvaluateConfig(out=str(tmp_path / out), integrator=integrator, **common))
+    fixed = json.loads((tmp_path / "fixed" / "metrics.json").read_text())
+    assert fixed["integrator_gain_used"] == {"nominal": {"integrator": {"gain": 0.5, "scanned": False}}}
+    assert fixed["integrator_gains"] == {}
+    assert "- integrator: gain 0.5 in nominal" in (tmp_path / "fixed" / "results.md").read_text()
+    scan = json.loads((tmp_path / "scan" / "metrics.json").read_text())
+    chosen = scan["integrator_gains"]["nominal"]["integrator"]
+    assert set(chosen["scanned"]) == {"0.3", "0.6"}
+    assert scan["integrator_gain_used"] == {"nominal": {"integrator": {"gain": chosen["gain"], "scanned": True}}}
+    assert "Integrators at a fixed gain" not in (tmp_path / "scan" / "results.md").read_text()
+    said = [line for line in lines if "integrator: median RMS" in line]
+    assert said[0].endswith("; gain 0.5 (fixed, not tuned)") and said[1].endswith(
+        f"; gain {chosen['gain']:g} (best of the scan)"), lines
+
+
+@pytest.mark.cli
+def test_evaluate_takes_the_integrators_settings_from_the_command_line_or_a_config(tmp_path, cli_error):
+    from eofnn.cli.commands import parse
+
+    args = ["evaluate", "--config", str(TINY_EVALUATE), "--checkpoints", "{}", "--out", str(tmp_path / "o")]
+    default = parse(args).config.integrator
+    assert default.controller == "integrator" and default.gain == 0.5 and default.gains is None
+    scan = parse([*args, "--integrator.gains", "[0.3, 0.6]", "--integrator.data.frames", "600"]).config.integrator
+    assert scan.controller == "integrator" and scan.gains == [0.3, 0.6] and scan.data.frames == 600
+    config = tmp_path / "mine.yaml"
+    config.write_text(TINY_EVALUATE.read_text().replace("scenario: tiny_scenario.yaml",
+                                                        f"scenario: {TINY_EVALUATE.parent / 'tiny_scenario.yaml'}")
+                      + "integrator: {gains: [0.2, 0.4], data: {frames: 500}}\n")
+    from_file = parse(["evaluate", "--config", str(config), "--checkpoints", "{}", "--out", str(tmp_path / "o")])
+    assert from_file.config.integrator.gains == [0.2, 0.4] and from_file.config.integrator.controller == "integrator"
+    # Settings that would be silently unused, or another controller in the integrator's place: refused.
+    cli_error([*args, "--baselines", "[pseudo_integrator]", "--integrator.gains", "[0.3]"],
+              "integrator is set but baselines=['pseudo_integrator'] has no integrator", tmp_path / "o")
+    cli_error([*args, "--integrator.controller", "lqg"], "integrator.controller='lqg' is invalid: it must be "
+              "integrator", tmp_path / "o")

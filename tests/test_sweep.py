@@ -257,3 +257,28 @@ def test_shipped_grids_plan(grid, n_points):
     assert len(points) == n_points
     resolved = yaml.safe_load(points[0].config_yaml)
     assert set(resolved["predictors"]) == {"uncorrected", "ol_eof"} and resolved["scenario"]["grid"]["n_across"] == 40
+
+
+@pytest.mark.cli
+def test_dotted_options_override_the_base_config_at_every_point(tmp_path, capsys):
+    from eofnn.cli.commands import parse
+    from eofnn.cli.sweep.plan import resolve_base
+
+    grid = write_grid(tmp_path, HISTORY_GRID)
+    parsed = parse(["sweep", "--config", str(BASE), "--grid", str(grid), "--out", str(tmp_path / "s"),
+                    "--evaluation.frames", "400", "--predictors.integrator.gain=0.3", "--workers", "2"])
+    assert parsed.config.overrides == {"evaluation.frames": "400", "predictors.integrator.gain": "0.3"}
+    assert parsed.config.workers == 2
+    base = resolve_base(BASE, parsed.config.overrides)
+    assert base["evaluation"]["frames"] == 400 and base["predictors"]["integrator"]["gain"] == 0.3
+    assert resolve_base(BASE, {"evaluation.frames": 400})["evaluation"]["frames"] == 400  # from Python: any value
+    assert resolve_base(BASE)["evaluation"]["frames"] == 300
+    # Refused in one line before anything runs: a key also swept, a misspelt key, an option without its value.
+    for options, message in [(["--predictors.ol_eof.history_length", "3"], "is also swept by the grid"),
+                             (["--evaluation.frams", "400"], "evaluation.frams"),
+                             (["--out", str(tmp_path / "s"), "--evaluation.frames"], "--evaluation.frames has no value")]:
+        assert real_main(["sweep", "--config", str(BASE), "--grid", str(grid), "--out", str(tmp_path / "s"),
+                          *options]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("eofnn: error: ") and len(err.splitlines()) == 1 and message in err, err
+        assert not (tmp_path / "s").exists()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import importlib
 import re
 import sys
@@ -24,7 +25,13 @@ from jsonargparse import ActionConfigFile, ArgumentParser, DefaultHelpFormatter
 from jsonargparse import ArgumentError as JsonArgError
 
 from eofnn import __version__
-from eofnn.cli.configfile import check_config_file, resolve_config_references
+from eofnn.cli.configfile import (
+    check_config_file,
+    check_config_keys,
+    config_field_types,
+    resolve_config_references,
+    unwrap_optional,
+)
 from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
 
 DESCRIPTION = """\
@@ -192,22 +199,78 @@ def one_line(err: BaseException) -> str:
     return ": ".join(kept).replace('Parser key "', "").replace('":', ":").replace("::", ":")
 
 
+def _nested_files(args: list[str], config_class: type) -> list[tuple[str, type, str]]:
+    """``(field, dataclass, file)`` for each option of the command line that gives a config group as a YAML file
+    (``--scenario configs/realistic.yaml``), so that its keys are checked as a ``--config`` file's are."""
+    hints = config_field_types(config_class) or {}
+    found = []
+    for index, arg in enumerate(args):
+        if not arg.startswith("--"):
+            continue
+        name, _, value = arg[2:].partition("=")
+        if not value and index + 1 < len(args):
+            value = args[index + 1]
+        group = unwrap_optional(hints.get(name))
+        if dataclasses.is_dataclass(group) and value.endswith((".yaml", ".yml")) and Path(value).is_file():
+            found.append((name, group, value))
+    return found
+
+
 def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
-    """Check every ``--config`` file before jsonargparse reads it, and add its folder to ``folders`` (put on the
-    Python path while the command runs, so a user's module beside their config (``class_path: my_net.Net``)
-    imports without PYTHONPATH tricks).
+    """Check every ``--config`` file before jsonargparse reads it (its keys too, and those of the files it names:
+    :func:`~eofnn.cli.configfile.check_config_keys`), and add its folder to ``folders`` (put on the Python path
+    while the command runs, so a user's module beside their config (``class_path: my_net.Net``) imports without
+    PYTHONPATH tricks). A config group given as a file on the command line (``--scenario FILE``) has its keys
+    checked the same way.
 
     Returns ``args`` with the configs' references to eofnn's own configs resolved (``scenario: realistic.yaml``
     in a config copied out of ``configs/``; see :func:`~eofnn.cli.configfile.resolve_config_references`).
     """
+    command = COMMANDS.get(args[0]) if args else None
     resolved = list(args)
     for index, value in enumerate(args):
         if index > 0 and args[index - 1] == "--config":
             check_config_file(value)
             folders.append(str(Path(value).resolve().parent))
             if args[0] != "sweep":  # sweep's --config is the base of a compare, resolved by the sweep
+                if command is not None:
+                    check_config_keys(value, command.config)
                 resolved[index] = resolve_config_references(value)
+    if command is not None and args[0] != "sweep":
+        for name, group, path in _nested_files(args, command.config):
+            check_config_file(path)
+            check_config_keys(path, group, where=name)
     return resolved
+
+
+def split_sweep_overrides(args: list[str]) -> tuple[list[str], dict[str, str]]:
+    """``eofnn sweep``'s command line without its dotted options, and those options as the overrides of its base
+    config: ``--evaluation.frames 1500`` (or ``--evaluation.frames=1500``) -> ``{"evaluation.frames": "1500"}``,
+    the value as typed (compare's parser reads it, as ``eofnn compare --evaluation.frames 1500`` would).
+
+    Raises
+    ------
+    ConfigError
+        For a dotted option without a value.
+    """
+    own = {f.name for f in fields(COMMANDS["sweep"].config)}
+    kept: list[str] = []
+    overrides: dict[str, str] = {}
+    index = 0
+    while index < len(args):
+        arg = args[index]
+        name, equals, value = arg[2:].partition("=") if arg.startswith("--") else ("", "", "")
+        if "." in name and name.split(".")[0] not in own:
+            if not equals:
+                if index + 1 >= len(args) or args[index + 1].startswith("--"):
+                    raise ConfigError(f"--{name} has no value: give one, e.g. --{name} VALUE")
+                index += 1
+                value = args[index]
+            overrides[name] = value
+        else:
+            kept.append(arg)
+        index += 1
+    return kept, overrides
 
 
 @contextlib.contextmanager
@@ -253,6 +316,9 @@ def parse(args: list[str]) -> Parsed:
     parser = build_parser([args[0]] if args and args[0] in COMMANDS else [])
     folders: list[str] = []
     args = _prepare_config_files(args, folders)
+    overrides: dict[str, str] = {}
+    if args and args[0] == "sweep":  # dotted options are the base config's, set at every point
+        args, overrides = split_sweep_overrides(args)
     with _on_python_path(folders):
         cfg = parser.parse_args(args)
         command = cfg.command
@@ -265,4 +331,6 @@ def parse(args: list[str]) -> Parsed:
             if cause is None:
                 raise
             raise cause from None
+    if overrides:
+        init = dataclasses.replace(init, overrides={**init.overrides, **overrides})
     return Parsed(command, init, sub_dump, tuple(folders))

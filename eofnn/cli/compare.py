@@ -19,6 +19,7 @@ from eofnn.outputs import check_output_folder, staged_folder
 from eofnn.reporting.pareto import plot_pareto
 from eofnn.reporting.report import write_report
 from eofnn.reporting.robustness import plot_robustness
+from eofnn.validation import from_mapping
 
 COMPARE = ("Run an experiment: every controller in every scenario (plant), predictors trained once where asked, "
            "evaluated in closed loop on a held-out stream. Writes metrics.json, results.md, config.yaml, figures, "
@@ -64,10 +65,16 @@ class EvaluateConfig(ExperimentCommand):
         Name -> checkpoint path.
     baselines : list of str
         Baseline controllers to run beside the checkpoints.
+    integrator : PredictorConfig
+        The integrator of baselines: a fixed gain (gain, default 0.5), or compare's best-gain integrator, gains:
+        [0.2, 0.3, 0.4, 0.5, 0.6] (in each scenario the loop is closed with each gain on a stream of its own,
+        data.frames frames, refined around the best; the fair baseline). metrics.json (integrator_gain_used),
+        results.md and the progress line say the gain it ran at.
     """
 
     checkpoints: dict[str, str]
     baselines: list[str] = field(default_factory=lambda: ["uncorrected", "pseudo_integrator", "integrator"])
+    integrator: PredictorConfig = field(default_factory=lambda: PredictorConfig(controller="integrator"))
 
 
 def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None, *,
@@ -126,7 +133,17 @@ def compare(cfg: CompareConfig, config_dump: str | None = None) -> ExperimentRes
 
 def evaluate(cfg: EvaluateConfig, config_dump: str | None = None) -> ExperimentResult:
     """Run ``cfg.checkpoints`` beside ``cfg.baselines`` in every scenario and write the results into ``cfg.out``."""
-    predictors = {name: PredictorConfig(controller=name) for name in cfg.baselines}
+    integrator = cfg.integrator
+    if isinstance(integrator, dict):  # called from Python with a mapping
+        integrator = from_mapping(PredictorConfig, {"controller": "integrator", **integrator}, "integrator")
+    if integrator.controller != "integrator":
+        raise ConfigError(f"integrator.controller={integrator.controller!r} is invalid: it must be integrator (the "
+                          "integrator of baselines)")
+    if "integrator" not in cfg.baselines and integrator != PredictorConfig(controller="integrator"):
+        raise ConfigError(f"integrator is set but baselines={cfg.baselines!r} has no integrator: add it, or leave "
+                          "integrator out")
+    predictors = {name: integrator if name == "integrator" else PredictorConfig(controller=name)
+                  for name in cfg.baselines}
     for name, path in cfg.checkpoints.items():
         predictors[name] = PredictorConfig(checkpoint=path)
     return run_experiment(cfg, predictors, config_dump)

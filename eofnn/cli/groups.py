@@ -1,7 +1,7 @@
 """The configuration groups of the subcommands that run a scenario (they import the simulator: torch, HCIPy)."""
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from eofnn.cli.common import Output
 from eofnn.evaluation.config import EvaluationConfig
@@ -50,6 +50,10 @@ class ExperimentCommand(SimulationCommand):
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     allow_long: bool = False
     reference: dict[str, dict[str, float]] | None = None
+
+    #: Free mappings whose values change a dataclass: each scenario's keys are fields of the plant (config files'
+    #: keys are checked against them, :func:`eofnn.cli.configfile.check_config_keys`).
+    _mapping_value_keys: ClassVar[dict[str, type]] = {"scenarios": Plant}
 
 
 ExperimentCommand.__doc__ = ExperimentCommand.__doc__.replace("{plant_fields}", ", ".join(Plant.model_error_names()))

@@ -206,6 +206,7 @@ class Experiment:
         metrics: dict[str, dict[str, LoopMetrics]] = {}
         stability: dict[str, dict[str, dict]] = {}
         timings, peaks = {}, {}
+        gains_used: dict[tuple[str, str], dict] = {}
         for scenario_name in self.scenarios:
             metrics[scenario_name], stability[scenario_name] = {}, {}
             for name in self.predictors:
@@ -217,7 +218,14 @@ class Experiment:
                 margins = self.stability(name, scenario_name)
                 if margins is not None:
                     stability[scenario_name][name] = margins
-                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins, self.scenarios[scenario_name])}")
+                gain_note = ""
+                if self.predictors[name].controller == "integrator":
+                    scanned = self.predictors[name].gains is not None
+                    gain = self.config(name, scenario_name).gain
+                    gains_used[(name, scenario_name)] = {"gain": gain, "scanned": scanned}
+                    gain_note = f"; gain {gain:g} ({'best of the scan' if scanned else 'fixed, not tuned'})"
+                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins, self.scenarios[scenario_name])}"
+                         f"{gain_note}")
             changes = scenario_changes(self.scenarios[scenario_name])
             if changes:
                 runs = {name: None if m.diverged else m.rms_nm for name, m in metrics[scenario_name].items()}
@@ -229,7 +237,8 @@ class Experiment:
                                   _by_scenario(self.alpha_choices), _by_scenario(self.searches),
                                   classical_models=_by_scenario(models), peak_memory_bytes=peaks,
                                   scenario_dm_gains={name: float(sc.plant.dm_gain)
-                                                     for name, sc in self.scenarios.items()})
+                                                     for name, sc in self.scenarios.items()},
+                                  integrator_gain_used=_by_scenario(gains_used))
         result.verdict = self.verdict(result)
         return result
 

@@ -38,6 +38,9 @@ class ExperimentResult:
     #: The verdict per scenario (:func:`eofnn.evaluation.verdict.build_verdict`): best predictor against the best
     #: classical controller and the best-gain integrator; ``None`` when not built (then not in ``metrics.json``).
     verdict: dict | None = None
+    #: The gain every integrator ran at: scenario -> controller -> {"gain": loop gain (dimensionless), "scanned":
+    #: whether it was chosen by a best-gain scan (``integrator_gains`` has the scan) or fixed by the config}.
+    integrator_gain_used: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         verdict = {} if self.verdict is None else {"verdict": self.verdict}
@@ -45,6 +48,7 @@ class ExperimentResult:
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,
+            "integrator_gain_used": self.integrator_gain_used,
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
             "simulated_stability": self.simulated_stability,

@@ -210,6 +210,22 @@ def _gains(result: ExperimentResult) -> str:
     return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n"
 
 
+def _fixed_gains(result: ExperimentResult) -> str:
+    """A line per integrator run at the gain its config fixed (not chosen): what it ran at, and how to ask for the
+    best gain instead."""
+    fixed: dict[str, dict[str, float]] = {}
+    for scenario, used in result.integrator_gain_used.items():
+        for name, entry in used.items():
+            if not entry["scanned"]:
+                fixed.setdefault(name, {})[scenario] = entry["gain"]
+    if not fixed:
+        return ""
+    lines = [f"- {name}: gain {', '.join(sorted({f'{g:g}' for g in by_scenario.values()}))} in "
+             f"{', '.join(by_scenario)}" for name, by_scenario in fixed.items()]
+    return ("\nIntegrators at a fixed gain (not tuned: `{controller: integrator, gains: [...]}`, or `eofnn evaluate "
+            "--integrator.gains '[...]'`, closes the loop with each gain and keeps the best):\n" + "\n".join(lines) + "\n")
+
+
 def _alpha_edge(choice: dict) -> str:
     """What an alpha at an end of its path means: the unregularised fit's validation error beside it at the lower
     end (when they agree, no smaller alpha can matter), a hint to extend the path otherwise."""
@@ -284,7 +300,7 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
     verdict = "" if result.verdict is None else verdict_markdown(result.verdict) + "\n"
     table.write_text("# Closed-loop comparison\n\n" + verdict + "## Median RMS per scenario\n\n"
                      + markdown_table(result, reference, strehl_wavelength_m)
-                     + _gains(result) + _alphas(result) + _margins(result) + _caveat(result))
+                     + _gains(result) + _fixed_gains(result) + _alphas(result) + _margins(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])

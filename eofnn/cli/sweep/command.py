@@ -3,6 +3,7 @@
     eofnn sweep --config configs/paper_small.yaml --grid experiments/sweeps/grid_history.yaml --out results/history
     eofnn sweep ... --workers 4                       # 4 local worker processes
     eofnn sweep ... --backend ray --address auto      # points as Ray tasks on a running cluster
+    eofnn sweep ... --evaluation.frames 1500          # a dotted override of the base config, at every point
 
 The output folder holds ``sweep.yaml`` (what was swept), ``points/<id>/`` (per point: ``point.yaml``, its
 resolved config; ``run/``, compare's output; ``log.txt``; ``status.json``), ``sweep.csv`` and the figures.
@@ -17,9 +18,9 @@ import signal
 import sys
 import threading
 from contextlib import closing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
 from tqdm import tqdm
@@ -68,6 +69,9 @@ class SweepConfig(Output):
         Discard the points and results of a previous sweep in --out and start again.
     progress : bool, optional
         Progress bar over points (default: only when stderr is a terminal).
+    overrides : dict
+        Dotted compare keys set at every point, after the base config, as compare's command line sets them:
+        {evaluation.frames: 1500}. On the command line, any dotted option is one: --evaluation.frames 1500.
     """
 
     config: str
@@ -77,6 +81,7 @@ class SweepConfig(Output):
     address: str | None = None
     threads: int = 1
     progress: bool | None = None
+    overrides: dict[str, Any] = field(default_factory=dict)
 
 
 def _log(message: str) -> None:
@@ -146,14 +151,16 @@ def _settle(out: Path, points: list[Point], folders: dict[str, Path], results: d
 def _run(cfg: SweepConfig) -> int:
     _check_options(cfg)
     grid = load_grid(cfg.grid)
-    points = plan(cfg.config, grid)
+    points = plan(cfg.config, grid, cfg.overrides)
     out = Path(cfg.out).resolve()
     _prepare_out(out, cfg.overwrite)
     folders = {p.id: out / POINTS_DIR / p.id for p in points}
     results = {p.id: r for p in points if (r := read_point(folders[p.id], p.config_yaml)) is not None}
     # Unchanged files are not rewritten: resuming a finished sweep touches nothing.
-    write_atomic(out / SWEEP_FILE, yaml.safe_dump({"config": str(Path(cfg.config).resolve()), "grid": grid,
-                                                   "points": len(points)}, sort_keys=False))
+    record = {"config": str(Path(cfg.config).resolve()), "grid": grid, "points": len(points)}
+    if cfg.overrides:  # only then: the record of a sweep without any stays as it was
+        record["overrides"] = dict(cfg.overrides)
+    write_atomic(out / SWEEP_FILE, yaml.safe_dump(record, sort_keys=False))
     write_csv(out / CSV_FILE, points, results)
     todo: list[Point] = [p for p in points if p.id not in results]
     if not todo and any(out.glob("median_rms_*.png")):

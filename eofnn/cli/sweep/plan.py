@@ -16,6 +16,7 @@ as a failed point with compare's one-line error.
 from __future__ import annotations
 
 import copy
+import json
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,8 +24,8 @@ from typing import Any
 
 import yaml
 
-from eofnn.cli.commands import build_parser, one_line
-from eofnn.cli.configfile import resolve_config_references
+from eofnn.cli.commands import COMMANDS, build_parser, one_line
+from eofnn.cli.configfile import check_config_keys, resolve_config_references
 from eofnn.cli.sweep.grid import GridPoint, expand
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError, require
 
@@ -45,12 +46,42 @@ def _compare_parser():
     return build_parser(["compare"])
 
 
-def resolve_base(config_path: str | Path) -> dict:
-    """The base config as ``eofnn compare --config config_path`` resolves it, defaults filled in."""
+def override_arguments(overrides: dict[str, Any]) -> list[str]:
+    """``{"evaluation.frames": 1500}`` as compare's command line takes it: ``--evaluation.frames 1500`` (a string as
+    it was typed; any other value as JSON, which compare's parser reads as YAML)."""
+    arguments = []
+    for key, value in overrides.items():
+        arguments += [f"--{key}", value if isinstance(value, str) else json.dumps(value)]
+    return arguments
+
+
+def resolve_base(config_path: str | Path, overrides: dict[str, Any] | None = None) -> dict:
+    """The base config as ``eofnn compare --config config_path --key value ...`` resolves it (``overrides``: dotted
+    key -> value, applied after the file as compare applies its command line), defaults filled in.
+
+    Raises
+    ------
+    ConfigError
+        A misspelt key in the file (its line and the nearest allowed key), or an override compare refuses.
+    """
     path = Path(config_path)
     require(path.is_file(), f"config={str(path)!r} is not a file")
+    check_config_keys(path, COMMANDS["compare"].config)
     parser = _compare_parser()
-    cfg = parser.parse_args(["compare", "--config", resolve_config_references(path), "--out", "unused"])
+    base_args = ["compare", "--config", resolve_config_references(path)]
+    overrides = overrides or {}
+    for key in overrides:
+        require(key.split(".")[0] not in RUN_KEYS, f"--{key} is set by the sweep for each point: it cannot be "
+                "overridden")
+    from jsonargparse import ArgumentError
+
+    try:
+        cfg = parser.parse_args([*base_args, *override_arguments(overrides), "--out", "unused"])
+    except ArgumentError as err:
+        if not overrides:
+            raise
+        raise ConfigError(f"{one_line(err)} (with the sweep's overrides {' '.join(override_arguments(overrides))})"
+                          ) from None
     resolved = yaml.safe_load(parser.dump(cfg))["compare"]
     for key in RUN_KEYS:
         resolved.pop(key, None)
@@ -103,9 +134,20 @@ class _Checker:
             raise ConfigError(f"{label}: {one_line(err)}") from None
 
 
-def plan(config_path: str | Path, grid: dict[str, list[Any]]) -> list[Point]:
-    """Every point of ``grid`` over the base config, checked (see the module's docstring)."""
-    base = resolve_base(config_path)
+def plan(config_path: str | Path, grid: dict[str, list[Any]], overrides: dict[str, Any] | None = None) -> list[Point]:
+    """Every point of ``grid`` over the base config with ``overrides`` (dotted key -> value, as
+    :func:`resolve_base` applies them), checked (see the module's docstring).
+
+    Raises
+    ------
+    ConfigError
+        Also when a key is both overridden and swept (the grid would silently win).
+    """
+    for key in overrides or {}:
+        for swept in grid:
+            require(not (swept == key or swept.startswith(key + ".") or key.startswith(swept + ".")),
+                    f"--{key} is also swept by the grid ({swept}): set it in one place")
+    base = resolve_base(config_path, overrides)
     grid_points: list[GridPoint] = expand(grid)
     first = grid_points[0].values
     with tempfile.TemporaryDirectory(prefix="eofnn-sweep-") as tmp:
