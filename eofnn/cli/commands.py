@@ -25,7 +25,7 @@ from jsonargparse import ArgumentError as JsonArgError
 
 from eofnn import __version__
 from eofnn.cli.configfile import check_config_file, resolve_config_references
-from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
+from eofnn.errors import CheckpointError, ConfigError, DivergedError, OutputError, TelemetryError
 
 DESCRIPTION = """\
 eofnn: predictive wavefront control for adaptive optics, in simulated closed loop.
@@ -45,7 +45,7 @@ Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> -
 '<subcommand> --print_config' prints the resolved configuration.
 """
 
-USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, JsonArgError)
+USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, OutputError, JsonArgError)
 
 
 @dataclass(frozen=True)
