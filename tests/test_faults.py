@@ -1,4 +1,4 @@
-"""Faults beyond Ctrl-C: a full disk, a run killed with SIGKILL, two runs into one output. Each is one line (or nothing
+"""Faults beyond Ctrl-C: a full disk, a run killed with SIGKILL, two runs into one output, SIGTERM. Each is one line (or nothing
 at all), and nothing a user wrote is lost or left half-written (eofnn.outputs). Real signals to whole runs:
 tests/test_interrupt.py.
 """
@@ -253,3 +253,25 @@ def test_simulate_into_an_output_another_run_holds_is_refused_before_it_runs(tmp
         f"eofnn: error: out={str(out)!r} is being written by another eofnn run (process 4242, lock "
         f"{str(tmp_path / '.run.npz.lock')!r}): wait for it to finish or choose another out"], err
     assert not out.exists()
+
+
+# --- SIGTERM ----------------------------------------------------------------------------------------------------------
+
+@pytest.mark.cli
+@pytest.mark.slow
+def test_sigterm_in_a_run_is_an_interruption_143_and_keeps_the_earlier_file(tmp_path, monkeypatch, cli):
+    out = tmp_path / "run.npz"
+    out.write_bytes(b"the earlier telemetry")
+
+    def half_then_terminated(self, path, *args, **kwargs):
+        Path(path).write_bytes(b"half a file")
+        os.kill(os.getpid(), signal.SIGTERM)  # what timeout, a batch scheduler or Ray sends
+
+    monkeypatch.setattr(Telemetry, "save", half_then_terminated)
+    handler = signal.getsignal(signal.SIGTERM)
+    code, err = cli("simulate", "--scenario", TINY_SCENARIO, "--frames", "20", "--out", out, "--overwrite", "true")
+    assert code == 143 and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1] == ("eofnn: terminated (SIGTERM): nothing was written (earlier results are "
+                                            "untouched)")
+    assert out.read_bytes() == b"the earlier telemetry" and _hidden(tmp_path) == []
+    assert signal.getsignal(signal.SIGTERM) == handler  # the caller's handler is back
