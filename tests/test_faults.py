@@ -1,6 +1,6 @@
-"""Faults beyond Ctrl-C: a full disk, a run killed with SIGKILL, two runs into one output, SIGTERM. Each is one line (or nothing
-at all), and nothing a user wrote is lost or left half-written (eofnn.outputs). Real signals to whole runs:
-tests/test_interrupt.py.
+"""Faults beyond Ctrl-C: a full disk, a run killed with SIGKILL, two runs into one output, SIGTERM, and a telemetry
+file that changes while it is streamed. Each is one line (or nothing at all), and nothing a user wrote is lost or
+left half-written (eofnn.outputs, eofnn.sim.telemetry_readers). Real signals to whole runs: tests/test_interrupt.py.
 """
 
 from __future__ import annotations
@@ -13,12 +13,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 from eofnn import outputs
-from eofnn.errors import OutputBusyError, OutputError
+from eofnn.errors import OutputBusyError, OutputError, TelemetryError
 from eofnn.outputs import claim_output, clean_stale_staging, staged_file, staged_folder, write_text_atomic
 from eofnn.sim.telemetry import Telemetry
+from eofnn.sim.telemetry_file import StreamedTelemetry
 
 TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 
@@ -275,3 +278,86 @@ def test_sigterm_in_a_run_is_an_interruption_143_and_keeps_the_earlier_file(tmp_
                                             "untouched)")
     assert out.read_bytes() == b"the earlier telemetry" and _hidden(tmp_path) == []
     assert signal.getsignal(signal.SIGTERM) == handler  # the caller's handler is back
+
+
+# --- a telemetry file that changes while it is streamed --------------------------------------------------------------
+
+def _telemetry(path: Path, frames: int = 600, compressed: bool = False, seed: int = 0) -> Path:
+    """A small random recording (20 actuators) in ``path`` (.npz or .fits)."""
+    rng = np.random.default_rng(seed)
+    y, wfs = rng.normal(size=(frames, 20)), rng.normal(size=(frames, 20))
+    if compressed:
+        np.savez_compressed(path, y=y, wfs=wfs, delay_frames=np.array(2))
+        return path
+    Telemetry(y=torch.as_tensor(y), wfs=torch.as_tensor(wfs), delay_frames=2).save(path, overwrite=True)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".fits"])
+def test_a_telemetry_file_rewritten_between_blocks_is_one_line_not_other_numbers(tmp_path, suffix):
+    path = _telemetry(tmp_path / f"t{suffix}")
+    streamed = StreamedTelemetry.open(path)
+    assert torch.equal(streamed.y[0:200], Telemetry.load(path, required=("y", "wfs")).y[0:200])
+    other = _telemetry(tmp_path / f"other{suffix}", seed=1).read_bytes()
+    assert len(other) == path.stat().st_size
+    with open(path, "r+b") as f:  # another recording of the same shape written over it in place
+        f.write(other)
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 1_000_000_000))
+    with pytest.raises(TelemetryError) as caught:
+        streamed.wfs[400:600]
+    message = str(caught.value)
+    assert "\n" not in message and str(path) in message and "changed while it was read" in message
+    assert "modified" in message and "size" not in message and "'wfs'" in message and "frames 400 .. 599" in message
+
+
+@pytest.mark.parametrize("compressed", [False, True], ids=["stored", "compressed"])
+def test_a_telemetry_file_truncated_between_blocks_is_one_line(tmp_path, compressed):
+    path = _telemetry(tmp_path / "t.npz", frames=2000, compressed=compressed)
+    size = path.stat().st_size
+    streamed = StreamedTelemetry.open(path)
+    streamed.wfs[0:100]
+    with open(path, "r+b") as f:  # a recorder that starts over, or a copy cut short
+        f.truncate(size // 3)
+    with pytest.raises(TelemetryError) as caught:
+        for a in range(100, 2000, 100):
+            streamed.wfs[a: a + 100]
+    message = str(caught.value)
+    assert "\n" not in message and str(path) in message and "changed while it was read" in message
+    assert f"size {size} -> {size // 3} bytes" in message
+
+
+def test_a_telemetry_file_replaced_or_removed_while_streamed_is_one_line(tmp_path):
+    path = _telemetry(tmp_path / "t.npz")
+    streamed = StreamedTelemetry.open(path)
+    streamed.y[0:100]
+    _telemetry(tmp_path / "other.npz", frames=600)
+    os.replace(tmp_path / "other.npz", path)  # same size, another file
+    with pytest.raises(TelemetryError, match="replaced by another file"):
+        streamed.y[100:200]
+    path.unlink()
+    with pytest.raises(TelemetryError, match="it was removed"):
+        streamed.y[100:200]
+
+
+@pytest.mark.cli
+@pytest.mark.slow
+def test_identify_on_a_file_truncated_while_it_is_read_is_one_line(tmp_path, monkeypatch, cli):
+    from eofnn.sim import telemetry_readers
+
+    path = _telemetry(tmp_path / "t.npz", frames=3000)
+    real_read = telemetry_readers.RawReader.read
+    reads = []
+
+    def truncating(self, batch, start, stop):
+        if reads and len(reads) == 1:
+            with open(self.path, "r+b") as f:
+                f.truncate(self.path.stat().st_size // 2)
+        reads.append(start)
+        return real_read(self, batch, start, stop)
+
+    monkeypatch.setattr(telemetry_readers.RawReader, "read", truncating)
+    code, err = cli("identify", "--telemetry", path, "--out", tmp_path / "plant.json")
+    errors = [line for line in err.splitlines() if line.startswith("eofnn: error:")]
+    assert code == 2 and len(errors) == 1 and "Traceback" not in err, err
+    assert str(path) in errors[0] and "changed while it was read" in errors[0] and "size" in errors[0]
+    assert not (tmp_path / "plant.json").exists()
