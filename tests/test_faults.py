@@ -132,6 +132,21 @@ def test_a_full_disk_during_simulate_is_one_line_and_keeps_the_earlier_file(tmp_
     assert out.read_bytes() == b"the earlier telemetry" and _hidden(tmp_path) == []
 
 
+def test_a_full_disk_anywhere_else_in_a_command_is_one_line(monkeypatch, cli):
+    """A temporary file of a library (not an output eofnn stages) on a full disk: one line too, exit status 2."""
+    import eofnn.cli.main
+
+    class FillsTheDisk:
+        def run(self):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/tmp/tmpabc123")
+
+    monkeypatch.setattr(eofnn.cli.main, "parse", lambda args: FillsTheDisk())
+    code, err = cli("compare", "--config", "any.yaml")
+    assert code == 2 and err.strip().splitlines() == [
+        "eofnn: error: No space left on device writing '/tmp/tmpabc123': free some space and run again (outputs are "
+        "staged: earlier results are untouched)"], err
+
+
 # --- SIGKILL: an atomic move, and what a killed run left is cleaned ---------------------------------------------------
 
 def test_the_result_is_swapped_in_by_one_atomic_step(tmp_path, monkeypatch):

@@ -14,6 +14,7 @@ import warnings
 
 from eofnn.cli.commands import USER_ERRORS, one_line, parse
 from eofnn.cli.console import INTERRUPTED, interruption, sigterm_as_interrupt
+from eofnn.outputs import DISK_FULL
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -50,6 +51,14 @@ def main(args: list[str] | None = None) -> int:
                 status = parse(args).run()
         except USER_ERRORS as err:
             print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
+            return 2
+        except OSError as err:
+            if err.errno not in DISK_FULL:
+                raise
+            # Outputs say which one (eofnn.outputs.OutputError); this is any other write (a temporary file).
+            where = f" writing {err.filename!r}" if err.filename else ""
+            print(f"eofnn: error: {err.strerror or 'no space left on device'}{where}: free some space and run again "
+                  "(outputs are staged: earlier results are untouched)", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
             what, status = interruption()
