@@ -11,6 +11,15 @@ class OutputExistsError(ConfigError):
     """An output path exists and ``overwrite`` was not asked for: nothing a user wrote is replaced unasked."""
 
 
+class OutputError(RuntimeError):
+    """An output cannot be written (its disk is full); the message names the path and the space left, and says that
+    nothing was written."""
+
+
+class OutputBusyError(OutputError):
+    """Another eofnn process is writing the same output (it holds the lock beside it)."""
+
+
 class CheckpointError(ValueError):
     """A checkpoint is missing, unreadable, names code that is not allowed, or does not fit its set-up."""
 

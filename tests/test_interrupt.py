@@ -1,5 +1,7 @@
-"""An interrupted run loses nothing: Ctrl-C (a real SIGINT) during ``compare --overwrite true`` over a complete earlier
-result leaves that result exactly as it was, and a finished run replaces it whole, never a mix of the two."""
+"""An interrupted run loses nothing: Ctrl-C (a real SIGINT) or SIGTERM during ``compare --overwrite true`` over a complete
+earlier result leaves that result exactly as it was, SIGKILL too (and the next run removes what the killed one left),
+and a finished run replaces it whole, never a mix of the two. Other faults (a full disk, two runs into one output, a
+telemetry file that changes): tests/test_faults.py."""
 
 from __future__ import annotations
 
@@ -43,24 +45,52 @@ def _compare(out: Path) -> subprocess.Popen:
                             preexec_fn=_sigint_default)
 
 
-def test_ctrl_c_during_an_overwrite_leaves_the_earlier_result(tmp_path):
-    out = tmp_path / "run"
-    before = _earlier_result(out)
-    proc = _compare(out)
+def _well_under_way(proc: subprocess.Popen, tmp_path: Path) -> None:
+    """Wait until the run is well under way: its staging folder holds a trained checkpoint."""
     deadline = time.monotonic() + 300
-    # Wait until the run is well under way: its staging folder holds a trained checkpoint.
     while time.monotonic() < deadline and proc.poll() is None:
         if list(tmp_path.glob(".run.partial-*/checkpoints/*.ckpt")):
             break
         time.sleep(0.2)
     assert proc.poll() is None, "the run ended before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
+
+
+@pytest.mark.parametrize(("sent", "status", "said"), [(signal.SIGINT, 130, "eofnn: interrupted"),
+                                                      (signal.SIGTERM, 143, "eofnn: terminated (SIGTERM)")],
+                         ids=["ctrl_c", "sigterm"])
+def test_ctrl_c_or_sigterm_during_an_overwrite_leaves_the_earlier_result(tmp_path, sent, status, said):
+    """SIGTERM (timeout, batch schedulers, Ray) is handled as Ctrl-C, with its own exit status (128 + 15)."""
+    out = tmp_path / "run"
+    before = _earlier_result(out)
+    proc = _compare(out)
+    _well_under_way(proc, tmp_path)
+    proc.send_signal(sent)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    assert proc.returncode == status, err
     lines = [line for line in err.strip().splitlines() if line.startswith("eofnn:")]
-    assert lines[-1].startswith("eofnn: interrupted") and "Traceback" not in err
+    assert lines[-1].startswith(said) and "Traceback" not in err
     assert _contents(out) == before and sorted(p.name for p in out.iterdir()) == sorted(before)
     assert not list(tmp_path.glob(".run.*")), "no staging folder is left behind"
+
+
+def test_sigkill_during_an_overwrite_leaves_the_earlier_result_and_the_next_run_cleans_up(tmp_path):
+    """SIGKILL cannot be handled: the earlier result stays (the new one is moved in by one atomic step, never reached
+    here), and the next run into the same folder removes the killed run's staging and lock file."""
+    out = tmp_path / "run"
+    before = _earlier_result(out)
+    proc = _compare(out)
+    _well_under_way(proc, tmp_path)
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    assert _contents(out) == before and sorted(p.name for p in out.iterdir()) == sorted(before)
+    assert [p.name for p in tmp_path.glob(".run.partial-*")] == [f".run.partial-{proc.pid}"]
+    following = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "simulate", "--scenario",
+                                str(CONF / "tiny_scenario.yaml"), "--frames", "20", "--out", str(tmp_path / "next.npz")],
+                               capture_output=True, text=True, timeout=300)
+    assert following.returncode == 0, following.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["next.npz", "next.npz.png", "run"]
+    assert _contents(out) == before
 
 
 def test_a_finished_overwrite_replaces_the_result_whole(tmp_path):
@@ -75,15 +105,19 @@ def test_a_finished_overwrite_replaces_the_result_whole(tmp_path):
     assert (out / "checkpoints").is_dir() and not list(tmp_path.glob(".run.*"))
 
 
-def test_ctrl_c_while_eofnn_is_still_importing_is_one_line_and_130(tmp_path):
-    """The console script answers Ctrl-C even during its imports (torch, Lightning: seconds), without a traceback."""
+@pytest.mark.parametrize(("sent", "status", "said"), [(signal.SIGINT, 130, "eofnn: interrupted"),
+                                                      (signal.SIGTERM, 143, "eofnn: terminated (SIGTERM)")],
+                         ids=["ctrl_c", "sigterm"])
+def test_ctrl_c_or_sigterm_while_eofnn_is_still_importing_is_one_line(tmp_path, sent, status, said):
+    """The console script answers Ctrl-C and SIGTERM even during its imports (torch, Lightning: seconds), without a
+    traceback."""
     code = ("import sys; sys.argv = ['eofnn', 'compare', '--config', sys.argv[1], '--out', sys.argv[2]];"
             "from eofnn.cli.console import console; console()")
     proc = subprocess.Popen([sys.executable, "-c", code, str(CONF / "tiny_compare.yaml"), str(tmp_path / "out")],
                             stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default)
     time.sleep(1.0)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sent)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("eofnn: interrupted")
+    assert proc.returncode == status, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith(said)
     assert not (tmp_path / "out").exists()

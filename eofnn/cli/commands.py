@@ -32,7 +32,7 @@ from eofnn.cli.configfile import (
     resolve_config_references,
     unwrap_optional,
 )
-from eofnn.errors import CheckpointError, ConfigError, DivergedError, TelemetryError
+from eofnn.errors import CheckpointError, ConfigError, DivergedError, OutputError, TelemetryError
 
 DESCRIPTION = """\
 eofnn: predictive wavefront control for adaptive optics, in simulated closed loop.
@@ -52,7 +52,7 @@ Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> -
 '<subcommand> --print_config' prints the resolved configuration.
 """
 
-USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, JsonArgError)
+USER_ERRORS = (ConfigError, CheckpointError, TelemetryError, DivergedError, OutputError, JsonArgError)
 
 
 @dataclass(frozen=True)

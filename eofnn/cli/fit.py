@@ -12,7 +12,7 @@ from eofnn.cli.telemetry import PLANT_HELP, fit_telemetry
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.contenders import fit_from_config
-from eofnn.outputs import check_output_file, staged_file
+from eofnn.outputs import check_output_file, claim_output, staged_file
 from eofnn.training.fit import FitOutput
 
 DESCRIPTION = ("Train one predictor on telemetry simulated in a scenario (simulator truth) or, with --telemetry, on "
@@ -47,7 +47,18 @@ FitConfig.__doc__ = FitConfig.__doc__.replace("{plant_help}", PLANT_HELP)
 
 def fit(cfg: FitConfig, config_dump: str | None = None) -> dict:
     """Fit ``cfg.predictor`` and write its checkpoint to ``cfg.out`` and its resolved config beside it; returns the
-    summary line (losses, rounds, where the targets came from)."""
+    summary line (losses, rounds, where the targets came from).
+
+    Its outputs are claimed (:func:`eofnn.outputs.claim_output`) before any work: a second run into the same
+    ``out`` meanwhile is refused in one line.
+    """
+    out = Path(cfg.out)
+    with claim_output(out), claim_output(out.with_name(out.name + ".yaml")):
+        return _fit(cfg, config_dump)
+
+
+def _fit(cfg: FitConfig, config_dump: str | None = None) -> dict:
+    """:func:`fit` once its outputs are claimed."""
     p: PredictorConfig = cfg.predictor
     if not p.trains:
         raise ConfigError(f"fit trains a predictor: controller={p.controller!r}, checkpoint={p.checkpoint!r} "

@@ -13,6 +13,8 @@ import sys
 import warnings
 
 from eofnn.cli.commands import USER_ERRORS, one_line, parse
+from eofnn.cli.console import INTERRUPTED, interruption, sigterm_as_interrupt
+from eofnn.outputs import DISK_FULL
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -31,26 +33,39 @@ def choose_backend() -> None:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted)."""
+    """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted by Ctrl-C,
+    143 terminated by SIGTERM, which is handled as Ctrl-C: :func:`eofnn.cli.console.sigterm_as_interrupt`)."""
     args = list(sys.argv[1:] if args is None else args)
     choose_backend()
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    try:
-        with warnings.catch_warnings():
-            warnings.showwarning = _show_warning
-            # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
-            warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-            # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
-            warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
-            # Parsing imports the subcommand's modules (seconds): inside the Ctrl-C handling below.
-            status = parse(args).run()
-    except USER_ERRORS as err:
-        print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("eofnn: interrupted: nothing was written (earlier results are untouched)", file=sys.stderr)
-        return 130
+    with sigterm_as_interrupt():
+        try:
+            with warnings.catch_warnings():
+                warnings.showwarning = _show_warning
+                # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
+                warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+                # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
+                warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
+                # Parsing imports the subcommand's modules (seconds): inside the Ctrl-C handling below.
+                status = parse(args).run()
+        except USER_ERRORS as err:
+            print(f"eofnn: error: {one_line(err)}", file=sys.stderr)
+            return 2
+        except OSError as err:
+            if err.errno not in DISK_FULL:
+                raise
+            # Outputs say which one (eofnn.outputs.OutputError); this is any other write (a temporary file).
+            where = f" writing {err.filename!r}" if err.filename else ""
+            print(f"eofnn: error: {err.strerror or 'no space left on device'}{where}: free some space and run again "
+                  "(outputs are staged: earlier results are untouched)", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            what, status = interruption()
+            print(f"eofnn: {what}: nothing was written (earlier results are untouched)", file=sys.stderr)
+            return status
+    if status == INTERRUPTED:  # sweep answers an interruption itself (130): say which one it was
+        status = interruption()[1]
     # A command may return its own exit status (sweep: 1 when some points failed); results are not statuses.
     return status if isinstance(status, int) and not isinstance(status, bool) else 0
 

@@ -17,7 +17,7 @@ from eofnn.evaluation.contenders import load_configured_checkpoint, trusted_clas
 from eofnn.evaluation.metrics import loop_metrics
 from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.evaluation.results import ExperimentResult
-from eofnn.outputs import check_output_file, staged_file
+from eofnn.outputs import check_output_file, claim_output, staged_file
 from eofnn.reporting.report import plot_rms_vs_time
 from eofnn.resources import require_memory
 from eofnn.sim.loop.runner import run_loop
@@ -57,7 +57,18 @@ class SimulateConfig(SimulationCommand):
 
 
 def simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
-    """Run ``cfg.predictor`` in ``cfg.scenario`` and write its telemetry to ``cfg.out`` and an RMS plot beside it."""
+    """Run ``cfg.predictor`` in ``cfg.scenario`` and write its telemetry to ``cfg.out`` and an RMS plot beside it.
+
+    Its outputs are claimed (:func:`eofnn.outputs.claim_output`) before any work: a second run into the same
+    ``out`` meanwhile is refused in one line.
+    """
+    out = Path(cfg.out)
+    with claim_output(out), claim_output(out.with_name(out.name + ".png")):
+        return _simulate(cfg, config_dump)
+
+
+def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
+    """:func:`simulate` once its outputs are claimed."""
     out = Path(cfg.out)
     if out.suffix.lower() not in SUFFIXES:
         raise ConfigError(f"out={str(out)!r} has suffix {out.suffix!r}: allowed are {', '.join(SUFFIXES)}")

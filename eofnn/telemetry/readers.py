@@ -6,14 +6,23 @@
 
 :func:`npz_readers` and :func:`fits_readers` locate ``y``, ``wfs`` and ``slopes`` (:data:`STREAMED`) from the
 headers alone; :mod:`eofnn.telemetry.file` builds lazy frame arrays on them.
+
+A file is read over minutes (passes of a fit, an identification): each reader keeps the file's identity, size and
+modification time when it was located (:class:`FileState`) and compares them after every block, so a file that is
+truncated, rewritten or replaced while it is read is one :class:`TelemetryError` line saying what changed, never a
+traceback or blocks of two different files.
 """
 
 from __future__ import annotations
 
+import os
 import struct
+import time
 import warnings
 import zipfile
+import zlib
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,6 +31,49 @@ from eofnn.errors import TelemetryError
 #: Arrays read in blocks (the others are small and read whole).
 STREAMED = ("y", "wfs", "slopes")
 _FITS_DTYPES = {-32: ">f4", -64: ">f8", 8: "u1", 16: ">i2", 32: ">i4", 64: ">i8"}
+
+
+class FileState(NamedTuple):
+    """What identifies the contents of a file without reading it: device and inode (replaced?), size (truncated,
+    appended?) and modification time in nanoseconds (rewritten in place?)."""
+
+    device: int
+    inode: int
+    size: int
+    mtime_ns: int
+
+    @classmethod
+    def of(cls, stat: os.stat_result) -> FileState:
+        return cls(stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+
+
+def file_state(path: Path) -> FileState:
+    """The :class:`FileState` of ``path`` now."""
+    return FileState.of(os.stat(path))
+
+
+def _when(ns: int) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(ns / 1e9)) + f".{ns % 1_000_000_000 // 1_000_000:03d}"
+
+
+def changed_error(path: Path, name: str, at_open: FileState, now: FileState | None,
+                  doing: str) -> TelemetryError | None:
+    """The one line for a file that is no longer what it was when opened (``now``: None when it is gone), or None."""
+    if now == at_open:
+        return None
+    if now is None:
+        what = "it was removed"
+    else:
+        changes = []
+        if (now.device, now.inode) != (at_open.device, at_open.inode):
+            changes.append("it was replaced by another file")
+        if now.size != at_open.size:
+            changes.append(f"size {at_open.size} -> {now.size} bytes")
+        if now.mtime_ns != at_open.mtime_ns:
+            changes.append(f"modified {_when(at_open.mtime_ns)} -> {_when(now.mtime_ns)}")
+        what = ", ".join(changes)
+    return TelemetryError(f"telemetry file {str(path)!r} changed while it was read ({what}; array {name!r}, "
+                          f"{doing}): stream a finished file (copy it once its writer is done)")
 
 
 class NotStreamableError(TelemetryError):
@@ -33,21 +85,35 @@ class RawReader:
     """One array stored contiguously (C order) at ``offset`` bytes of ``path``: blocks by ``seek`` + ``readinto``."""
 
     def __init__(self, path: Path, name: str, offset: int, dtype: np.dtype, shape: tuple[int, ...],
-                 scale: tuple[float, float] | None = None) -> None:
+                 scale: tuple[float, float] | None = None, state: FileState | None = None) -> None:
         self.path, self.name, self.offset, self.dtype, self.shape, self.scale = path, name, offset, dtype, shape, scale
+        #: The file as it was when located; every block is checked against it (module docstring).
+        self.state = file_state(path) if state is None else state
 
     def read(self, batch: int, start: int, stop: int) -> np.ndarray:
         frames, width = self.shape[-2:]
         out = np.empty((stop - start, width), dtype=self.dtype)
-        with open(self.path, "rb", buffering=0) as f:
+        doing = f"frames {start} .. {stop - 1} of recording {batch}"
+        try:
+            f = open(self.path, "rb", buffering=0)
+        except FileNotFoundError:
+            raise changed_error(self.path, self.name, self.state, None, doing) from None
+        with f:
             f.seek(self.offset + (batch * frames + start) * width * self.dtype.itemsize)
             view, got = out.reshape(-1).view(np.uint8), 0
             while got < view.size:  # readinto may return less than asked (large reads, pipes)
                 n = f.readinto(view[got:])
                 if not n:
-                    raise TelemetryError(f"telemetry file {str(self.path)!r} is truncated: array {self.name!r} "
-                                         f"ends before frame {stop} of recording {batch}")
+                    break
                 got += n
+            # After the read: a change before or during it shows here (the block would mix two files' bytes).
+            changed = changed_error(self.path, self.name, self.state, FileState.of(os.fstat(f.fileno())), doing)
+        if changed is not None:
+            raise changed
+        if got < view.size:
+            raise TelemetryError(f"telemetry file {str(self.path)!r} is truncated: array {self.name!r} "
+                                 f"ends before frame {stop} of recording {batch} (short read: {got} of {view.size} "
+                                 "bytes)")
         return out
 
 
@@ -55,21 +121,62 @@ class ZipReader:
     """A compressed npz member: decompressed forward; the last block is kept, so overlapping windows that move
     forward never reopen the member (a new pass does)."""
 
-    def __init__(self, path: Path, name: str, member: str, header: int, dtype: np.dtype, shape: tuple[int, ...]):
+    def __init__(self, path: Path, name: str, member: str, header: int, dtype: np.dtype, shape: tuple[int, ...],
+                 state: FileState | None = None):
         self.path, self.name, self.member, self.header, self.dtype, self.shape = path, name, member, header, dtype, shape
         self.scale = None
+        #: The file as it was when located; every block is checked against it (module docstring).
+        self.state = file_state(path) if state is None else state
         self._zip = self._stream = None
         self._pos = 0  # bytes of array data consumed from the stream
         self._last: tuple[int, np.ndarray] | None = None  # (first byte, bytes) of the previous block
 
     def _reopen(self) -> None:
         self.close()
-        self._zip = zipfile.ZipFile(self.path)
+        try:
+            self._zip = zipfile.ZipFile(self.path)
+        except FileNotFoundError:
+            self._zip = None
+            raise
         self._stream = self._zip.open(self.member)
         self._stream.read(self.header)
         self._pos = 0
 
+    def _now(self) -> FileState | None:
+        try:
+            return FileState.of(os.fstat(self._zip.fp.fileno())) if self._zip is not None else file_state(self.path)
+        except (OSError, AttributeError, ValueError):
+            try:
+                return file_state(self.path)
+            except OSError:
+                return None
+
     def read(self, batch: int, start: int, stop: int) -> np.ndarray:
+        """Frames ``start .. stop - 1`` of recording ``batch``; a change of the file (before or during the read) or
+        a member that ends early is one :class:`TelemetryError` line."""
+        doing = f"frames {start} .. {stop - 1} of recording {batch}"
+        try:
+            out = self._read(batch, start, stop)
+        except TelemetryError:
+            changed = changed_error(self.path, self.name, self.state, self._now(), doing)
+            if changed is not None:
+                self.close()
+                raise changed from None
+            raise
+        except (OSError, EOFError, zlib.error, zipfile.BadZipFile, struct.error, ValueError) as err:
+            changed = changed_error(self.path, self.name, self.state, self._now(), doing)
+            self.close()
+            if changed is not None:
+                raise changed from None
+            raise TelemetryError(f"telemetry file {str(self.path)!r} is corrupt: array {self.name!r}, {doing} "
+                                 f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        changed = changed_error(self.path, self.name, self.state, self._now(), doing)
+        if changed is not None:
+            self.close()
+            raise changed
+        return out
+
+    def _read(self, batch: int, start: int, stop: int) -> np.ndarray:
         frames, width = self.shape[-2:]
         size = width * self.dtype.itemsize
         first, n = (batch * frames + start) * size, (stop - start) * size
@@ -110,7 +217,9 @@ class ZipReader:
 
 
 def npz_readers(path: Path) -> dict:
+    """Readers of the streamed arrays of an npz file (name -> :class:`RawReader` or :class:`ZipReader`)."""
     readers = {}
+    state = file_state(path)
     with zipfile.ZipFile(path) as archive:
         for info in archive.infolist():
             name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
@@ -130,12 +239,12 @@ def npz_readers(path: Path) -> dict:
                         raise TelemetryError(f"telemetry file {str(path)!r} is corrupt (member {info.filename})")
                     name_len, extra_len = struct.unpack("<HH", local[26:30])
                 offset = info.header_offset + 30 + name_len + extra_len + header
-                reader = RawReader(path, name, offset, dtype, shape)
-                if offset + dtype.itemsize * int(np.prod(shape)) > path.stat().st_size:
+                reader = RawReader(path, name, offset, dtype, shape, state=state)
+                if offset + dtype.itemsize * int(np.prod(shape)) > state.size:
                     raise TelemetryError(f"telemetry file {str(path)!r} is truncated: array {name!r} {shape} ends "
                                          "past the end of the file")
             else:
-                reader = ZipReader(path, name, info.filename, header, dtype, shape)
+                reader = ZipReader(path, name, info.filename, header, dtype, shape, state)
             readers[name] = reader
     return readers
 
@@ -143,8 +252,10 @@ def npz_readers(path: Path) -> dict:
 def fits_readers(path: Path) -> dict:
     from astropy.io import fits
 
+    """Readers of the streamed arrays of a FITS file (name -> :class:`RawReader`)."""
     readers = {}
-    size = path.stat().st_size
+    state = file_state(path)
+    size = state.size
     with warnings.catch_warnings(record=True) as caught, fits.open(path, memmap=False) as hdul:
         warnings.simplefilter("always")
         for index, hdu in enumerate(hdul):
@@ -167,7 +278,7 @@ def fits_readers(path: Path) -> dict:
                 raise TelemetryError(f"telemetry file {str(path)!r} is truncated: array {name!r} {shape} ends past "
                                      "the end of the file")
             scale = (float(header.get("BSCALE", 1.0)), float(header.get("BZERO", 0.0)))
-            readers[name] = RawReader(path, name, offset, dtype, shape, None if scale == (1.0, 0.0) else scale)
+            readers[name] = RawReader(path, name, offset, dtype, shape, None if scale == (1.0, 0.0) else scale, state)
     problems = [str(w.message).splitlines()[0] for w in caught if "astropy" in type(w.message).__module__]
     if problems:
         raise TelemetryError(f"telemetry file {str(path)!r} is truncated or corrupt ({problems[0]})")
