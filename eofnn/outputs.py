@@ -3,7 +3,7 @@
 Outputs are checked before any work starts (exists? writable?), then written into a temporary sibling and moved
 into place only when complete, so an interrupted or crashed run leaves either the old result or the new one:
 
-- Ctrl-C and SIGTERM remove the staged sibling (:mod:`eofnn.cli.console` turns SIGTERM into an interruption).
+- Ctrl-C and SIGTERM remove the staged sibling (:mod:`eofnn.cli.signals` turns SIGTERM into an interruption).
 - SIGKILL cannot be handled: the final move is one atomic system call (``renameat2(RENAME_EXCHANGE)`` for a folder
   over an earlier one, ``rename`` otherwise), and what a killed run left (``.NAME.partial-PID``, ``.NAME.old-PID``) is
   removed by the next run into the same folder once no process holds it (:func:`clean_stale_staging`).

@@ -132,6 +132,7 @@ def test_a_full_disk_during_simulate_is_one_line_and_keeps_the_earlier_file(tmp_
     assert out.read_bytes() == b"the earlier telemetry" and _hidden(tmp_path) == []
 
 
+@pytest.mark.cli
 def test_a_full_disk_anywhere_else_in_a_command_is_one_line(monkeypatch, cli):
     """A temporary file of a library (not an output eofnn stages) on a full disk: one line too, exit status 2."""
     import eofnn.cli.main
@@ -357,7 +358,7 @@ def test_a_telemetry_file_replaced_or_removed_while_streamed_is_one_line(tmp_pat
 @pytest.mark.cli
 @pytest.mark.slow
 def test_identify_on_a_file_truncated_while_it_is_read_is_one_line(tmp_path, monkeypatch, cli):
-    from eofnn.sim import telemetry_readers
+    from eofnn.telemetry import readers as telemetry_readers
 
     path = _telemetry(tmp_path / "t.npz", frames=3000)
     real_read = telemetry_readers.RawReader.read

@@ -13,7 +13,7 @@ import sys
 import warnings
 
 from eofnn.cli.commands import USER_ERRORS, one_line, parse
-from eofnn.cli.console import INTERRUPTED, interruption, sigterm_as_interrupt
+from eofnn.cli.signals import INTERRUPTED, interruption, sigterm_as_interrupt
 from eofnn.outputs import DISK_FULL
 
 
@@ -34,7 +34,7 @@ def choose_backend() -> None:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted by Ctrl-C,
-    143 terminated by SIGTERM, which is handled as Ctrl-C: :func:`eofnn.cli.console.sigterm_as_interrupt`)."""
+    143 terminated by SIGTERM, which is handled as Ctrl-C: :func:`eofnn.cli.signals.sigterm_as_interrupt`)."""
     args = list(sys.argv[1:] if args is None else args)
     choose_backend()
     # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
