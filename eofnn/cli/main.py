@@ -7,7 +7,6 @@ configurations are in :mod:`eofnn.cli.commands`.
 
 from __future__ import annotations
 
-import logging
 import os
 import sys
 import warnings
@@ -34,15 +33,11 @@ def main(args: list[str] | None = None) -> int:
     """Entry point of the ``eofnn`` console script; returns the exit status (2 bad input, 130 interrupted)."""
     args = list(sys.argv[1:] if args is None else args)
     choose_backend()
-    # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    # Lightning's banners, tips and warnings that say nothing to act on are quieted where eofnn runs its trainers
+    # (eofnn.training.fit.quiet_lightning), so a program that calls eofnn from Python gets the same quiet.
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
-            # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
-            warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-            # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
-            warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
             # Parsing imports the subcommand's modules (seconds): inside the Ctrl-C handling below.
             status = parse(args).run()
     except USER_ERRORS as err:
