@@ -283,3 +283,34 @@ def test_all_zero_telemetry_is_refused_before_a_fit(tmp_path):
     with pytest.raises(TelemetryError, match="telemetry holds no signal"):
         fit_from_telemetry(telemetry, HistorySpec("open_loop", 3, 2), output=FitOutput(tmp_path / "z.ckpt"))
     assert not (tmp_path / "z.ckpt").exists()
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("args, whole", [
+    (["compare", "--config", TINY, "--evaluation.frame", "2000"], "--evaluation.frames"),
+    (["compare", "--config", TINY, "--evaluation.frame=2000"], "--evaluation.frames"),
+    (["fit", "--scenario", CONF / "tiny_scenario.yaml", "--predictor.history_len", "3"], "--predictor.history_length"),
+    (["simulate", "--scenario", CONF / "tiny_scenario.yaml", "--frame", "10"], "--frames"),
+])
+def test_an_abbreviated_option_is_refused_with_its_whole_name(cli_error, tmp_path, args, whole):
+    """argparse would take ``--evaluation.frame 2000`` for ``--evaluation.frames 2000``: the option is refused,
+    and the line names the option meant."""
+    given = next(str(a).split("=")[0] for a in reversed(args) if str(a).startswith("--"))
+    line = cli_error([*args, "--out", tmp_path / "o"], f"{given}: did you mean {whole}?", tmp_path / "o")
+    assert "unrecognized arguments" in line
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("command", ["compare", "fit", "evaluate", "simulate", "stability", "sweep", "identify",
+                                     "replay", "export"])
+def test_no_subcommand_takes_an_abbreviation(cli_error, tmp_path, command):
+    cli_error([command, "--ou", tmp_path / "o"], "--ou: did you mean --out?", tmp_path / "o")
+
+
+@pytest.mark.cli
+def test_the_whole_option_name_is_taken(tmp_path):
+    from eofnn.cli.commands import parse
+
+    parsed = parse(["compare", "--config", str(TINY), "--evaluation.frames", "2000", "--out", str(tmp_path / "o")])
+    assert parsed.config.evaluation.frames == 2000
+    assert not (tmp_path / "o").exists()  # parsed, not run
