@@ -283,3 +283,88 @@ def test_all_zero_telemetry_is_refused_before_a_fit(tmp_path):
     with pytest.raises(TelemetryError, match="telemetry holds no signal"):
         fit_from_telemetry(telemetry, HistorySpec("open_loop", 3, 2), output=FitOutput(tmp_path / "z.ckpt"))
     assert not (tmp_path / "z.ckpt").exists()
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("args, whole", [
+    (["compare", "--config", TINY, "--evaluation.frame", "2000"], "--evaluation.frames"),
+    (["compare", "--config", TINY, "--evaluation.frame=2000"], "--evaluation.frames"),
+    (["fit", "--scenario", CONF / "tiny_scenario.yaml", "--predictor.history_len", "3"], "--predictor.history_length"),
+    (["simulate", "--scenario", CONF / "tiny_scenario.yaml", "--frame", "10"], "--frames"),
+])
+def test_an_abbreviated_option_is_refused_with_its_whole_name(cli_error, tmp_path, args, whole):
+    """argparse would take ``--evaluation.frame 2000`` for ``--evaluation.frames 2000``: the option is refused,
+    and the line names the option meant."""
+    given = next(str(a).split("=")[0] for a in reversed(args) if str(a).startswith("--"))
+    line = cli_error([*args, "--out", tmp_path / "o"], f"{given}: did you mean {whole}?", tmp_path / "o")
+    assert "unrecognized arguments" in line
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("command", ["compare", "fit", "evaluate", "simulate", "stability", "sweep", "identify",
+                                     "replay", "export"])
+def test_no_subcommand_takes_an_abbreviation(cli_error, tmp_path, command):
+    cli_error([command, "--ou", tmp_path / "o"], "--ou: did you mean --out?", tmp_path / "o")
+
+
+@pytest.mark.cli
+def test_the_whole_option_name_is_taken(tmp_path):
+    from eofnn.cli.commands import parse
+
+    parsed = parse(["compare", "--config", str(TINY), "--evaluation.frames", "2000", "--out", str(tmp_path / "o")])
+    assert parsed.config.evaluation.frames == 2000
+    assert not (tmp_path / "o").exists()  # parsed, not run
+
+
+REALISTIC_SMALL = Path(__file__).parent.parent / "configs" / "realistic_small.yaml"
+
+
+@pytest.mark.cli
+def test_an_unset_psd_segment_follows_a_shortened_run(tmp_path):
+    """``--evaluation.frames 1500`` with 500 settling frames leaves 1000 settled frames: the unset segment (1024 by
+    default) becomes 512, the largest power of two they hold, and one line says so; at full length it stays 1024."""
+    from eofnn.cli.commands import parse
+
+    short = parse(["compare", "--config", str(REALISTIC_SMALL), "--evaluation.frames", "1500",
+                   "--out", str(tmp_path / "o")]).config.evaluation
+    assert short.psd_segment_frames is None and short.psd_segment_frames_used == 512
+    assert short.psd_segment_note == ("evaluation.psd_segment_frames: 512 (the default 1024 is longer than the 1000 "
+                                      "settled frames)")
+    full = parse(["compare", "--config", str(REALISTIC_SMALL), "--out", str(tmp_path / "o")]).config.evaluation
+    assert full.psd_segment_frames_used == 1024 and full.psd_segment_note is None  # no committed number moves
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.cli
+def test_a_psd_segment_the_user_set_is_never_shortened(cli_error, tmp_path):
+    line = cli_error(["compare", "--config", REALISTIC_SMALL, "--evaluation.frames", "1500",
+                      "--evaluation.psd_segment_frames", "1024", "--out", tmp_path / "o"],
+                     "evaluation.psd_segment_frames=1024 is invalid", tmp_path / "o")
+    assert "[8, 1000]" in line
+
+
+@pytest.mark.parametrize("frames, settle, used", [(5000, 500, 1024), (1524, 500, 1024), (1523, 500, 512),
+                                                  (300, 50, 128), (108, 100, 8)])
+def test_the_unset_psd_segment_is_the_largest_power_of_two_that_fits(frames, settle, used):
+    from eofnn.evaluation.config import EvaluationConfig
+
+    assert EvaluationConfig(frames=frames, settle_frames=settle).psd_segment_frames_used == used
+    assert EvaluationConfig(frames=frames, settle_frames=settle, psd_segment_frames=8).psd_segment_frames_used == 8
+
+
+def test_too_few_settled_frames_for_any_psd_segment():
+    from eofnn.errors import ConfigError
+    from eofnn.evaluation.config import EvaluationConfig
+
+    with pytest.raises(ConfigError, match="leaves 7 settled frame"):
+        EvaluationConfig(frames=107, settle_frames=100)
+
+
+def test_the_experiment_says_when_the_psd_segment_was_shortened(small_scenario):
+    from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+    from eofnn.evaluation.experiment import Experiment
+
+    lines: list[str] = []
+    Experiment(small_scenario, {"nominal": {}}, {"integrator": PredictorConfig(controller="integrator", gain=0.4)},
+               EvaluationConfig(frames=600, settle_frames=100), log=lines.append)
+    assert lines == ["evaluation.psd_segment_frames: 256 (the default 1024 is longer than the 500 settled frames)"]

@@ -316,7 +316,8 @@ def analyse_filter(network: LinearFilter, spec: HistorySpec, setup: LoopSetup | 
     setup = setup or LoopSetup(delay_frames=spec.delay_frames)
     if setup.controller_delay_frames is None:
         setup = replace(setup, controller_delay_frames=spec.delay_frames)
-    return analyse(network.weight, spec.kind, spec.history_length, setup, structure=network.structure,
+    # The analysis reads the weights' values: no gradient flows through it (a float of a Parameter warns).
+    return analyse(network.weight.detach(), spec.kind, spec.history_length, setup, structure=network.structure,
                    neighbours=getattr(network, "neighbours", None), frequencies_hz=frequencies_hz)
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import difflib
 import importlib
 import re
 import sys
@@ -154,7 +155,10 @@ def build_parser(commands: Iterable[str] | None = None) -> ArgumentParser:
     """The ``eofnn`` parser; only the subcommands in ``commands`` (default: all) get their arguments (and import
     their modules): the others are listed with their one-line help, enough for ``eofnn --help``."""
     full = set(COMMANDS if commands is None else commands)
-    parser = ArgumentParser(prog="eofnn", description=DESCRIPTION, exit_on_error=False, formatter_class=_HelpFormatter)
+    # allow_abbrev=False: an option is its whole name (argparse would take --evaluation.frame for
+    # --evaluation.frames, and a typo for another option); the subcommands' parsers inherit it.
+    parser = ArgumentParser(prog="eofnn", description=DESCRIPTION, exit_on_error=False, formatter_class=_HelpFormatter,
+                            allow_abbrev=False)
     parser.add_argument("--version", action="version", version=f"eofnn {__version__}", help="Print the version and exit.")
     sub = parser.add_subcommands(dest="command")
     for name, command in COMMANDS.items():
@@ -285,6 +289,28 @@ def _on_python_path(folders: list[str]):
 
 
 
+_UNRECOGNIZED = "unrecognized arguments:"
+
+
+def _nearest_options(parser: ArgumentParser, command: str, message: str) -> str:
+    """``did you mean --x?`` for each option of ``message`` (argparse's "unrecognized arguments: ...") that is close
+    to one of ``command``'s options (abbreviations are refused: ``--evaluation.frame`` is not
+    ``--evaluation.frames``); empty when the message is another one or nothing is close."""
+    if _UNRECOGNIZED not in message:
+        return ""
+    subcommands = getattr(parser, "_subcommands_action", None)
+    child = None if subcommands is None else subcommands._name_parser_map.get(command)
+    known = [option for action in (child or parser)._actions for option in action.option_strings
+             if option.startswith("--")]
+    given = [word.split("=", 1)[0] for word in message.split(_UNRECOGNIZED, 1)[1].split() if word.startswith("--")]
+    hints = []
+    for option in dict.fromkeys(given):
+        near = difflib.get_close_matches(option, known, n=1, cutoff=0.75)
+        if near:
+            hints.append(f"{option}: did you mean {near[0]}?")
+    return "; ".join(hints)
+
+
 @dataclass(frozen=True)
 class Parsed:
     """A parsed command line: the subcommand, its instantiated configuration and its resolved YAML (``config.yaml``
@@ -320,7 +346,13 @@ def parse(args: list[str]) -> Parsed:
     if args and args[0] == "sweep":  # dotted options are the base config's, set at every point
         args, overrides = split_sweep_overrides(args)
     with _on_python_path(folders):
-        cfg = parser.parse_args(args)
+        try:
+            cfg = parser.parse_args(args)
+        except JsonArgError as err:
+            hint = _nearest_options(parser, args[0] if args else "", str(err))
+            if not hint:
+                raise
+            raise ConfigError(f"{one_line(err)} ({hint})") from None
         command = cfg.command
         dump = yaml.safe_load(parser.dump(cfg))[command]
         sub_dump = yaml.safe_dump({k: v for k, v in dump.items() if k != "config"}, sort_keys=False)

@@ -7,7 +7,6 @@ configurations are in :mod:`eofnn.cli.commands`.
 
 from __future__ import annotations
 
-import logging
 import os
 import sys
 import warnings
@@ -37,16 +36,12 @@ def main(args: list[str] | None = None) -> int:
     143 terminated by SIGTERM, which is handled as Ctrl-C: :func:`eofnn.cli.signals.sigterm_as_interrupt`)."""
     args = list(sys.argv[1:] if args is None else args)
     choose_backend()
-    # Lightning announces the accelerators of every Trainer at INFO: the command line keeps to warnings.
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    # Lightning's banners, tips and warnings that say nothing to act on are quieted where eofnn runs its trainers
+    # (eofnn.training.fit.quiet_lightning), so a program that calls eofnn from Python gets the same quiet.
     with sigterm_as_interrupt():
         try:
             with warnings.catch_warnings():
                 warnings.showwarning = _show_warning
-                # Lightning's hint that simulated streams could use more DataLoader workers does not apply to them.
-                warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-                # Lightning's own call of a deprecated torch pytree API: nothing a user can act on.
-                warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
                 # Parsing imports the subcommand's modules (seconds): inside the Ctrl-C handling below.
                 status = parse(args).run()
         except USER_ERRORS as err:

@@ -19,6 +19,11 @@ from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, chec
 
 #: Most frames of one closed-loop evaluation (per realisation).
 MAX_EVALUATION_FRAMES = 10_000_000
+#: Segment length of the residual PSD when ``evaluation.psd_segment_frames`` is unset, frames (a shorter run takes the
+#: largest power of two its settled frames hold: :attr:`EvaluationConfig.psd_segment_frames_used`).
+DEFAULT_PSD_SEGMENT_FRAMES = 1024
+#: The shortest segment of a residual PSD, frames.
+MIN_PSD_SEGMENT_FRAMES = 8
 
 
 @dataclass
@@ -168,8 +173,10 @@ class EvaluationConfig:
         Wavelength of the Maréchal Strehl, in metres.
     divergence_factor : float
         A residual above this times the turbulence RMS counts as diverged.
-    psd_segment_frames : int
-        Segment length of the residual PSD (at most the settled frames).
+    psd_segment_frames : int, optional
+        Segment length of the residual PSD, frames: at most the settled frames (``frames - settle_frames``).
+        Unset, 1024, or when a shorter run settles fewer frames the largest power of two they hold (said in one
+        line when the run starts).
     """
 
     frames: int = 5000
@@ -178,7 +185,7 @@ class EvaluationConfig:
     seed: int = 1
     strehl_wavelength_m: float = 1.65e-6
     divergence_factor: float = 10.0
-    psd_segment_frames: int = 1024
+    psd_segment_frames: int | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(2, MAX_EVALUATION_FRAMES, integer=True),
@@ -187,7 +194,7 @@ class EvaluationConfig:
         "seed": Interval(0, 2**63 - 1, integer=True),
         "strehl_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
         "divergence_factor": Interval(1, 1e6, closed="right"),
-        "psd_segment_frames": Interval(8, MAX_EVALUATION_FRAMES, integer=True),
+        "psd_segment_frames": OrNone(Interval(MIN_PSD_SEGMENT_FRAMES, MAX_EVALUATION_FRAMES, integer=True)),
     }
     _where: ClassVar[str] = "evaluation."
 
@@ -195,9 +202,31 @@ class EvaluationConfig:
         if self.settle_frames >= self.frames:
             raise ConfigError(f"evaluation.settle_frames={self.settle_frames} is invalid: it must be below "
                               f"evaluation.frames={self.frames}")
-        check_value("psd_segment_frames", self.psd_segment_frames,
-                    Interval(8, self.frames - self.settle_frames, integer=True, unit="at most the settled frames"),
-                    "evaluation.")
+        settled = self.frames - self.settle_frames
+        if self.psd_segment_frames is not None:  # the user's choice: it fits, or it is refused
+            check_value("psd_segment_frames", self.psd_segment_frames,
+                        Interval(MIN_PSD_SEGMENT_FRAMES, settled, integer=True, unit="at most the settled frames"),
+                        "evaluation.")
+        elif settled < MIN_PSD_SEGMENT_FRAMES:
+            raise ConfigError(f"evaluation.frames={self.frames} with settle_frames={self.settle_frames} leaves "
+                              f"{settled} settled frame(s): a residual PSD needs at least {MIN_PSD_SEGMENT_FRAMES}")
+
+    @property
+    def psd_segment_frames_used(self) -> int:
+        """The residual PSD's segment length, frames: ``psd_segment_frames`` when set; unset,
+        :data:`DEFAULT_PSD_SEGMENT_FRAMES`, or the largest power of two within the settled frames when fewer."""
+        if self.psd_segment_frames is not None:
+            return self.psd_segment_frames
+        settled = self.frames - self.settle_frames
+        return min(DEFAULT_PSD_SEGMENT_FRAMES, 1 << (settled.bit_length() - 1))
+
+    @property
+    def psd_segment_note(self) -> str | None:
+        """One line when the unset segment length is shortened to fit a short run (``None`` otherwise)."""
+        if self.psd_segment_frames is not None or self.psd_segment_frames_used == DEFAULT_PSD_SEGMENT_FRAMES:
+            return None
+        return (f"evaluation.psd_segment_frames: {self.psd_segment_frames_used} (the default {DEFAULT_PSD_SEGMENT_FRAMES} is "
+                f"longer than the {self.frames - self.settle_frames} settled frames)")
 
 
-__all__ = ["EvaluationConfig", "PredictorConfig"]
+__all__ = ["DEFAULT_PSD_SEGMENT_FRAMES", "EvaluationConfig", "PredictorConfig"]

@@ -73,6 +73,8 @@ class Experiment:
         self.classical_models: dict[tuple[str, str], Any] = {}
         self.checkpoints: dict[str, str] = {}
         self._loaded = check_experiment(self.scenarios, self.predictors, evaluation, trusted_networks, allow_long)
+        if evaluation.psd_segment_note is not None:
+            self.log(evaluation.psd_segment_note)
 
     def predictor(self, name: str, scenario_name: str) -> TrainedPredictor:
         """The trained predictor ``name`` for evaluation in ``scenario_name`` (trained on first use)."""
@@ -152,7 +154,7 @@ class Experiment:
         ev = self.evaluation
         scenario = plant_scenario if plant_scenario is not None else self.scenarios[scenario_name]
         controller = self.controller(name, scenario_name)
-        psd = WelchPSD(ev.psd_segment_frames, scenario.frame_rate_hz, ev.settle_frames)
+        psd = WelchPSD(ev.psd_segment_frames_used, scenario.frame_rate_hz, ev.settle_frames)
         contrast = RawContrast(scenario.grid, ev.strehl_wavelength_m, ev.settle_frames)
         growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
 

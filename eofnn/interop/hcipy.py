@@ -92,7 +92,9 @@ class HcipyLoop:
         hc, s = self._hcipy, self.settings
         n, d = s["n_subapertures"], s["diameter_m"]
         self.pupil_grid = hc.make_pupil_grid(n * s["pupil_pixels_per_subaperture"], d)
-        self._pupil = np.asarray(hc.circular_aperture(d)(self.pupil_grid)) > 0.5
+        # make_circular_aperture: HCIPy 0.7's name (circular_aperture, its older one, warns there).
+        aperture = getattr(hc, "make_circular_aperture", None) or hc.circular_aperture
+        self._pupil = np.asarray(aperture(d)(self.pupil_grid)) > 0.5
         self._cn2 = hc.Cn_squared_from_fried_parameter(s["r0_m"], WAVELENGTH_M)
 
     def _make_dm(self, crosstalk: float) -> None:

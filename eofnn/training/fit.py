@@ -14,9 +14,11 @@ with :func:`new_task`, fit it with :func:`solve` (the one place that tells the t
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import logging
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -250,7 +252,9 @@ class Solved:
                                      task.hparams["info"], self.ridge_path)
         if output.checkpoint_path is not None:
             with staged_file(output.checkpoint_path, output.overwrite) as partial:
-                self.trainer.save_checkpoint(partial)
+                # Weights and hyperparameters only (no optimizer or loop state: an eofnn checkpoint is never
+                # resumed), said explicitly: Lightning announces the choice it makes when none is given.
+                self.trainer.save_checkpoint(partial, weights_only=True)
         return FitResult(predictor, train_loss, val_loss, rounds or [], output.checkpoint_path)
 
 
@@ -268,41 +272,75 @@ def solve(task: PredictorTask, data: FitData, optimization: OptimizationConfig, 
     info = task.hparams["info"]
     trainer = ridge_path = None
     try:
-        if optimization.fit_method == "closed_form":
-            solved = solve_closed_form(task.network, data.train, data.validation, optimization, margin)
-            metrics = {"train_loss": solved.train_loss, "condition": solved.condition, "alpha": solved.alpha}
-            info["alpha"] = solved.alpha
-            if solved.choice is not None:
-                info["alpha_choice"] = solved.choice.summary()
-                ridge_path = solved.choice.path
-            task.hparams["info"] = info
-            if data.validation is not None or output.checkpoint_path is not None:
+        with quiet_lightning():
+            if optimization.fit_method == "closed_form":
+                solved = solve_closed_form(task.network, data.train, data.validation, optimization, margin)
+                metrics = {"train_loss": solved.train_loss, "condition": solved.condition, "alpha": solved.alpha}
+                info["alpha"] = solved.alpha
+                if solved.choice is not None:
+                    info["alpha_choice"] = solved.choice.summary()
+                    ridge_path = solved.choice.path
+                task.hparams["info"] = info
+                if data.validation is not None or output.checkpoint_path is not None:
+                    trainer = make_trainer(optimization, output.progress)
+                    checked = data.train if data.validation is None else data.validation
+                    validated = trainer.validate(task, dataloaders=_loader(checked), verbose=False, weights_only=True)[0]
+                    if data.validation is not None:
+                        metrics.update(validated)
+            elif optimization.search is not None:
+                hp = task.hparams
+                task, trainer, searched = run_search(
+                    check_search(optimization.search, optimization.lr), hp.network, optimization,
+                    lambda net_cfg, opt: PredictorTask(net_cfg, hp.n_actuators, hp.spec, hp.grid,
+                                                       resolve_normalize(net_cfg, asdict(opt)), info),
+                    lambda t, tr: tr.fit(t, train_dataloaders=_loader(data.train),
+                                         val_dataloaders=_loader(data.validation), weights_only=True),
+                    lambda opt, callbacks: make_trainer(opt, output.progress, callbacks), seed, data.frames)
+                info["search"] = searched
+                task.hparams["info"] = info
+                metrics = {"val_loss": searched["chosen"]["val_loss"], "lr": searched["chosen"]["lr"]}
+            else:
                 trainer = make_trainer(optimization, output.progress)
-                checked = data.train if data.validation is None else data.validation
-                validated = trainer.validate(task, dataloaders=_loader(checked), verbose=False, weights_only=True)[0]
-                if data.validation is not None:
-                    metrics.update(validated)
-        elif optimization.search is not None:
-            hp = task.hparams
-            task, trainer, searched = run_search(
-                check_search(optimization.search, optimization.lr), hp.network, optimization,
-                lambda net_cfg, opt: PredictorTask(net_cfg, hp.n_actuators, hp.spec, hp.grid,
-                                                   resolve_normalize(net_cfg, asdict(opt)), info),
-                lambda t, tr: tr.fit(t, train_dataloaders=_loader(data.train),
-                                     val_dataloaders=_loader(data.validation), weights_only=True),
-                lambda opt, callbacks: make_trainer(opt, output.progress, callbacks), seed, data.frames)
-            info["search"] = searched
-            task.hparams["info"] = info
-            metrics = {"val_loss": searched["chosen"]["val_loss"], "lr": searched["chosen"]["lr"]}
-        else:
-            trainer = make_trainer(optimization, output.progress)
-            trainer.fit(task, train_dataloaders=_loader(data.train), val_dataloaders=_loader(data.validation),
-                        weights_only=True)
-            metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+                trainer.fit(task, train_dataloaders=_loader(data.train), val_dataloaders=_loader(data.validation),
+                            weights_only=True)
+                metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     except SystemExit:
         # Lightning answers Ctrl-C inside fit/validate with its own shutdown and sys.exit(1): it is an interruption.
         raise KeyboardInterrupt from None
     return Solved(task, trainer, metrics, data, ridge_path)
+
+
+#: Lightning's loggers of its rank-zero information lines ("GPU available: ...", "TPU available: ...", the LitLogger
+#: tip, "`Trainer.fit` stopped: ..."): both, since Lightning's Fabric and PyTorch halves each name one.
+LIGHTNING_INFO_LOGGERS = ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero")
+
+
+@contextlib.contextmanager
+def quiet_lightning() -> Iterator[None]:
+    """While eofnn's own trainers are built and run: Lightning's banners and tips off, its real warnings kept.
+
+    The information lines go through :data:`LIGHTNING_INFO_LOGGERS` (Lightning's documented way to quiet its
+    console output is the level of its loggers; no Trainer option turns the accelerator banner or the tip off),
+    held at WARNING here and restored afterwards, so a program that imports eofnn keeps its own logging set-up.
+    Two of Lightning's warnings say nothing a user can act on and are ignored here, narrowly:
+
+    - its suggestion of more DataLoader workers: eofnn's loaders hand over batches already simulated in memory;
+    - ``isinstance(treespec, LeafSpec)`` is deprecated: Lightning's own ``CombinedLoader`` builds a torch
+      ``LeafSpec`` (``lightning/pytorch/utilities/_pytree.py``, Lightning 2.6 with torch 2.13); eofnn never does.
+    """
+    loggers = [logging.getLogger(name) for name in LIGHTNING_INFO_LOGGERS]
+    levels = [logger.level for logger in loggers]
+    try:
+        for logger in loggers:
+            logger.setLevel(max(logger.getEffectiveLevel(), logging.WARNING))
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"The '\w+_dataloader' does not have many workers")
+            warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+                                    category=FutureWarning, module=r"lightning\.pytorch\.utilities\._pytree")
+            yield
+    finally:
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
 
 
 def _loader(batches: Iterable | None) -> DataLoader | None:
