@@ -31,7 +31,7 @@ from benchmarks.common import Series, Skipped, fmt_value
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
-BENCHMARKS = ("turbulence", "exact", "loop", "fit", "stability", "end_to_end", "scaling", "stream")
+BENCHMARKS = ("turbulence", "exact", "loop", "fit", "stability", "end_to_end", "scaling", "stream", "startup")
 #: Benchmarks whose functions take a ``device``; the others are CPU code in eofnn (HCIPy, numpy, the loop).
 DEVICE_BENCHMARKS = ("loop", "fit")
 
@@ -49,6 +49,7 @@ FULL = {
                    "val_frames": 2000, "eval_frames": 5000, "repeat": 2},
     "scaling": {},
     "stream": {"n_actuators": 5000, "big_frames": 50000, "small_frames": 4000, "batch_frames": 256, "repeat": 2},
+    "startup": {"repeat": 7},
 }
 QUICK = {
     "turbulence": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
@@ -69,6 +70,7 @@ QUICK = {
                 "compare_across": (6, 8, 10), "compare_train_frames": 400, "compare_eval_frames": 300},
     "stream": {"n_actuators": 80, "big_frames": 8000, "small_frames": 2000, "batch_frames": 256, "repeat": 1,
                "contrast": False},
+    "startup": {"repeat": 1, "warmup": 0},
 }
 
 
@@ -130,6 +132,10 @@ def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, 
         from benchmarks.bench_stream import bench_stream
 
         return bench_stream(**sizes), []
+    if name == "startup":
+        from benchmarks.bench_startup import bench_startup
+
+        return bench_startup(**sizes), []
     raise ValueError(f"unknown benchmark {name!r}: allowed are {', '.join(BENCHMARKS)}")
 
 
