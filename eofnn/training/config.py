@@ -57,7 +57,6 @@ def check_search(search: dict | None, lr: float, where: str = "optimization.") -
     return space
 
 
-
 FIT_METHODS = ("closed_form", "sgd")
 #: The relative ridge alpha of a closed-form fit with no validation data to choose one on (``alpha`` unset).
 FALLBACK_ALPHA = 1e-9
