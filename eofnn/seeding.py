@@ -9,9 +9,11 @@ from __future__ import annotations
 import zlib
 
 import numpy as np
-import torch
 
+from eofnn.lazy import lazy_module
 from eofnn.validation import Interval, check_value
+
+torch = lazy_module("torch")
 
 
 def stream_seed(seed: int, stream: str, *key: int) -> np.random.SeedSequence:

@@ -9,7 +9,8 @@ import torch
 
 from eofnn.errors import ConfigError
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Turbulence
-from eofnn.sim.atmosphere.turbulence import FrozenFlowStrip, stream_seed
+from eofnn.sim.atmosphere.strip import FrozenFlowStrip
+from eofnn.sim.atmosphere.turbulence import stream_seed
 from eofnn.sim.scenario import Scenario
 
 

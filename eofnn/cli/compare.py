@@ -6,20 +6,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import eofnn
 from eofnn.cli.common import config_yaml, log
 from eofnn.cli.groups import ExperimentCommand
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
-from eofnn.evaluation.experiment import Experiment
-from eofnn.evaluation.margins import simulated_dm_gain_interval
-from eofnn.evaluation.pareto import pareto
-from eofnn.evaluation.results import ExperimentResult, save_timeseries, write_metrics
-from eofnn.evaluation.robustness import check_grid, robustness_map
 from eofnn.outputs import check_output_folder, staged_folder
-from eofnn.reporting.pareto import plot_pareto
-from eofnn.reporting.report import write_report
-from eofnn.reporting.robustness import plot_robustness
 from eofnn.validation import from_mapping
+
+# The experiment, its analyses and figures import torch, Lightning, HCIPy and matplotlib (seconds): imported when the
+# command runs, so that the parser (built from the dataclasses below) and config errors answer without them.
+# Annotations name heavy types by their module path (``import eofnn``), never in a TYPE_CHECKING block: jsonargparse
+# runs a config module's TYPE_CHECKING imports when it reads the config's types, which would import torch & co.
 
 COMPARE = ("Run an experiment: every controller in every scenario (plant), predictors trained once where asked, "
            "evaluated in closed loop on a held-out stream. Writes metrics.json, results.md, config.yaml, figures, "
@@ -79,9 +77,18 @@ class EvaluateConfig(ExperimentCommand):
 
 def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None, *,
                    robustness: dict[str, list[float]] | None = None, simulated_margins: Sequence[str] = (),
-                   pareto_scenario: bool | str = False) -> ExperimentResult:
+                   pareto_scenario: bool | str = False) -> eofnn.evaluation.results.ExperimentResult:
     """Validate everything and check the output folder, then run and write the results in one move (the analyses
     ``robustness``, ``simulated_margins`` and ``pareto_scenario`` as :class:`CompareConfig` describes them)."""
+    from eofnn.evaluation.experiment import Experiment
+    from eofnn.evaluation.margins import simulated_dm_gain_interval
+    from eofnn.evaluation.pareto import pareto
+    from eofnn.evaluation.results import save_timeseries, write_metrics
+    from eofnn.evaluation.robustness import check_grid, robustness_map
+    from eofnn.reporting.pareto import plot_pareto
+    from eofnn.reporting.report import write_report
+    from eofnn.reporting.robustness import plot_robustness
+
     out = check_output_folder(cfg.out, cfg.overwrite)
     grid = check_grid(robustness)
     simulated_margins = list(simulated_margins)
@@ -124,14 +131,14 @@ def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig
     return result
 
 
-def compare(cfg: CompareConfig, config_dump: str | None = None) -> ExperimentResult:
+def compare(cfg: CompareConfig, config_dump: str | None = None) -> eofnn.evaluation.results.ExperimentResult:
     """Run ``cfg.predictors`` in every scenario and write the results into ``cfg.out`` (``config_dump``: the resolved
     YAML written as ``config.yaml``; the config's own YAML when called from Python)."""
     return run_experiment(cfg, cfg.predictors, config_dump, robustness=cfg.robustness,
                           simulated_margins=cfg.simulated_margins, pareto_scenario=cfg.pareto)
 
 
-def evaluate(cfg: EvaluateConfig, config_dump: str | None = None) -> ExperimentResult:
+def evaluate(cfg: EvaluateConfig, config_dump: str | None = None) -> eofnn.evaluation.results.ExperimentResult:
     """Run ``cfg.checkpoints`` beside ``cfg.baselines`` in every scenario and write the results into ``cfg.out``."""
     integrator = cfg.integrator
     if isinstance(integrator, dict):  # called from Python with a mapping

@@ -11,9 +11,7 @@ from eofnn.cli.groups import SimulationCommand
 from eofnn.cli.telemetry import PLANT_HELP, fit_telemetry
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
-from eofnn.evaluation.contenders import fit_from_config
 from eofnn.outputs import check_output_file, claim_output, staged_file
-from eofnn.training.fit import FitOutput
 
 DESCRIPTION = ("Train one predictor on telemetry simulated in a scenario (simulator truth) or, with --telemetry, on "
                "recorded telemetry alone through an identified plant, and save a Lightning checkpoint that compare "
@@ -70,6 +68,9 @@ def _fit(cfg: FitConfig, config_dump: str | None = None) -> dict:
     if cfg.telemetry:
         result = fit_telemetry(cfg, out)
     else:
+        from eofnn.evaluation.contenders import fit_from_config  # torch, Lightning: only when the fit runs
+        from eofnn.training.fit import FitOutput
+
         log(f"fitting {p.history} predictor, history {p.history_length}, {p.optimization.fit_method}, "
             f"{p.data.frames} frames (simulator truth)")
         result = fit_from_config(cfg.scenario, p, FitOutput(out, cfg.overwrite, bool(cfg.progress)))

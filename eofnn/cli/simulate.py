@@ -13,12 +13,7 @@ from eofnn.cli.groups import SimulationCommand
 from eofnn.control.registry import NEEDS_PREDICTOR, build_controller
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
-from eofnn.evaluation.contenders import load_configured_checkpoint, trusted_class_paths
-from eofnn.evaluation.metrics import loop_metrics
-from eofnn.evaluation.nonstationary import require_changes_within
-from eofnn.evaluation.results import ExperimentResult
 from eofnn.outputs import check_output_file, claim_output, staged_file
-from eofnn.reporting.report import plot_rms_vs_time
 from eofnn.resources import require_memory
 from eofnn.sim.loop.runner import run_loop
 from eofnn.validation import Interval, OneOf, check_value
@@ -84,6 +79,13 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
     if p.controller in NEEDS_PREDICTOR and p.checkpoint is None:
         raise ConfigError("simulate runs a baseline or a checkpoint: set predictor.controller to a baseline or "
                           "give predictor.checkpoint")
+    # The evaluation and the figure import torch's users and matplotlib (seconds): only once the values are checked.
+    from eofnn.evaluation.contenders import load_configured_checkpoint, trusted_class_paths
+    from eofnn.evaluation.metrics import loop_metrics
+    from eofnn.evaluation.nonstationary import require_changes_within
+    from eofnn.evaluation.results import ExperimentResult
+    from eofnn.reporting.report import plot_rms_vs_time
+
     scenario = cfg.scenario
     # Telemetry keeps s, y, eps, wfs of every frame in float64.
     require_memory(4 * 8 * cfg.frames * cfg.realisations * scenario.grid.n_actuators,

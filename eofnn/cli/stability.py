@@ -5,16 +5,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, replace
 
-from eofnn.analysis.linear import controller_stability, summary
 from eofnn.cli.common import config_yaml, log
 from eofnn.cli.groups import SimulationCommand
 from eofnn.control.registry import NEEDS_PREDICTOR
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
-from eofnn.evaluation.experiment import Experiment
 from eofnn.outputs import check_output_folder, staged_folder
-from eofnn.reporting.stability import plot_stability
-from eofnn.training.checkpoint import load_predictor
 from eofnn.validation import Interval, OrNone, check_value
 
 DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator, shared or neighbourhood), or of a "
@@ -53,6 +49,11 @@ def stability(cfg: StabilityConfig, config_dump: str | None = None) -> dict:
         raise ConfigError("give either --checkpoint (a trained linear predictor) or --controller (a classical "
                           "controller), not both or neither")
     out = check_output_folder(cfg.out, cfg.overwrite)
+    # The analysis, checkpoints and the figure import torch and matplotlib (seconds): only when the command runs.
+    from eofnn.analysis.linear import controller_stability, summary
+    from eofnn.reporting.stability import plot_stability
+    from eofnn.training.checkpoint import load_predictor
+
     if cfg.checkpoint is not None:
         predictor = load_predictor(cfg.checkpoint, cfg.scenario, trusted_networks=cfg.trusted_networks)
         config = PredictorConfig(checkpoint=cfg.checkpoint, dm_gain_model=cfg.dm_gain_model)
@@ -80,6 +81,9 @@ def classical_stability(controller: PredictorConfig, scenario, dm_gain_model: fl
                           "--checkpoint instead")
     if dm_gain_model is not None:
         controller = replace(controller, dm_gain_model=dm_gain_model)
+    from eofnn.analysis.linear import controller_stability
+    from eofnn.evaluation.experiment import Experiment
+
     experiment = Experiment(scenario, {"nominal": {}}, {"controller": controller}, EvaluationConfig(),
                             log=log)
     result = controller_stability(experiment.config("controller", "nominal"),

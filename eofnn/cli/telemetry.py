@@ -7,23 +7,17 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eofnn.analysis.linear import dm_gain_margin
+import eofnn
 from eofnn.cli.common import Output, TelemetryCommand, log
-from eofnn.control.predictive import believed_dm_gain
-from eofnn.data.history import HistorySpec
-from eofnn.data.targets import AnyTelemetry, load_telemetry, telemetry_grid
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
-from eofnn.evaluation.config import PredictorConfig
-from eofnn.evaluation.replay import replay as replay_telemetry
 from eofnn.outputs import check_output_file, check_output_folder, staged_folder
-from eofnn.reporting.replay import replay_figure
-from eofnn.training.checkpoint import load_predictor
 from eofnn.training.conditions import plant_conditions, warn_shift
-from eofnn.training.export import export_filter
-from eofnn.training.fit import FitOutput, FitResult
-from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
-from eofnn.training.identify import IdentifiedPlant, identify_plant
 from eofnn.validation import Interval, OrNone, check_value
+
+# What the commands run imports torch & co. (seconds): imported in the functions, so that the parsers of identify,
+# replay, export and fit (built from the dataclasses below) and their config errors answer without it.
+# Annotations name heavy types by their module path (``import eofnn``), never in a TYPE_CHECKING block: jsonargparse
+# runs a config module's TYPE_CHECKING imports when it reads the config's types, which would import torch & co.
 
 IDENTIFY = ("Identify the plant from dithered closed-loop telemetry (FITS/npz with y and wfs, docs/telemetry.md): DM "
             "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise, each with a "
@@ -40,8 +34,11 @@ PLANT_HELP = ("DM model for POL values and targets: 'identify' (from this teleme
 MATRICES = ("interaction_matrix", "reconstructor", "modal_basis")
 
 
-def resolve_plant_option(plant: str, telemetry: list[AnyTelemetry]) -> IdentifiedPlant | None:
+def resolve_plant_option(plant: str, telemetry: list[eofnn.data.targets.AnyTelemetry],
+                         ) -> eofnn.training.identify.IdentifiedPlant | None:
     """``--plant``: identify from the telemetry, the nominal DM (None), or a plant.json."""
+    from eofnn.training.identify import IdentifiedPlant, identify_plant
+
     if plant == "identify":
         identified = identify_plant(telemetry)
         identified.require_identified()
@@ -59,7 +56,7 @@ def resolve_plant_option(plant: str, telemetry: list[AnyTelemetry]) -> Identifie
     return identified
 
 
-def check_checkpoint_fits(predictor, checkpoint: str, telemetry: list[AnyTelemetry]) -> None:
+def check_checkpoint_fits(predictor, checkpoint: str, telemetry: list[eofnn.data.targets.AnyTelemetry]) -> None:
     """One line unless the checkpoint's network runs on this telemetry (actuators, delay)."""
     n_act, delay = telemetry[0].y.shape[-1], telemetry[0].delay_frames
     if predictor.n_actuators != n_act:
@@ -99,9 +96,11 @@ def _files(value: str | list[str]) -> list[str]:
     return [value] if isinstance(value, str) else list(value)
 
 
-def _load(cfg, streamed: bool = False) -> list[AnyTelemetry]:
+def _load(cfg, streamed: bool = False) -> list[eofnn.data.targets.AnyTelemetry]:
     """Read the telemetry files (with matrices given beside them) and say how each residual was formed when it was
     not recorded as one. ``streamed``: open them for block reading (identification and fits never hold a file)."""
+    from eofnn.data.targets import load_telemetry
+
     paths = cfg.telemetry
     telemetry = load_telemetry(paths, {name: getattr(cfg, name, None) for name in MATRICES}, streamed=streamed)
     for path, item in zip(_files(paths), telemetry, strict=True):
@@ -117,6 +116,8 @@ def identify(cfg: IdentifyConfig, config_dump: str | None = None) -> dict:
     """Identify the plant from ``cfg.telemetry`` and write it to ``cfg.out``; returns the summary line."""
     check_value("batch_frames", cfg.batch_frames, Interval(1, 1_000_000, integer=True, unit="frames"))
     out = check_output_file(cfg.out, cfg.overwrite)
+    from eofnn.training.identify import identify_plant
+
     telemetry = _load(cfg, streamed=True)
     plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag,
                            batch_frames=cfg.batch_frames)
@@ -131,9 +132,14 @@ def identify(cfg: IdentifyConfig, config_dump: str | None = None) -> dict:
     return summary
 
 
-def fit_telemetry(cfg, out: Path) -> FitResult:
+def fit_telemetry(cfg, out: Path) -> eofnn.training.fit.FitResult:
     """The telemetry path of ``eofnn fit`` (``cfg``: its :class:`~eofnn.cli.fit.FitConfig`)."""
-    p: PredictorConfig = cfg.predictor
+    from eofnn.analysis.linear import dm_gain_margin
+    from eofnn.data.history import HistorySpec
+    from eofnn.training.fit import FitOutput
+    from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
+
+    p = cfg.predictor  # a PredictorConfig
     telemetry = _load(cfg, streamed=True)  # read predictor.data.batch_frames frames at a time, never whole
     spec = HistorySpec(p.history, p.history_length, telemetry[0].delay_frames)
     plant = resolve_plant_option(cfg.plant, telemetry)
@@ -183,6 +189,11 @@ def replay(cfg: ReplayConfig, config_dump: str | None = None) -> dict:
     check_value("start", cfg.start, Interval(0, 10**9, integer=True))
     check_value("settle_frames", cfg.settle_frames, Interval(0, 10**9, integer=True))
     out = check_output_folder(cfg.out, cfg.overwrite)
+    from eofnn.data.targets import telemetry_grid
+    from eofnn.evaluation.replay import replay as replay_telemetry
+    from eofnn.reporting.replay import replay_figure
+    from eofnn.training.checkpoint import load_predictor
+
     predictor = load_predictor(cfg.checkpoint, trusted_networks=cfg.trusted_networks)
     telemetry = _load(cfg, streamed=True)  # replayed in blocks of frames, never whole
     check_checkpoint_fits(predictor, cfg.checkpoint, telemetry)
@@ -225,6 +236,10 @@ def export(cfg: ExportConfig, config_dump: str | None = None) -> dict:
     """Write ``cfg.checkpoint``'s filter as FITS to ``cfg.out``; returns the summary line."""
     check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
     out = check_output_file(cfg.out, cfg.overwrite)
+    from eofnn.control.predictive import believed_dm_gain
+    from eofnn.training.checkpoint import load_predictor
+    from eofnn.training.export import export_filter
+
     predictor = load_predictor(cfg.checkpoint)
     gain = believed_dm_gain(cfg.dm_gain_model, predictor)
     try:

@@ -5,9 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from eofnn.control.adaptive import AdaptiveController, BlendController, RLSController
+import eofnn
 from eofnn.errors import ConfigError
 from eofnn.validation import COUNT, FRACTION, NON_NEGATIVE, Constraint, Interval, OneOf, validated
+
+# The controllers (torch) are imported when one is built, not with the config; the annotation names them by path:
+# jsonargparse runs a config module's TYPE_CHECKING imports when it reads the config's types.
 
 METHODS = ("none", "rls", "blend")
 
@@ -68,8 +71,10 @@ class AdaptationConfig:
             raise ConfigError(f"adaptation.window_frames={self.window_frames} is invalid: it must be at least "
                               f"adaptation.every_frames={self.every_frames}")
 
-    def build(self, predictor: Any, dm_gain_model: float) -> AdaptiveController:
+    def build(self, predictor: Any, dm_gain_model: float) -> eofnn.control.adaptive.AdaptiveController:
         """The adaptive controller that starts from ``predictor``'s fitted per-actuator filter."""
+        from eofnn.control.adaptive import BlendController, RLSController
+
         network = predictor.network
         if getattr(network, "structure", None) != "per_actuator":
             raise ConfigError(f"adaptation.method={self.method!r} adapts a per-actuator linear filter; this predictor "

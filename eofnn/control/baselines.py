@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 
-import torch
-
 from eofnn.errors import require
+from eofnn.lazy import lazy_module
 from eofnn.seeding import int_seed, torch_generator
 from eofnn.sim.loop.runner import LoopInput, LoopResult, record_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import Interval, check_value
+
+torch = lazy_module("torch")
 
 
 class Uncorrected:

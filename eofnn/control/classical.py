@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
+from eofnn.control.config import EXTRAPOLATION_ORDERS
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
 from eofnn.delay import check_delay, split_delay
@@ -30,8 +31,6 @@ from eofnn.models.linear import LinearFilter
 from eofnn.sim.loop.runner import LoopInput
 from eofnn.validation import Interval, OneOf, check_value
 
-#: Polynomial orders of the POL extrapolator: 0 is a POL zero-order hold, 1 linear, 2 quadratic.
-EXTRAPOLATION_ORDERS = (0, 1, 2)
 DTYPE = torch.float64
 
 

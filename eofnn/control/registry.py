@@ -3,22 +3,24 @@
 A builder takes the controller's config (anything with the fields it reads: ``gain``, ``leak``,
 ``dm_gain_model``) and, for a predictor, the trained network with its history spec. A new controller is one
 decorated function; nothing else dispatches on the name.
+
+The controllers' modules (torch) are imported by the builders when a controller is built, not here: the registry's
+names and sets (``controller_names``, ``NEEDS_PREDICTOR``, ``FROM_TELEMETRY``), which config checks and ``--help``
+read, come without them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from eofnn.control.baselines import Dithered, Integrator, PseudoIntegrator, Uncorrected
-from eofnn.control.classical import Extrapolator
-from eofnn.control.modal import build_lqg, build_modal_integrator
-from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.errors import ConfigError
-from eofnn.sim.loop.runner import Controller
 
-ControllerBuilder = Callable[[Any, Any], Controller]
+if TYPE_CHECKING:
+    from eofnn.sim.loop.runner import Controller
+
+ControllerBuilder = Callable[[Any, Any], "Controller"]
 _BUILDERS: dict[str, ControllerBuilder] = {}
 #: Controllers that run a trained network (they need a predictor to be built).
 NEEDS_PREDICTOR: set[str] = set()
@@ -62,33 +64,45 @@ def build_controller(config: Any, predictor: Any = None) -> Controller:
 
 @register_controller("uncorrected")
 def _uncorrected(config: Any, predictor: Any) -> Controller:
+    from eofnn.control.baselines import Uncorrected
+
     return Uncorrected()
 
 
 @register_controller("pseudo_integrator")
 def _pseudo_integrator(config: Any, predictor: Any) -> Controller:
+    from eofnn.control.baselines import PseudoIntegrator
+
     return PseudoIntegrator()
 
 
 @register_controller("integrator")
 def _integrator(config: Any, predictor: Any) -> Controller:
+    from eofnn.control.baselines import Integrator
+
     return Integrator(config.gain, config.leak)
 
 
 @register_controller("dithered_integrator")
 def _dithered_integrator(config: Any, predictor: Any) -> Controller:
     """The integrator plus ``data.dither_nm`` of white dither: telemetry from which the plant can be identified."""
+    from eofnn.control.baselines import Dithered, Integrator
+
     return Dithered(Integrator(config.gain, config.leak), config.data.dither_nm, config.data.seed)
 
 
 def dm_gain_model_of(config: Any, predictor: Any) -> float:
     """The DM gain a predictive controller believes: the config's if set, else the predictor's own model
     (:func:`~eofnn.control.predictive.believed_dm_gain`)."""
+    from eofnn.control.predictive import believed_dm_gain
+
     return believed_dm_gain(getattr(config, "dm_gain_model", None), predictor)
 
 
 @register_controller("predictor", needs_predictor=True)
 def _predictor(config: Any, predictor: Any) -> Controller:
+    from eofnn.control.predictive import PredictiveController
+
     adaptation = getattr(config, "adaptation", None)
     if adaptation is not None and adaptation.method != "none":
         return adaptation.build(predictor, dm_gain_model_of(config, predictor))
@@ -98,22 +112,30 @@ def _predictor(config: Any, predictor: Any) -> Controller:
 @register_controller("extrapolator")
 def _extrapolator(config: Any, predictor: Any) -> Controller:
     """Polynomial extrapolation (``order``) of the POL signal over the plant's delay; nothing to train."""
+    from eofnn.control.classical import Extrapolator
+
     return Extrapolator(config.order, dm_gain_model_of(config, None))
 
 
-def _modal_from_telemetry(build: Callable) -> Callable[[Any, Any], Any]:
-    """``model(config, scenario)``: record ``config.data`` telemetry in the scenario and build the modal model, with
-    the config's ``dm_gain_model`` or (unset) the DM gain the recording's dither measures."""
-    return lambda config, scenario: build(scenario, config.data, config.modes, getattr(config, "dm_gain_model", None))
+def _modal_from_telemetry(builder_name: str) -> Callable[[Any, Any], Any]:
+    """``model(config, scenario)``: record ``config.data`` telemetry in the scenario and build the modal model with
+    :mod:`eofnn.control.modal`'s ``builder_name``, with the config's ``dm_gain_model`` or (unset) the DM gain the
+    recording's dither measures."""
+    def model(config: Any, scenario: Any) -> Any:
+        from eofnn.control import modal
+
+        build = getattr(modal, builder_name)
+        return build(scenario, config.data, config.modes, getattr(config, "dm_gain_model", None))
+    return model
 
 
-@register_controller("modal_integrator", from_telemetry=_modal_from_telemetry(build_modal_integrator))
+@register_controller("modal_integrator", from_telemetry=_modal_from_telemetry("build_modal_integrator"))
 def _modal_integrator(config: Any, predictor: Any) -> Controller:
     """One optimal integrator gain per KL mode (:func:`eofnn.control.modal.build_modal_integrator`)."""
     return replace(predictor)
 
 
-@register_controller("lqg", from_telemetry=_modal_from_telemetry(build_lqg))
+@register_controller("lqg", from_telemetry=_modal_from_telemetry("build_lqg"))
 def _lqg(config: Any, predictor: Any) -> Controller:
     """Kalman filter + LQG command, AR(2) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
     return replace(predictor)

@@ -19,12 +19,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import ClassVar, Literal
 
-import torch
-
 from eofnn.delay import DELAY, check_delay, split_delay
 from eofnn.errors import ConfigError
+from eofnn.lazy import lazy_module
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import Constraint, Interval, OneOf, validated
+
+torch = lazy_module("torch")
 
 HISTORY_KINDS = ("open_loop", "closed_loop")
 #: Longest history accepted (frames); a 1264-actuator closed-loop history of this length is ~1 MB per frame.

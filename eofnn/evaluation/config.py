@@ -7,14 +7,13 @@ from typing import Any, ClassVar
 
 from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
-from eofnn.control.classical import EXTRAPOLATION_ORDERS
+from eofnn.control.config import EXTRAPOLATION_ORDERS
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_names
+from eofnn.data.config import DataConfig
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
-from eofnn.data.stream import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.models.build import import_class
-from eofnn.training.ridge import supports_closed_form
-from eofnn.training.task import OptimizationConfig
+from eofnn.training.config import OptimizationConfig
 from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, check_value, from_mapping, validated
 
 #: Most frames of one closed-loop evaluation (per realisation).
@@ -137,7 +136,9 @@ class PredictorConfig:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
             if self.checkpoint is None:  # a network to train, named by the user: import it now to check it
-                cls = import_class(self.network["class_path"])
+                cls = import_class(self.network["class_path"])  # a network: torch is imported by now
+                from eofnn.training.ridge import supports_closed_form
+
                 if self.optimization.fit_method == "closed_form" and not supports_closed_form(cls):
                     raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {cls.__name__} "
                                       "has no features()/load_solution(): use optimization.fit_method: sgd")

@@ -12,10 +12,11 @@ import inspect
 from collections.abc import Collection
 from typing import Any
 
-import torch
-from torch import nn
-
 from eofnn.errors import CheckpointError, ConfigError
+from eofnn.lazy import lazy_module
+
+torch = lazy_module("torch")
+nn = lazy_module("torch.nn")
 
 #: eofnn's own networks, by short name.
 ALIASES = {

@@ -7,11 +7,13 @@ from functools import cached_property
 from typing import ClassVar
 
 import numpy as np
-import torch
 
 from eofnn.errors import ConfigError, TelemetryError
+from eofnn.lazy import lazy_module
 from eofnn.resources import require_memory
 from eofnn.validation import Constraint, Interval, check_value, validated
+
+torch = lazy_module("torch")
 
 #: Largest grid accepted: 512 x 512 actuators already needs ~1.6 GB per 1000 float64 frames of telemetry.
 MAX_N_ACROSS = 512

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from eofnn.errors import TelemetryError
+from eofnn.lazy import lazy_module
+
+torch = lazy_module("torch")
 
 #: Offsets closer than this (pitches) are the same lattice offset; positions closer than it are duplicates.
 OFFSET_TOLERANCE = 0.05

@@ -22,13 +22,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from eofnn.delay import check_delay
 from eofnn.errors import ConfigError, TelemetryError
+from eofnn.lazy import lazy_module
 from eofnn.outputs import check_output_file
 from eofnn.telemetry.positions import check_positions
 from eofnn.telemetry.spaces import RCOND, check_modal_basis, residual_from_slopes
+
+torch = lazy_module("torch")
 
 ARRAYS = ("s", "y", "eps", "wfs")
 #: What training, identification and replay from telemetry alone need.

@@ -23,9 +23,11 @@ The residual ``R @ slopes(n)`` keeps the frame of ``slopes(n)``: the measurement
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from eofnn.errors import TelemetryError
+from eofnn.lazy import lazy_module
+
+torch = lazy_module("torch")
 
 #: Singular values below this fraction of the largest are truncated from ``pinv(IM)`` (and count as unseen modes).
 RCOND = 1e-3

@@ -14,9 +14,10 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import torch
-
 from eofnn.errors import ConfigError, require
+from eofnn.lazy import lazy_module
+
+torch = lazy_module("torch")
 
 #: The default path of relative alphas: 1e-14 to 1e-2, two values per decade.
 DEFAULT_ALPHA_PATH = tuple(float(f"{10 ** (e / 2):.3g}") for e in range(-28, -3))

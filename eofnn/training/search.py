@@ -12,56 +12,16 @@ from __future__ import annotations
 
 import copy
 import inspect
-import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import lightning as L
 
 from eofnn.errors import ConfigError
 from eofnn.models.build import import_class
-
-SEARCH_KEYS = ("lr", "width", "patience")
-
-
-@dataclass(frozen=True)
-class SearchSpace:
-    """Learning rates, hidden widths (``None``: the network's own) and early-stopping patience (epochs)."""
-
-    lr: tuple[float, ...]
-    width: tuple[int, ...] | None
-    patience: int
-
-    @property
-    def trials(self) -> list[tuple[float, int | None]]:
-        return list(itertools.product(self.lr, self.width or (None,)))
-
-
-def check_search(search: dict | None, lr: float, where: str = "optimization.") -> SearchSpace | None:
-    """The search ``search`` describes (``lr`` defaults to the config's own), or one line naming what is wrong."""
-    if search is None:
-        return None
-    if not isinstance(search, dict) or not set(search) <= set(SEARCH_KEYS) or not search:
-        raise ConfigError(f"{where}search={search!r} is invalid: give some of {', '.join(SEARCH_KEYS)}, e.g. "
-                          "{lr: [1.0e-3, 3.0e-3], width: [16, 32], patience: 2}")
-    lrs = search.get("lr", [lr])
-    if not (isinstance(lrs, list) and lrs and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                   and math.isfinite(v) and v > 0 for v in lrs)):
-        raise ConfigError(f"{where}search.lr={lrs!r} is invalid: it must be a non-empty list of learning rates > 0")
-    widths = search.get("width")
-    if widths is not None and not (isinstance(widths, list) and widths and all(
-            isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 65536 for v in widths)):
-        raise ConfigError(f"{where}search.width={widths!r} is invalid: it must be a non-empty list of integers in "
-                          "[1, 65536] (hidden units per layer)")
-    patience = search.get("patience", 2)
-    if not (isinstance(patience, int) and not isinstance(patience, bool) and 1 <= patience <= 1000):
-        raise ConfigError(f"{where}search.patience={patience!r} is invalid: it must be an integer in [1, 1000] (epochs)")
-    space = SearchSpace(tuple(float(v) for v in lrs), None if widths is None else tuple(widths), patience)
-    if len(space.trials) > 64:
-        raise ConfigError(f"{where}search has {len(space.trials)} trials: at most 64 (each trains a network)")
-    return space
+from eofnn.training.config import SEARCH_KEYS, SearchSpace, check_search  # noqa: F401  (re-exported)
 
 
 class KeepBest(L.Callback):

@@ -38,9 +38,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 
 from eofnn.errors import require
+from eofnn.lazy import lazy_module
 from eofnn.resources import available_memory_bytes, require_memory
 from eofnn.sim.atmosphere.exact import (
     _PERIOD_OUTER_SCALES,
@@ -53,6 +53,8 @@ from eofnn.sim.atmosphere.exact import (
 )
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.kernels import KERNELS, apply_kernel_amplitude_
+
+torch = lazy_module("torch")
 
 #: Across-wind band (cycles per pitch): at least ``_ACROSS_BAND``, else ``_RIDGE |f_u|`` up to ``_ACROSS_CAP``.
 _ACROSS_BAND = {"subaperture": 4.0, "point": 10.0}

@@ -43,10 +43,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-import torch
-
 from eofnn.errors import require
+from eofnn.lazy import lazy_module
 from eofnn.validation import Constraint, Interval, OrNone, from_mapping, validated
+
+torch = lazy_module("torch")
 
 #: Longest time a change or drift may name, in seconds (about 116 days).
 MAX_TIME_S = 1e7

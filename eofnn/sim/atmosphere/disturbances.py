@@ -32,13 +32,15 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-import torch
-from scipy.signal import lfilter, lfiltic
 
 from eofnn.errors import require
+from eofnn.lazy import lazy_module
 from eofnn.seeding import sub_seed
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.validation import Constraint, Interval, OneOf, from_mapping, validated
+
+torch = lazy_module("torch")
+signal = lazy_module("scipy.signal")
 
 #: Vibration modes and their Noll indices (Noll 1976: 2 = tip along x, 3 = tilt along y, 4 = focus, ...).
 MODES = {"tip": 2, "tilt": 3, "focus": 4, "astigmatism_45": 5, "astigmatism_0": 6, "coma_y": 7, "coma_x": 8}
@@ -167,9 +169,9 @@ def _oscillator(vib: Vibration, frame_period_s: float,
     b, a = [sigma], [1.0, -phi1, -phi2]
 
     def step(block: int, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return lfilter(b, a, _child(seed, 1, block).standard_normal(_BLOCK_FRAMES), zi=state)
+        return signal.lfilter(b, a, _child(seed, 1, block).standard_normal(_BLOCK_FRAMES), zi=state)
 
-    return _BlockedSeries(lfiltic(b, a, [x1, x2]), step).values
+    return _BlockedSeries(signal.lfiltic(b, a, [x1, x2]), step).values
 
 
 class VibrationSeries:

@@ -41,11 +41,13 @@ import functools
 import math
 
 import numpy as np
-import torch
 
 from eofnn.errors import require
+from eofnn.lazy import lazy_module
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.kernels import KERNELS, kernel_power
+
+torch = lazy_module("torch")
 
 #: Exact von Kármán coefficient (24/5 Γ(6/5))^(5/6) Γ(11/6)² / (2 π^(11/3)) of 0.023 r0^(-5/3) (f² + L0^-2)^(-11/6).
 VON_KARMAN_COEFFICIENT = 0.022896

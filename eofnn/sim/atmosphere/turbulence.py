@@ -26,19 +26,19 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
-import torch
 
 from eofnn.errors import require
+from eofnn.lazy import lazy_module
 from eofnn.seeding import stream_seed, sub_seed
 from eofnn.sim.atmosphere.anywind import frozen_flow_layer
 from eofnn.sim.atmosphere.changes import AtmosphereChange, build_changes, layer_winds, with_changes
 from eofnn.sim.atmosphere.disturbances import BoilingLayer, Vibration, VibrationSeries
 from eofnn.sim.atmosphere.exact import project_out
-from eofnn.sim.atmosphere.hcipy_pupil import HcipyPupilLayer
-from eofnn.sim.atmosphere.strip import FrozenFlowStrip
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.kernels import KERNELS
 from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, OrNone, check_value, from_mapping, validated
+
+torch = lazy_module("torch")
 
 MODELS = ("exact", "hcipy_pupil", "strip")
 
@@ -266,9 +266,14 @@ def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, f
         # Boiling: a second realisation (sub-stream 1) and the mixing angle's walk (sub-stream 2).
         return BoilingLayer((screen(seed), screen(sub_seed(seed, 1))), layer.boiling_time_s, frame_period_s,
                             sub_seed(seed, 2))
+    # The HCIPy models import HCIPy and scipy (seconds): only when a layer of theirs is built, not with the config.
     if atmosphere.model == "hcipy_pupil":
+        from eofnn.sim.atmosphere.hcipy_pupil import HcipyPupilLayer
+
         return HcipyPupilLayer(grid, r0_m, wavelength_m, outer_m, layer.wind_speed_mps, layer.wind_direction_deg,
                                frame_period_s, seed)
+    from eofnn.sim.atmosphere.strip import FrozenFlowStrip
+
     return FrozenFlowStrip(grid.positions_m, grid.pitch_m / atmosphere.oversampling, r0_m, wavelength_m, outer_m,
                            layer.wind_speed_mps, layer.wind_direction_deg, frame_period_s,
                            atmosphere.interpolation_order, seed)

@@ -11,13 +11,15 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import ClassVar
 
 import numpy as np
-import torch
 
 from eofnn.delay import DELAY, check_delay, split_delay
 from eofnn.errors import ConfigError, require
+from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.changes import DmGainDrift, build_drift
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.validation import Constraint, Interval, OneOf, validated
+
+torch = lazy_module("torch")
 
 NONLINEARITIES = ("none", "tanh", "quadratic")
 
@@ -109,8 +111,10 @@ class Plant:
 class PlantModel:
     """A :class:`Plant` bound to an actuator grid, applying the DM and the WFS to torch tensors."""
 
-    def __init__(self, plant: Plant, grid: ActuatorGrid, dtype: torch.dtype = torch.float64,
+    def __init__(self, plant: Plant, grid: ActuatorGrid, dtype: torch.dtype | None = None,
                  frame_rate_hz: float | None = None) -> None:
+        """``dtype``: of the misregistration operator, ``torch.float64`` unless given."""
+        dtype = torch.float64 if dtype is None else dtype
         self.plant = plant
         self.grid = grid
         self.frame_rate_hz = frame_rate_hz

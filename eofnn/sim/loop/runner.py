@@ -7,15 +7,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-import torch
 from tqdm.auto import tqdm
 
 from eofnn.errors import DivergedError, require
+from eofnn.lazy import lazy_module
 from eofnn.seeding import torch_generator
 from eofnn.sim.atmosphere.turbulence import Turbulence
 from eofnn.sim.loop.plant import Plant, PlantModel
 from eofnn.telemetry.record import Telemetry
 from eofnn.validation import COUNT, check_value
+
+torch = lazy_module("torch")
 
 
 @dataclass

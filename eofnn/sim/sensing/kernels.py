@@ -16,7 +16,10 @@ A layer moving along the unit vector ``(cos a, sin a)`` is synthesised in its ow
 from __future__ import annotations
 
 import numpy as np
-import torch
+
+from eofnn.lazy import lazy_module
+
+torch = lazy_module("torch")
 
 #: The sensing kernels a layer may be seen through.
 KERNELS = ("subaperture", "point")

@@ -1,0 +1,86 @@
+"""How a predictor's training data is simulated (:class:`DataConfig`), free of torch and Lightning.
+
+The command line builds its parsers from this config and checks its values before the streams that simulate the data
+(:mod:`eofnn.data.stream`, which re-exports these names) are imported: seconds of imports that ``--help`` and a
+config error do without.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from eofnn.errors import require
+from eofnn.validation import Constraint, Interval, IsBool, validated
+
+#: Most frames one fit may simulate (training plus validation): about three hours of CPU at 1264 actuators.
+MAX_FRAMES = 10_000_000
+
+
+@dataclass
+@validated
+class DataConfig:
+    """How a predictor's training data is simulated and cut into batches.
+
+    Parameters
+    ----------
+    frames : int
+        Training frames per epoch (rounded up to whole sequences).
+    val_frames : int
+        Frames of the held-out validation stream.
+    sequence_frames : int
+        Frames per independent turbulence realisation.
+    batch_frames : int
+        Frames per batch (times ``realisations`` samples).
+    realisations : int
+        Realisations simulated side by side per sequence.
+    seed : int
+        Seed of the training and validation streams; evaluation uses its own stream.
+    num_workers : int
+        DataLoader worker processes.
+    integrator_gain : float
+        Gain of the integrator that records closed-loop data.
+    dither_nm : float
+        RMS white dither added to the commands while recording closed-loop data (persistent excitation).
+    refit_rounds : int
+        Rounds in which the just-fitted predictor (plus the same dither) records the data of the next fit.
+    truth : bool
+        ``true``: targets from the simulator's turbulence ``s`` (a study's labelled shortcut). ``false``: learn as
+        an observatory would, from telemetry alone: record ``frames + val_frames`` frames with the dithered
+        integrator, identify the plant from the dither, fit from ``y`` and ``wfs`` (the learner never sees ``s``).
+    """
+
+    frames: int = 20000
+    val_frames: int = 2000
+    sequence_frames: int = 10000
+    batch_frames: int = 256
+    realisations: int = 1
+    seed: int = 0
+    num_workers: int = 0
+    integrator_gain: float = 0.5
+    dither_nm: float = 10.0
+    refit_rounds: int = 0
+    truth: bool = True
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "frames": Interval(1, MAX_FRAMES, integer=True),
+        "val_frames": Interval(1, MAX_FRAMES, integer=True),
+        "sequence_frames": Interval(2, 1_000_000, integer=True),
+        "batch_frames": Interval(1, 1_000_000, integer=True),
+        "realisations": Interval(1, 1024, integer=True),
+        "seed": Interval(0, 2**63 - 1, integer=True),
+        "num_workers": Interval(0, 64, integer=True),
+        "integrator_gain": Interval(0, 10),
+        "dither_nm": Interval(0, 1e5, unit="nm"),
+        "refit_rounds": Interval(0, 100, integer=True),
+        "truth": IsBool(),
+    }
+    _where: ClassVar[str] = "data."
+
+    def __post_init__(self) -> None:
+        require(self.frames * (self.refit_rounds + 1) * self.realisations <= MAX_FRAMES,
+                f"data.frames={self.frames} x realisations={self.realisations} x (refit_rounds + 1) is more than "
+                f"{MAX_FRAMES} frames to simulate")
+
+
+__all__ = ["MAX_FRAMES", "DataConfig"]
