@@ -97,8 +97,9 @@ def _predictor(config: Any, predictor: Any) -> Controller:
 
 @register_controller("extrapolator")
 def _extrapolator(config: Any, predictor: Any) -> Controller:
-    """Polynomial extrapolation (``order``) of the POL signal over the plant's delay; nothing to train."""
-    return Extrapolator(config.order, dm_gain_model_of(config, None))
+    """Polynomial extrapolation (``order``, least squares over ``smoothing`` more frames) of the POL signal over the
+    plant's delay; nothing to train."""
+    return Extrapolator(config.order, dm_gain_model_of(config, None), getattr(config, "smoothing", 0))
 
 
 def _modal_from_telemetry(build: Callable) -> Callable[[Any, Any], Any]:

@@ -1,5 +1,6 @@
 """An experiment's contenders, before any loop is scored: the scenarios they run in, the checks made up front
-(memory, time, streams, checkpoints), how each predictor is trained, and the best-gain integrator's scan.
+(memory, time, streams, checkpoints), how each predictor is trained, and the tuning scans of classical controllers
+(the best-gain integrator, the extrapolator's order) on a stream of their own.
 
 :class:`~eofnn.evaluation.experiment.Experiment` runs them; these pieces are also what ``fit`` and ``simulate``
 reuse.
@@ -8,19 +9,21 @@ reuse.
 from __future__ import annotations
 
 from collections.abc import Collection
+from dataclasses import replace
 from typing import Any
 
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
 from eofnn.control.modal import require_telemetry, within_screen
-from eofnn.control.registry import FROM_TELEMETRY
+from eofnn.control.registry import FROM_TELEMETRY, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.resources import require_memory, require_time
+from eofnn.sim.loop.runner import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.conditions import scenario_conditions, warn_shift
@@ -74,6 +77,45 @@ def load_configured_checkpoint(name: str, cfg: PredictorConfig, scenarios: dict[
     return predictor
 
 
+#: The stream every tuning scan of a classical controller closes its loops on (with seed ``data.seed``): a stream of
+#: its own, never the test stream; every setting of one scan sees the same turbulence and noise.
+SCAN_STREAM = "gain-scan"
+
+
+def scan_median_residual(controller: Controller, cfg: PredictorConfig, scenario: Scenario, settle_frames: int,
+                         divergence_factor: float) -> float | None:
+    """The median residual (nm) of ``controller`` closing the loop on the scan stream: ``cfg.data.frames`` frames
+    of seed ``cfg.data.seed``, after ``min(settle_frames, frames // 2)`` frames settle; ``None`` if it diverged."""
+    settle = min(settle_frames, cfg.data.frames // 2)
+    return scenario.median_residual_nm(controller, cfg.data.frames, cfg.data.seed, SCAN_STREAM, settle,
+                                       divergence_factor=divergence_factor)
+
+
+def scan_settings(cfg: PredictorConfig, settings: list[dict], scenario: Scenario, settle_frames: int,
+                  divergence_factor: float) -> list[dict]:
+    """Close the loop on the scan stream with each of ``settings`` (fields of a classical controller's config, e.g.
+    ``{"order": 2, "smoothing": 0}``), the controller built from ``cfg`` with those fields replaced, through the
+    registry: each setting with its ``median_rms_nm`` (``None`` where the loop diverged), in the order given."""
+    return [{**setting, "median_rms_nm": scan_median_residual(build_controller(replace(cfg, **setting)), cfg,
+                                                              scenario, settle_frames, divergence_factor)}
+            for setting in settings]
+
+
+def scan_extrapolator(cfg: PredictorConfig, scenario: Scenario, settle_frames: int, divergence_factor: float) -> dict:
+    """The extrapolator's order (and smoothing) tuned like the integrator's gain: each setting of
+    ``cfg.extrapolator_grid`` closes the loop on the scan stream and the lowest median residual wins (the first
+    tried on a tie). Returns the choice (``order``, ``smoothing``, its ``median_rms_nm``), every setting tried with
+    its residual (``scanned``), and whether smoothing was scanned (``smoothing_scanned``)."""
+    scanned = scan_settings(replace(cfg, orders=None, smoothings=None), cfg.extrapolator_grid, scenario,
+                            settle_frames, divergence_factor)
+    finite = [entry for entry in scanned if entry["median_rms_nm"] is not None]
+    require(bool(finite), f"every extrapolator setting of orders={cfg.orders!r}, smoothings={cfg.smoothings!r} "
+                          "diverged: check the plant's DM gain against dm_gain_model")
+    best = min(finite, key=lambda entry: entry["median_rms_nm"])
+    return {"order": best["order"], "smoothing": best["smoothing"], "median_rms_nm": best["median_rms_nm"],
+            "scanned": scanned, "smoothing_scanned": cfg.smoothings is not None}
+
+
 #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
 #: tried, climbing towards the critical gain).
 MAX_REFINE_ROUNDS = 6
@@ -85,7 +127,6 @@ def scan_integrator_gains(cfg: PredictorConfig, scenario: Scenario, settle_frame
     ``cfg.refine_rounds`` rounds of refinement between the best gain and its neighbours (past the grid's top
     up to the analytic critical gain, below its bottom down to 0), so the choice is never an edge of the grid
     unless it is the edge of what is stable (then ``at_edge`` says so)."""
-    settle = min(settle_frames, cfg.data.frames // 2)
     # The critical integrator gain: the loop gain at which an integrator goes unstable in a nominal plant of
     # this delay (a small gain's DM-gain margin times that gain), over this plant's DM and WFS gains.
     nominal = LoopSetup(scenario.plant.delay_frames, frame_rate_hz=scenario.frame_rate_hz)
@@ -94,9 +135,8 @@ def scan_integrator_gains(cfg: PredictorConfig, scenario: Scenario, settle_frame
     scanned: dict[float, float | None] = {}
 
     def run(gain: float) -> None:
-        scanned[gain] = scenario.median_residual_nm(Integrator(gain, cfg.leak), cfg.data.frames, cfg.data.seed,
-                                                    "gain-scan", settle,
-                                                    divergence_factor=divergence_factor)
+        scanned[gain] = scan_median_residual(Integrator(gain, cfg.leak), cfg, scenario, settle_frames,
+                                             divergence_factor)
 
     for gain in cfg.gains:
         run(gain)
@@ -154,6 +194,8 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
     work = evaluation.frames * evaluation.realisations * n_act * len(predictors) * len(scenarios)
     work += sum(len(cfg.gains) * cfg.data.frames * n_act * len(scenarios)
                 for cfg in predictors.values() if cfg.gains is not None)
+    work += sum(len(cfg.extrapolator_grid) * cfg.data.frames * n_act * len(scenarios)
+                for cfg in predictors.values() if cfg.extrapolator_grid is not None)
     work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
                 * n_act * (1 if cfg.train_in else len(scenarios))
                 for cfg in predictors.values() if cfg.trains)
@@ -165,9 +207,10 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
                                              evaluation.realisations)
         require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
         for name, cfg in predictors.items():
-            if cfg.gains is not None:
+            if cfg.gains is not None or cfg.extrapolator_grid is not None:
+                what = "the gain scan" if cfg.gains is not None else "the scan of orders"
                 scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
-                                                     f"{cfg.data.frames} (the gain scan)")
+                                                     f"{cfg.data.frames} ({what})")
             elif cfg.controller in FROM_TELEMETRY:
                 require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
                 data, _ = within_screen(scenario_value, cfg.data)  # split into realisations that fit the screen

@@ -15,11 +15,17 @@ from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.errors import require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
-from eofnn.evaluation.contenders import build_scenarios, check_experiment, fit_from_config, scan_integrator_gains
+from eofnn.evaluation.contenders import (
+    build_scenarios,
+    check_experiment,
+    fit_from_config,
+    scan_extrapolator,
+    scan_integrator_gains,
+)
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
-from eofnn.evaluation.results import ExperimentResult
+from eofnn.evaluation.results import ExperimentResult, describe_extrapolator_scan
 from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
 from eofnn.sim.loop.runner import Controller, run_loop
@@ -65,6 +71,8 @@ class Experiment:
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
         #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
         self.gain_scans: dict[tuple[str, str], dict] = {}
+        #: Extrapolators tuned on a stream of their own: (controller, scenario) -> {"order", "smoothing", "scanned"}.
+        self.extrapolator_scans: dict[tuple[str, str], dict] = {}
         #: Ridge alphas chosen on validation data (``alpha: auto``): (controller, training scenario) -> choice.
         self.alpha_choices: dict[tuple[str, str], dict] = {}
         #: Budgeted searches of networks trained by SGD: (controller, training scenario) -> trials, choice, budget.
@@ -121,8 +129,11 @@ class Experiment:
         return self.predictor(name, scenario_name) if self.predictors[name].controller in NEEDS_PREDICTOR else None
 
     def config(self, name: str, scenario_name: str) -> PredictorConfig:
-        """Controller ``name``'s config as it runs in ``scenario_name``: a best-gain integrator has its gain chosen."""
+        """Controller ``name``'s config as it runs in ``scenario_name``: a best-gain integrator has its gain chosen, a
+        tuned extrapolator its order and smoothing."""
         cfg = self.predictors[name]
+        if cfg.extrapolator_grid is not None:
+            return self._tuned_extrapolator(name, scenario_name)
         if cfg.gains is None:
             return cfg
         key = (name, scenario_name)
@@ -139,6 +150,19 @@ class Experiment:
                      f"{', '.join(f'{g:g}' for g in cfg.gains)}, refined with {', '.join(f'{g:g}' for g in scan['refined'])}"
                      f"{edge}")
         return replace(cfg, gains=None, gain=self.gain_scans[key]["gain"])
+
+    def _tuned_extrapolator(self, name: str, scenario_name: str) -> PredictorConfig:
+        """The extrapolator ``name`` with the order and smoothing its scan chose in ``scenario_name`` (scanned on first
+        use, on a stream of its own: :func:`~eofnn.evaluation.contenders.scan_extrapolator`)."""
+        cfg, key = self.predictors[name], (name, scenario_name)
+        if key not in self.extrapolator_scans:
+            self.extrapolator_scans[key] = scan_extrapolator(cfg, self.scenarios[scenario_name],
+                                                             self.evaluation.settle_frames,
+                                                             self.evaluation.divergence_factor)
+            self.log(f"{scenario_name:>12s} {name:>18s}: {describe_extrapolator_scan(self.extrapolator_scans[key])}"
+                     " on a stream of its own")
+        scan = self.extrapolator_scans[key]
+        return replace(cfg, orders=None, smoothings=None, order=scan["order"], smoothing=scan["smoothing"])
 
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
@@ -240,7 +264,8 @@ class Experiment:
                                   classical_models=_by_scenario(models), peak_memory_bytes=peaks,
                                   scenario_dm_gains={name: float(sc.plant.dm_gain)
                                                      for name, sc in self.scenarios.items()},
-                                  integrator_gain_used=_by_scenario(gains_used))
+                                  integrator_gain_used=_by_scenario(gains_used),
+                                  extrapolator_settings=_by_scenario(self.extrapolator_scans))
         result.verdict = self.verdict(result)
         return result
 

@@ -41,6 +41,10 @@ class ExperimentResult:
     #: The gain every integrator ran at: scenario -> controller -> {"gain": loop gain (dimensionless), "scanned":
     #: whether it was chosen by a best-gain scan (``integrator_gains`` has the scan) or fixed by the config}.
     integrator_gain_used: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: Extrapolators whose order (and smoothing) was chosen on a stream of their own: scenario -> controller ->
+    #: {"order", "smoothing", "median_rms_nm" (of the choice, on that stream), "scanned": [every setting tried with its
+    #: median_rms_nm, None where it diverged], "smoothing_scanned"}.
+    extrapolator_settings: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         verdict = {} if self.verdict is None else {"verdict": self.verdict}
@@ -49,6 +53,7 @@ class ExperimentResult:
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,
             "integrator_gain_used": self.integrator_gain_used,
+            "extrapolator_settings": self.extrapolator_settings,
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
             "simulated_stability": self.simulated_stability,
@@ -59,6 +64,25 @@ class ExperimentResult:
             "timings_s": self.timings_s,
             "peak_memory_bytes": self.peak_memory_bytes,
         }
+
+
+def describe_extrapolator_scan(scan: dict) -> str:
+    """``order 2 chosen (2.06 nm) over order 1 (3.86), order 0 (5.1)``: the choice, then the others from best to
+    worst (diverged last); each setting names its smoothing when smoothing was scanned or is not 0."""
+    show_smoothing = scan.get("smoothing_scanned") or any(e["smoothing"] for e in scan["scanned"])
+
+    def name(entry: dict) -> str:
+        return f"order {entry['order']}" + (f", smoothing {entry['smoothing']}" if show_smoothing else "")
+
+    chosen = next(e for e in scan["scanned"] if (e["order"], e["smoothing"]) == (scan["order"], scan["smoothing"]))
+    others = sorted((e for e in scan["scanned"] if e is not chosen),
+                    key=lambda e: (e["median_rms_nm"] is None, e["median_rms_nm"] or 0.0))
+    text = f"{name(chosen)} chosen ({chosen['median_rms_nm']:.3g} nm)"
+    if others:
+        text += " over " + ", ".join(f"{name(e)} ("
+                                     + ("diverged" if e["median_rms_nm"] is None else f"{e['median_rms_nm']:.3g}")
+                                     + ")" for e in others)
+    return text
 
 
 def write_metrics(result: ExperimentResult, path: Path) -> None:
