@@ -15,7 +15,7 @@ from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contenders import SCAN_STREAM
 from eofnn.evaluation.experiment import Experiment
-from eofnn.evaluation.results import ExperimentResult, describe_extrapolator_scan
+from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
 from eofnn.sim.scenario import Scenario
 
 F64 = torch.float64
@@ -72,7 +72,7 @@ def test_the_scan_keeps_the_lowest_residual_of_its_own_stream_never_the_tests(sm
     assert (chosen.order, chosen.smoothing, chosen.orders, chosen.smoothings) == (2, 0, None, None)
     # Every setting ran once, all on the scan stream of the scan's own seed: the test stream (seed 1) is never used.
     assert calls == [(7, SCAN_STREAM, 500)] * 6 and SCAN_STREAM != "test"
-    scan = experiment.extrapolator_scans[("extrap", "nominal")]
+    scan = experiment.setting_scans[("extrap", "nominal")]
     assert scan["median_rms_nm"] == 2.0 and len(scan["scanned"]) == 6
     assert lines[-1].endswith("extrap: order 2, smoothing 0 chosen (2 nm) over order 1, smoothing 2 (3), order 1, "
                               "smoothing 0 (4), order 0, smoothing 2 (8), order 0, smoothing 0 (9), order 2, "
@@ -86,18 +86,18 @@ def test_an_extrapolator_whose_every_order_diverges_is_one_line(small_scenario, 
     experiment = Experiment(small_scenario, {"nominal": {}},
                             {"extrap": PredictorConfig(controller="extrapolator", orders=[1, 2], data={"frames": 500})},
                             EvaluationConfig(frames=600, settle_frames=100), log=lambda line: None)
-    with pytest.raises(ConfigError, match=r"every extrapolator setting of orders=\[1, 2\], smoothings=None diverged"):
+    with pytest.raises(ConfigError, match=r"every setting of controller extrapolator \(orders=\[1, 2\]\) diverged"):
         experiment.config("extrap", "nominal")
 
 
 def test_results_md_names_the_order_chosen_over_the_others():
-    scan = {"order": 2, "smoothing": 0, "median_rms_nm": 2.06, "smoothing_scanned": False,
+    scan = {"order": 2, "smoothing": 0, "median_rms_nm": 2.06,
             "scanned": [{"order": 0, "smoothing": 0, "median_rms_nm": 23.0},
                         {"order": 1, "smoothing": 0, "median_rms_nm": 3.86},
                         {"order": 2, "smoothing": 0, "median_rms_nm": 2.06}]}
-    assert describe_extrapolator_scan(scan) == "order 2 chosen (2.06 nm) over order 1 (3.86), order 0 (23)"
-    result = ExperimentResult({}, extrapolator_settings={"noise_0": {"extrapolator": scan}})
-    assert result.to_json()["extrapolator_settings"]["noise_0"]["extrapolator"]["order"] == 2
+    assert describe_setting_scan(scan) == "order 2 chosen (2.06 nm) over order 1 (3.86), order 0 (23)"
+    result = ExperimentResult({}, classical_settings={"noise_0": {"extrapolator": scan}})
+    assert result.to_json()["classical_settings"]["noise_0"]["extrapolator"]["order"] == 2
 
 
 @pytest.mark.cli
@@ -112,14 +112,14 @@ def test_compare_chooses_order_2_without_noise_and_a_lower_order_with_much(tmp_p
                     "--evaluation.psd_segment_frames", "128", "--out", tmp_path / "out")
     assert code == 0, err
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
-    quiet, noisy = (metrics["extrapolator_settings"][s]["extrapolator"] for s in ("noise_0", "noise_30"))
+    quiet, noisy = (metrics["classical_settings"][s]["extrapolator"] for s in ("noise_0", "noise_30"))
     assert quiet["order"] == 2 and noisy["order"] in (0, 1), (quiet, noisy)
     for scan in (quiet, noisy):
         finite = [e for e in scan["scanned"] if e["median_rms_nm"] is not None]
         assert [e["order"] for e in scan["scanned"]] == [0, 1, 2]
         assert scan["median_rms_nm"] == min(e["median_rms_nm"] for e in finite)
     text = (tmp_path / "out" / "results.md").read_text()
-    assert f"- extrapolator in noise_0: {describe_extrapolator_scan(quiet)}" in text
+    assert f"- extrapolator in noise_0: {describe_setting_scan(quiet)}" in text
     assert f"- extrapolator in noise_30: order {noisy['order']} chosen" in text
 
 

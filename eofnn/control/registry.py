@@ -114,7 +114,13 @@ def _modal_integrator(config: Any, predictor: Any) -> Controller:
     return replace(predictor)
 
 
-@register_controller("lqg", from_telemetry=_modal_from_telemetry(build_lqg))
+def _lqg_from_telemetry(config: Any, scenario: Any) -> Any:
+    """The LQG model of :func:`_modal_from_telemetry`, with the config's ``ar_order`` (2 unless set)."""
+    return build_lqg(scenario, config.data, config.modes, getattr(config, "dm_gain_model", None),
+                     getattr(config, "ar_order", 2))
+
+
+@register_controller("lqg", from_telemetry=_lqg_from_telemetry)
 def _lqg(config: Any, predictor: Any) -> Controller:
-    """Kalman filter + LQG command, AR(2) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
+    """Kalman filter + LQG command, AR(2) (or ``ar_order``) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
     return replace(predictor)

@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
 from eofnn.control.classical import EXTRAPOLATION_ORDERS, MAX_EXTRAPOLATION_SMOOTHING
+from eofnn.control.kalman import AR_ORDERS
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_names
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
 from eofnn.data.stream import DataConfig
@@ -85,7 +86,7 @@ class PredictorConfig:
         scenario the experiment closes the loop with each order (and each of ``smoothings``) on a stream of its own
         (``data.frames`` frames, seed ``data.seed``, the gain scan's stream, never the test stream) and keeps the
         lowest median residual; ``order`` and ``smoothing`` are then not used. The settings tried, their residuals
-        and the choice go to ``metrics.json`` (``extrapolator_settings``) and ``results.md``.
+        and the choice go to ``metrics.json`` (``classical_settings``) and ``results.md``.
     smoothings : list of int, optional
         ``smoothing`` values to choose from with ``orders`` (every combination is tried); unset, ``smoothing``.
     modes : int, optional
@@ -93,6 +94,12 @@ class PredictorConfig:
         their own, the others share the one best for them together; unset, every mode has its own. Their model
         is built in each scenario from ``data.frames`` frames of telemetry recorded with an integrator
         (``data.integrator_gain``) plus ``data.dither_nm`` of dither, seed ``data.seed`` (never the test stream).
+    ar_order : int
+        ``controller: lqg``: order of each mode's autoregressive turbulence model, 2 (the default) or 1.
+    ar_orders : list of int, optional
+        ``controller: lqg``: AR orders to choose from, like the extrapolator's ``orders``: in each scenario an LQG is
+        built with each from the same telemetry, closes the loop on the scan stream (``data.frames`` frames, seed
+        ``data.seed``, never the test stream) and the lowest median residual wins (``classical_settings``).
     """
 
     controller: str = "predictor"
@@ -114,6 +121,8 @@ class PredictorConfig:
     orders: list[int] | None = None
     smoothings: list[int] | None = None
     modes: int | None = None
+    ar_order: int = 2
+    ar_orders: list[int] | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -126,6 +135,7 @@ class PredictorConfig:
         "order": Interval(min(EXTRAPOLATION_ORDERS), max(EXTRAPOLATION_ORDERS), integer=True),
         "smoothing": Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True, unit="frames"),
         "modes": OrNone(Interval(1, 1_000_000, integer=True)),
+        "ar_order": OneOf(AR_ORDERS),
     }
 
     def __post_init__(self) -> None:
@@ -150,7 +160,7 @@ class PredictorConfig:
                 raise ConfigError(f"gains={self.gains!r} is invalid: give a non-empty list of integrator gains")
             for gain in self.gains:
                 Integrator(gain, self.leak)
-        self._check_extrapolator_scan()
+        self._check_setting_scans()
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
@@ -160,17 +170,19 @@ class PredictorConfig:
                     raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {cls.__name__} "
                                       "has no features()/load_solution(): use optimization.fit_method: sgd")
 
-    def _check_extrapolator_scan(self) -> None:
-        """``orders`` and ``smoothings``: for the extrapolator only, non-empty lists of allowed values (one line)."""
-        allowed = {"orders": (OneOf(EXTRAPOLATION_ORDERS).describe(), OneOf(EXTRAPOLATION_ORDERS)),
-                   "smoothings": (f"an integer from 0 to {MAX_EXTRAPOLATION_SMOOTHING}",
-                                  Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True))}
-        for name, (what, constraint) in allowed.items():
+    def _check_setting_scans(self) -> None:
+        """``orders`` and ``smoothings`` (extrapolator) and ``ar_orders`` (LQG): each for its controller only, a
+        non-empty list of allowed values (one line otherwise)."""
+        allowed = {"orders": ("extrapolator", OneOf(EXTRAPOLATION_ORDERS).describe(), OneOf(EXTRAPOLATION_ORDERS)),
+                   "smoothings": ("extrapolator", f"an integer from 0 to {MAX_EXTRAPOLATION_SMOOTHING}",
+                                  Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True)),
+                   "ar_orders": ("lqg", OneOf(AR_ORDERS).describe(), OneOf(AR_ORDERS))}
+        for name, (controller, what, constraint) in allowed.items():
             values = getattr(self, name)
             if values is None:
                 continue
-            if self.controller != "extrapolator":
-                raise ConfigError(f"{name}={values!r} is for controller: extrapolator, not {self.controller!r}")
+            if self.controller != controller:
+                raise ConfigError(f"{name}={values!r} is for controller: {controller}, not {self.controller!r}")
             if not isinstance(values, (list, tuple)) or not values:
                 raise ConfigError(f"{name}={values!r} is invalid: give a non-empty list of values, each {what}")
             for value in values:
@@ -187,6 +199,15 @@ class PredictorConfig:
         smoothings = self.smoothings if self.smoothings is not None else [self.smoothing]
         grid = [{"order": int(order), "smoothing": int(smoothing)} for order in orders for smoothing in smoothings]
         return [setting for i, setting in enumerate(grid) if setting not in grid[:i]]
+
+    @property
+    def setting_grid(self) -> list[dict[str, int]] | None:
+        """The settings a classical controller's scan tries (:attr:`extrapolator_grid`, or the LQG's
+        ``[{"ar_order": ...}, ...]``); ``None`` when nothing is scanned (the integrator's ``gains`` have a scan of
+        their own)."""
+        if self.ar_orders is not None:
+            return [{"ar_order": int(order)} for i, order in enumerate(self.ar_orders) if order not in self.ar_orders[:i]]
+        return self.extrapolator_grid
 
     @property
     def trains(self) -> bool:

@@ -8,7 +8,7 @@ reuse.
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import replace
 from typing import Any
 
@@ -92,28 +92,50 @@ def scan_median_residual(controller: Controller, cfg: PredictorConfig, scenario:
 
 
 def scan_settings(cfg: PredictorConfig, settings: list[dict], scenario: Scenario, settle_frames: int,
-                  divergence_factor: float) -> list[dict]:
+                  divergence_factor: float, model_of: Callable[[PredictorConfig], Any] | None = None) -> list[dict]:
     """Close the loop on the scan stream with each of ``settings`` (fields of a classical controller's config, e.g.
     ``{"order": 2, "smoothing": 0}``), the controller built from ``cfg`` with those fields replaced, through the
-    registry: each setting with its ``median_rms_nm`` (``None`` where the loop diverged), in the order given."""
-    return [{**setting, "median_rms_nm": scan_median_residual(build_controller(replace(cfg, **setting)), cfg,
-                                                              scenario, settle_frames, divergence_factor)}
-            for setting in settings]
+    registry (with ``model_of(config)`` as its model, for a controller built from telemetry): each setting with its
+    ``median_rms_nm`` (``None`` where the loop diverged), in the order given."""
+    entries = []
+    for setting in settings:
+        setting_cfg = replace(cfg, **setting)
+        controller = build_controller(setting_cfg, None if model_of is None else model_of(setting_cfg))
+        entries.append({**setting, "median_rms_nm": scan_median_residual(controller, cfg, scenario, settle_frames,
+                                                                         divergence_factor)})
+    return entries
 
 
-def scan_extrapolator(cfg: PredictorConfig, scenario: Scenario, settle_frames: int, divergence_factor: float) -> dict:
-    """The extrapolator's order (and smoothing) tuned like the integrator's gain: each setting of
-    ``cfg.extrapolator_grid`` closes the loop on the scan stream and the lowest median residual wins (the first
-    tried on a tie). Returns the choice (``order``, ``smoothing``, its ``median_rms_nm``), every setting tried with
-    its residual (``scanned``), and whether smoothing was scanned (``smoothing_scanned``)."""
-    scanned = scan_settings(replace(cfg, orders=None, smoothings=None), cfg.extrapolator_grid, scenario,
-                            settle_frames, divergence_factor)
-    finite = [entry for entry in scanned if entry["median_rms_nm"] is not None]
-    require(bool(finite), f"every extrapolator setting of orders={cfg.orders!r}, smoothings={cfg.smoothings!r} "
-                          "diverged: check the plant's DM gain against dm_gain_model")
-    best = min(finite, key=lambda entry: entry["median_rms_nm"])
-    return {"order": best["order"], "smoothing": best["smoothing"], "median_rms_nm": best["median_rms_nm"],
-            "scanned": scanned, "smoothing_scanned": cfg.smoothings is not None}
+#: The config fields that ask for a scan of a classical controller's settings (``setting_grid``).
+SCAN_FIELDS = ("orders", "smoothings", "ar_orders")
+
+
+def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_frames: int,
+                            divergence_factor: float) -> tuple[dict, Any]:
+    """A classical controller's settings tuned like the integrator's gain (the extrapolator's order and smoothing,
+    the LQG's AR order): each of ``cfg.setting_grid`` closes the loop on the scan stream, and the lowest median
+    residual wins (the first tried on a tie). A controller built from telemetry builds one model per setting, each
+    from the same telemetry (its own streams: neither the scan's nor the test's).
+
+    Returns the scan, ``{**chosen setting, "median_rms_nm": its residual, "scanned": every setting tried with its
+    residual}``, and the chosen setting's model (``None`` for a controller without one)."""
+    from_telemetry = FROM_TELEMETRY.get(cfg.controller)
+    models: list[Any] = []
+
+    def model_of(setting_cfg: PredictorConfig) -> Any:
+        models.append(from_telemetry(setting_cfg, scenario))
+        return models[-1]
+
+    scanned = scan_settings(replace(cfg, **dict.fromkeys(SCAN_FIELDS)), cfg.setting_grid, scenario, settle_frames,
+                            divergence_factor, model_of if from_telemetry is not None else None)
+    finite = [i for i, entry in enumerate(scanned) if entry["median_rms_nm"] is not None]
+    asked = ", ".join(f"{name}={getattr(cfg, name)!r}" for name in SCAN_FIELDS if getattr(cfg, name) is not None)
+    require(bool(finite), f"every setting of controller {cfg.controller} ({asked}) diverged: check the plant's DM "
+                          "gain against dm_gain_model")
+    best = min(finite, key=lambda i: scanned[i]["median_rms_nm"])
+    chosen = {key: value for key, value in scanned[best].items() if key != "median_rms_nm"}
+    scan = {**chosen, "median_rms_nm": scanned[best]["median_rms_nm"], "scanned": scanned}
+    return scan, (models[best] if models else None)
 
 
 #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
@@ -194,8 +216,8 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
     work = evaluation.frames * evaluation.realisations * n_act * len(predictors) * len(scenarios)
     work += sum(len(cfg.gains) * cfg.data.frames * n_act * len(scenarios)
                 for cfg in predictors.values() if cfg.gains is not None)
-    work += sum(len(cfg.extrapolator_grid) * cfg.data.frames * n_act * len(scenarios)
-                for cfg in predictors.values() if cfg.extrapolator_grid is not None)
+    work += sum(len(cfg.setting_grid) * cfg.data.frames * n_act * len(scenarios)
+                for cfg in predictors.values() if cfg.setting_grid is not None)
     work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
                 * n_act * (1 if cfg.train_in else len(scenarios))
                 for cfg in predictors.values() if cfg.trains)
@@ -207,11 +229,11 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
                                              evaluation.realisations)
         require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
         for name, cfg in predictors.items():
-            if cfg.gains is not None or cfg.extrapolator_grid is not None:
-                what = "the gain scan" if cfg.gains is not None else "the scan of orders"
+            if cfg.gains is not None or cfg.setting_grid is not None:
+                what = "the gain scan" if cfg.gains is not None else "the scan of its settings"
                 scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
                                                      f"{cfg.data.frames} ({what})")
-            elif cfg.controller in FROM_TELEMETRY:
+            if cfg.controller in FROM_TELEMETRY:  # (an LQG whose AR order is scanned checks both)
                 require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
                 data, _ = within_screen(scenario_value, cfg.data)  # split into realisations that fit the screen
                 scenario_value.require_stream_frames(data.frames, f"predictor {name!r}: data.frames="
