@@ -147,7 +147,8 @@ def test_compare_refuses_an_order_it_cannot_extrapolate_with_in_one_line(tmp_pat
 
 @pytest.mark.cli
 def test_the_fair_contest_asks_for_the_tuned_extrapolator(capsys):
-    """configs/realistic_study.yaml parses, and its extrapolator scans orders 0, 1, 2 (and smoothing) per scenario."""
+    """configs/realistic_study.yaml parses; its extrapolator scans orders 0, 1, 2 (and smoothing), its LQG AR(1) and
+    AR(2)."""
     import yaml
 
     from eofnn.cli.main import main
@@ -156,6 +157,8 @@ def test_the_fair_contest_asks_for_the_tuned_extrapolator(capsys):
     with pytest.raises(SystemExit) as info:
         main(["compare", "--config", str(path), "--out", "unused", "--print_config"])
     assert info.value.code == 0
-    extrapolator = yaml.safe_load(capsys.readouterr().out)["predictors"]["extrapolator"]
+    predictors = yaml.safe_load(capsys.readouterr().out)["predictors"]
+    extrapolator = predictors["extrapolator"]
+    assert predictors["lqg"]["ar_orders"] == [1, 2]
     cfg = PredictorConfig(**{k: extrapolator[k] for k in ("controller", "orders", "smoothings", "data")})
     assert cfg.orders == [0, 1, 2] and {s["order"] for s in cfg.extrapolator_grid} == {0, 1, 2}
