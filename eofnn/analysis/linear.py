@@ -36,7 +36,8 @@ def controller_stability(config: Any, predictor: Any, scenario: Scenario) -> Sta
     if config.controller == "integrator":
         return analyse_integrator(config.gain, config.leak, setup)
     if config.controller == "extrapolator":
-        network, spec = extrapolator_filter(config.order, scenario.plant.delay_frames, setup.dm_gain_model)
+        network, spec = extrapolator_filter(config.order, scenario.plant.delay_frames, setup.dm_gain_model,
+                                            getattr(config, "smoothing", 0))
         return analyse_filter(network, spec, setup)
     if config.controller in FROM_TELEMETRY and hasattr(predictor, "polynomials"):
         return modal_stability(predictor, setup)

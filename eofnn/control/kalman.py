@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from eofnn.control.classical import DTYPE
+from eofnn.control.config import AR_ORDERS
 
 #: Largest modulus of an identified AR(2) root (an explosive or unit-root fit is pulled inside the unit circle).
 MAX_AR_ROOT = 0.99999
@@ -44,6 +45,36 @@ def fit_ar2(autocovariance: torch.Tensor, noise_variance: torch.Tensor,
     # (the Yule-Walker c0 - a1 c1 - a2 c2 when no root was pulled in).
     q = c0 * (1 + a1.pow(2) + a2.pow(2)) - 2 * a1 * c1 * (1 - a2) - 2 * a2 * c2
     return torch.stack([a1, a2], 1), torch.where(ok, q, tiny).clamp(min=tiny)
+
+
+#: Orders of the per-mode autoregressive turbulence model an LQG can be built with (:func:`fit_ar`).
+
+
+def fit_ar1(autocovariance: torch.Tensor, noise_variance: torch.Tensor,
+            max_root: float = MAX_AR_ROOT) -> tuple[torch.Tensor, torch.Tensor]:
+    """Yule-Walker AR(1) ``x(n + 1) = a1 x(n) + e(n)``, as ``(a (K, 2), q (K,))`` with ``a2 = 0`` (the AR(2) state
+    space of :class:`~eofnn.control.classical.ModalLQG` runs it unchanged), from lags 0..1 with the noise variance
+    subtracted at lag 0 (at most 90% of the smallest eigenvalue ``C0 - |C1|`` of the lag 0..1 Toeplitz covariance).
+
+    ``|a1|`` is capped at ``max_root``; ``q = c0 (1 + a1²) - 2 a1 c1`` is the one-step error variance of the model's
+    predictor on the noise-free autocovariance (``c0 (1 - a1²)`` when nothing was capped). A mode without turbulence
+    gets ``a = 0`` and a negligible ``q``, as in :func:`fit_ar2`.
+    """
+    c1 = autocovariance[:, 1]
+    subtracted = torch.minimum(noise_variance, 0.9 * (autocovariance[:, 0] - c1.abs()).clamp(min=0))
+    c0 = autocovariance[:, 0] - subtracted
+    tiny = 1e-12 * autocovariance[:, 0].abs().max().clamp(min=1e-300)
+    ok = c0 > tiny
+    a1 = torch.where(ok, c1 / torch.where(ok, c0, torch.ones_like(c0)), 0.0).clamp(-max_root, max_root)
+    q = c0 * (1 + a1.pow(2)) - 2 * a1 * c1
+    return torch.stack([a1, torch.zeros_like(a1)], 1), torch.where(ok, q, tiny).clamp(min=tiny)
+
+
+def fit_ar(order: int, autocovariance: torch.Tensor, noise_variance: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The AR(``order``) fit of :data:`AR_ORDERS`: :func:`fit_ar1` or :func:`fit_ar2` (both ``(a (K, 2), q (K,))``)."""
+    if order not in AR_ORDERS:
+        raise ValueError(f"ar_order={order!r} is invalid: it must be one of {', '.join(map(str, AR_ORDERS))}")
+    return (fit_ar1 if order == 1 else fit_ar2)(autocovariance, noise_variance)
 
 
 def kalman_gain(ar: torch.Tensor, q: torch.Tensor, r: torch.Tensor,

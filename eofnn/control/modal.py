@@ -40,7 +40,7 @@ import torch
 
 from eofnn.control.baselines import record_dithered
 from eofnn.control.classical import DTYPE, ModalIntegrator, ModalLQG, check_modes, dm_response_polynomial
-from eofnn.control.kalman import fit_ar2, kalman_gain, prediction_error_variance
+from eofnn.control.kalman import fit_ar, kalman_gain, prediction_error_variance
 from eofnn.data.history import pseudo_open_loop
 from eofnn.delay import split_delay
 from eofnn.errors import ConfigError, DivergedError
@@ -347,14 +347,16 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
     return ModalIntegrator(stats.modes, gains, delay, dm_gain_model, info)
 
 
-def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model: float | None = None) -> ModalLQG:
-    """Record telemetry in ``scenario``, fit an AR(2) per KL mode (:func:`fit_ar2`) and its stationary Kalman
-    filter (:func:`kalman_gain`); modes past ``modes`` share one AR(2) model fitted on their pooled statistics."""
+def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model: float | None = None,
+              ar_order: int = 2) -> ModalLQG:
+    """Record telemetry in ``scenario``, fit an AR(``ar_order``) per KL mode (:func:`~eofnn.control.kalman.fit_ar`:
+    AR(2) by default, AR(1) with ``a2 = 0``) and its stationary Kalman filter (:func:`kalman_gain`); modes past
+    ``modes`` share one model fitted on their pooled statistics."""
     data = _fitted_to_screen(scenario, data)
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
     dm_gain_model = info["dm_gain_model"]
     stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
-    ar, q = fit_ar2(stats.autocovariance, stats.noise_variance)
+    ar, q = fit_ar(ar_order, stats.autocovariance, stats.noise_variance)
     r = stats.noise_variance
     gain, prior = kalman_gain(ar, q, r)
     d, f = split_delay(scenario.plant.delay_frames)
@@ -362,6 +364,8 @@ def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model:
     if f:
         error = (1 - f) * error + f * prediction_error_variance(ar, q, prior, gain, d + 1)
     info = _summary(stats, info)
+    if ar_order != 2:
+        info["ar_order"] = ar_order  # (AR(2), the default, is not said: metrics.json keeps the keys of before)
     info.update({"ar1_quantiles_0_10_50_90_100": _quantiles(ar[:, 0]),
                  "ar2_quantiles_0_10_50_90_100": _quantiles(ar[:, 1]),
                  "first_ar": [[round(float(v), 6) for v in row] for row in ar[:5]],

@@ -111,10 +111,11 @@ def _predictor(config: Any, predictor: Any) -> Controller:
 
 @register_controller("extrapolator")
 def _extrapolator(config: Any, predictor: Any) -> Controller:
-    """Polynomial extrapolation (``order``) of the POL signal over the plant's delay; nothing to train."""
+    """Polynomial extrapolation (``order``, least squares over ``smoothing`` more frames) of the POL signal over the
+    plant's delay; nothing to train."""
     from eofnn.control.classical import Extrapolator
 
-    return Extrapolator(config.order, dm_gain_model_of(config, None))
+    return Extrapolator(config.order, dm_gain_model_of(config, None), getattr(config, "smoothing", 0))
 
 
 def _modal_from_telemetry(builder_name: str) -> Callable[[Any, Any], Any]:
@@ -135,7 +136,15 @@ def _modal_integrator(config: Any, predictor: Any) -> Controller:
     return replace(predictor)
 
 
-@register_controller("lqg", from_telemetry=_modal_from_telemetry("build_lqg"))
+def _lqg_from_telemetry(config: Any, scenario: Any) -> Any:
+    """The LQG model of :func:`_modal_from_telemetry`, with the config's ``ar_order`` (2 unless set)."""
+    from eofnn.control.modal import build_lqg
+
+    return build_lqg(scenario, config.data, config.modes, getattr(config, "dm_gain_model", None),
+                     getattr(config, "ar_order", 2))
+
+
+@register_controller("lqg", from_telemetry=_lqg_from_telemetry)
 def _lqg(config: Any, predictor: Any) -> Controller:
-    """Kalman filter + LQG command, AR(2) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
+    """Kalman filter + LQG command, AR(2) (or ``ar_order``) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
     return replace(predictor)

@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 
 from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
-from eofnn.control.config import EXTRAPOLATION_ORDERS
+from eofnn.control.config import AR_ORDERS, EXTRAPOLATION_ORDERS, MAX_EXTRAPOLATION_SMOOTHING
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_names
 from eofnn.data.config import DataConfig
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
@@ -74,11 +74,30 @@ class PredictorConfig:
         Degree of the polynomial that ``controller: extrapolator`` extrapolates the POL signal with over the loop
         delay: 1 (linear, ``y(n) = -(3 s_hat(n-2) - 2 s_hat(n-3))`` at a two-frame delay) or 2 (quadratic); 0 is a
         POL zero-order hold.
+    smoothing : int
+        ``controller: extrapolator``: POL values beyond ``order + 1`` the polynomial is fitted to by least squares
+        (0, the default: through ``order + 1`` values exactly). Still exact on polynomials of degree ``order``, it
+        averages the WFS noise down at the cost of lag (order 1 at a two-frame delay over 4 values: noise gain 1.64
+        against 3.61).
+    orders : list of int, optional
+        Extrapolation orders to choose from (``controller: extrapolator``), like an integrator's ``gains``: in each
+        scenario the experiment closes the loop with each order (and each of ``smoothings``) on a stream of its own
+        (``data.frames`` frames, seed ``data.seed``, the gain scan's stream, never the test stream) and keeps the
+        lowest median residual; ``order`` and ``smoothing`` are then not used. The settings tried, their residuals
+        and the choice go to ``metrics.json`` (``classical_settings``) and ``results.md``.
+    smoothings : list of int, optional
+        ``smoothing`` values to choose from with ``orders`` (every combination is tried); unset, ``smoothing``.
     modes : int, optional
         ``controller: modal_integrator`` or ``lqg``: the first ``modes`` KL modes get a gain (or an AR(2) model) of
         their own, the others share the one best for them together; unset, every mode has its own. Their model
         is built in each scenario from ``data.frames`` frames of telemetry recorded with an integrator
         (``data.integrator_gain``) plus ``data.dither_nm`` of dither, seed ``data.seed`` (never the test stream).
+    ar_order : int
+        ``controller: lqg``: order of each mode's autoregressive turbulence model, 2 (the default) or 1.
+    ar_orders : list of int, optional
+        ``controller: lqg``: AR orders to choose from, like the extrapolator's ``orders``: in each scenario an LQG is
+        built with each from the same telemetry, closes the loop on the scan stream (``data.frames`` frames, seed
+        ``data.seed``, never the test stream) and the lowest median residual wins (``classical_settings``).
     """
 
     controller: str = "predictor"
@@ -96,7 +115,12 @@ class PredictorConfig:
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     dm_gain_model: float | None = None
     order: int = 1
+    smoothing: int = 0
+    orders: list[int] | None = None
+    smoothings: list[int] | None = None
     modes: int | None = None
+    ar_order: int = 2
+    ar_orders: list[int] | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -107,7 +131,9 @@ class PredictorConfig:
         "checkpoint": OrNone(IsString()),
         "dm_gain_model": OrNone(Interval(0, 100, closed="right")),
         "order": Interval(min(EXTRAPOLATION_ORDERS), max(EXTRAPOLATION_ORDERS), integer=True),
+        "smoothing": Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True, unit="frames"),
         "modes": OrNone(Interval(1, 1_000_000, integer=True)),
+        "ar_order": OneOf(AR_ORDERS),
     }
 
     def __post_init__(self) -> None:
@@ -132,6 +158,7 @@ class PredictorConfig:
                 raise ConfigError(f"gains={self.gains!r} is invalid: give a non-empty list of integrator gains")
             for gain in self.gains:
                 Integrator(gain, self.leak)
+        self._check_setting_scans()
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
@@ -142,6 +169,45 @@ class PredictorConfig:
                 if self.optimization.fit_method == "closed_form" and not supports_closed_form(cls):
                     raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {cls.__name__} "
                                       "has no features()/load_solution(): use optimization.fit_method: sgd")
+
+    def _check_setting_scans(self) -> None:
+        """``orders`` and ``smoothings`` (extrapolator) and ``ar_orders`` (LQG): each for its controller only, a
+        non-empty list of allowed values (one line otherwise)."""
+        allowed = {"orders": ("extrapolator", OneOf(EXTRAPOLATION_ORDERS).describe(), OneOf(EXTRAPOLATION_ORDERS)),
+                   "smoothings": ("extrapolator", f"an integer from 0 to {MAX_EXTRAPOLATION_SMOOTHING}",
+                                  Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True)),
+                   "ar_orders": ("lqg", OneOf(AR_ORDERS).describe(), OneOf(AR_ORDERS))}
+        for name, (controller, what, constraint) in allowed.items():
+            values = getattr(self, name)
+            if values is None:
+                continue
+            if self.controller != controller:
+                raise ConfigError(f"{name}={values!r} is for controller: {controller}, not {self.controller!r}")
+            if not isinstance(values, (list, tuple)) or not values:
+                raise ConfigError(f"{name}={values!r} is invalid: give a non-empty list of values, each {what}")
+            for value in values:
+                if not constraint.accepts(value):
+                    raise ConfigError(f"{name}={values!r} is invalid: {value!r} is not {what}")
+
+    @property
+    def extrapolator_grid(self) -> list[dict[str, int]] | None:
+        """The extrapolator settings a scan tries, ``[{"order": ..., "smoothing": ...}, ...]`` in the order given
+        (``None`` when nothing is scanned: no ``orders`` or ``smoothings``)."""
+        if self.orders is None and self.smoothings is None:
+            return None
+        orders = self.orders if self.orders is not None else [self.order]
+        smoothings = self.smoothings if self.smoothings is not None else [self.smoothing]
+        grid = [{"order": int(order), "smoothing": int(smoothing)} for order in orders for smoothing in smoothings]
+        return [setting for i, setting in enumerate(grid) if setting not in grid[:i]]
+
+    @property
+    def setting_grid(self) -> list[dict[str, int]] | None:
+        """The settings a classical controller's scan tries (:attr:`extrapolator_grid`, or the LQG's
+        ``[{"ar_order": ...}, ...]``); ``None`` when nothing is scanned (the integrator's ``gains`` have a scan of
+        their own)."""
+        if self.ar_orders is not None:
+            return [{"ar_order": int(order)} for i, order in enumerate(self.ar_orders) if order not in self.ar_orders[:i]]
+        return self.extrapolator_grid
 
     @property
     def trains(self) -> bool:

@@ -1,5 +1,6 @@
 """An experiment's contenders, before any loop is scored: the scenarios they run in, the checks made up front
-(memory, time, streams, checkpoints), how each predictor is trained, and the best-gain integrator's scan.
+(memory, time, streams, checkpoints), how each predictor is trained, and the tuning scans of classical controllers
+(the best-gain integrator, the extrapolator's order) on a stream of their own.
 
 :class:`~eofnn.evaluation.experiment.Experiment` runs them; these pieces are also what ``fit`` and ``simulate``
 reuse.
@@ -7,20 +8,22 @@ reuse.
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Callable, Collection
+from dataclasses import replace
 from typing import Any
 
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
 from eofnn.control.modal import require_telemetry, within_screen
-from eofnn.control.registry import FROM_TELEMETRY
+from eofnn.control.registry import FROM_TELEMETRY, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.resources import require_memory, require_time
+from eofnn.sim.loop.runner import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.checkpoint import load_predictor
 from eofnn.training.conditions import scenario_conditions, warn_shift
@@ -74,6 +77,67 @@ def load_configured_checkpoint(name: str, cfg: PredictorConfig, scenarios: dict[
     return predictor
 
 
+#: The stream every tuning scan of a classical controller closes its loops on (with seed ``data.seed``): a stream of
+#: its own, never the test stream; every setting of one scan sees the same turbulence and noise.
+SCAN_STREAM = "gain-scan"
+
+
+def scan_median_residual(controller: Controller, cfg: PredictorConfig, scenario: Scenario, settle_frames: int,
+                         divergence_factor: float) -> float | None:
+    """The median residual (nm) of ``controller`` closing the loop on the scan stream: ``cfg.data.frames`` frames
+    of seed ``cfg.data.seed``, after ``min(settle_frames, frames // 2)`` frames settle; ``None`` if it diverged."""
+    settle = min(settle_frames, cfg.data.frames // 2)
+    return scenario.median_residual_nm(controller, cfg.data.frames, cfg.data.seed, SCAN_STREAM, settle,
+                                       divergence_factor=divergence_factor)
+
+
+def scan_settings(cfg: PredictorConfig, settings: list[dict], scenario: Scenario, settle_frames: int,
+                  divergence_factor: float, model_of: Callable[[PredictorConfig], Any] | None = None) -> list[dict]:
+    """Close the loop on the scan stream with each of ``settings`` (fields of a classical controller's config, e.g.
+    ``{"order": 2, "smoothing": 0}``), the controller built from ``cfg`` with those fields replaced, through the
+    registry (with ``model_of(config)`` as its model, for a controller built from telemetry): each setting with its
+    ``median_rms_nm`` (``None`` where the loop diverged), in the order given."""
+    entries = []
+    for setting in settings:
+        setting_cfg = replace(cfg, **setting)
+        controller = build_controller(setting_cfg, None if model_of is None else model_of(setting_cfg))
+        entries.append({**setting, "median_rms_nm": scan_median_residual(controller, cfg, scenario, settle_frames,
+                                                                         divergence_factor)})
+    return entries
+
+
+#: The config fields that ask for a scan of a classical controller's settings (``setting_grid``).
+SCAN_FIELDS = ("orders", "smoothings", "ar_orders")
+
+
+def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_frames: int,
+                            divergence_factor: float) -> tuple[dict, Any]:
+    """A classical controller's settings tuned like the integrator's gain (the extrapolator's order and smoothing,
+    the LQG's AR order): each of ``cfg.setting_grid`` closes the loop on the scan stream, and the lowest median
+    residual wins (the first tried on a tie). A controller built from telemetry builds one model per setting, each
+    from the same telemetry (its own streams: neither the scan's nor the test's).
+
+    Returns the scan, ``{**chosen setting, "median_rms_nm": its residual, "scanned": every setting tried with its
+    residual}``, and the chosen setting's model (``None`` for a controller without one)."""
+    from_telemetry = FROM_TELEMETRY.get(cfg.controller)
+    models: list[Any] = []
+
+    def model_of(setting_cfg: PredictorConfig) -> Any:
+        models.append(from_telemetry(setting_cfg, scenario))
+        return models[-1]
+
+    scanned = scan_settings(replace(cfg, **dict.fromkeys(SCAN_FIELDS)), cfg.setting_grid, scenario, settle_frames,
+                            divergence_factor, model_of if from_telemetry is not None else None)
+    finite = [i for i, entry in enumerate(scanned) if entry["median_rms_nm"] is not None]
+    asked = ", ".join(f"{name}={getattr(cfg, name)!r}" for name in SCAN_FIELDS if getattr(cfg, name) is not None)
+    require(bool(finite), f"every setting of controller {cfg.controller} ({asked}) diverged: check the plant's DM "
+                          "gain against dm_gain_model")
+    best = min(finite, key=lambda i: scanned[i]["median_rms_nm"])
+    chosen = {key: value for key, value in scanned[best].items() if key != "median_rms_nm"}
+    scan = {**chosen, "median_rms_nm": scanned[best]["median_rms_nm"], "scanned": scanned}
+    return scan, (models[best] if models else None)
+
+
 #: The most rounds of refinement of a best-gain integrator's scan (while the best is still the highest gain
 #: tried, climbing towards the critical gain).
 MAX_REFINE_ROUNDS = 6
@@ -85,7 +149,6 @@ def scan_integrator_gains(cfg: PredictorConfig, scenario: Scenario, settle_frame
     ``cfg.refine_rounds`` rounds of refinement between the best gain and its neighbours (past the grid's top
     up to the analytic critical gain, below its bottom down to 0), so the choice is never an edge of the grid
     unless it is the edge of what is stable (then ``at_edge`` says so)."""
-    settle = min(settle_frames, cfg.data.frames // 2)
     # The critical integrator gain: the loop gain at which an integrator goes unstable in a nominal plant of
     # this delay (a small gain's DM-gain margin times that gain), over this plant's DM and WFS gains.
     nominal = LoopSetup(scenario.plant.delay_frames, frame_rate_hz=scenario.frame_rate_hz)
@@ -94,9 +157,8 @@ def scan_integrator_gains(cfg: PredictorConfig, scenario: Scenario, settle_frame
     scanned: dict[float, float | None] = {}
 
     def run(gain: float) -> None:
-        scanned[gain] = scenario.median_residual_nm(Integrator(gain, cfg.leak), cfg.data.frames, cfg.data.seed,
-                                                    "gain-scan", settle,
-                                                    divergence_factor=divergence_factor)
+        scanned[gain] = scan_median_residual(Integrator(gain, cfg.leak), cfg, scenario, settle_frames,
+                                             divergence_factor)
 
     for gain in cfg.gains:
         run(gain)
@@ -154,6 +216,8 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
     work = evaluation.frames * evaluation.realisations * n_act * len(predictors) * len(scenarios)
     work += sum(len(cfg.gains) * cfg.data.frames * n_act * len(scenarios)
                 for cfg in predictors.values() if cfg.gains is not None)
+    work += sum(len(cfg.setting_grid) * cfg.data.frames * n_act * len(scenarios)
+                for cfg in predictors.values() if cfg.setting_grid is not None)
     work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
                 * n_act * (1 if cfg.train_in else len(scenarios))
                 for cfg in predictors.values() if cfg.trains)
@@ -165,10 +229,11 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
                                              evaluation.realisations)
         require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
         for name, cfg in predictors.items():
-            if cfg.gains is not None:
+            if cfg.gains is not None or cfg.setting_grid is not None:
+                what = "the gain scan" if cfg.gains is not None else "the scan of its settings"
                 scenario_value.require_stream_frames(cfg.data.frames, f"predictor {name!r}: data.frames="
-                                                     f"{cfg.data.frames} (the gain scan)")
-            elif cfg.controller in FROM_TELEMETRY:
+                                                     f"{cfg.data.frames} ({what})")
+            if cfg.controller in FROM_TELEMETRY:  # (an LQG whose AR order is scanned checks both)
                 require_telemetry(cfg.data, scenario_value.grid.n_actuators, cfg.modes, f"predictor {name!r}")
                 data, _ = within_screen(scenario_value, cfg.data)  # split into realisations that fit the screen
                 scenario_value.require_stream_frames(data.frames, f"predictor {name!r}: data.frames="

@@ -15,11 +15,18 @@ from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.errors import require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
-from eofnn.evaluation.contenders import build_scenarios, check_experiment, fit_from_config, scan_integrator_gains
+from eofnn.evaluation.contenders import (
+    SCAN_FIELDS,
+    build_scenarios,
+    check_experiment,
+    fit_from_config,
+    scan_classical_settings,
+    scan_integrator_gains,
+)
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
-from eofnn.evaluation.results import ExperimentResult
+from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
 from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
 from eofnn.sim.loop.runner import Controller, run_loop
@@ -65,6 +72,9 @@ class Experiment:
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
         #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
         self.gain_scans: dict[tuple[str, str], dict] = {}
+        #: Classical controllers whose settings were tuned on a stream of their own (the extrapolator's order and
+        #: smoothing, the LQG's AR order): (controller, scenario) -> {**chosen setting, "median_rms_nm", "scanned"}.
+        self.setting_scans: dict[tuple[str, str], dict] = {}
         #: Ridge alphas chosen on validation data (``alpha: auto``): (controller, training scenario) -> choice.
         self.alpha_choices: dict[tuple[str, str], dict] = {}
         #: Budgeted searches of networks trained by SGD: (controller, training scenario) -> trials, choice, budget.
@@ -113,6 +123,8 @@ class Experiment:
         controller builds from telemetry recorded in the scenario (on a stream of its own, like the gain scan)."""
         if self.predictors[name].controller in FROM_TELEMETRY:
             key = (name, scenario_name)
+            if self.predictors[name].setting_grid is not None:
+                self._tuned(name, scenario_name)  # builds (and keeps) the chosen setting's model
             if key not in self.classical_models:
                 cfg = self.predictors[name]
                 self.classical_models[key] = FROM_TELEMETRY[cfg.controller](cfg, self.scenarios[scenario_name])
@@ -121,8 +133,13 @@ class Experiment:
         return self.predictor(name, scenario_name) if self.predictors[name].controller in NEEDS_PREDICTOR else None
 
     def config(self, name: str, scenario_name: str) -> PredictorConfig:
-        """Controller ``name``'s config as it runs in ``scenario_name``: a best-gain integrator has its gain chosen."""
+        """Controller ``name``'s config as it runs in ``scenario_name``: a best-gain integrator has its gain chosen, a
+        tuned extrapolator its order and smoothing, a tuned LQG its AR order."""
         cfg = self.predictors[name]
+        if cfg.setting_grid is not None:
+            chosen = {key: value for key, value in self._tuned(name, scenario_name).items()
+                      if key not in ("median_rms_nm", "scanned")}
+            return replace(cfg, **dict.fromkeys(SCAN_FIELDS), **chosen)
         if cfg.gains is None:
             return cfg
         key = (name, scenario_name)
@@ -139,6 +156,21 @@ class Experiment:
                      f"{', '.join(f'{g:g}' for g in cfg.gains)}, refined with {', '.join(f'{g:g}' for g in scan['refined'])}"
                      f"{edge}")
         return replace(cfg, gains=None, gain=self.gain_scans[key]["gain"])
+
+    def _tuned(self, name: str, scenario_name: str) -> dict:
+        """The scan of classical controller ``name``'s settings in ``scenario_name`` (run on first use, on a stream of
+        its own: :func:`~eofnn.evaluation.contenders.scan_classical_settings`); the chosen setting's model, if it has
+        one, is kept as the model it runs with."""
+        cfg, key = self.predictors[name], (name, scenario_name)
+        if key not in self.setting_scans:
+            scan, model = scan_classical_settings(cfg, self.scenarios[scenario_name], self.evaluation.settle_frames,
+                                                  self.evaluation.divergence_factor)
+            self.setting_scans[key] = scan
+            if model is not None:
+                self.classical_models[key] = model
+            built = f" (each built from {cfg.data.frames} frames of telemetry)" if model is not None else ""
+            self.log(f"{scenario_name:>12s} {name:>18s}: {describe_setting_scan(scan)} on a stream of its own{built}")
+        return self.setting_scans[key]
 
     def controller(self, name: str, scenario_name: str) -> Controller:
         """The controller ``name`` as it runs in ``scenario_name``."""
@@ -240,7 +272,8 @@ class Experiment:
                                   classical_models=_by_scenario(models), peak_memory_bytes=peaks,
                                   scenario_dm_gains={name: float(sc.plant.dm_gain)
                                                      for name, sc in self.scenarios.items()},
-                                  integrator_gain_used=_by_scenario(gains_used))
+                                  integrator_gain_used=_by_scenario(gains_used),
+                                  classical_settings=_by_scenario(self.setting_scans))
         result.verdict = self.verdict(result)
         return result
 

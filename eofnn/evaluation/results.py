@@ -41,6 +41,10 @@ class ExperimentResult:
     #: The gain every integrator ran at: scenario -> controller -> {"gain": loop gain (dimensionless), "scanned":
     #: whether it was chosen by a best-gain scan (``integrator_gains`` has the scan) or fixed by the config}.
     integrator_gain_used: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: Classical controllers whose settings were chosen on a stream of their own (the extrapolator's ``order`` and
+    #: ``smoothing``, the LQG's ``ar_order``): scenario -> controller -> {the chosen setting's fields, "median_rms_nm"
+    #: (of the choice, on that stream), "scanned": [every setting tried with its median_rms_nm, None if it diverged]}.
+    classical_settings: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         verdict = {} if self.verdict is None else {"verdict": self.verdict}
@@ -49,6 +53,7 @@ class ExperimentResult:
             "stability": self.stability,
             "integrator_gains": self.integrator_gains,
             "integrator_gain_used": self.integrator_gain_used,
+            "classical_settings": self.classical_settings,
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
             "simulated_stability": self.simulated_stability,
@@ -59,6 +64,33 @@ class ExperimentResult:
             "timings_s": self.timings_s,
             "peak_memory_bytes": self.peak_memory_bytes,
         }
+
+
+#: How a setting of a classical controller reads in a line (``results.md``, progress).
+SETTING_LABELS = {"order": "order {}", "smoothing": "smoothing {}", "ar_order": "AR({})"}
+
+
+def describe_setting_scan(scan: dict) -> str:
+    """``order 2 chosen (2.06 nm) over order 1 (3.86), order 0 (5.1)``: the choice, then the others from best to
+    worst (diverged last). The first field of a setting is always named; another (``smoothing``) when it varies
+    across the settings tried or is not 0."""
+    entries = scan["scanned"]
+    fields = [key for key in entries[0] if key != "median_rms_nm"]
+    shown = [key for i, key in enumerate(fields)
+             if i == 0 or len({e[key] for e in entries}) > 1 or any(e[key] for e in entries)]
+
+    def name(entry: dict) -> str:
+        return ", ".join(SETTING_LABELS.get(key, key + " {}").format(entry[key]) for key in shown)
+
+    chosen = next(e for e in entries if all(e[key] == scan[key] for key in fields))
+    others = sorted((e for e in entries if e is not chosen),
+                    key=lambda e: (e["median_rms_nm"] is None, e["median_rms_nm"] or 0.0))
+    text = f"{name(chosen)} chosen ({chosen['median_rms_nm']:.3g} nm)"
+    if others:
+        text += " over " + ", ".join(f"{name(e)} ("
+                                     + ("diverged" if e["median_rms_nm"] is None else f"{e['median_rms_nm']:.3g}")
+                                     + ")" for e in others)
+    return text
 
 
 def write_metrics(result: ExperimentResult, path: Path) -> None:

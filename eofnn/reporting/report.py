@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eofnn.evaluation.results import ExperimentResult
+from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
 from eofnn.reporting.verdict import dm_gain_interval_text, unstable_text, verdict_markdown
 from eofnn.training.alpha import NEGLIGIBLE_CHANGE, unregularised_change
 
@@ -210,6 +210,17 @@ def _gains(result: ExperimentResult) -> str:
     return "\nBest-gain integrators (chosen on a stream of their own, not the test stream):\n" + "\n".join(lines) + "\n"
 
 
+def _classical_settings(result: ExperimentResult) -> str:
+    """A line per tuned classical controller and scenario: the setting chosen (an extrapolator's order, an LQG's AR
+    order), over the others tried."""
+    lines = [f"- {name} in {scenario}: {describe_setting_scan(scan)}"
+             for scenario, scans in result.classical_settings.items() for name, scan in scans.items()]
+    if not lines:
+        return ""
+    return ("\nTuned classical controllers (settings chosen on a stream of their own, not the test stream; median "
+            "residual there, nm):\n" + "\n".join(lines) + "\n")
+
+
 def _fixed_gains(result: ExperimentResult) -> str:
     """A line per integrator run at the gain its config fixed (not chosen): what it ran at, and how to ask for the
     best gain instead."""
@@ -300,7 +311,8 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
     verdict = "" if result.verdict is None else verdict_markdown(result.verdict) + "\n"
     table.write_text("# Closed-loop comparison\n\n" + verdict + "## Median RMS per scenario\n\n"
                      + markdown_table(result, reference, strehl_wavelength_m)
-                     + _gains(result) + _fixed_gains(result) + _alphas(result) + _margins(result) + _caveat(result))
+                     + _gains(result) + _fixed_gains(result) + _classical_settings(result) + _alphas(result)
+                     + _margins(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])
