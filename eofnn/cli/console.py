@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from eofnn.cli.signals import interruption, sigterm_as_interrupt
+from eofnn.cli.signals import interruption, signal_seen, sigterm_as_interrupt
 
 
 def console() -> None:
@@ -17,7 +17,10 @@ def console() -> None:
     with sigterm_as_interrupt():
         try:
             from eofnn.cli.main import main
-        except KeyboardInterrupt:
+        except BaseException as err:
+            # A signal inside an import can surface as another error (a half-imported module's RecursionError).
+            if not (isinstance(err, KeyboardInterrupt) or signal_seen()):
+                raise
             what, status = interruption()
             print(f"eofnn: {what}: nothing was written (earlier results are untouched)", file=sys.stderr)
             sys.exit(status)

@@ -12,7 +12,7 @@ import sys
 import warnings
 
 from eofnn.cli.commands import USER_ERRORS, one_line, parse
-from eofnn.cli.signals import INTERRUPTED, interruption, sigterm_as_interrupt
+from eofnn.cli.signals import INTERRUPTED, interruption, signal_seen, sigterm_as_interrupt
 from eofnn.outputs import DISK_FULL
 
 
@@ -29,6 +29,12 @@ def choose_backend() -> None:
         sys.modules["matplotlib"].use("Agg")
     else:
         os.environ["MPLBACKEND"] = "Agg"
+
+
+def _interrupted() -> int:
+    what, status = interruption()
+    print(f"eofnn: {what}: nothing was written (earlier results are untouched)", file=sys.stderr)
+    return status
 
 
 def main(args: list[str] | None = None) -> int:
@@ -49,6 +55,8 @@ def main(args: list[str] | None = None) -> int:
             return 2
         except OSError as err:
             if err.errno not in DISK_FULL:
+                if signal_seen():
+                    return _interrupted()
                 raise
             # Outputs say which one (eofnn.outputs.OutputError); this is any other write (a temporary file).
             where = f" writing {err.filename!r}" if err.filename else ""
@@ -56,9 +64,11 @@ def main(args: list[str] | None = None) -> int:
                   "(outputs are staged: earlier results are untouched)", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
-            what, status = interruption()
-            print(f"eofnn: {what}: nothing was written (earlier results are untouched)", file=sys.stderr)
-            return status
+            return _interrupted()
+        except Exception:
+            if not signal_seen():
+                raise
+            return _interrupted()  # a signal inside an import surfaces as another error (RecursionError, ...)
     if status == INTERRUPTED:  # sweep answers an interruption itself (130): say which one it was
         status = interruption()[1]
     # A command may return its own exit status (sweep: 1 when some points failed); results are not statuses.

@@ -20,6 +20,7 @@ INTERRUPTED = 130
 TERMINATED = 143
 
 _terminated = threading.Event()
+_interrupted = threading.Event()
 
 
 class Terminated(KeyboardInterrupt):
@@ -33,6 +34,17 @@ def _on_sigterm(signum, frame) -> None:
     raise Terminated
 
 
+def _on_sigint(signum, frame) -> None:
+    _interrupted.set()  # remembered: a KeyboardInterrupt raised inside an import can surface as another error
+    raise KeyboardInterrupt
+
+
+def signal_seen() -> bool:
+    """Whether Ctrl-C or SIGTERM reached this run: then whatever error ends it (a module left half-imported by the
+    interruption raises ``RecursionError``, say) is the interruption's doing, and is reported as one."""
+    return _terminated.is_set() or _interrupted.is_set()
+
+
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
     """While the block runs, SIGTERM raises :class:`Terminated` (a ``KeyboardInterrupt``) in the main thread; the
@@ -43,11 +55,17 @@ def sigterm_as_interrupt() -> Iterator[None]:
         return
     if signal.getsignal(signal.SIGTERM) is not _on_sigterm:
         _terminated.clear()  # a new run (main() called again in one process); nested blocks keep what was seen
+        _interrupted.clear()
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    previous_int = signal.getsignal(signal.SIGINT)
+    if previous_int is signal.default_int_handler:  # the default: KeyboardInterrupt, now also remembered
+        signal.signal(signal.SIGINT, _on_sigint)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if previous_int is signal.default_int_handler:
+            signal.signal(signal.SIGINT, previous_int)
 
 
 def interruption() -> tuple[str, int]:
