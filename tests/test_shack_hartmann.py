@@ -166,10 +166,10 @@ def test_noise_propagation_matches_the_fourier_domain_least_squares_filter():
         s = ShackHartmann(geometry=geometry).build(ActuatorGrid(8.0, n))
         theory = fourier_noise_propagation(n, s.relative_cut, geometry)
         assert s.noise_propagation() == pytest.approx(theory, rel=0.2), (n, geometry, s.noise_propagation(), theory)
-    # White slope noise through R: the sample variance of the commands is p sigma².
+    # White slope noise through R (the sensor's measure of a flat wavefront): the commands' variance is p sigma².
     s = ShackHartmann().build(ActuatorGrid(8.0, 10))
-    noise = torch.randn(4000, s.n_slopes, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 2.0
-    measured = float(s.reconstruct(noise).var(0).mean())
+    flat = torch.zeros(4000, s.geometry.n_fine, dtype=torch.float64)
+    measured = float(s.measure(flat, 2.0, torch.Generator().manual_seed(3)).var(0).mean())
     assert measured == pytest.approx(4.0 * s.noise_propagation(), rel=0.05)
 
 
