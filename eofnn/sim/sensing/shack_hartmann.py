@@ -1,0 +1,541 @@
+"""A geometric Shack-Hartmann sensor: subapertures, slopes, DM influence functions, reconstructor and noise.
+
+The core of a real sensor, not yet in eofnn's loop (which senses the subaperture-averaged phase at each actuator,
+:mod:`eofnn.sim.sensing.kernels`). Everything here is linear algebra on a *fine grid* of phase samples:
+
+- **Geometry** (:class:`SubapertureGeometry`). ``fried`` (the default): ``n_across - 1`` subapertures of pitch
+  ``d`` (the actuator pitch) between four actuators, their corners on actuator centres; ``cell``: one ``d x d``
+  subaperture centred on each actuator cell of the :class:`~eofnn.sim.grid.ActuatorGrid` (``subapertures_across``
+  may be fewer, of pitch ``D / subapertures_across``). A subaperture is valid when its centre lies in the
+  (obstructed) pupil and the DM spans it (every actuator less than a pitch from its square is active: Fried, its
+  four corners; cell, the 3 x 3 around it); it is taken as fully lit. The fine grid has pitch ``h = d_s / m``
+  (``m = samples_per_subaperture``) and puts points on every subaperture's edges; it is itself an
+  :class:`ActuatorGrid` (:attr:`SubapertureGeometry.fine_grid`), so that
+  ``Turbulence(..., Atmosphere(kernel="point"), fine_grid, ...)`` synthesises the exact frozen-flow phase on it.
+
+  Why Fried by default (measured, ``tests/test_shack_hartmann.py``): with symmetric influence functions the
+  ``cell`` geometry cannot see a command alternating along x and smooth along y (its surface vanishes half-way
+  between actuators, on every subaperture edge), nor the same along y: about ``2 n`` near-invisible modes, beside
+  waffle, that edge effects excite. A tilt reconstructed through ``cell`` keeps 17-56% of its RMS as error (10 to 40
+  across, cuts 0.02 to 3 / n), through ``fried`` 2-5%. Subapertures the DM does not span (past its last actuator) see its
+  roll-off: there a tilt command's slopes change sign, and the least-squares fit of every mode bends to follow them.
+- **Slopes** (:attr:`SubapertureGeometry.slope_operator`, ``S``, sparse ``(2 n_sub, n_fine)``): the x slope of a
+  subaperture is the mean phase on its right edge minus the mean on its left edge,
+  ``s_x = <phi>_right - <phi>_left = d_s <dphi/dx>_subaperture`` (Gauss: the mean gradient over the square times its
+  side, exact up to the edge quadrature: Simpson's rule for even ``m``, exact for cubics along the edge; the
+  trapezoid rule for odd ``m``). **Slope unit: nm of OPD difference across the subaperture** (gradient x ``d_s``),
+  so that noise and aliasing are in nm like everything else. Rows: every x slope, then every y slope, subapertures
+  in row-major order (y then x).
+- **Influence functions** (:func:`influence_functions`): Gaussian, OOPAO's shape and default coupling
+  (``OOPAO/DeformableMirror.py``: ``exp(-r² / (2 c²))``, ``c = d / sqrt(2 ln(1 / coupling))``, so the value at a
+  neighbour one pitch away is ``coupling``; default ``mechCoupling = 0.35``), 1 nm at the actuator per nm of command,
+  sparse ``(n_fine, K)``, cut where below :data:`INFLUENCE_FLOOR`.
+- **Interaction matrix and reconstructor**: ``D = S IF`` ``(2 n_sub, K)`` (nm of slope per nm of command) and the
+  least-squares ``R = V_k Σ_k^-1 U_k^T`` ``(K, 2 n_sub)`` by truncated SVD: singular values at or below
+  ``relative_cut`` x the largest are dropped. Default cut ``min(0.1, 3 / n_sub_across)``
+  (:func:`default_relative_cut`): about 0.075 at 40 across, as the OOPAO study needed; there it found 0.15 at 20 across,
+  but in this zonal basis a cut above 0.1 starts removing the lowest orders (a tilt's reconstruction error, Fried:
+  3% at 0.1 and 6% at 0.15 on 20 across, 31% at 0.3 on 10, 19% at 0.1 on 40): the lowest spatial frequencies have
+  singular values ``~ 2 pi / n`` of the largest's order, the modes the subaperture grid barely sees (piston, waffle,
+  edge modes) fall below. The noise propagation grows as the cut falls (the kept modes nearest it dominate it).
+- **Noise** (:class:`Detector`): photons per subaperture and frame from the guide star's magnitude (OOPAO's
+  photometry table), centroid noise by Rousset's formulas (phase difference across the subaperture, rad², at the
+  sensing wavelength; the photon term with the coefficient exact for a Gaussian spot by default), in the slope unit
+  above.
+
+Measured (``tests/test_shack_hartmann.py``; Fried, ``m = 4``, coupling 0.35, default cut):
+
+- noise propagation ``p = trace(R R^T) / K`` (command variance per unit slope-noise variance): 1.51 at 20 across,
+  1.48 at 30, 1.83 at 40; the periodic Fourier-domain LS filter gives 1.26, 1.32, 1.62 (the pupil's rim adds
+  ``~4 / n``). The kept modes nearest the cut dominate it, not the ``0.2 ln n`` of the lowest orders;
+- aliasing of exact frozen flow, ``IF R S (phi - IF y_fit)``, is 0.19 of the fitting variance away from the rim (the
+  Fourier-domain aliasing spectrum: 0.189) and 0.27 over the whole sensed area (the rim amplifies it); with
+  ``m = 2`` the Fourier model gives 0.236, with the exact mean gradient 0.179;
+- centre-of-gravity centroids of a Gaussian spot (FWHM 2 pixels, Nyquist, 8 x 8 pixels, 0.5 e-): 1.07-1.15 times
+  the formula (pixelisation adds 1/12 pixel²); Rousset's pi² / 2 is 1.2-1.55 times low. A diffraction-limited
+  sinc² spot has no finite second moment: its centroid variance grows with the window (1.4 to 3.5 times Rousset's
+  with ``N_T = N_D`` for 6 to 16 pixels).
+
+How the loop will use it (not wired yet): the sensor's view of the residual is ``R S phi_fine(n)`` (commands, nm),
+the pupil's residual is ``phi_fine(n) + IF DM(y(n))`` on the fine points, and white slope noise of variance
+``sigma²`` reaches the commands as ``R n`` (covariance ``sigma² R R^T``, :meth:`ShackHartmannSensor.noise_propagation`);
+:meth:`ShackHartmannSensor.measure` is ``R (S phi + n)``. ``R S`` is kept as two factors: as one dense matrix it
+would be ``K x n_fine`` (216 MB at 40 across).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import ClassVar
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from eofnn.errors import ConfigError, require
+from eofnn.sim.grid import MAX_N_ACROSS, ActuatorGrid
+from eofnn.validation import COUNT, FINITE, Constraint, Interval, OneOf, OrNone, check_value, validated
+
+#: Subaperture geometries: ``fried`` (between four actuators), ``cell`` (one subaperture per actuator cell).
+GEOMETRIES = ("fried", "cell")
+#: OOPAO's default mechanical coupling (``DeformableMirror(mechCoupling=0.35)``): the influence at a neighbour.
+MECHANICAL_COUPLING = 0.35
+#: Influence functions are cut where they fall below this fraction of their peak (a radius of
+#: ``d sqrt(ln(1e-6) / ln(coupling))``: 3.6 pitches at coupling 0.35).
+INFLUENCE_FLOOR = 1e-6
+
+#: Photometry ``band: (wavelength m, bandwidth m, zero point photons / m² / s)``: OOPAO's table
+#: (``OOPAO/Source.py``, ``Source.photometry``, "New entries with corrected zero point flux values": the zero points
+#: there are ``value / 368``).
+PHOTOMETRY: dict[str, tuple[float, float, float]] = {
+    name: (wavelength, bandwidth, zero / 368)
+    for name, (wavelength, bandwidth, zero) in {
+        "U": (0.360e-6, 0.070e-6, 1.96e12), "B": (0.440e-6, 0.100e-6, 5.38e12),
+        "V0": (0.500e-6, 0.090e-6, 3.64e12), "V": (0.550e-6, 0.090e-6, 3.31e12),
+        "R": (0.640e-6, 0.150e-6, 4.01e12), "R2": (0.650e-6, 0.300e-6, 7.9e12),
+        "R3": (0.600e-6, 0.300e-6, 8.56e12), "R4": (0.670e-6, 0.300e-6, 7.66e12),
+        "I": (0.790e-6, 0.150e-6, 2.69e12), "I1": (0.700e-6, 0.033e-6, 0.67e12),
+        "I2": (0.750e-6, 0.033e-6, 0.62e12), "I3": (0.800e-6, 0.033e-6, 0.58e12),
+        "I4": (0.700e-6, 0.100e-6, 2.02e12), "I5": (0.850e-6, 0.100e-6, 1.67e12),
+        "I6": (1.000e-6, 0.100e-6, 1.42e12), "I7": (0.850e-6, 0.300e-6, 5.00e12),
+        "I8": (0.750e-6, 0.100e-6, 1.89e12), "I9": (0.850e-6, 0.300e-6, 5.00e12),
+        "I10": (0.900e-6, 0.300e-6, 4.72e12), "J": (1.215e-6, 0.260e-6, 1.90e12),
+        "J2": (1.550e-6, 0.260e-6, 1.49e12), "H": (1.654e-6, 0.290e-6, 1.05e12),
+        "Kp": (2.1245e-6, 0.351e-6, 0.62e12), "Ks": (2.157e-6, 0.320e-6, 0.55e12),
+        "K": (2.179e-6, 0.410e-6, 0.70e12), "K0": (2.000e-6, 0.410e-6, 0.76e12),
+        "K1": (2.400e-6, 0.410e-6, 0.64e12),
+    }.items()
+}
+#: Spots the photon-noise formula may assume: ``gaussian`` (coefficient pi² / (2 ln 2), exact for the centre of
+#: gravity of a Gaussian spot of FWHM ``N_T`` pixels: Thomas et al. 2006) or ``rousset`` (pi² / 2, Rousset 1999).
+SPOTS = ("gaussian", "rousset")
+
+
+def default_relative_cut(subapertures_across: int) -> float:
+    """The reconstructor's default relative singular-value cut: ``min(0.1, 3 / subapertures_across)`` (0.075 at 40
+    across; 0.1 up to 30)."""
+    return min(0.1, 3.0 / subapertures_across)
+
+
+def _edge_weights(m: int) -> np.ndarray:
+    """Weights of the mean over ``m + 1`` equally spaced points of an edge (summing to 1): Simpson's rule for even
+    ``m``, the trapezoid rule for odd ``m``."""
+    if m % 2 == 0:
+        w = np.ones(m + 1)
+        w[1:-1:2], w[2:-1:2] = 4.0, 2.0
+    else:
+        w = np.full(m + 1, 2.0)
+        w[0] = w[-1] = 1.0
+    return w / w.sum()
+
+
+class SubapertureGeometry:
+    """Where the subapertures lie, the fine grid of phase samples that covers their edges, and the slope operator.
+
+    Parameters
+    ----------
+    grid : ActuatorGrid
+        The DM's actuators (pitch ``d = grid.pitch_m``, metres).
+    geometry : {"fried", "cell"}
+        ``fried``: ``n_across - 1`` subapertures of pitch ``d`` whose corners are actuators; ``cell``: subapertures
+        of pitch ``D / subapertures_across`` centred on the pupil (one per actuator cell by default).
+    samples_per_subaperture : int
+        ``m``: fine-grid intervals per subaperture side (fine pitch ``h = d_s / m``), 1 to 16.
+    subapertures_across : int or None
+        ``cell`` only: subapertures across the pupil diameter, 2 to ``n_across`` (default ``n_across``).
+
+    Attributes
+    ----------
+    pitch_m : float
+        Subaperture side ``d_s`` (m).
+    centres_m : ndarray
+        ``(n_sub, 2)`` (x, y) centres of the valid subapertures (m), row-major (y then x).
+    fine_grid : ActuatorGrid
+        The fine grid (pitch ``h``; its active points are the fine points, in its own order).
+    slope_operator : scipy.sparse.csr_matrix
+        ``S`` ``(2 n_sub, n_fine)``: fine-point OPD (nm) to slopes (nm of OPD difference across a subaperture).
+    """
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "geometry": OneOf(GEOMETRIES),
+        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
+    }
+
+    def __init__(self, grid: ActuatorGrid, geometry: str = "fried", samples_per_subaperture: int = 4,
+                 subapertures_across: int | None = None) -> None:
+        check_value("geometry", geometry, self._constraints["geometry"])
+        check_value("samples_per_subaperture", samples_per_subaperture, self._constraints["samples_per_subaperture"])
+        n = grid.n_across
+        if geometry == "fried":
+            require(subapertures_across in (None, n - 1),
+                    f"subapertures_across={subapertures_across!r} is invalid for geometry 'fried' on {n} actuators "
+                    f"across: it has {n - 1} (one between each pair of actuators); leave it unset")
+            n_sub, sensor_m = n - 1, grid.diameter_m - grid.pitch_m
+        else:
+            n_sub = n if subapertures_across is None else subapertures_across
+            check_value("subapertures_across", n_sub,
+                        Interval(2, n, integer=True, unit=f"subapertures across; the grid has {n} actuators across"))
+            sensor_m = grid.diameter_m
+        m = samples_per_subaperture
+        self.grid, self.geometry, self.samples_per_subaperture = grid, geometry, m
+        self.subapertures_across = n_sub
+        self.pitch_m = sensor_m / n_sub
+        h = self.pitch_m / m
+        self.fine_pitch_m = h
+
+        # Valid subapertures: centre inside the pupil annulus (the actuator grid's own rule and tolerance) ...
+        centres_1d = (np.arange(n_sub) + 0.5) * self.pitch_m - sensor_m / 2
+        yy, xx = np.meshgrid(centres_1d, centres_1d, indexing="ij")
+        r = np.hypot(xx, yy)
+        tol = 1e-9 * grid.diameter_m
+        valid = (r <= grid.diameter_m / 2 + tol) & (r >= grid.obstruction * grid.diameter_m / 2 - tol)
+        # ... and the DM spans it: every lattice actuator less than a pitch from its square is active (Fried: its four
+        # corners; cell: the 3 x 3 around it). Otherwise the DM's roll-off beyond its last actuator reverses the
+        # slopes of a tilt there and the least-squares fit of every mode bends to follow them.
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(_lattice(grid)).query_ball_point(np.stack([xx.ravel(), yy.ravel()], 1),
+                                                         self.pitch_m / 2 + grid.pitch_m * (1 - 1e-6), p=np.inf)
+        active = grid.mask.ravel()
+        valid &= np.array([active[i].all() for i in near]).reshape(valid.shape)
+        require(valid.sum() >= 1, f"geometry {geometry!r} on {n} actuators across leaves no subaperture in the pupil")
+        self.valid = valid
+        rows, cols = np.nonzero(valid)
+        self.centres_m = np.stack([xx[valid], yy[valid]], axis=1)
+
+        # The fine grid: points at -sensor/2 + i h (i = -p .. n_sub m + p), an ActuatorGrid of n_sub m + 1 + 2p
+        # points across whose circular mask holds every valid subaperture's corners.
+        corner = float(np.hypot(np.abs(self.centres_m[:, 0]) + self.pitch_m / 2,
+                                np.abs(self.centres_m[:, 1]) + self.pitch_m / 2).max())
+        pad = max(0, math.ceil((corner - sensor_m / 2) / h - 0.5 - 1e-9))
+        n_fine = n_sub * m + 1 + 2 * pad
+        require(n_fine <= MAX_N_ACROSS,
+                f"samples_per_subaperture={m} with {n_sub} subapertures across needs a fine grid of {n_fine} points "
+                f"across: allowed at most {MAX_N_ACROSS}; use fewer samples per subaperture")
+        self.fine_grid = ActuatorGrid(n_fine * h, n_fine, 0.0)
+        lookup = np.full((n_fine, n_fine), -1, dtype=np.int64)
+        lookup[self.fine_grid.mask] = np.arange(self.fine_grid.n_actuators)
+
+        # S: x slope = sum_k w_k (phi[row0 + k, col0 + m] - phi[row0 + k, col0]), y likewise with rows and columns
+        # exchanged; (row0, col0) the subaperture's lower-left fine point.
+        w = _edge_weights(m)
+        k = np.arange(m + 1)
+        row0, col0 = pad + rows * m, pad + cols * m
+        n_valid = len(rows)
+        sub = np.arange(n_valid)[:, None]
+        ones = np.ones((n_valid, m + 1))
+        entries = []
+        for axis in (0, 1):  # 0: x slopes, 1: y slopes
+            along_r = row0[:, None] + (k if axis == 0 else 0 * k)
+            along_c = col0[:, None] + (0 * k if axis == 0 else k)
+            step_r, step_c = (0, m) if axis == 0 else (m, 0)
+            for sign, dr, dc in ((1.0, step_r, step_c), (-1.0, 0, 0)):
+                idx = lookup[along_r + dr, along_c + dc]
+                if (idx < 0).any():  # the padding is computed to prevent it
+                    raise AssertionError("a subaperture edge point lies outside the fine grid")
+                entries.append((axis * n_valid + sub * ones, idx, sign * w * ones))
+        r_idx, c_idx, vals = (np.concatenate([e[j].ravel() for e in entries]) for j in range(3))
+        self.slope_operator = sp.csr_matrix((vals, (r_idx.astype(np.int64), c_idx)),
+                                            shape=(2 * n_valid, self.fine_grid.n_actuators))
+        self.slope_operator.sum_duplicates()
+
+    @property
+    def n_subapertures(self) -> int:
+        """Number of valid subapertures."""
+        return len(self.centres_m)
+
+    @property
+    def n_fine(self) -> int:
+        """Number of fine points (the fine grid's active points)."""
+        return self.fine_grid.n_actuators
+
+    @cached_property
+    def fine_positions_m(self) -> np.ndarray:
+        """``(n_fine, 2)`` (x, y) of the fine points (m), centred on the pupil."""
+        return self.fine_grid.positions_m
+
+    @cached_property
+    def fine_in_pupil(self) -> np.ndarray:
+        """Boolean ``(n_fine,)``: fine points inside the (obstructed) pupil, where the residual is scored."""
+        r = np.hypot(*self.fine_positions_m.T)
+        g, tol = self.grid, 1e-9 * self.grid.diameter_m
+        return (r <= g.diameter_m / 2 + tol) & (r >= g.obstruction * g.diameter_m / 2 - tol)
+
+
+    @cached_property
+    def fine_in_subapertures(self) -> np.ndarray:
+        """Boolean ``(n_fine,)``: fine points in (or on the edge of) a valid subaperture, the area the sensor sees."""
+        from scipy.spatial import cKDTree
+
+        counts = cKDTree(self.centres_m).query_ball_point(self.fine_positions_m, self.pitch_m / 2 * (1 + 1e-9),
+                                                           p=np.inf, return_length=True)
+        return np.asarray(counts) > 0
+
+
+def _lattice(grid: ActuatorGrid) -> np.ndarray:
+    """``(n_across², 2)`` (x, y) of every site of ``grid``'s square lattice, active or not (m), row-major."""
+    centres = (np.arange(grid.n_across) + 0.5) * grid.pitch_m - grid.diameter_m / 2
+    yy, xx = np.meshgrid(centres, centres, indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+
+def influence_functions(grid: ActuatorGrid, points_m: np.ndarray,
+                        mechanical_coupling: float = MECHANICAL_COUPLING) -> sp.csr_matrix:
+    """Gaussian influence functions of ``grid``'s actuators at ``points_m``: a sparse ``(n_points, K)`` matrix.
+
+    ``IF[p, k] = exp(-|x_p - a_k|² / (2 c²))`` with ``c = d / sqrt(2 ln(1 / coupling))`` (``d`` = pitch, m), i.e.
+    ``coupling ** (|x_p - a_k|² / d²)``: 1 nm of surface at the actuator per nm of command, ``coupling`` at a
+    neighbour (OOPAO's shape, ``DeformableMirror.modesComputation``; OOPAO's default coupling 0.35). Values below
+    :data:`INFLUENCE_FLOOR` are dropped.
+    """
+    check_value("mechanical_coupling", mechanical_coupling,
+                Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"))
+    from scipy.spatial import cKDTree
+
+    d = grid.pitch_m
+    radius = d * math.sqrt(math.log(INFLUENCE_FLOOR) / math.log(mechanical_coupling))
+    points = np.asarray(points_m, dtype=np.float64)
+    near = cKDTree(points).query_ball_point(grid.positions_m, radius)
+    cols = np.concatenate([np.full(len(p), k) for k, p in enumerate(near)])
+    rows = np.concatenate([np.asarray(p, dtype=np.int64) for p in near])
+    r2 = ((points[rows] - grid.positions_m[cols]) ** 2).sum(1) / (d * d)
+    return sp.csr_matrix((mechanical_coupling ** r2, (rows, cols)), shape=(len(points), grid.n_actuators))
+
+
+def least_squares_reconstructor(interaction_matrix: np.ndarray, relative_cut: float
+                                ) -> tuple[np.ndarray, int, np.ndarray]:
+    """``(R, kept, singular_values)``: the truncated-SVD least-squares reconstructor of ``D``.
+
+    ``D = U Σ V^T``; ``R = V_k Σ_k^-1 U_k^T`` over the ``kept`` singular values above ``relative_cut`` x the largest,
+    so ``R D`` is the projector on the kept command modes. A cut that keeps nothing is one :class:`ConfigError` line.
+    """
+    check_value("relative_cut", relative_cut,
+                Interval(1e-3, 1, unit="fraction of the largest singular value"))
+    d = np.asarray(interaction_matrix, dtype=np.float64)
+    # D^T D = V Σ² V^T (a K x K eigenproblem, several times faster than the SVD of D); the cut is at least 1e-3
+    # of the largest singular value, far above the rounding the squaring brings (1e-8 of it).
+    eigenvalues, v = np.linalg.eigh(d.T @ d)
+    order = np.argsort(eigenvalues)[::-1]
+    s = np.sqrt(np.clip(eigenvalues[order], 0.0, None))
+    v = v[:, order]
+    kept = int((s > relative_cut * s.max()).sum()) if s.size and s.max() > 0 else 0
+    if kept == 0:
+        raise ConfigError(f"relative_cut={relative_cut!r} removes every mode of the interaction matrix "
+                          f"{d.shape} (largest singular value {s.max() if s.size else 0:.3g}): "
+                          "allowed a cut below 1 of a matrix that sees something")
+    return (v[:, :kept] / s[:kept] ** 2) @ v[:, :kept].T @ d.T, kept, s
+
+
+@dataclass(frozen=True)
+@validated
+class ShackHartmann:
+    """A geometric Shack-Hartmann sensor and its least-squares reconstructor (the config; :meth:`build` makes one).
+
+    Parameters
+    ----------
+    geometry : {"fried", "cell"}
+        Subapertures between four actuators (default), or centred on the actuator cells (:class:`SubapertureGeometry`;
+        ``cell`` leaves about ``2 n`` stripe modes unseen).
+    samples_per_subaperture : int
+        Fine-grid intervals per subaperture side ``m`` (fine pitch ``d_s / m``); Simpson's rule on the edges for even
+        ``m``. 4 by default (``tests/test_shack_hartmann.py`` measures what 2 loses).
+    subapertures_across : int or None
+        ``cell`` only: subapertures across the pupil (default: one per actuator).
+    mechanical_coupling : float
+        Influence of an actuator at its neighbour, in (0, 1) (OOPAO's default 0.35).
+    relative_cut : float or None
+        Singular values of ``D`` at or below this fraction of the largest are dropped from ``R``, in [0.001, 1]
+        (1 drops every mode and is refused when ``R`` is built); ``None``: ``3 / subapertures_across``
+        (:func:`default_relative_cut`).
+    """
+
+    geometry: str = "fried"
+    samples_per_subaperture: int = 4
+    subapertures_across: int | None = None
+    mechanical_coupling: float = MECHANICAL_COUPLING
+    relative_cut: float | None = None
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "geometry": OneOf(GEOMETRIES),
+        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
+        "subapertures_across": OrNone(Interval(2, MAX_N_ACROSS, integer=True, unit="subapertures across")),
+        "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
+        "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
+    }
+
+    def build(self, grid: ActuatorGrid) -> ShackHartmannSensor:
+        """The sensor on ``grid``: geometry, slope operator, influence functions, ``D`` and ``R``."""
+        return ShackHartmannSensor(grid, self)
+
+
+class ShackHartmannSensor:
+    """A built :class:`ShackHartmann` on an actuator grid (numpy and scipy inside, torch tensors at the boundary).
+
+    Attributes
+    ----------
+    geometry : SubapertureGeometry
+        Subapertures, fine grid, slope operator ``S``.
+    influence : scipy.sparse.csr_matrix
+        ``IF`` ``(n_fine, K)``: fine-point surface (nm) per nm of command.
+    interaction_matrix : ndarray
+        ``D = S IF`` ``(2 n_sub, K)``: slopes (nm) per nm of command.
+    reconstructor : ndarray
+        ``R`` ``(K, 2 n_sub)``: commands (nm) per nm of slope.
+    kept_modes : int
+        Singular modes of ``D`` kept in ``R``.
+    relative_cut : float
+        The cut used.
+    """
+
+    def __init__(self, grid: ActuatorGrid, config: ShackHartmann = ShackHartmann()) -> None:
+        self.grid, self.config = grid, config
+        self.geometry = SubapertureGeometry(grid, config.geometry, config.samples_per_subaperture,
+                                            config.subapertures_across)
+        self.influence = influence_functions(grid, self.geometry.fine_positions_m, config.mechanical_coupling)
+        self.interaction_matrix = np.asarray((self.geometry.slope_operator @ self.influence).todense())
+        self.relative_cut = (config.relative_cut if config.relative_cut is not None
+                             else default_relative_cut(self.geometry.subapertures_across))
+        self.reconstructor, self.kept_modes, self.singular_values = least_squares_reconstructor(
+            self.interaction_matrix, self.relative_cut)
+
+    @property
+    def n_slopes(self) -> int:
+        """``2 n_sub``: x slopes then y slopes."""
+        return 2 * self.geometry.n_subapertures
+
+    def slopes(self, phase_fine: torch.Tensor) -> torch.Tensor:
+        """``S phi``: ``(..., n_fine)`` fine-point OPD (nm) to ``(..., 2 n_sub)`` slopes (nm of OPD difference across
+        each subaperture)."""
+        phase = _last_dim(phase_fine, self.geometry.n_fine, "phase_fine", "fine points of the sensor's grid")
+        flat = phase.reshape(-1, phase.shape[-1]).numpy()
+        return torch.as_tensor(np.asarray((self.geometry.slope_operator @ flat.T).T)).reshape(
+            *phase.shape[:-1], self.n_slopes)
+
+    def reconstruct(self, slopes: torch.Tensor, reconstructor=None) -> torch.Tensor:
+        """``R s``: ``(..., 2 n_sub)`` slopes (nm) to ``(..., K)`` commands (nm); ``reconstructor`` ``(K, 2 n_sub)``
+        replaces :attr:`reconstructor` when given (one :class:`ConfigError` line if its shape does not fit)."""
+        r = self.reconstructor if reconstructor is None else np.asarray(
+            reconstructor.detach().cpu().numpy() if isinstance(reconstructor, torch.Tensor) else reconstructor,
+            dtype=np.float64)
+        require(r.shape == (self.grid.n_actuators, self.n_slopes),
+                f"reconstructor of shape {r.shape} does not fit: expected ({self.grid.n_actuators}, {self.n_slopes}) "
+                f"({self.grid.n_actuators} actuators x {self.n_slopes} slopes)")
+        s = _last_dim(slopes, self.n_slopes, "slopes", f"x then y slopes of {self.geometry.n_subapertures} "
+                      "subapertures")
+        return s @ torch.as_tensor(r).T
+
+    def sense(self, phase_fine: torch.Tensor) -> torch.Tensor:
+        """The sensor's view in command space, ``R S phi`` (nm): what the loop's ``wfs`` will be, noise aside."""
+        return self.reconstruct(self.slopes(phase_fine))
+
+    def measure(self, phase_fine: torch.Tensor, slope_noise_nm: float = 0.0,
+                generator: torch.Generator | None = None) -> torch.Tensor:
+        """``R (S phi + n)``: the sensor's reading in command space (nm), ``n`` white slope noise of RMS
+        ``slope_noise_nm`` (nm; e.g. ``sqrt(Detector.slope_noise_variance_nm2(...))``) drawn from ``generator``."""
+        check_value("slope_noise_nm", slope_noise_nm, Interval(0, None, unit="nm RMS per slope"))
+        slopes = self.slopes(phase_fine)
+        if slope_noise_nm > 0:
+            slopes = slopes + slope_noise_nm * torch.randn(slopes.shape, generator=generator, dtype=slopes.dtype)
+        return self.reconstruct(slopes)
+
+    def dm_surface(self, commands: torch.Tensor) -> torch.Tensor:
+        """``IF y``: ``(..., K)`` commands (nm) to ``(..., n_fine)`` DM surface (nm) on the fine points."""
+        y = _last_dim(commands, self.grid.n_actuators, "commands", "actuators")
+        flat = y.reshape(-1, y.shape[-1]).numpy()
+        return torch.as_tensor(np.asarray((self.influence @ flat.T).T)).reshape(*y.shape[:-1], self.geometry.n_fine)
+
+    def noise_propagation(self) -> float:
+        """``p = trace(R R^T) / K``: the mean per-actuator command variance per unit variance of white slope noise."""
+        return float((self.reconstructor ** 2).sum() / self.grid.n_actuators)
+
+
+def _last_dim(values: torch.Tensor, size: int, name: str, what: str) -> torch.Tensor:
+    values = torch.as_tensor(values).to(torch.float64)
+    require(values.ndim >= 1 and values.shape[-1] == size,
+            f"{name} of shape {tuple(values.shape)} does not fit: its last dimension must be {size} ({what})")
+    return values.cpu()
+
+
+@dataclass(frozen=True)
+@validated
+class Detector:
+    """Photon and read noise of a Shack-Hartmann's subaperture detector, by Rousset's formulas.
+
+    Parameters
+    ----------
+    band : str
+        Photometric band of the guide star and the sensing (a key of :data:`PHOTOMETRY`, OOPAO's table).
+    magnitude : float
+        Guide-star magnitude in ``band``.
+    throughput : float
+        Fraction of the photons reaching the detector, in (0, 1].
+    pixels_across : int
+        ``N_s``: pixels across the subaperture's centroiding window.
+    pixels_per_lambda_over_d : float
+        ``N_D``: pixels per ``lambda / d_s`` (2 at Nyquist sampling).
+    spot_fwhm_lambda_over_d : float
+        ``N_T / N_D``: the spot's FWHM in units of ``lambda / d_s`` (1 for a diffraction-limited spot; about
+        ``d_s / r0`` when seeing-limited).
+    read_noise_e : float
+        ``sigma_e``: read noise per pixel and frame (electrons RMS).
+    spot : {"gaussian", "rousset"}
+        The photon-noise coefficient: ``gaussian`` (pi² / (2 ln 2), the exact centre-of-gravity variance of a Gaussian
+        spot of FWHM ``N_T``; Thomas et al. 2006, MNRAS 371, 323) or ``rousset`` (pi² / 2, Rousset 1999 in Roddier's
+        *Adaptive Optics in Astronomy*, which is 0.69 times the Gaussian's).
+    """
+
+    band: str = "R"
+    magnitude: float = 8.0
+    throughput: float = 0.5
+    pixels_across: int = 8
+    pixels_per_lambda_over_d: float = 2.0
+    spot_fwhm_lambda_over_d: float = 1.0
+    read_noise_e: float = 0.0
+    spot: str = "gaussian"
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "band": OneOf(tuple(PHOTOMETRY)),
+        "magnitude": FINITE,
+        "throughput": Interval(0, 1, closed="right", unit="fraction of the photons"),
+        "pixels_across": COUNT,
+        "pixels_per_lambda_over_d": Interval(0, None, closed="neither", unit="pixels per lambda/d"),
+        "spot_fwhm_lambda_over_d": Interval(0, None, closed="neither", unit="lambda/d"),
+        "read_noise_e": Interval(0, None, unit="electrons RMS per pixel"),
+        "spot": OneOf(SPOTS),
+    }
+
+    @property
+    def wavelength_m(self) -> float:
+        """The band's central wavelength (m): the sensing wavelength."""
+        return PHOTOMETRY[self.band][0]
+
+    def photons_per_subaperture(self, subaperture_m: float, frame_period_s: float) -> float:
+        """``N_ph = F0 10^(-0.4 mag) T d_s² dt``: photons per subaperture and frame (``F0`` the band's zero point,
+        photons / m² / s, OOPAO's ``Source.photometry``; ``T`` the throughput; ``d_s`` the side in m; ``dt`` in s)."""
+        check_value("subaperture_m", subaperture_m, Interval(0, None, closed="neither", unit="m"))
+        check_value("frame_period_s", frame_period_s, Interval(0, None, closed="neither", unit="s"))
+        return PHOTOMETRY[self.band][2] * 10 ** (-0.4 * self.magnitude) * self.throughput * subaperture_m ** 2 \
+            * frame_period_s
+
+    def phase_variance_rad2(self, n_photons: float) -> tuple[float, float]:
+        """``(photon, read)``: variances of the phase difference across the subaperture (rad², sensing wavelength).
+
+        Photon: ``c / N_ph (N_T / N_D)²`` with ``c = pi² / (2 ln 2)`` (``spot="gaussian"``) or ``pi² / 2``
+        (``"rousset"``); read: ``(pi² / 3) (sigma_e² / N_ph²) (N_s² / N_D)²`` (Rousset 1999; exact for the centre
+        of gravity over ``N_s x N_s`` pixels to ``1 - 1 / N_s²``). A centroid of ``x`` pixels is a phase difference
+        ``2 pi x / N_D``.
+        """
+        check_value("n_photons", n_photons, Interval(0, None, closed="neither", unit="photons"))
+        c = math.pi ** 2 / 2 / (math.log(2) if self.spot == "gaussian" else 1.0)
+        photon = c / n_photons * self.spot_fwhm_lambda_over_d ** 2
+        read = (math.pi ** 2 / 3) * (self.read_noise_e / n_photons) ** 2 * (
+            self.pixels_across ** 2 / self.pixels_per_lambda_over_d) ** 2
+        return photon, read
+
+    def slope_noise_variance_nm2(self, subaperture_m: float, frame_period_s: float) -> float:
+        """White noise variance of one slope in the sensor's unit (nm of OPD difference across the subaperture, nm²):
+        ``(photon + read) (lambda / 2 pi)²`` with lambda in nm."""
+        photon, read = self.phase_variance_rad2(self.photons_per_subaperture(subaperture_m, frame_period_s))
+        return (photon + read) * (self.wavelength_m * 1e9 / (2 * math.pi)) ** 2
