@@ -410,20 +410,10 @@ def staged_file(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
     with claim_output(path):
         clean_stale_staging(path.parent)
         partial = path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
-        try:
+        with _partial_removed_on_failure(partial, path, "out"):
             yield partial
             with _signals_deferred():
                 os.replace(partial, path)
-        except OSError as err:
-            if err.errno not in DISK_FULL:
-                partial.unlink(missing_ok=True)
-                raise
-            message = _disk_full(err, path, partial, "out")
-            partial.unlink(missing_ok=True)
-            raise message from None
-        except BaseException:
-            partial.unlink(missing_ok=True)
-            raise
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
@@ -432,17 +422,25 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     (a full disk: one :class:`OutputError` line)."""
     path = Path(path)
     partial = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
+    with _partial_removed_on_failure(partial, path, "file"):
         with open(partial, "w") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
         os.replace(partial, path)
+
+
+@contextmanager
+def _partial_removed_on_failure(partial: Path, path: Path, kind: str) -> Iterator[None]:
+    """On any failure inside the block the staged file ``partial`` (of ``path``) is removed; a full disk becomes one
+    :class:`OutputError` line."""
+    try:
+        yield
     except OSError as err:
         if err.errno not in DISK_FULL:
             partial.unlink(missing_ok=True)
             raise
-        message = _disk_full(err, path, partial, "file")
+        message = _disk_full(err, path, partial, kind)
         partial.unlink(missing_ok=True)
         raise message from None
     except BaseException:
