@@ -105,6 +105,15 @@ def test_the_markdown_says_what_the_numbers_say():
     assert "1 realisation of the test turbulence per run: no spread; set evaluation.realisations for one" in text
 
 
+def test_a_tuned_classical_controller_says_its_chosen_setting():
+    r = result()
+    r.classical_settings = {"nominal": {"extrapolator": {"order": 2, "smoothing": 0, "median_rms_nm": 9.0,
+                                                         "scanned": []}}}
+    verdict = build_verdict(r, contender_roles(PREDICTORS), 1, lambda n, s: UNSTABLE)
+    assert verdict["scenarios"]["nominal"]["best_classical"]["tuned_setting"] == {"order": 2, "smoothing": 0}
+    assert "best classical controller, extrapolator (best order 2, smoothing 0), 9 nm" in verdict_markdown(verdict)
+
+
 def test_a_predictor_with_thin_margins_is_said_close_to_instability():
     r = result()
     r.stability["dm_gain_2"]["cl_eof"] = stable(1.9, 2.15, margin_db=0.62, delay=0.025)

@@ -94,6 +94,9 @@ def _entry(result: ExperimentResult, scenario: str, name: str, role: dict) -> di
         entry["gain_scanned"] = scan is not None
         if scan is not None and "critical_gain" in scan:
             entry["critical_gain"] = scan["critical_gain"]
+    tuned = result.classical_settings.get(scenario, {}).get(name)
+    if tuned is not None:  # its settings (order, smoothing, AR order) were scanned on a stream of its own
+        entry["tuned_setting"] = {k: v for k, v in tuned.items() if k not in ("median_rms_nm", "scanned")}
     stability = entry["stability"]
     if stability is not None and stability["source"] == "linear analysis" and stability["stable"]:
         # Thin margins matter for any linear controller; for an integrator they mean a gain near its critical one.

@@ -27,6 +27,10 @@ def unstable_text(dm_gain: float | None) -> str:
 
 def _contender(entry: dict) -> str:
     """``integrator (best gain 0.953)`` or ``ol_eof``: a contender's name with how it was set up."""
+    if "tuned_setting" in entry:
+        setting = ", ".join(f"{k.replace('_', ' ')} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
+                            for k, v in entry["tuned_setting"].items())
+        return f"{entry['name']} (best {setting})"
     if "gain" not in entry:
         return entry["name"]
     how = "best gain" if entry["gain_scanned"] else "fixed gain, not scanned:"
