@@ -93,6 +93,14 @@ def test_closed_loop_data_is_recorded_in_each_drawn_plant_reproducibly():
     assert plain.target_gain(0) == plain.target_gain(1) == scenario.plant.dm_gain
 
 
+@pytest.mark.filterwarnings("ignore:network .* does not beat the trivial predictors")  # one short epoch
+def test_a_network_trained_by_sgd_reads_the_same_ranged_stream(small_scenario):
+    opt = OptimizationConfig(fit_method="sgd", epochs=1, lr=1e-3)
+    fit = fit_predictor(small_scenario, "open_loop", 3, data=data(RANGE, frames=2000), optimization=opt)
+    assert fit.val_loss is not None and torch.isfinite(torch.tensor(fit.val_loss))
+    assert fit.info["data"]["plant_range"] == RANGE
+
+
 @pytest.mark.parametrize(("plant_range", "message"), [
     ({"dm_gian": [0.8, 1.2]}, "data.plant_range has unknown field 'dm_gian': allowed are dm_gain, wfs_gain, "
                               "misregistration_x, misregistration_y"),

@@ -52,11 +52,12 @@ class DataConfig:
         an observatory would, from telemetry alone: record ``frames + val_frames`` frames with the dithered
         integrator, identify the plant from the dither, fit from ``y`` and ``wfs`` (the learner never sees ``s``).
     plant_range : dict, optional
-        ``{field: [low, high]}`` (fields of :data:`RANGED_PLANT_FIELDS`, e.g. ``{dm_gain: [0.8, 1.25]}``): each
-        training and validation sequence is simulated in the scenario's plant with these fields drawn uniformly
-        from their intervals (seeded by ``seed``, the stream and the sequence index). Closed-loop data is recorded
-        in the drawn plant; open-loop data too (by the recording integrator plus dither), its POL values
-        reconstructed with the nominal DM gain the filter believes, so they carry the mismatch. Needs ``truth``.
+        ``{field: [low, high]}`` (fields dm_gain, wfs_gain, misregistration_x, misregistration_y; e.g.
+        ``{dm_gain: [0.8, 1.25]}``): each training and validation sequence is simulated in the scenario's plant
+        with these fields drawn uniformly from their intervals (seeded by ``seed``, the stream and the sequence
+        index). Closed-loop data is recorded in the drawn plant; open-loop data too (by the recording integrator
+        plus dither), its POL values reconstructed with the DM gain the filter believes (1), so they carry the
+        mismatch; targets cancel the turbulence in the drawn plant. Needs ``truth``.
     """
 
     frames: int = 20000
