@@ -11,10 +11,13 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from eofnn.errors import require
-from eofnn.validation import Constraint, Interval, IsBool, validated
+from eofnn.validation import Constraint, Interval, IsBool, check_value, validated
 
 #: Most frames one fit may simulate (training plus validation): about three hours of CPU at 1264 actuators.
 MAX_FRAMES = 10_000_000
+
+#: Plant fields ``data.plant_range`` may draw per training sequence.
+RANGED_PLANT_FIELDS = ("dm_gain", "wfs_gain", "misregistration_x", "misregistration_y")
 
 
 @dataclass
@@ -48,6 +51,13 @@ class DataConfig:
         ``true``: targets from the simulator's turbulence ``s`` (a study's labelled shortcut). ``false``: learn as
         an observatory would, from telemetry alone: record ``frames + val_frames`` frames with the dithered
         integrator, identify the plant from the dither, fit from ``y`` and ``wfs`` (the learner never sees ``s``).
+    plant_range : dict, optional
+        ``{field: [low, high]}`` (fields dm_gain, wfs_gain, misregistration_x, misregistration_y; e.g.
+        ``{dm_gain: [0.8, 1.25]}``): each training and validation sequence is simulated in the scenario's plant
+        with these fields drawn uniformly from their intervals (seeded by ``seed``, the stream and the sequence
+        index). Closed-loop data is recorded in the drawn plant; open-loop data too (by the recording integrator
+        plus dither), its POL values reconstructed with the DM gain the filter believes (1), so they carry the
+        mismatch; targets cancel the turbulence in the drawn plant. Needs ``truth``.
     """
 
     frames: int = 20000
@@ -61,6 +71,7 @@ class DataConfig:
     dither_nm: float = 10.0
     refit_rounds: int = 0
     truth: bool = True
+    plant_range: dict | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(1, MAX_FRAMES, integer=True),
@@ -81,6 +92,33 @@ class DataConfig:
         require(self.frames * (self.refit_rounds + 1) * self.realisations <= MAX_FRAMES,
                 f"data.frames={self.frames} x realisations={self.realisations} x (refit_rounds + 1) is more than "
                 f"{MAX_FRAMES} frames to simulate")
+        self.plant_range = check_plant_range(self.plant_range)
+        require(self.plant_range is None or self.truth,
+                "data.plant_range needs data.truth: true (a fit from telemetry alone learns the one plant it recorded)")
 
 
-__all__ = ["MAX_FRAMES", "DataConfig"]
+def check_plant_range(value: object) -> dict[str, list[float]] | None:
+    """``data.plant_range`` checked and normalised to ``{field: [low, high]}`` floats (``None`` when empty); a
+    one-line error for anything else: not a mapping, an unknown field, not ``[low, high]``, low above high, or an end
+    outside what the plant allows for that field."""
+    if value is None:
+        return None
+    example = "a mapping of plant fields to [low, high], e.g. {dm_gain: [0.8, 1.25]}"
+    require(isinstance(value, dict), f"data.plant_range={value!r} is invalid: it must be {example}")
+    from eofnn.sim.loop.plant import Plant  # the plant's own bounds (numpy only, no torch)
+
+    ranges = {}
+    for name, interval in value.items():
+        require(name in RANGED_PLANT_FIELDS, f"data.plant_range has unknown field {name!r}: allowed are "
+                                             f"{', '.join(RANGED_PLANT_FIELDS)}")
+        require(isinstance(interval, (list, tuple)) and len(interval) == 2,
+                f"data.plant_range.{name}={interval!r} is invalid: it must be [low, high]")
+        for end in interval:
+            check_value(f"plant_range.{name}", end, Plant._constraints[name], "data.")
+        low, high = (float(end) for end in interval)
+        require(low <= high, f"data.plant_range.{name}={list(interval)!r} is invalid: low must be <= high")
+        ranges[name] = [low, high]
+    return ranges or None
+
+
+__all__ = ["MAX_FRAMES", "RANGED_PLANT_FIELDS", "DataConfig", "check_plant_range"]

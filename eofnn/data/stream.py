@@ -7,14 +7,16 @@ from collections.abc import Iterator
 from dataclasses import replace
 
 import lightning as L
+import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from eofnn.data.config import MAX_FRAMES, DataConfig  # noqa: F401  (re-exported: the config's home before it moved)
-from eofnn.data.history import HistorySpec, build_history, targets
+from eofnn.data.history import HistorySpec, build_history, pseudo_open_loop, targets
 from eofnn.errors import require
 from eofnn.resources import require_memory
-from eofnn.seeding import int_seed, torch_generator
+from eofnn.seeding import int_seed, stream_seed, torch_generator
+from eofnn.sim.loop.plant import Plant
 from eofnn.sim.loop.runner import Controller, record_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.validation import COUNT, POSITIVE, check_value
@@ -33,6 +35,17 @@ def require_training_memory(scenario: Scenario, spec: HistorySpec, data: DataCon
                    f"{data.realisations}, data.batch_frames={data.batch_frames} and {n_act} actuators")
 
 
+def sequence_plant(plant: Plant, data: DataConfig, name: str) -> Plant:
+    """The plant sequence ``name`` (``"<stream>:<index>"``) is simulated in: ``plant`` itself without
+    ``data.plant_range``, else ``plant`` with each ranged field drawn uniformly from its interval, from a generator
+    seeded by ``data.seed`` and ``name`` (the same draws whatever the workers or the order of the sequences)."""
+    if not data.plant_range:
+        return plant
+    rng = np.random.default_rng(stream_seed(data.seed, name, 4))
+    return plant.with_errors(**{field: low + (high - low) * rng.random()
+                                for field, (low, high) in data.plant_range.items()})
+
+
 class SimulatedTelemetry(IterableDataset):
     """Yields ``(history, target)`` batches of simulated telemetry, ``(samples, K, taps)`` and ``(samples, K)``.
 
@@ -42,6 +55,12 @@ class SimulatedTelemetry(IterableDataset):
 
     Open-loop data is the turbulence as a perfect pseudo-open-loop reconstruction would give it, plus the WFS
     noise of the scenario. Closed-loop data is recorded by running ``data_controller`` in the scenario's plant.
+
+    With ``data.plant_range`` each sequence has its own plant (:func:`sequence_plant`): closed-loop data is recorded
+    in it, and so is open-loop data (by ``data_controller``), whose POL values are then reconstructed with the DM gain
+    the filter believes (``dm_gain_model``, 1), carrying the mismatch of the drawn plant; targets are the commands
+    that cancel the turbulence in the drawn plant (``-s / g`` with its DM gain ``g``) unless ``target_dm_gain`` is
+    given.
 
     Parameters
     ----------
@@ -75,21 +94,28 @@ class SimulatedTelemetry(IterableDataset):
                 f"{spec.first_frame + spec.target_lead}")
         if spec.kind == "closed_loop":
             require(data_controller is not None, "closed-loop data needs a data_controller")
+        elif data.plant_range:
+            require(data_controller is not None, "open-loop data with data.plant_range needs a data_controller (the "
+                                                 "loop whose POL values carry the drawn plant's mismatch)")
         require_training_memory(scenario, spec, data)
         self.scenario, self.spec, self.stream, self.data = scenario, spec, stream, data
         self.n_sequences = -(-frames // data.sequence_frames)
         self.data_controller = data_controller
+        #: Targets of a ranged sequence use its own drawn DM gain unless a gain was given.
+        self.ranged_targets = target_dm_gain is None and bool(data.plant_range)
         if target_dm_gain is None:
             target_dm_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
         check_value("target_dm_gain", target_dm_gain, POSITIVE)
         self.target_dm_gain = target_dm_gain
+        #: DM gain of the open-loop POL reconstruction of data recorded in a drawn plant (the filter's belief).
+        self.dm_gain_model = 1.0
 
     def telemetry(self, index: int) -> dict[str, torch.Tensor]:
         """Arrays ``(R, frames, K)`` of sequence ``index``: ``s`` and ``s_hat`` (open loop) or ``s, y, wfs``."""
         name, seed = f"{self.stream}:{index}", self.data.seed
         turbulence = self.scenario.turbulence(seed, name, self.data.realisations)
-        plant = self.scenario.plant
-        if self.spec.kind == "open_loop":
+        plant = self.plant(index)
+        if self.spec.kind == "open_loop" and not self.data.plant_range:
             s = turbulence.frames(0, self.data.sequence_frames)
             s_hat = s
             if plant.wfs_noise_nm > 0:
@@ -103,31 +129,44 @@ class SimulatedTelemetry(IterableDataset):
                              noise_seed=int_seed(seed, name, 3), record=("s", "y", "wfs"), recorder="the data controller",
                              where=f" while recording training sequence {name!r}",
                              hint="lower data.integrator_gain or data.dither_nm, or use fewer data.refit_rounds")
+        if self.spec.kind == "open_loop":
+            s_hat = pseudo_open_loop(result.telemetry.wfs, result.telemetry.y, self.dm_gain_model,
+                                     self.spec.delay_fraction)
+            return {"s": result.telemetry.s, "s_hat": s_hat}
         return {"s": result.telemetry.s, "y": result.telemetry.y, "wfs": result.telemetry.wfs}
 
-    def _history(self, arrays: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    def plant(self, index: int) -> Plant:
+        """The plant sequence ``index`` is simulated in (:func:`sequence_plant`)."""
+        return sequence_plant(self.scenario.plant, self.data, f"{self.stream}:{index}")
+
+    def target_gain(self, index: int) -> float:
+        """The DM gain of sequence ``index``'s targets: ``target_dm_gain``, or the drawn plant's DM gain for ranged
+        data (the command that really cancels the turbulence in the plant that recorded it)."""
+        return self.plant(index).dm_gain if self.ranged_targets else self.target_dm_gain
+
+    def _history(self, arrays: dict[str, torch.Tensor], gain: float) -> tuple[torch.Tensor, torch.Tensor]:
         if self.spec.kind == "open_loop":
             history = build_history(self.spec, s=arrays["s_hat"])
         else:
             history = build_history(self.spec, y=arrays["y"], wfs=arrays["wfs"])
-        return history, targets(arrays["s"], self.spec, self.target_dm_gain)
+        return history, targets(arrays["s"], self.spec, gain)
 
     def sequence(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """History and target tensors of sequence ``index``: ``(R, samples, K, taps)`` and ``(R, samples, K)``."""
-        return self._history(self.telemetry(index))
+        return self._history(self.telemetry(index), self.target_gain(index))
 
     def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         info = get_worker_info()
         worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
         span, batch, lead = self.spec.first_frame, self.data.batch_frames, self.spec.target_lead
         for index in range(worker, self.n_sequences, n_workers):
-            arrays = self.telemetry(index)
+            arrays, gain = self.telemetry(index), self.target_gain(index)
             n_frames = arrays["s"].shape[1]
             # Histories are built one batch of frames at a time: a long sequence never needs its whole
             # (frames x K x taps) history tensor in memory. A fractional delay's target reads `lead` frames ahead.
             for first in range(span, n_frames - lead, batch):
                 window = {k: v[:, first - span: first + batch + lead] for k, v in arrays.items()}
-                x, t = self._history(window)
+                x, t = self._history(window, gain)
                 yield x.reshape(-1, *x.shape[2:]), t.reshape(-1, x.shape[-2])
 
 

@@ -140,8 +140,9 @@ class FitData:
 
 
 def recording_controller(spec: HistorySpec, data: DataConfig) -> Controller | None:
-    """The controller that records closed-loop training data: an integrator plus white dither (none for open loop)."""
-    if spec.kind != "closed_loop":
+    """The controller that records closed-loop training data, and open-loop data in the plants of a
+    ``data.plant_range``: an integrator plus white dither (none for other open-loop data)."""
+    if spec.kind != "closed_loop" and not data.plant_range:
         return None
     if data.dither_nm == 0:
         warnings.warn("closed-loop data recorded without excitation (data.dither_nm = 0): the controller law ties y "
