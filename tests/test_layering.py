@@ -10,7 +10,7 @@ import pytest
 #: Floors from the bottom up; a module may import its own floor and those below it.
 FLOORS = ["telemetry", "sim", "data", "models", "control", "analysis", "training", "evaluation", "interop", "reporting", "cli"]
 #: Leaf modules anyone may import; they import nothing of eofnn above themselves.
-BASE = {"errors", "validation", "seeding", "outputs", "resources", "delay", "lazy"}
+BASE = {"errors", "validation", "seeding", "outputs", "claims", "resources", "delay", "lazy"}
 #: Modules that must stand alone (copied into a real-time computer): no eofnn import at all.
 STANDALONE = {"runtime"}
 
