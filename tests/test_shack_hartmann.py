@@ -15,9 +15,8 @@ from eofnn.errors import ConfigError
 from eofnn.sim import Atmosphere, Layer, Turbulence
 from eofnn.sim.atmosphere.exact import VON_KARMAN_COEFFICIENT
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.detector import PHOTOMETRY, Detector
 from eofnn.sim.sensing.shack_hartmann import (
-    PHOTOMETRY,
-    Detector,
     ShackHartmann,
     SubapertureGeometry,
     _edge_weights,

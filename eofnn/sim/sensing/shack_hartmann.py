@@ -26,10 +26,10 @@ The core of a real sensor, not yet in eofnn's loop (which senses the subaperture
   trapezoid rule for odd ``m``). **Slope unit: nm of OPD difference across the subaperture** (gradient x ``d_s``),
   so that noise and aliasing are in nm like everything else. Rows: every x slope, then every y slope, subapertures
   in row-major order (y then x).
-- **Influence functions** (:func:`influence_functions`): Gaussian, OOPAO's shape and default coupling
-  (``OOPAO/DeformableMirror.py``: ``exp(-r² / (2 c²))``, ``c = d / sqrt(2 ln(1 / coupling))``, so the value at a
-  neighbour one pitch away is ``coupling``; default ``mechCoupling = 0.35``), 1 nm at the actuator per nm of command,
-  sparse ``(n_fine, K)``, cut where below :data:`INFLUENCE_FLOOR`.
+- **Influence functions** (:mod:`eofnn.sim.sensing.least_squares`, as the reconstructor): Gaussian, OOPAO's shape and
+  default coupling (``OOPAO/DeformableMirror.py``: ``exp(-r² / (2 c²))``, ``c = d / sqrt(2 ln(1 / coupling))``, so the
+  value at a neighbour one pitch away is ``coupling``; default ``mechCoupling = 0.35``), 1 nm at the actuator per nm
+  of command, sparse ``(n_fine, K)``, cut where below :data:`~eofnn.sim.sensing.least_squares.INFLUENCE_FLOOR`.
 - **Interaction matrix and reconstructor**: ``D = S IF`` ``(2 n_sub, K)`` (nm of slope per nm of command) and the
   least-squares ``R = V_k Σ_k^-1 U_k^T`` ``(K, 2 n_sub)`` by truncated SVD: singular values at or below
   ``relative_cut`` x the largest are dropped. Default cut ``min(0.1, 3 / n_sub_across)``
@@ -38,10 +38,10 @@ The core of a real sensor, not yet in eofnn's loop (which senses the subaperture
   3% at 0.1 and 6% at 0.15 on 20 across, 31% at 0.3 on 10, 19% at 0.1 on 40): the lowest spatial frequencies have
   singular values ``~ 2 pi / n`` of the largest's order, the modes the subaperture grid barely sees (piston, waffle,
   edge modes) fall below. The noise propagation grows as the cut falls (the kept modes nearest it dominate it).
-- **Noise** (:class:`Detector`): photons per subaperture and frame from the guide star's magnitude (OOPAO's
-  photometry table), centroid noise by Rousset's formulas (phase difference across the subaperture, rad², at the
-  sensing wavelength; the photon term with the coefficient exact for a Gaussian spot by default), in the slope unit
-  above.
+- **Noise** (:class:`~eofnn.sim.sensing.detector.Detector`): photons per subaperture and frame from the guide star's
+  magnitude (OOPAO's photometry table), centroid noise by Rousset's formulas (phase difference across the subaperture,
+  rad², at the sensing wavelength; the photon term with the coefficient exact for a Gaussian spot by default), in the
+  slope unit above.
 
 Measured (``tests/test_shack_hartmann.py``; Fried, ``m = 4``, coupling 0.35, default cut):
 
@@ -74,51 +74,18 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from eofnn.errors import ConfigError, require
+from eofnn.errors import require
 from eofnn.sim.grid import MAX_N_ACROSS, ActuatorGrid
-from eofnn.validation import COUNT, FINITE, Constraint, Interval, OneOf, OrNone, check_value, validated
+from eofnn.sim.sensing.least_squares import (
+    MECHANICAL_COUPLING,
+    default_relative_cut,
+    influence_functions,
+    least_squares_reconstructor,
+)
+from eofnn.validation import Constraint, Interval, OneOf, OrNone, check_value, validated
 
 #: Subaperture geometries: ``fried`` (between four actuators), ``cell`` (one subaperture per actuator cell).
 GEOMETRIES = ("fried", "cell")
-#: OOPAO's default mechanical coupling (``DeformableMirror(mechCoupling=0.35)``): the influence at a neighbour.
-MECHANICAL_COUPLING = 0.35
-#: Influence functions are cut where they fall below this fraction of their peak (a radius of
-#: ``d sqrt(ln(1e-6) / ln(coupling))``: 3.6 pitches at coupling 0.35).
-INFLUENCE_FLOOR = 1e-6
-
-#: Photometry ``band: (wavelength m, bandwidth m, zero point photons / m² / s)``: OOPAO's table
-#: (``OOPAO/Source.py``, ``Source.photometry``, "New entries with corrected zero point flux values": the zero points
-#: there are ``value / 368``).
-PHOTOMETRY: dict[str, tuple[float, float, float]] = {
-    name: (wavelength, bandwidth, zero / 368)
-    for name, (wavelength, bandwidth, zero) in {
-        "U": (0.360e-6, 0.070e-6, 1.96e12), "B": (0.440e-6, 0.100e-6, 5.38e12),
-        "V0": (0.500e-6, 0.090e-6, 3.64e12), "V": (0.550e-6, 0.090e-6, 3.31e12),
-        "R": (0.640e-6, 0.150e-6, 4.01e12), "R2": (0.650e-6, 0.300e-6, 7.9e12),
-        "R3": (0.600e-6, 0.300e-6, 8.56e12), "R4": (0.670e-6, 0.300e-6, 7.66e12),
-        "I": (0.790e-6, 0.150e-6, 2.69e12), "I1": (0.700e-6, 0.033e-6, 0.67e12),
-        "I2": (0.750e-6, 0.033e-6, 0.62e12), "I3": (0.800e-6, 0.033e-6, 0.58e12),
-        "I4": (0.700e-6, 0.100e-6, 2.02e12), "I5": (0.850e-6, 0.100e-6, 1.67e12),
-        "I6": (1.000e-6, 0.100e-6, 1.42e12), "I7": (0.850e-6, 0.300e-6, 5.00e12),
-        "I8": (0.750e-6, 0.100e-6, 1.89e12), "I9": (0.850e-6, 0.300e-6, 5.00e12),
-        "I10": (0.900e-6, 0.300e-6, 4.72e12), "J": (1.215e-6, 0.260e-6, 1.90e12),
-        "J2": (1.550e-6, 0.260e-6, 1.49e12), "H": (1.654e-6, 0.290e-6, 1.05e12),
-        "Kp": (2.1245e-6, 0.351e-6, 0.62e12), "Ks": (2.157e-6, 0.320e-6, 0.55e12),
-        "K": (2.179e-6, 0.410e-6, 0.70e12), "K0": (2.000e-6, 0.410e-6, 0.76e12),
-        "K1": (2.400e-6, 0.410e-6, 0.64e12),
-    }.items()
-}
-#: Spots the photon-noise formula may assume: ``gaussian`` (coefficient pi² / (2 ln 2), exact for the centre of
-#: gravity of a Gaussian spot of FWHM ``N_T`` pixels: Thomas et al. 2006) or ``rousset`` (pi² / 2, Rousset 1999).
-SPOTS = ("gaussian", "rousset")
-
-
-def default_relative_cut(subapertures_across: int) -> float:
-    """The reconstructor's default relative singular-value cut: ``min(0.1, 3 / subapertures_across)`` (0.075 at 40
-    across; 0.1 up to 30)."""
-    return min(0.1, 3.0 / subapertures_across)
-
-
 def _edge_weights(m: int) -> np.ndarray:
     """Weights of the mean over ``m + 1`` equally spaced points of an edge (summing to 1): Simpson's rule for even
     ``m``, the trapezoid rule for odd ``m``."""
@@ -281,53 +248,6 @@ def _lattice(grid: ActuatorGrid) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], axis=1)
 
 
-def influence_functions(grid: ActuatorGrid, points_m: np.ndarray,
-                        mechanical_coupling: float = MECHANICAL_COUPLING) -> sp.csr_matrix:
-    """Gaussian influence functions of ``grid``'s actuators at ``points_m``: a sparse ``(n_points, K)`` matrix.
-
-    ``IF[p, k] = exp(-|x_p - a_k|² / (2 c²))`` with ``c = d / sqrt(2 ln(1 / coupling))`` (``d`` = pitch, m), i.e.
-    ``coupling ** (|x_p - a_k|² / d²)``: 1 nm of surface at the actuator per nm of command, ``coupling`` at a
-    neighbour (OOPAO's shape, ``DeformableMirror.modesComputation``; OOPAO's default coupling 0.35). Values below
-    :data:`INFLUENCE_FLOOR` are dropped.
-    """
-    check_value("mechanical_coupling", mechanical_coupling,
-                Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"))
-    from scipy.spatial import cKDTree
-
-    d = grid.pitch_m
-    radius = d * math.sqrt(math.log(INFLUENCE_FLOOR) / math.log(mechanical_coupling))
-    points = np.asarray(points_m, dtype=np.float64)
-    near = cKDTree(points).query_ball_point(grid.positions_m, radius)
-    cols = np.concatenate([np.full(len(p), k) for k, p in enumerate(near)])
-    rows = np.concatenate([np.asarray(p, dtype=np.int64) for p in near])
-    r2 = ((points[rows] - grid.positions_m[cols]) ** 2).sum(1) / (d * d)
-    return sp.csr_matrix((mechanical_coupling ** r2, (rows, cols)), shape=(len(points), grid.n_actuators))
-
-
-def least_squares_reconstructor(interaction_matrix: np.ndarray, relative_cut: float
-                                ) -> tuple[np.ndarray, int, np.ndarray]:
-    """``(R, kept, singular_values)``: the truncated-SVD least-squares reconstructor of ``D``.
-
-    ``D = U Σ V^T``; ``R = V_k Σ_k^-1 U_k^T`` over the ``kept`` singular values above ``relative_cut`` x the largest,
-    so ``R D`` is the projector on the kept command modes. A cut that keeps nothing is one :class:`ConfigError` line.
-    """
-    check_value("relative_cut", relative_cut,
-                Interval(1e-3, 1, unit="fraction of the largest singular value"))
-    d = np.asarray(interaction_matrix, dtype=np.float64)
-    # D^T D = V Σ² V^T (a K x K eigenproblem, several times faster than the SVD of D); the cut is at least 1e-3
-    # of the largest singular value, far above the rounding the squaring brings (1e-8 of it).
-    eigenvalues, v = np.linalg.eigh(d.T @ d)
-    order = np.argsort(eigenvalues)[::-1]
-    s = np.sqrt(np.clip(eigenvalues[order], 0.0, None))
-    v = v[:, order]
-    kept = int((s > relative_cut * s.max()).sum()) if s.size and s.max() > 0 else 0
-    if kept == 0:
-        raise ConfigError(f"relative_cut={relative_cut!r} removes every mode of the interaction matrix "
-                          f"{d.shape} (largest singular value {s.max() if s.size else 0:.3g}): "
-                          "allowed a cut below 1 of a matrix that sees something")
-    return (v[:, :kept] / s[:kept] ** 2) @ v[:, :kept].T @ d.T, kept, s
-
-
 @dataclass(frozen=True)
 @validated
 class ShackHartmann:
@@ -456,86 +376,3 @@ def _last_dim(values: torch.Tensor, size: int, name: str, what: str) -> torch.Te
     require(values.ndim >= 1 and values.shape[-1] == size,
             f"{name} of shape {tuple(values.shape)} does not fit: its last dimension must be {size} ({what})")
     return values.cpu()
-
-
-@dataclass(frozen=True)
-@validated
-class Detector:
-    """Photon and read noise of a Shack-Hartmann's subaperture detector, by Rousset's formulas.
-
-    Parameters
-    ----------
-    band : str
-        Photometric band of the guide star and the sensing (a key of :data:`PHOTOMETRY`, OOPAO's table).
-    magnitude : float
-        Guide-star magnitude in ``band``.
-    throughput : float
-        Fraction of the photons reaching the detector, in (0, 1].
-    pixels_across : int
-        ``N_s``: pixels across the subaperture's centroiding window.
-    pixels_per_lambda_over_d : float
-        ``N_D``: pixels per ``lambda / d_s`` (2 at Nyquist sampling).
-    spot_fwhm_lambda_over_d : float
-        ``N_T / N_D``: the spot's FWHM in units of ``lambda / d_s`` (1 for a diffraction-limited spot; about
-        ``d_s / r0`` when seeing-limited).
-    read_noise_e : float
-        ``sigma_e``: read noise per pixel and frame (electrons RMS).
-    spot : {"gaussian", "rousset"}
-        The photon-noise coefficient: ``gaussian`` (pi² / (2 ln 2), the exact centre-of-gravity variance of a Gaussian
-        spot of FWHM ``N_T``; Thomas et al. 2006, MNRAS 371, 323) or ``rousset`` (pi² / 2, Rousset 1999 in Roddier's
-        *Adaptive Optics in Astronomy*, which is 0.69 times the Gaussian's).
-    """
-
-    band: str = "R"
-    magnitude: float = 8.0
-    throughput: float = 0.5
-    pixels_across: int = 8
-    pixels_per_lambda_over_d: float = 2.0
-    spot_fwhm_lambda_over_d: float = 1.0
-    read_noise_e: float = 0.0
-    spot: str = "gaussian"
-
-    _constraints: ClassVar[dict[str, Constraint]] = {
-        "band": OneOf(tuple(PHOTOMETRY)),
-        "magnitude": FINITE,
-        "throughput": Interval(0, 1, closed="right", unit="fraction of the photons"),
-        "pixels_across": COUNT,
-        "pixels_per_lambda_over_d": Interval(0, None, closed="neither", unit="pixels per lambda/d"),
-        "spot_fwhm_lambda_over_d": Interval(0, None, closed="neither", unit="lambda/d"),
-        "read_noise_e": Interval(0, None, unit="electrons RMS per pixel"),
-        "spot": OneOf(SPOTS),
-    }
-
-    @property
-    def wavelength_m(self) -> float:
-        """The band's central wavelength (m): the sensing wavelength."""
-        return PHOTOMETRY[self.band][0]
-
-    def photons_per_subaperture(self, subaperture_m: float, frame_period_s: float) -> float:
-        """``N_ph = F0 10^(-0.4 mag) T d_s² dt``: photons per subaperture and frame (``F0`` the band's zero point,
-        photons / m² / s, OOPAO's ``Source.photometry``; ``T`` the throughput; ``d_s`` the side in m; ``dt`` in s)."""
-        check_value("subaperture_m", subaperture_m, Interval(0, None, closed="neither", unit="m"))
-        check_value("frame_period_s", frame_period_s, Interval(0, None, closed="neither", unit="s"))
-        return PHOTOMETRY[self.band][2] * 10 ** (-0.4 * self.magnitude) * self.throughput * subaperture_m ** 2 \
-            * frame_period_s
-
-    def phase_variance_rad2(self, n_photons: float) -> tuple[float, float]:
-        """``(photon, read)``: variances of the phase difference across the subaperture (rad², sensing wavelength).
-
-        Photon: ``c / N_ph (N_T / N_D)²`` with ``c = pi² / (2 ln 2)`` (``spot="gaussian"``) or ``pi² / 2``
-        (``"rousset"``); read: ``(pi² / 3) (sigma_e² / N_ph²) (N_s² / N_D)²`` (Rousset 1999; exact for the centre
-        of gravity over ``N_s x N_s`` pixels to ``1 - 1 / N_s²``). A centroid of ``x`` pixels is a phase difference
-        ``2 pi x / N_D``.
-        """
-        check_value("n_photons", n_photons, Interval(0, None, closed="neither", unit="photons"))
-        c = math.pi ** 2 / 2 / (math.log(2) if self.spot == "gaussian" else 1.0)
-        photon = c / n_photons * self.spot_fwhm_lambda_over_d ** 2
-        read = (math.pi ** 2 / 3) * (self.read_noise_e / n_photons) ** 2 * (
-            self.pixels_across ** 2 / self.pixels_per_lambda_over_d) ** 2
-        return photon, read
-
-    def slope_noise_variance_nm2(self, subaperture_m: float, frame_period_s: float) -> float:
-        """White noise variance of one slope in the sensor's unit (nm of OPD difference across the subaperture, nm²):
-        ``(photon + read) (lambda / 2 pi)²`` with lambda in nm."""
-        photon, read = self.phase_variance_rad2(self.photons_per_subaperture(subaperture_m, frame_period_s))
-        return (photon + read) * (self.wavelength_m * 1e9 / (2 * math.pi)) ** 2
