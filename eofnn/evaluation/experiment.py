@@ -70,6 +70,8 @@ class Experiment:
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.progress, self.log = progress, log
         self._trained: dict[tuple[str, str], TrainedPredictor] = {}
+        #: The nominal filter's stability in each later scenario (:meth:`nominal_filter_stability`), once computed.
+        self._nominal_stability: dict[tuple[str, str], dict | None] = {}
         #: Best-gain integrators: (controller, scenario) -> {"gain": chosen, "scanned": {gain: median RMS or None}}.
         self.gain_scans: dict[tuple[str, str], dict] = {}
         #: Classical controllers whose settings were tuned on a stream of their own (the extrapolator's order and
@@ -221,7 +223,14 @@ class Experiment:
     def nominal_filter_stability(self, name: str, scenario_name: str) -> dict | None:
         """The analytic stability, in ``scenario_name``'s plant, of predictor ``name`` as trained in the first
         (nominal) scenario: would the nominal filter hold where it was retrained? ``None`` when that filter was not
-        trained, has no linear model, or is too large to analyse."""
+        trained, has no linear model, or is too large to analyse. Kept once computed: compare builds the verdict again
+        when simulated margins come in, and a coupled filter's analysis takes a while."""
+        key = (name, scenario_name)
+        if key not in self._nominal_stability:
+            self._nominal_stability[key] = self._analyse_nominal_filter(name, scenario_name)
+        return self._nominal_stability[key]
+
+    def _analyse_nominal_filter(self, name: str, scenario_name: str) -> dict | None:
         trained = self._trained.get((name, next(iter(self.scenarios))))
         if trained is None:
             return None
