@@ -65,19 +65,21 @@ def smooth_variance(variance: torch.Tensor, model: torch.Tensor, frequencies: to
 
 
 def pfc_from_pol(pol: torch.Tensor, scenario: Scenario, config: PfcConfig | None = None,
-                 dm_gain_model: float = 1.0, info: dict | None = None) -> FourierPredictor:
-    """The predictive Fourier controller of ``(realisations, frames, K)`` POL values recorded in ``scenario``: noise,
-    winds (``config.winds`` if given, else identified), per-mode variances and Kalman gains (module docstring)."""
+                 dm_gain_model: float = 1.0, info: dict | None = None,
+                 noise_variance: float | None = None) -> FourierPredictor:
+    """The predictive Fourier controller of ``(realisations, frames, K)`` POL values recorded in ``scenario``: noise
+    (``noise_variance``, nm² per actuator, where known; else estimated), winds (``config.winds`` if given, else
+    identified), per-mode variances and Kalman gains (module docstring)."""
     config = config or PfcConfig()
     grid, period = scenario.grid, 1.0 / scenario.frame_rate_hz
     pol = pol.to(DTYPE)
     basis = FourierBasis(grid, config.padding)
     b, t, k = pol.shape
-    sigma2 = white_noise_variance(pol)
+    sigma2 = white_noise_variance(pol) if noise_variance is None else noise_variance
     noise = sigma2 * basis.noise_gain()
     flat = pol.reshape(b * t, k)
-    power = sum(basis.forward(flat[i: i + 512]).abs().pow(2).sum(0) for i in range(0, b * t, 512)) / (b * t)
-    variance = (power - noise).clamp(min=1e-12 * float(noise.max() + 1))
+    measured = sum(basis.forward(flat[i: i + 512]).abs().pow(2).sum(0) for i in range(0, b * t, 512)) / (b * t)
+    variance = (measured - noise).clamp(min=1e-12 * float(noise.max() + 1))
     ptt = pol @ torch.as_tensor(grid.ptt_basis(), dtype=DTYPE)
     remove_ptt = bool((ptt.pow(2).mean((0, 1)) <= 4 * sigma2 + 1e-9 * float(pol.pow(2).mean())).all())
     if config.winds is not None:
