@@ -249,3 +249,20 @@ def test_pfc_beats_the_integrator_and_is_analysed_like_every_linear_controller(i
     result = controller_stability(PredictorConfig(controller="pfc"), model, scenario)
     assert result.structure == "modal" and result.kind == "open_loop" and result.stable
     assert "spatial Fourier modes" in result.notes[-1]
+
+
+@pytest.mark.cli
+@pytest.mark.slow
+def test_eofnn_stability_analyses_the_pfc(tmp_path):
+    """``eofnn stability --controller {controller: pfc, ...}`` builds it from telemetry and writes its margins."""
+    import json
+
+    from eofnn.cli.main import main
+
+    out = tmp_path / "stab"
+    controller = "{controller: pfc, pfc: {winds: [[10.0, 0.0, 1.0]]}, data: {frames: 1024, dither_nm: 5.0}}"
+    assert main(["stability", "--scenario", str(TINY_SCENARIO), "--controller", controller, "--out", str(out)]) == 0
+    result = json.loads((out / "stability.json").read_text())
+    low, high = result["dm_gain_interval"]
+    assert result["stable"] and result["structure"] == "modal" and result["groups"] == 21 * 11
+    assert low < 0.5 and 1.8 < high < 3 and (out / "stability.png").stat().st_size > 0

@@ -11,7 +11,8 @@ What is estimated, and how (a telescope's telemetry: commands and WFS readings, 
 3. *Winds* (:func:`eofnn.control.wind.identify_winds`): the lagged cross-spectra of the (whitened) POL maps, each
    the lag-0 one turned by the layers' displacements, fitted by least squares (``pfc.winds`` given instead: taken
    as they are).
-4. *Per mode*: the variance of each Fourier mode less its noise, split over layers and aliases
+4. *Per mode*: the variance of each Fourier mode less its noise, smoothed over rings of equal frequency
+   (:func:`smooth_variance`), split over layers and aliases
    (:mod:`eofnn.control.fourier`, choice 2); piston, tip and tilt are left out of the command when the telemetry
    holds no more of them than its noise.
 """
@@ -56,7 +57,9 @@ def smooth_variance(variance: torch.Tensor, model: torch.Tensor, frequencies: to
                     spacing: float) -> torch.Tensor:
     """``(M,)`` mode variances smoothed over rings: ``model`` (the expected shape) times the ring average of
     ``variance / model``, rings ``spacing`` (cycles/m, the FFT's) wide. Turbulence is isotropic, and a few seconds of
-    frozen flow span only a few independent pupils: each mode's own sample variance scatters by tens of percent."""
+    frozen flow span only a few independent pupils: each mode's own sample variance scatters, and the mode whose
+    variance is highest by chance has the largest Kalman gain and sets the analytic DM-gain limit (measured on an 8 m
+    pupil, 10 actuators across, 30 nm of noise: 2.37 from the raw variances, 2.47 smoothed, 2.56 in simulation)."""
     ring = torch.round(frequencies.norm(dim=1) / spacing).long()
     ratio = variance / model
     total = torch.zeros(int(ring.max()) + 1, dtype=DTYPE).index_add_(0, ring, ratio)
