@@ -85,8 +85,8 @@ def _toy(delay: float, states: int = 3, modes: int = 3) -> FourierPredictor:
 
 @pytest.mark.parametrize("delay", [2, 1.5, 3])
 def test_pfc_polynomials_are_the_filter_it_runs(delay):
-    """Per mode, the impulse response of ``N / D`` (what the analysis sees) is the command the filter computes from
-    a unit reading, through its POL reconstruction of its own past commands (``z = u - g_model z^-d H y``)."""
+    """Per mode, the impulse response of ``N / D`` (the loop the analysis sees) is the command the filter computes
+    from a unit reading, through its POL reconstruction of its own past commands (``z = u - g_model z^-d H y``)."""
     model = _toy(delay)
     d_poly, n_poly = model.polynomials()
     model.reset(1, model.basis.grid.n_actuators, delay, F64)
@@ -119,15 +119,56 @@ def test_state_space_poles_are_the_roots_of_the_characteristic_polynomial(delay,
                                    poly.max_root_modulus(characteristic), rtol=1e-9, atol=1e-12)
 
 
-def test_complex_crossings_find_the_gain_where_a_rotated_pole_leaves_the_circle():
-    """``1 - g c z^-1`` (``c`` complex of modulus 0.5) has its root ``g c`` on the unit circle at ``g = +-2``,
-    at the frequency of ``c``'s angle (reported folded into [0, pi])."""
-    c = 0.5 * complex(math.cos(2.0), math.sin(2.0))
-    a = torch.tensor([[1.0, 0.0]], dtype=C128)
-    b = torch.tensor([[0.0, -c]], dtype=C128)
-    rows, gains, omega = poly.real_crossings(a, b)
-    assert sorted(gains.tolist()) == pytest.approx([-2.0, 2.0], abs=1e-9)
-    assert sorted(omega.tolist()) == pytest.approx([math.pi - 2.0, 2.0], abs=1e-9)
+@pytest.mark.parametrize("delay", [2, 1.5])
+def test_frequency_response_is_the_polynomials_over_their_common_factor(delay):
+    """``frequency_response`` (what the analysis reads) is ``D / Delta`` and ``N / Delta`` of ``polynomials``, with
+    ``Delta = prod_s (1 - a_s z^-1)``."""
+    model = _toy(delay)
+    d_poly, n_poly = model.polynomials()
+    omega = torch.linspace(0, 2 * math.pi, 37, dtype=F64)
+    delta = torch.ones(3, 1, dtype=C128)
+    for s in range(model.transition.shape[1]):
+        delta = poly.multiply(delta, torch.stack([torch.ones(3, dtype=C128), -model.transition[:, s]], 1))
+    d, n = model.frequency_response(omega.unsqueeze(0))
+    torch.testing.assert_close(d * poly.evaluate(delta, omega), poly.evaluate(d_poly, omega), rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(n * poly.evaluate(delta, omega), poly.evaluate(n_poly, omega), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dm_gain, delay", [(1.0, 2), (1.4, 2), (1.0, 1.5)])
+def test_the_response_analysis_is_the_polynomial_one_on_real_loops(dm_gain, delay):
+    """On real polynomials (an LQG's, which the polynomial analysis handles well) the analysis from frequency
+    responses and pole moduli gives the same margins, crossings and transfer functions."""
+    from eofnn.analysis.response import analyse_response
+    from eofnn.analysis.stability import analyse_polynomials, default_frequencies_hz
+    from eofnn.control.classical import ModalLQG
+    from eofnn.control.kalman import kalman_gain
+
+    ar = torch.tensor([[1.7, -0.75], [0.3, 0.1], [0.9, 0.0]], dtype=F64)
+    q, r = torch.tensor([1.0, 2.0, 0.5], dtype=F64), torch.tensor([0.5, 1.0, 0.01], dtype=F64)
+    gain, _ = kalman_gain(ar, q, r)
+    d_poly, n_poly = ModalLQG(torch.eye(3, dtype=F64), ar, q, r, gain, delay).polynomials()
+    setup = LoopSetup(delay, dm_gain, 0.9)
+    frequencies = default_frequencies_hz(1000.0)
+
+    def response(omega, rows):
+        d, n = (d_poly, n_poly) if rows is None else (d_poly[rows], n_poly[rows])
+        def at(p):
+            phasor = torch.exp(-1j * omega.unsqueeze(-1) * torch.arange(p.shape[1], dtype=F64))  # (R or 1, F, L)
+            return (phasor * p.unsqueeze(1)).sum(-1)
+        return at(d), at(n)
+
+    def moduli(plant):
+        characteristic = poly.add(d_poly, -plant.dm_gain * poly.multiply(plant.plant_polynomial(), n_poly))
+        return poly.max_root_modulus(characteristic)
+
+    expected = analyse_polynomials(d_poly, n_poly, setup, frequencies, kind="open_loop", structure="modal")
+    result = analyse_response(response, moduli, 3, setup, frequencies, kind="open_loop", structure="modal",
+                              history_length=1)
+    for name in ("max_root_modulus", "gain_interval", "gain_crossing_hz", "delay_margin_frames", "rejection",
+                 "noise_transfer"):
+        torch.testing.assert_close(getattr(result, name), getattr(expected, name), rtol=1e-7, atol=1e-9,
+                                   equal_nan=True, msg=name)
+    assert torch.equal(result.integer_delay_margin_frames, expected.integer_delay_margin_frames)
 
 
 def test_pfc_configs_are_checked_in_one_line():

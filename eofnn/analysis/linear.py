@@ -7,6 +7,7 @@ from typing import Any
 
 import torch
 
+from eofnn.analysis.response import analyse_response
 from eofnn.analysis.stability import (
     LoopSetup,
     StabilityResult,
@@ -54,25 +55,25 @@ def modal_stability(model: Any, setup: LoopSetup) -> StabilityResult:
     """A modal controller (``model.polynomials()``: per-mode ``D(z), N(z)``) analysed with the modes as groups.
 
     The modes decouple the loop when the DM acts as ``g`` times the command on every mode (no misregistration),
-    as the per-actuator analysis of a filter assumes for actuators. The Fourier modes of predictive Fourier control
-    (complex polynomials, one mode of each conjugate pair) decouple it only approximately on a pupil (its module
-    says why; ``tests/test_pfc.py`` measures the DM-gain limit against simulation).
+    as the per-actuator analysis of a filter assumes for actuators. Predictive Fourier control's spatial Fourier
+    modes (complex, one of each conjugate pair) decouple it only approximately on a pupil (its module says why;
+    ``tests/test_pfc.py`` measures the DM-gain limit against simulation); they are analysed from their frequency
+    responses and state spaces (:mod:`eofnn.analysis.response`: their polynomials' roots are too ill-conditioned).
     """
     start = time.perf_counter()
-    d_poly, n_poly = model.polynomials()
-    moduli = None
+    frequencies = default_frequencies_hz(setup.frame_rate_hz)
     if isinstance(model, FourierPredictor):
-        kind, length = "open_loop", int(model.transition.shape[1])
-
-        def moduli(plant: LoopSetup) -> torch.Tensor:
-            return model.closed_loop_moduli(plant.dm_gain, plant.wfs_gain, plant.delay_frames)
+        result = analyse_response(model.frequency_response, lambda plant: model.closed_loop_moduli(
+            plant.dm_gain, plant.wfs_gain, plant.delay_frames), model.transition.shape[0], setup, frequencies,
+            kind="open_loop", structure="modal", history_length=int(model.transition.shape[1]))
+        result.notes.append("groups are the controller's modes (spatial Fourier modes, taken as decoupled)")
     else:
+        d_poly, n_poly = model.polynomials()
         kind, length = ("open_loop", 2) if isinstance(model, ModalLQG) else ("closed_loop", 1)
-    result = analyse_polynomials(d_poly, n_poly, setup, default_frequencies_hz(setup.frame_rate_hz), kind=kind,
-                                 structure="modal", history_length=length, root_modulus=moduli)
+        result = analyse_polynomials(d_poly, n_poly, setup, frequencies, kind=kind, structure="modal",
+                                     history_length=length)
+        result.notes.append("groups are the controller's modes")
     result.analysis_seconds = time.perf_counter() - start
-    result.notes.append("groups are the controller's modes" + (" (spatial Fourier modes, taken as decoupled)"
-                                                                if isinstance(model, FourierPredictor) else ""))
     return result
 
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import ClassVar
 
@@ -45,8 +44,6 @@ from eofnn.models.linear import LinearFilter
 from eofnn.validation import FINITE, Constraint, Interval, OrNone, validated
 
 STRUCTURES = ("per_actuator", "shared", "neighbourhood")
-#: ``root_modulus(setup)``: a controller's largest closed-loop pole modulus per group in the plant ``setup``.
-RootModulus = Callable[["LoopSetup"], torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -330,17 +327,14 @@ def analyse_integrator(gain: float, leak: float = 0.0, setup: LoopSetup | None =
 
 
 def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup, frequencies_hz: torch.Tensor,
-                        *, kind: str = "closed_loop", structure: str = "per_actuator", history_length: int = 1,
-                        root_modulus: RootModulus | None = None) -> StabilityResult:
-    """Analysis of any controller ``D(z) y = N(z) u`` given per group as ``(groups, L)`` polynomials (real or
-    complex). ``root_modulus(setup)``, if given, is the largest closed-loop pole modulus per group in a plant
-    ``setup`` (a state-space model's eigenvalues), used where the roots of a high-order characteristic polynomial
-    with clustered roots are too ill-conditioned to tell stable from not."""
+                        *, kind: str = "closed_loop", structure: str = "per_actuator",
+                        history_length: int = 1) -> StabilityResult:
+    """Analysis of any controller ``D(z) y = N(z) u`` given per group as ``(groups, L)`` polynomials."""
     groups = d_poly.shape[0]
     g = setup.dm_gain
     q_n = poly.multiply(setup.plant_polynomial(), n_poly)  # Q N
     characteristic = poly.add(d_poly, -g * q_n)
-    modulus = poly.max_root_modulus(characteristic) if root_modulus is None else root_modulus(setup)
+    modulus = poly.max_root_modulus(characteristic)
     stable = modulus < 1
     # Gain: P(g) = D + g (-Q N).
     rows, gains, omega = poly.real_crossings(d_poly, -q_n)
@@ -352,7 +346,7 @@ def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopS
     for column, bound in enumerate((lower, upper)):
         hit = gains == bound[rows]
         crossing_hz[:, column].scatter_reduce_(0, rows[hit], hz[hit], "amin", include_self=False)
-    delay_margin, integer_margin = _delay_margins(d_poly, n_poly, setup, root_modulus)
+    delay_margin, integer_margin = _delay_margins(d_poly, n_poly, setup)
     delay_margin[~stable], integer_margin[~stable] = math.nan, -1
     omega_grid = 2 * math.pi * frequencies_hz / setup.frame_rate_hz
     p_value = poly.evaluate(characteristic, omega_grid)
@@ -362,8 +356,7 @@ def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopS
                            integer_margin, frequencies_hz, rejection, noise)
 
 
-def _delay_margins(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup,
-                   root_modulus: RootModulus | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def _delay_margins(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup) -> tuple[torch.Tensor, torch.Tensor]:
     """Fractional and integer extra delay (frames) before a pole reaches the unit circle, per group."""
     groups, tau = d_poly.shape[0], float(setup.delay_frames)
     gw, first = setup.dm_gain * setup.wfs_gain, math.floor(tau)
@@ -388,11 +381,6 @@ def _delay_margins(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup,
         left = (integer == setup.max_extra_delay_frames).nonzero().squeeze(-1)
         if not len(left):
             break
-        if root_modulus is not None:
-            plant = replace(setup, delay_frames=tau + j, controller_delay_frames=setup.controller_delay)
-            unstable = root_modulus(plant)[left] >= 1
-        else:
-            p = poly.add(d_poly[left], -setup.dm_gain * poly.multiply(setup.plant_polynomial(tau + j), n_poly[left]))
-            unstable = poly.max_root_modulus(p) >= 1
-        integer[left[unstable]] = j - 1
+        p = poly.add(d_poly[left], -setup.dm_gain * poly.multiply(setup.plant_polynomial(tau + j), n_poly[left]))
+        integer[left[poly.max_root_modulus(p) >= 1]] = j - 1
     return delay_margin, integer

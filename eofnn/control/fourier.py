@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -297,6 +298,30 @@ class FourierPredictor:
         response[d], response[d + 1] = 1 - f, f
         return _add(d_w, self.dm_gain_model * _multiply(n_w, response.expand(m, -1))), n_w
 
+
+    @cached_property
+    def _residues(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(a (M, S), [K_s L_s, K_s a_s] (M, S, 2))``: the poles and residues of :meth:`frequency_response`."""
+        a, k = self.transition.to(CDTYPE), self.kalman_gain.to(CDTYPE)
+        return a, torch.stack([k * self.output_row.to(CDTYPE), k * a], -1)
+
+    def frequency_response(self, omega: torch.Tensor, rows: torch.Tensor | None = None) -> tuple[torch.Tensor,
+                                                                                                  torch.Tensor]:
+        """``(D / Delta, N / Delta)`` of :meth:`polynomials` at ``z = exp(i omega)``, ``(R, F)`` for modes ``rows``
+        (all by default) and ``omega`` ``(R or 1, F)`` rad/frame, by partial fractions: ``N / Delta = -sum_s L_s K_s /
+        (1 - a_s z^-1) / g_model``, ``D / Delta = 1 + z^-1 sum_s a_s K_s / (1 - a_s z^-1) + g_model z^-d H N /
+        Delta``. Dividing by ``Delta = prod_s (1 - a_s z^-1)`` changes no ratio of the loop (crossings, transfer
+        functions), and spares the products of 18 factors that vanish near the states' cluster of turning rates,
+        where the coefficients of the polynomials leave nothing but rounding (measured on 40 across: 73 of the 76
+        sign changes per mode of ``Im(D conj(N))`` were rounding)."""
+        a, residues = self._residues
+        if rows is not None:
+            a, residues = a[rows], residues[rows]
+        z_inv = torch.exp(-1j * omega.to(DTYPE))  # (R, F)
+        sums = (1 / (1 - a.unsqueeze(1) * z_inv.unsqueeze(-1))) @ residues  # (R, F, 2)
+        n = -sums[..., 0] / self.dm_gain_model
+        d, f = split_delay(self.delay_frames)
+        return 1 + z_inv * sums[..., 1] + self.dm_gain_model * z_inv**d * ((1 - f) + f * z_inv) * n, n
 
     def closed_loop_moduli(self, dm_gain: float = 1.0, wfs_gain: float = 1.0,
                            plant_delay_frames: float | None = None) -> torch.Tensor:
