@@ -23,7 +23,7 @@ from eofnn.data.config import DataConfig
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.loop.runner import LoopInput, run_loop
+from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.scenario import Scenario
 
 F64, C128 = torch.float64, torch.complex128
@@ -93,9 +93,12 @@ def test_pfc_polynomials_are_the_filter_it_runs(delay):
     d, f = int(delay), delay - int(delay)
     frames = 40
     commands = torch.zeros(frames, model.transition.shape[0], dtype=C128)
+
+    def applied(n: int) -> torch.Tensor:
+        return commands[n] if n >= 0 else torch.zeros_like(commands[0])
+
     for n in range(frames):
-        applied = lambda j: commands[n - j] if n - j >= 0 else torch.zeros_like(commands[0])  # noqa: E731
-        pol = (1.0 if n == 0 else 0.0) - model.dm_gain_model * ((1 - f) * applied(d) + f * applied(d + 1))
+        pol = (1.0 if n == 0 else 0.0) - model.dm_gain_model * ((1 - f) * applied(n - d) + f * applied(n - d - 1))
         commands[n] = -model.modal_step(pol.unsqueeze(0))[0] / model.dm_gain_model
     expected = torch.zeros_like(commands)  # D y = N u, u a unit impulse
     for n in range(frames):
@@ -245,7 +248,8 @@ def test_the_wind_is_identified_from_telemetry(identified):
         {"cn2_fraction": 0.5, "wind_speed_mps": 10.0, "wind_direction_deg": 90.0}], "screen_frames": 2048}})
     pol = scenario.turbulence(5, "train").frames(0, 2048)
     layers = sorted(identify_winds(pol, FourierBasis(scenario.grid), 1e-3, 2, 50.0), key=lambda lay: lay["speed_mps"])
-    for layer, (speed, direction) in zip(layers, ((5.1, 0.0), (10.0, 90.0))):
+    assert len(layers) == 2
+    for layer, (speed, direction) in zip(layers, ((5.1, 0.0), (10.0, 90.0)), strict=True):
         assert layer["speed_mps"] == pytest.approx(speed, rel=0.1) and layer["direction_deg"] == pytest.approx(
             direction, abs=5)
         assert layer["weight"] == pytest.approx(0.5, abs=0.1)

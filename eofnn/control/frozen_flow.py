@@ -34,7 +34,6 @@ from eofnn.sim.scenario import Scenario
 from eofnn.sim.sensing.kernels import kernel_power
 
 
-
 def white_noise_variance(pol: torch.Tensor) -> float:
     """White-noise variance per actuator (nm²) of ``(realisations, frames, K)`` POL values (module docstring, 2)."""
     pol = pol.to(DTYPE)
