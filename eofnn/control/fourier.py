@@ -293,7 +293,9 @@ class FourierPredictor:
         diagonal plus rank one: with ``Delta = prod_s (1 - a_s z^-1)`` and ``Delta_s = Delta / (1 - a_s z^-1)``,
         ``D_w = det(I - z^-1 F) = Delta + z^-1 sum_s a_s K_s Delta_s`` (matrix determinant lemma) and
         ``N_w = -sum_s L_s K_s Delta_s / g_model`` (Sherman-Morrison); the POL coupling then gives ``D = D_w +
-        g_model z^-d H N_w``, ``N = N_w`` (as :meth:`eofnn.control.classical.ModalLQG.polynomials`).
+        g_model z^-d H N_w``, ``N = N_w`` (as :meth:`eofnn.control.classical.ModalLQG.polynomials`). With many
+        states the coefficients hold the loop only to rounding near the states' poles: the analysis reads
+        :meth:`frequency_response` and :meth:`closed_loop_moduli` instead.
         """
         a, k, row = self.transition.to(CDTYPE), self.kalman_gain.to(CDTYPE), self.output_row.to(CDTYPE)
         m, s = a.shape
@@ -313,7 +315,6 @@ class FourierPredictor:
         response = torch.zeros(d + 2, dtype=CDTYPE)
         response[d], response[d + 1] = 1 - f, f
         return _add(d_w, self.dm_gain_model * _multiply(n_w, response.expand(m, -1))), n_w
-
 
     @cached_property
     def _residues(self) -> tuple[torch.Tensor, torch.Tensor]:
