@@ -14,7 +14,7 @@ from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
 from eofnn.errors import ConfigError
 from eofnn.models.build import import_class
 from eofnn.training.config import OptimizationConfig
-from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, check_value, from_mapping, validated
+from eofnn.validation import Constraint, Interval, IsBool, IsString, OneOf, OrNone, check_value, from_mapping, validated
 
 #: Most frames of one closed-loop evaluation (per realisation).
 MAX_EVALUATION_FRAMES = 10_000_000
@@ -244,6 +244,10 @@ class EvaluationConfig:
         Segment length of the residual PSD, frames: at most the settled frames (``frames - settle_frames``).
         Unset, 1024, or when a shorter run settles fewer frames the largest power of two they hold (said in one
         line when the run starts).
+    error_budget : bool or None
+        Split every contender's residual into fitting, aliasing, noise and temporal terms
+        (:mod:`eofnn.evaluation.budget`: two more runs of each, noise-free and with a perfect sensor; metrics.json
+        ``error_budget``, results.md). ``None`` (the default): only in scenarios with a Shack-Hartmann.
     """
 
     frames: int = 5000
@@ -253,6 +257,7 @@ class EvaluationConfig:
     strehl_wavelength_m: float = 1.65e-6
     divergence_factor: float = 10.0
     psd_segment_frames: int | None = None
+    error_budget: bool | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(2, MAX_EVALUATION_FRAMES, integer=True),
@@ -262,6 +267,7 @@ class EvaluationConfig:
         "strehl_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
         "divergence_factor": Interval(1, 1e6, closed="right"),
         "psd_segment_frames": OrNone(Interval(MIN_PSD_SEGMENT_FRAMES, MAX_EVALUATION_FRAMES, integer=True)),
+        "error_budget": OrNone(IsBool()),
     }
     _where: ClassVar[str] = "evaluation."
 

@@ -23,7 +23,8 @@ from eofnn.evaluation.contenders import (
     scan_classical_settings,
     scan_integrator_gains,
 )
-from eofnn.evaluation.contrast import RawContrast
+from eofnn.evaluation.budget import budget_line, budget_runs, fitting_nm
+from eofnn.evaluation.contrast import scenario_contrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
@@ -189,7 +190,7 @@ class Experiment:
         scenario = plant_scenario if plant_scenario is not None else self.scenarios[scenario_name]
         controller = self.controller(name, scenario_name)
         psd = WelchPSD(ev.psd_segment_frames_used, scenario.frame_rate_hz, ev.settle_frames)
-        contrast = RawContrast(scenario.grid, ev.strehl_wavelength_m, ev.settle_frames)
+        contrast = scenario_contrast(scenario, ev.strehl_wavelength_m, ev.settle_frames)
         growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
 
         def on_chunk(first: int, arrays: dict) -> None:
@@ -208,6 +209,12 @@ class Experiment:
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
+        wanted = ev.error_budget if ev.error_budget is not None else scenario.sensor.is_shack_hartmann
+        if plant_scenario is None and wanted:
+            fitting = fitting_nm(scenario, ev.seed, "test", ev.frames, ev.settle_frames, ev.realisations)
+            metrics.error_budget = budget_runs(scenario, lambda: self.controller(name, scenario_name), ev,
+                                               metrics.median_rms_nm, fitting)
+            self.log(f"{scenario_name:>12s} {name:>18s}: {budget_line(metrics.error_budget)}")
         return metrics
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
