@@ -210,7 +210,7 @@ class Experiment:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
         wanted = ev.error_budget if ev.error_budget is not None else scenario.sensor.is_shack_hartmann
-        if plant_scenario is None and wanted:
+        if plant_scenario is None and wanted and not result.diverged:  # a diverged run has no budget to split
             fitting = fitting_nm(scenario, ev.seed, "test", ev.frames, ev.settle_frames, ev.realisations)
             metrics.error_budget = budget_runs(scenario, lambda: self.controller(name, scenario_name), ev,
                                                metrics.median_rms_nm, fitting)

@@ -31,7 +31,7 @@ from eofnn.control.baselines import Dithered, Integrator
 from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
-from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
+from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError, DivergedError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.layout import layout_to_dict
 from eofnn.sim.loop.runner import Controller
@@ -206,9 +206,18 @@ def fit_predictor(
             data_controller = Dithered(PredictiveController(copy.deepcopy(task.network), spec), data.dither_nm,
                                        data.seed + round_index)
         datamodule = LoopDataModule(scenario, spec, replace(data, seed=data.seed + 1000 * round_index), data_controller)
-        solved = solve(task, FitData(datamodule.train_dataloader(), datamodule.val_dataloader(), data.frames),
-                       optimization, output=output, seed=data.seed,
-                       margin=bind_margin(margin, task.network, spec, plant_gain, 1.0))
+        try:
+            solved = solve(task, FitData(datamodule.train_dataloader(), datamodule.val_dataloader(), data.frames),
+                           optimization, output=output, seed=data.seed,
+                           margin=bind_margin(margin, task.network, spec, plant_gain, 1.0))
+        except DivergedError as err:
+            if round_index == 0:
+                raise
+            # The previous round's filter cannot hold the loop it would record in: keep it, say so, stop refitting.
+            warnings.warn(f"data.refit_rounds: round {round_index} skipped, the round-{round_index - 1} fit cannot "
+                          f"record it ({err}); the round-{round_index - 1} fit is kept", stacklevel=2)
+            rounds.append({"round": round_index, "skipped": str(err)})
+            break
         task = solved.task
         rounds.append({"round": round_index, **solved.metrics})
     return solved.result(output, rounds)
