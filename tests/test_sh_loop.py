@@ -181,3 +181,21 @@ def test_sensor_fields_without_a_shack_hartmann_and_a_reconstructor_that_does_no
     sensor = bright.turbulence(1, "test").operators.sensor
     with pytest.raises(ConfigError, match="does not fit"):
         sensor.reconstruct(torch.zeros(3, sensor.n_slopes), np.zeros((5, sensor.n_slopes)))
+
+
+def test_a_nominal_dm_skips_the_projector_and_measures_the_same(bright, monkeypatch):
+    from eofnn.sim.loop import sensing
+
+    runs = []
+    for fast in (True, False):
+        original = sensing.ShackHartmannLoopSensing.__init__
+
+        def init(self, turbulence, model, original=original, fast=fast):
+            original(self, turbulence, model)
+            self.identity_dm = self.identity_dm and fast
+
+        monkeypatch.setattr(sensing.ShackHartmannLoopSensing, "__init__", init)
+        runs.append(run_loop(bright.turbulence(1, "test"), bright.plant, Integrator(0.5), 200, noise_seed=1,
+                             record=("wfs",)))
+        monkeypatch.setattr(sensing.ShackHartmannLoopSensing, "__init__", original)
+    torch.testing.assert_close(runs[0].telemetry.wfs, runs[1].telemetry.wfs, rtol=1e-9, atol=1e-8)

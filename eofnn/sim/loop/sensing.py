@@ -230,6 +230,10 @@ class ShackHartmannLoopSensing:
         ops = turbulence.operators
         self.projector_t = ops.projector.T.contiguous()
         self.fraction = model.plant.delay_fraction
+        plant = model.plant
+        # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
+        self.identity_dm = (plant.dm_gain == 1.0 and not plant.misregistration_x and not plant.misregistration_y
+                            and plant.nonlinearity == "none" and plant.dm_gain_drift is None and self.gain == 1.0)
         self._chunk: dict = {}
         self._noise = self._y_previous = None
 
@@ -241,6 +245,9 @@ class ShackHartmannLoopSensing:
             yield first, out["s"]
 
     def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
+        if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
+            wfs = self._chunk["sensed"][:, i] + dm
+            return wfs if self._noise is None else wfs + self._noise[:, i]
         wfs = self._chunk["sensed"][:, i] + dm @ self.projector_t
         if self.gain != 1.0:
             wfs = self.gain * wfs
