@@ -9,10 +9,13 @@ median residual on the held-out stream 12.3 nm (closed form) and 9.2 nm (through
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.config import DataConfig
@@ -24,6 +27,7 @@ from eofnn.seeding import torch_generator
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Plant
 from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.scenario import Scenario
+from eofnn.training.checkpoint import load_predictor
 from eofnn.training.config import OptimizationConfig
 from eofnn.training.fit import fit_predictor
 from eofnn.training.rollout import LoopBatch, LoopWindow, loop_loss, loop_residual, merged, rollout, window_starts
@@ -114,14 +118,17 @@ def test_windows_in_plants_that_differ_only_in_gains_run_as_one(frames):
     plants = [SHORT.plant.with_errors(dm_gain=g) for g in (0.9, 1.1)] + [SHORT.plant.with_errors(misregistration_x=0.1)]
     windows = [LoopWindow(s[:2], None, plants[0], SHORT.grid, 20), LoopWindow(s[2:3], None, plants[1], SHORT.grid, 20),
                LoopWindow(s[3:], None, plants[2], SHORT.grid, 20)]
-    together = merged(windows)
+    together = merged(windows, 10)
     assert len(together) == 2 and together[0].s.shape[0] == 3 and together[0].dm_gains.flatten().tolist() == [
         0.9, 0.9, 1.1]
     with torch.no_grad():
         assert torch.equal(rollout(net, spec, together[0]),
                            torch.cat([rollout(net, spec, w) for w in windows[:2]]))
-    assert loop_residual(net, spec, [LoopBatch(together)]) == pytest.approx(
-        loop_residual(net, spec, [LoopBatch(windows)]), rel=1e-12)
+    alone = loop_residual(net, spec, [LoopBatch(windows)])
+    assert loop_residual(net, spec, [LoopBatch(together)]) == pytest.approx(alone, rel=1e-12)
+    pieces = merged(windows, 2)  # at most two rows per rollout: the first plant's three rows in two rollouts
+    assert [w.s.shape[0] for w in pieces] == [2, 1, 1]
+    assert loop_residual(net, spec, [LoopBatch(pieces)]) == pytest.approx(alone, rel=1e-12)
 
 
 def test_the_gradient_is_the_loss_derivative(frames):
@@ -227,3 +234,25 @@ def test_defaults_follow_the_fit_method():
             OptimizationConfig(fit_method="sgd").learning_rate) == ("adam", 1e-3)
     assert OptimizationConfig(fit_method="closed_loop", optimizer="adam").learning_rate == 1e-3
     assert OptimizationConfig(fit_method="closed_loop", lr=0.5).learning_rate == 0.5
+
+
+@pytest.mark.slow
+def test_eofnn_fit_trains_through_the_loop_and_the_checkpoint_is_analysed_like_any_other(tmp_path, cli):
+    ckpt, tiny = tmp_path / "cl.ckpt", Path(__file__).parent / "conf" / "tiny_scenario.yaml"
+    code, err = cli("fit", "--scenario", tiny, "--scenario.atmosphere.screen_frames", "600",
+                    "--scenario.plant.wfs_noise_nm", "5", "--predictor.history", "closed_loop",
+                    "--predictor.history_length", "3", "--predictor.data.frames", "1000",
+                    "--predictor.data.val_frames", "300", "--predictor.data.sequence_frames", "500",
+                    "--predictor.optimization.fit_method", "closed_loop", "--out", ckpt)
+    assert code == 0, err
+    summary = json.loads(err.strip().splitlines()[-1])["through_loop"]
+    assert summary["val_residual_nm2"] < summary["start_val_residual_nm2"]
+    predictor = load_predictor(ckpt)
+    assert isinstance(predictor.network, LinearFilter)
+    assert predictor.info["through_loop"]["val_residual_nm2"] == summary["val_residual_nm2"]
+    assert yaml.safe_load((tmp_path / "cl.ckpt.yaml").read_text())["predictor"]["optimization"]["fit_method"] == \
+        "closed_loop"
+    code, err = cli("stability", "--checkpoint", ckpt, "--scenario", tiny, "--out", tmp_path / "stability")
+    assert code == 0, err
+    analysed = json.loads((tmp_path / "stability" / "stability.json").read_text())
+    assert analysed["stable"] is True

@@ -26,6 +26,7 @@ from eofnn.data.history import HistorySpec
 from eofnn.data.stream import SimulatedTelemetry, sequence_plant
 from eofnn.errors import require
 from eofnn.models.build import input_dtype
+from eofnn.resources import require_memory
 from eofnn.seeding import torch_generator
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.plant import Plant, PlantModel
@@ -221,26 +222,34 @@ def window_starts(frames: int, window: int, warmup: int) -> list[int]:
     return starts
 
 
-def merged(windows: list[LoopWindow]) -> list[LoopWindow]:
+#: Most bytes one rollout's graph may hold (windows beyond it run as rollouts of their own).
+ROLLOUT_BYTES = 2**29
+
+
+def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
     """``windows`` side by side in as few rollouts as they allow: those whose plants differ at most in their DM and
-    WFS gains become one, each window keeping its gains (the same residuals, fewer and larger tensor operations)."""
+    WFS gains become one, each window keeping its gains (the same residuals, fewer and larger tensor operations), in
+    pieces of at most ``max_rows`` rows."""
     groups: dict[Plant, list[LoopWindow]] = {}
     for window in windows:
         groups.setdefault(replace(window.plant, dm_gain=1.0, wfs_gain=1.0), []).append(window)
     out = []
     for plant, group in groups.items():
-        if len(group) == 1:
-            out.append(group[0])
-            continue
         first = group[0]
+        if len(group) == 1 and first.s.shape[0] <= max_rows:
+            out.append(first)
+            continue
 
         def joined(name: str) -> torch.Tensor:
             return torch.cat([getattr(w, f"{name}s") if getattr(w, f"{name}s") is not None
                               else w.s.new_full((w.s.shape[0], 1), getattr(w.plant, name)) for w in group])
 
+        s, dm_gains, wfs_gains = torch.cat([w.s for w in group]), joined("dm_gain"), joined("wfs_gain")
         noise = None if first.noise is None else torch.cat([w.noise for w in group])
-        out.append(LoopWindow(torch.cat([w.s for w in group]), noise, plant, first.grid, first.warmup,
-                              first.dm_gain_model, joined("dm_gain"), joined("wfs_gain")))
+        for i in range(0, s.shape[0], max_rows):
+            rows = slice(i, i + max_rows)
+            out.append(LoopWindow(s[rows], None if noise is None else noise[rows], plant, first.grid, first.warmup,
+                                  first.dm_gain_model, dm_gains[rows], wfs_gains[rows]))
     return out
 
 
@@ -275,7 +284,21 @@ class LoopWindows(Dataset):
                 f"{frames - telemetry.spec.first_frame}")
         self.telemetry, self.window, self.warmup, self.full_batch = telemetry, window, warmup, full_batch
         self.starts = window_starts(frames, window, warmup)
-        self._windows: list[LoopWindow] | None = None
+        span, n_act = min(window, frames - warmup) + warmup, telemetry.scenario.grid.n_actuators
+        # A rollout's graph keeps about 3 taps + 12 tensors of (rows, K) per frame; the windows (turbulence and noise)
+        # are kept, twice while they are put side by side.
+        self.max_rows = max(1, ROLLOUT_BYTES // (span * n_act * (3 * telemetry.spec.n_taps + 12) * 8))
+        noisy = telemetry.scenario.plant.wfs_noise_nm > 0
+        require_memory(2 * (2 if noisy else 1) * self.n_windows * span * n_act * 8 + ROLLOUT_BYTES,
+                       f"training through the loop: {self.n_windows} {telemetry.stream} windows of {span} frames and "
+                       f"{n_act} actuators")
+        self._batches: list[LoopBatch] | None = None
+
+    @property
+    def n_windows(self) -> int:
+        """Windows of the stream: per sequence and realisation."""
+        data = self.telemetry.data
+        return len(self.starts) * data.realisations * self.telemetry.n_sequences
 
     def __len__(self) -> int:
         return 1 if self.full_batch else self.telemetry.n_sequences
@@ -303,17 +326,19 @@ class LoopWindows(Dataset):
         return LoopWindow(cut(s), None if noise is None else cut(noise), plant, t.scenario.grid, self.warmup,
                           t.dm_gain_model, **gains)
 
-    def windows(self) -> list[LoopWindow]:
-        """Every sequence's windows (simulated once, then kept)."""
-        if self._windows is None:
-            self._windows = [self.sequence(index) for index in range(self.telemetry.n_sequences)]
-        return self._windows
+    def batches(self) -> list[LoopBatch]:
+        """The stream's batches (simulated once, then kept): every sequence's windows in one, or one per sequence,
+        put side by side (:func:`merged`)."""
+        if self._batches is None:
+            windows = [self.sequence(index) for index in range(self.telemetry.n_sequences)]
+            groups = [windows] if self.full_batch else [[window] for window in windows]
+            self._batches = [LoopBatch(merged(group, self.max_rows)) for group in groups]
+        return self._batches
 
     def __getitem__(self, index: int) -> LoopBatch:
         if not 0 <= index < len(self):
             raise IndexError(index)
-        windows = self.windows()
-        return LoopBatch(merged(windows) if self.full_batch else [windows[index]])
+        return self.batches()[index]
 
     def __iter__(self) -> Iterator[LoopBatch]:
         return (self[index] for index in range(len(self)))

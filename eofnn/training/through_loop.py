@@ -76,11 +76,24 @@ def train_through_loop(task, loop: LoopData | None, start: ClosedFormFit,
         "train_residual_nm2": train_loss, "val_residual_nm2": keep.best, "best_epoch": keep.best_epoch,
         "epochs": keep.epochs, "optimizer": optimization.gradient_optimizer, "lr": optimization.learning_rate,
         "window_frames": loop.train.window, "warmup_frames": loop.train.warmup,
-        "train_windows": sum(w.s.shape[0] for w in loop.train.windows()),
+        "train_windows": loop.train.n_windows,
     }
     task.hparams["info"] = {**task.hparams["info"], "alpha": start.alpha, "through_loop": summary}
     return trainer, {"train_loss": train_loss, "val_loss": keep.best, "alpha": start.alpha,
                      "start_val_loss": start_val}
 
 
-__all__ = ["LoopData", "loop_data", "train_through_loop"]
+def loop_work(optimization: OptimizationConfig, data: DataConfig, n_actuators: int) -> float:
+    """Actuator-frames of loop simulation that training through the loop costs at most, for an experiment's time
+    estimate (0 for the other fit methods): per epoch up to 20 evaluations of the training windows (L-BFGS; 1 for
+    the other optimisers), each a forward and a backward pass (about three rollouts), and one of the validation
+    windows, every window with its warm-up."""
+    if optimization.fit_method != "closed_loop":
+        return 0.0
+    evaluations = 20 if optimization.gradient_optimizer == "lbfgs" else 1
+    warmups = 1 + optimization.loop_warmup / optimization.loop_window
+    return (optimization.epochs * (3 * evaluations * data.frames + data.val_frames) * warmups * data.realisations
+            * (data.refit_rounds + 1) * n_actuators)
+
+
+__all__ = ["LoopData", "loop_data", "loop_work", "train_through_loop"]
