@@ -194,5 +194,5 @@ class OptimizationConfig:
         return check_select(self.select)
 
 
-__all__ = ["ACCELERATORS", "DEFAULT_LR", "DEFAULT_OPTIMIZER", "FALLBACK_ALPHA", "FIT_METHODS", "OPTIMIZERS", "SEARCH_KEYS", "OptimizationConfig",
-           "SearchSpace", "check_search"]
+__all__ = ["ACCELERATORS", "DEFAULT_LR", "DEFAULT_OPTIMIZER", "FALLBACK_ALPHA", "FIT_METHODS", "OPTIMIZERS",
+           "SEARCH_KEYS", "OptimizationConfig", "SearchSpace", "check_search"]

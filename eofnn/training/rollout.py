@@ -226,6 +226,12 @@ def window_starts(frames: int, window: int, warmup: int) -> list[int]:
 ROLLOUT_BYTES = 2**29
 
 
+def joined(windows: list[LoopWindow], name: str) -> torch.Tensor:
+    """``(rows, 1)``: the DM or WFS gain (``name``) of every row of ``windows``, their own or their plant's."""
+    return torch.cat([getattr(w, f"{name}s") if getattr(w, f"{name}s") is not None
+                      else w.s.new_full((w.s.shape[0], 1), getattr(w.plant, name)) for w in windows])
+
+
 def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
     """``windows`` side by side in as few rollouts as they allow: those whose plants differ at most in their DM and
     WFS gains become one, each window keeping its gains (the same residuals, fewer and larger tensor operations), in
@@ -240,11 +246,7 @@ def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
             out.append(first)
             continue
 
-        def joined(name: str) -> torch.Tensor:
-            return torch.cat([getattr(w, f"{name}s") if getattr(w, f"{name}s") is not None
-                              else w.s.new_full((w.s.shape[0], 1), getattr(w.plant, name)) for w in group])
-
-        s, dm_gains, wfs_gains = torch.cat([w.s for w in group]), joined("dm_gain"), joined("wfs_gain")
+        s, dm_gains, wfs_gains = torch.cat([w.s for w in group]), joined(group, "dm_gain"), joined(group, "wfs_gain")
         noise = None if first.noise is None else torch.cat([w.noise for w in group])
         for i in range(0, s.shape[0], max_rows):
             rows = slice(i, i + max_rows)

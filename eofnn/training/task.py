@@ -17,7 +17,6 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.models.build import OWN_NETWORKS, build_network, input_dtype, resolve_class_path
 from eofnn.models.normalized import Normalized
-from eofnn.training.rollout import LoopBatch, log_loop_residual, loop_step
 from eofnn.training.config import (  # noqa: F401  (re-exported: the config's home before it moved)
     ACCELERATORS,
     FALLBACK_ALPHA,
@@ -25,6 +24,7 @@ from eofnn.training.config import (  # noqa: F401  (re-exported: the config's ho
     OPTIMIZERS,
     OptimizationConfig,
 )
+from eofnn.training.rollout import LoopBatch, log_loop_residual, loop_step
 
 
 class PredictorTask(L.LightningModule):
