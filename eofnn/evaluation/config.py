@@ -159,6 +159,9 @@ class PredictorConfig:
             for gain in self.gains:
                 Integrator(gain, self.leak)
         self._check_setting_scans()
+        if self.trains and self.optimization.fit_method == "closed_loop" and not self.data.truth:
+            raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs "
+                              "data.truth: true (a fit from telemetry alone has no turbulence to close it on)")
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
@@ -166,8 +169,9 @@ class PredictorConfig:
                 cls = import_class(self.network["class_path"])  # a network: torch is imported by now
                 from eofnn.training.ridge import supports_closed_form
 
-                if self.optimization.fit_method == "closed_form" and not supports_closed_form(cls):
-                    raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {cls.__name__} "
+                method = self.optimization.fit_method
+                if method in ("closed_form", "closed_loop") and not supports_closed_form(cls):
+                    raise ConfigError(f"optimization.fit_method={method!r} needs a linear network; {cls.__name__} "
                                       "has no features()/load_solution(): use optimization.fit_method: sgd")
 
     def _check_setting_scans(self) -> None:
