@@ -30,9 +30,11 @@ class LoopOperators:
     ----------
     surface_per_command : float
         The lattice sum the influence functions are divided by.
-    reconstructor, projector, fit_matrix, gram : Tensor
+    reconstructor, projector, fit_matrix : Tensor
         ``R`` ``(K, 2 n_sub)`` (nm of command per nm of slope), ``P = R D`` ``(K, K)``, ``P (G + ridge)^-1``
-        ``(K, K)`` and ``G`` ``(K, K)``.
+        ``(K, K)``.
+    gram : scipy.sparse.csr_matrix
+        ``G`` ``(K, K)``, banded (influence functions reach 3.6 pitches).
     """
 
     def __init__(self, sensor: ShackHartmannSensor) -> None:
@@ -44,8 +46,9 @@ class LoopOperators:
         self.surface_per_command = float((sensor.config.mechanical_coupling ** (j * j)).sum() ** 2)
         influence = (sensor.influence / self.surface_per_command).tocsr()
         self.influence_pupil_t = influence[self.pupil].T.tocsr()  # IF_p^T (K, N_p)
-        gram = (self.influence_pupil_t @ self.influence_pupil_t.T).toarray()
-        self.gram = torch.as_tensor(gram)
+        gram_sparse = (self.influence_pupil_t @ self.influence_pupil_t.T).tocsr()  # banded: 7 pitches across
+        self.gram = gram_sparse
+        gram = gram_sparse.toarray()
         self.pupil_sums = torch.as_tensor(np.asarray(self.influence_pupil_t.sum(axis=1)).ravel())  # b
         self.reconstructor = torch.as_tensor(sensor.reconstructor * self.surface_per_command)
         self.projector = torch.as_tensor(sensor.reconstructor @ sensor.interaction_matrix)
@@ -68,7 +71,9 @@ class LoopOperators:
         """Piston-removed RMS over the pupil of ``phi + IF u`` from :meth:`products`' ``z, sum, sumsq`` and the applied
         command ``u`` (``(..., K)``): ``(...)``."""
         n = self.n_pupil
-        mean_sq = (total_sq + 2 * (z * u).sum(-1) + (u * (u @ self.gram)).sum(-1)) / n
+        flat = u.reshape(-1, u.shape[-1])
+        gu = torch.as_tensor(np.asarray((self.gram @ flat.numpy().T).T)).reshape(u.shape)  # G symmetric
+        mean_sq = (total_sq + 2 * (z * u).sum(-1) + (u * gu).sum(-1)) / n
         mean = (total + u @ self.pupil_sums) / n
         return (mean_sq - mean * mean).clamp(min=0).sqrt()
 
