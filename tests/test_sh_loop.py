@@ -190,8 +190,8 @@ def test_a_nominal_dm_skips_the_projector_and_measures_the_same(bright, monkeypa
     for fast in (True, False):
         original = sensing.ShackHartmannLoopSensing.__init__
 
-        def init(self, turbulence, model, original=original, fast=fast):
-            original(self, turbulence, model)
+        def init(self, turbulence, model, *args, original=original, fast=fast):
+            original(self, turbulence, model, *args)
             self.identity_dm = self.identity_dm and fast
 
         monkeypatch.setattr(sensing.ShackHartmannLoopSensing, "__init__", init)
