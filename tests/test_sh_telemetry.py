@@ -5,6 +5,9 @@ slopes."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -19,6 +22,7 @@ GRID = {"diameter_m": 4.0, "n_across": 10, "obstruction": 0.0}  # 80 actuators, 
 ATMOSPHERE = {"r0_m": 0.15, "layers": [{"wind_speed_mps": 10.0}], "screen_frames": 400}
 FRAMES = 300
 RECORD = ("s", "y", "eps", "wfs")
+TINY_SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 
 
 def _scenario(plant: dict, **sensor) -> Scenario:
@@ -120,3 +124,60 @@ def test_telemetry_with_slopes_and_matrices_saves_loads_and_refuses_what_does_no
         with pytest.raises(TelemetryError, match=message.replace("(", r"\(").replace(")", r"\)")) as err:
             Telemetry(y=y, wfs=wfs, **fields)
         assert "\n" not in str(err.value)
+
+
+def _drop_wfs(source: Path, target: Path) -> None:
+    """A copy of eofnn's file as another system would write it: y, slopes and the reconstructor, no wfs."""
+    from astropy.io import fits
+
+    with fits.open(source) as hdul:
+        keep = {hdu.name.lower(): np.asarray(hdu.data) for hdu in hdul[1:]
+                if hdu.name in ("Y", "POSITIONS", "SLOPES", "RECONSTRUCTOR")}
+        delay = hdul[0].header["DELAY"]
+    np.savez(target, y=keep["y"], slopes=keep["slopes"], reconstructor=keep["reconstructor"],
+             positions_m=keep["positions"], delay_frames=delay)
+
+
+@pytest.mark.slow
+@pytest.mark.cli
+def test_simulate_writes_slopes_that_identify_fit_and_replay_read(tmp_path, cli):
+    run, copy = tmp_path / "run.fits", tmp_path / "slopes.npz"
+    code, err = cli("simulate", "--scenario", TINY_SCENARIO, "--scenario.sensor.kind", "shack_hartmann",
+                    "--scenario.atmosphere.screen_frames", "400", "--predictor.controller", "dithered_integrator",
+                    "--predictor.gain", "0.3", "--predictor.data.dither_nm", "30", "--frames", "400", "--out", run)
+    assert code == 0, err
+    written = Telemetry.load(run)
+    assert written.slopes.shape == (400, 122) and written.reconstructor.shape == (80, 122)
+    assert written.interaction_matrix.shape == (122, 80) and written.config["sensor"]["kind"] == "shack_hartmann"
+    _drop_wfs(run, copy)
+    formed = Telemetry.load(copy, required=("y", "wfs"))
+    assert formed.measurement.startswith("wfs = R @ slopes with the given reconstructor (80, 122) (rank 74 of 80")
+    # The two conventions differ in the 6 modes R cuts: eofnn's wfs reports there the command it sent, (I - P) y,
+    # while a reader of slopes reads nothing there and removes those modes from y (y <- P y). The pseudo-open-loop
+    # values wfs - y are the same either way (R slopes - P y for a whole-frame delay): so is any fit made from them.
+    torch.testing.assert_close(formed.wfs - formed.y, written.wfs - written.y, rtol=0, atol=1e-9)
+
+    plants = {}
+    for name, path in (("wfs", run), ("slopes", copy)):
+        code, err = cli("identify", "--telemetry", path, "--out", tmp_path / f"{name}.json")
+        assert code == 0, err
+        plants[name] = json.loads((tmp_path / f"{name}.json").read_text())
+        code, err = cli("fit", "--telemetry", path, "--plant", "nominal", "--predictor.history", "open_loop",
+                        "--predictor.history_length", "3", "--predictor.data.val_frames", "80",
+                        "--out", tmp_path / f"{name}.ckpt")
+        assert code == 0, err
+        assert ("wfs = R @ slopes" in err) == (name == "slopes")
+    # A nominal plant: both find a DM gain of 1 within their standard errors.
+    for plant in plants.values():
+        assert plant["identified"] and abs(plant["dm_gain"] - 1.0) < 3 * plant["dm_gain_se"] < 0.3
+    weights = [torch.load(tmp_path / f"{name}.ckpt", weights_only=False)["state_dict"]["network.weight"]
+               for name in ("wfs", "slopes")]
+    torch.testing.assert_close(weights[1], weights[0], rtol=1e-9, atol=1e-12)
+
+    medians = []
+    for name, path in (("wfs", run), ("slopes", copy)):
+        code, err = cli("replay", "--checkpoint", tmp_path / "wfs.ckpt", "--telemetry", path, "--plant", "nominal",
+                        "--settle_frames", "50", "--out", tmp_path / f"replay_{name}")
+        assert code == 0, err
+        medians.append(json.loads((tmp_path / f"replay_{name}" / "replay.json").read_text())["predictor"]["median_rms_nm"])
+    assert medians[1] == pytest.approx(medians[0], rel=1e-9)
