@@ -73,7 +73,7 @@ def test_slopes_are_the_sensors_own_and_their_noise_is_the_detectors():
     and the noise's RMS per slope: what the recorded slopes are, not only that they make wfs."""
     scenario = _scenario({"delay_frames": 2, "wfs_gain": 0.9}, detector={"magnitude": 10.0})
     gain = scenario.plant.wfs_gain
-    clean_turbulence = scenario.turbulence(1, "test", isolate="noise_free")
+    clean_turbulence = scenario.turbulence(2, "test", isolate="noise_free")  # the previous test's chunks
     clean = run_loop(clean_turbulence, scenario.plant, Uncorrected(), FRAMES, record=("slopes",)).telemetry
     ops = clean_turbulence.operators
     for frame in (0, 150, 290):
@@ -83,7 +83,7 @@ def test_slopes_are_the_sensors_own_and_their_noise_is_the_detectors():
     poke[0, 44] = 100.0  # 100 nm of command: its slopes on a flat wavefront, through the DM's surface
     torch.testing.assert_close(poke @ clean.interaction_matrix.T, ops.sensor.slopes(ops.surface(poke)),
                                rtol=1e-12, atol=1e-9)
-    noisy_turbulence = scenario.turbulence(1, "test")
+    noisy_turbulence = scenario.turbulence(2, "test")
     noisy = run_loop(noisy_turbulence, scenario.plant, Uncorrected(), FRAMES, noise_seed=5,
                      record=("slopes",)).telemetry
     sigma = noisy_turbulence.slope_noise_nm(0.0)
