@@ -24,8 +24,8 @@ from pathlib import Path
 
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
-from report_sh import sh_section
 from report_scale import elt_section, interop_section
+from report_sh import sh_section
 
 
 def study_section() -> str:

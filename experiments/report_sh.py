@@ -6,6 +6,9 @@ from __future__ import annotations
 from report_common import NAMES, cell, load, margin, rms
 
 CONTENDERS = ("uncorrected", "integrator", "ol_eof", "cl_eof")
+HEADER = ("| scenario | contender | zonal (nm, actuators) | Shack-Hartmann (nm, pupil) | SH, actuators (nm) "
+          "| SH budget: fit / alias / noise / temporal (nm) | SH contrast at 3 λ/D | SH stable DM gains |\n"
+          "|---|---|---|---|---|---|---|---|\n")
 
 
 def _budget_cell(m: dict | None) -> str:
@@ -41,8 +44,9 @@ def sh_section() -> str:
             m_sh = sh["scenarios"][scenario].get(name)
             m_z = None if zonal is None else zonal["scenarios"].get(scenario, {}).get(name)
             stab = sh.get("stability", {}).get(scenario, {}).get(name)
+            actuators = None if m_sh is None else m_sh.get("actuator_median_rms_nm")
             rows.append(f"| {scenario} | {NAMES.get(name, name)} | {cell(m_z)} | {cell(m_sh)} | "
-                        f"{'' if m_sh is None or m_sh.get('actuator_median_rms_nm') is None else format(m_sh['actuator_median_rms_nm'], '.3g')} | "
+                        f"{'' if actuators is None else format(actuators, '.3g')} | "
                         f"{_budget_cell(m_sh)} | {_contrast(sh, scenario, name)} | {margin(stab)} |")
     best, gain = _ratio(sh, "nominal")
     zonal_text = ""
@@ -68,9 +72,7 @@ without noise and with a perfect sensor (fitting / aliasing / noise / temporal, 
 perfect coronagraph at 1.65 µm, from the residual over the pupil. One realisation of 3000 frames (2500 scored): a
 statistic of one realisation scatters by 10-20%.
 
-| scenario | contender | zonal (nm, actuators) | Shack-Hartmann (nm, pupil) | SH, actuators (nm) | SH budget: fit / alias / noise / temporal (nm) | SH contrast at 3 λ/D | SH stable DM gains |
-|---|---|---|---|---|---|---|---|
-""" + "\n".join(rows) + """
+""" + HEADER + "\n".join(rows) + """
 
 Limits: the sensor is geometric (no diffraction, no spot truncation, no optical gain), fully lit subapertures, a
 single guide-star magnitude; the predictors learn from the measurements (`s = R S phi`, aliasing included), so they

@@ -14,6 +14,7 @@ from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.errors import require
+from eofnn.evaluation.budget import budget_line, budget_runs, fitting_nm
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contenders import (
     SCAN_FIELDS,
@@ -23,7 +24,6 @@ from eofnn.evaluation.contenders import (
     scan_classical_settings,
     scan_integrator_gains,
 )
-from eofnn.evaluation.budget import budget_line, budget_runs, fitting_nm
 from eofnn.evaluation.contrast import scenario_contrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes

@@ -118,7 +118,10 @@ def run_loop(
     noise_seed : int
         Seed of the WFS noise.
     record : tuple of str
-        Which of ``s, y, eps, wfs`` to keep in the returned telemetry (empty for long runs: RMS is always kept).
+        Which of ``s, y, eps, wfs`` to keep in the returned telemetry (empty for long runs: RMS is always kept);
+        ``slopes`` (a Shack-Hartmann scenario only) also keeps the sensor's slopes, ``(batch, frames, 2 n_sub)`` nm of
+        OPD difference across each subaperture, with its interaction matrix and reconstructor and a note of the
+        sensor in the telemetry's config (:mod:`eofnn.sim.loop.sensing`).
     chunk_frames : int
         Turbulence frames generated at a time.
     divergence_factor : float
@@ -131,11 +134,11 @@ def run_loop(
         points at a frame of the chunk that is a multiple of :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`.
     """
     check_value("n_frames", n_frames, COUNT)
-    unknown = set(record) - {"s", "y", "eps", "wfs"}
-    require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
+    unknown = set(record) - {"s", "y", "eps", "wfs", "slopes"}
+    require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs, slopes")
     grid = turbulence.grid
     model = PlantModel(plant, grid, frame_rate_hz=getattr(turbulence, "frame_rate_hz", None))
-    sensing = loop_sensing(turbulence, model)
+    sensing = loop_sensing(turbulence, model, "slopes" in record)
     batch, n_act = turbulence.n_realisations, grid.n_actuators
     delay, fraction = plant.whole_delay_frames, plant.delay_fraction
     dtype = torch.float64
@@ -162,11 +165,13 @@ def run_loop(
                 dm_chunk = torch.empty(batch, t, n_act, dtype=dtype)
             arrays = {name: torch.empty(batch, t, n_act, dtype=dtype) for name in ("y", "eps", "wfs")
                       if name in kept_arrays}
+            if "slopes" in record:
+                arrays["slopes"] = torch.empty(batch, t, sensing.n_slopes, dtype=dtype)
             if "eps" not in arrays:
                 if eps_scratch is None or eps_scratch.shape[1] < t:
                     eps_scratch = torch.empty(batch, t, n_act, dtype=dtype)
                 arrays["eps"] = eps_scratch[:, :t]
-            y_out, eps_out, wfs_out = arrays.get("y"), arrays["eps"], arrays.get("wfs")
+            y_out, eps_out, wfs_out, slopes_out = arrays.get("y"), arrays["eps"], arrays.get("wfs"), arrays.get("slopes")
             arrays["s"] = s_chunk
             for i in range(t):
                 n = first + i
@@ -186,6 +191,8 @@ def run_loop(
                     y_out[:, i] = y
                 if wfs_out is not None:
                     wfs_out[:, i] = wfs
+                if slopes_out is not None:
+                    slopes_out[:, i] = sensing.slopes(i, dm)
             rms = arrays["eps"].pow(2).mean(-1).sqrt()
             turb = s_chunk.pow(2).mean(-1).sqrt()
             bad = ~torch.isfinite(rms) | (rms > divergence_factor * turb)
@@ -209,11 +216,13 @@ def run_loop(
                 break
     finally:
         bar.close()
+    matrices, note = sensing.space() if "slopes" in record else ({}, None)
     telemetry = Telemetry(
         **{name: torch.cat(kept[name], 1) for name in record},
         delay_frames=plant.delay_frames,
-        config={"plant": plant.to_dict()},
+        config={"plant": plant.to_dict(), **({"sensor": note} if note else {})},
         positions_m=torch.as_tensor(grid.positions_m),
+        **matrices,
     )
     return LoopResult(
         telemetry=telemetry,

@@ -39,6 +39,12 @@ Two sensings share one interface (:func:`loop_sensing`):
   ``isolate`` (the error budget's runs) swaps parts of the sensor for perfect ones: ``noise_free`` drops ``n``;
   ``perfect`` also reads ``P F phi`` in place of ``R S phi`` (no aliasing; ``s`` is then ``P F phi`` too).
 
+  Recorded slopes (``run_loop(record=(..., "slopes"))``) are the sensor's own, nm of OPD difference across each
+  subaperture: ``slopes = wfs_gain (S phi + D DM(y)) + n`` with ``D`` in the loop's command units (``R D = P``) and
+  the very draws ``n`` whose ``R n`` the measurement holds, so ``R slopes + (I - P) y = wfs`` to rounding. ``S phi`` is
+  kept in the chunk only when slopes are recorded (a chunk cached without it is synthesised again), and the noise is
+  drawn as always, then multiplied by ``R^T``: a loop that records no slopes costs and draws what it did before.
+
   The fine-grid phase is what costs (16 points per actuator at 4 samples per subaperture). Everything the loop
   needs of it, ``s``, ``R S phi`` and the pupil's numbers (:mod:`eofnn.sim.sensing.pupil`), is computed a chunk of
   frames at a time and kept in a bounded cache (:data:`CACHE_BYTES`), with the phase itself at every
@@ -137,18 +143,20 @@ class ShackHartmannTurbulence:
         frames = _CHUNK_VALUES // (self.n_realisations * self.n_fine)
         return max(PHASE_EVERY, frames - frames % PHASE_EVERY)
 
-    def _chunk(self, index: int) -> dict:
-        """The products of aligned chunk ``index`` (frames ``index * chunk_frames ...``), cached."""
+    def _chunk(self, index: int, slopes: bool = False) -> dict:
+        """The products of aligned chunk ``index`` (frames ``index * chunk_frames ...``), cached; ``slopes``: with
+        ``S phi`` (a cached chunk without it is computed again, to the same numbers, and replaced)."""
         key = (self._key, index)
-        if key in _CACHE:
+        if key in _CACHE and (not slopes or "slopes" in _CACHE[key]):
             _CACHE.move_to_end(key)
             return _CACHE[key]
+        _CACHE.pop(key, None)
         step = self.chunk_frames
         start, stop = index * step, min((index + 1) * step, self.atmosphere.screen_frames)
         phase = self.fine.frames(start, stop)  # (R, t, n_fine)
         flat = phase.reshape(-1, phase.shape[-1]).numpy()
         shape = phase.shape[:2]
-        out = {k: v.reshape(*shape, *v.shape[1:]) for k, v in self.operators.products(flat).items()}
+        out = {k: v.reshape(*shape, *v.shape[1:]) for k, v in self.operators.products(flat, slopes).items()}
         out["phase"] = phase[:, (-start) % PHASE_EVERY::PHASE_EVERY].clone()
         size = sum(v.numel() * v.element_size() for v in out.values())
         while _CACHE and sum(c["bytes"] for c in _CACHE.values()) + size > CACHE_BYTES:
@@ -157,18 +165,18 @@ class ShackHartmannTurbulence:
         _CACHE[key] = out
         return out
 
-    def products(self, start: int, stop: int) -> dict[str, torch.Tensor]:
+    def products(self, start: int, stop: int, slopes: bool = False) -> dict[str, torch.Tensor]:
         """``s, sensed, fit, z, sum, sumsq`` of frames ``start..stop-1`` (``(R, frames, ...)``), from the cached chunks;
-        ``s`` is ``sensed`` (``R S phi``; ``fit = P F phi`` for ``isolate: perfect``)."""
+        ``s`` is ``sensed`` (``R S phi``; ``fit = P F phi`` for ``isolate: perfect``); ``slopes`` adds ``S phi``."""
         require(0 <= start <= stop <= self.atmosphere.screen_frames,
                 f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop <= atmosphere.screen_frames="
                 f"{self.atmosphere.screen_frames}")
         step = self.chunk_frames
         parts = []
+        skip = ("phase", "bytes") if slopes else ("phase", "bytes", "slopes")
         for index in range(start // step, -(-stop // step)):
-            chunk, lo = self._chunk(index), index * step
-            parts.append({k: v[:, max(start - lo, 0): stop - lo] for k, v in chunk.items()
-                          if k not in ("phase", "bytes")})
+            chunk, lo = self._chunk(index, slopes), index * step
+            parts.append({k: v[:, max(start - lo, 0): stop - lo] for k, v in chunk.items() if k not in skip})
         out = {k: torch.cat([p[k] for p in parts], 1) for k in parts[0]}
         if self.isolate == "perfect":
             out["sensed"] = out["fit"]
@@ -181,13 +189,17 @@ class ShackHartmannTurbulence:
         step = self.chunk_frames
         return self._chunk(frame // step)["phase"][:, (frame % step) // PHASE_EVERY]
 
-    def noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
-        """``R n`` for ``(R, frames)`` frames of white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
+    def slope_noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
+        """``n``: ``(R, frames, 2 n_sub)`` white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
         if sigma_nm <= 0:
             return None
-        ops = self.operators
-        n = sigma_nm * torch.randn((*shape, ops.sensor.n_slopes), generator=generator, dtype=torch.float64)
-        return n @ ops.reconstructor.T
+        return sigma_nm * torch.randn((*shape, self.operators.sensor.n_slopes), generator=generator,
+                                      dtype=torch.float64)
+
+    def noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
+        """``R n`` for ``(R, frames)`` frames of white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
+        n = self.slope_noise(shape, sigma_nm, generator)
+        return None if n is None else n @ self.operators.reconstructor.T
 
     def frames(self, start: int, stop: int) -> torch.Tensor:
         """``s`` of frames ``start..stop-1``: ``(R, frames, K)`` nm."""
@@ -212,6 +224,7 @@ class ZonalLoopSensing:
     """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise`` frame by frame."""
 
     pupil = False
+    n_slopes = 0
 
     def __init__(self, turbulence: Turbulence, model) -> None:
         self.turbulence, self.model = turbulence, model
@@ -229,25 +242,32 @@ class ShackHartmannLoopSensing:
 
     pupil = True
 
-    def __init__(self, turbulence: ShackHartmannTurbulence, model) -> None:
-        self.turbulence, self.model = turbulence, model
+    def __init__(self, turbulence: ShackHartmannTurbulence, model, slopes: bool = False) -> None:
+        require(not slopes or turbulence.isolate != "perfect",
+                "record 'slopes' is invalid with isolate='perfect': that sensor reads the DM's fit, not slopes")
+        self.turbulence, self.model, self.record_slopes = turbulence, model, slopes
         self.gain = model.plant.wfs_gain
         self.sigma_nm = turbulence.slope_noise_nm(model.plant.wfs_noise_nm)
         ops = turbulence.operators
+        self.n_slopes = ops.sensor.n_slopes
         self.projector_t = ops.projector.T.contiguous()
+        self.interaction_t = ops.interaction_matrix.T.contiguous() if slopes else None
         self.fraction = model.plant.delay_fraction
         plant = model.plant
         # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
         self.identity_dm = (plant.dm_gain == 1.0 and not plant.misregistration_x and not plant.misregistration_y
                             and plant.nonlinearity == "none" and plant.dm_gain_drift is None and self.gain == 1.0)
         self._chunk: dict = {}
-        self._noise = self._y_previous = None
+        self._noise = self._slope_noise = self._y_previous = None
 
     def chunks(self, n_frames: int, chunk: int, generator):
         for first in range(0, n_frames, chunk):
-            out = self.turbulence.products(first, min(first + chunk, n_frames))
+            out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes)
             self._chunk = out
-            self._noise = self.turbulence.noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
+            # R n from the very draws recorded slopes hold: the same draws, and numbers, as without them.
+            n = self.turbulence.slope_noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
+            self._slope_noise = n if self.record_slopes else None
+            self._noise = None if n is None else n @ self.turbulence.operators.reconstructor.T
             if first + chunk >= n_frames:
                 self.turbulence.release()
             yield first, out["s"]
@@ -266,6 +286,28 @@ class ShackHartmannLoopSensing:
         wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
         return wfs if self._noise is None else wfs + self._noise[:, i]
 
+    def slopes(self, i: int, dm: torch.Tensor) -> torch.Tensor:
+        """``(R, 2 n_sub)``: the sensor's slopes of frame ``i`` of the chunk, ``wfs_gain (S phi + D dm) + n`` (nm of OPD
+        difference across each subaperture; ``dm`` the DM term :meth:`measure` got)."""
+        slopes = self._chunk["slopes"][:, i] + dm @ self.interaction_t
+        if self.gain != 1.0:
+            slopes = self.gain * slopes
+        return slopes if self._slope_noise is None else slopes + self._slope_noise[:, i]
+
+    def space(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """What telemetry with slopes carries beside them: the ``interaction_matrix`` ``D`` ``(2 n_sub, K)`` and the
+        ``reconstructor`` ``R`` ``(K, 2 n_sub)`` in the loop's units, and a note saying which sensor made them."""
+        ops = self.turbulence.operators
+        sensor, geometry = ops.sensor, ops.sensor.geometry
+        note = {**self.turbulence.sensor.to_dict(), "subapertures_across": geometry.subapertures_across,
+                "subapertures": geometry.n_subapertures, "kept_modes": sensor.kept_modes,
+                "relative_cut": sensor.relative_cut, "slope_noise_nm": self.sigma_nm,
+                "slopes": "nm of OPD difference across each subaperture, x slopes then y slopes: "
+                          "wfs_gain (S phi + D DM(y)) + noise",
+                "measurement": "wfs = reconstructor @ slopes + (I - P) y, P = reconstructor @ interaction_matrix "
+                               "(the cut modes report the command sent)"}
+        return {"interaction_matrix": ops.interaction_matrix, "reconstructor": ops.reconstructor}, note
+
     def pupil_rms(self, dm: torch.Tensor) -> torch.Tensor:
         """``(R, frames)`` piston-removed RMS over the pupil of ``phi + IF DM`` for the chunk's applied ``dm``."""
         t = dm.shape[1]
@@ -278,8 +320,11 @@ class ShackHartmannLoopSensing:
         return (self.turbulence.phase_at(frame) + ops.surface(dm))[:, ops.pupil]
 
 
-def loop_sensing(turbulence, model):
-    """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one)."""
+def loop_sensing(turbulence, model, slopes: bool = False):
+    """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one); ``slopes``: record
+    the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none)."""
     if isinstance(turbulence, ShackHartmannTurbulence):
-        return ShackHartmannLoopSensing(turbulence, model)
+        return ShackHartmannLoopSensing(turbulence, model, slopes)
+    require(not slopes, "record 'slopes' is invalid in this scenario: the zonal sensor (sensor.kind: subaperture) "
+            "measures no slopes; record them with sensor.kind: shack_hartmann")
     return ZonalLoopSensing(turbulence, model)
