@@ -52,15 +52,28 @@ def sh_section() -> str:
     zonal_text = ""
     if zonal is not None:
         zbest, zgain = _ratio(zonal, "nominal")
-        zonal_text = (f" Through the zonal sensor the same job gives {NAMES[zbest]} {zgain:.2f}x the best-gain integrator "
-                      f"(scored at the actuators).")
+        zonal_text = (f" Through the zonal sensor the same job gives the {NAMES[zbest]} {zgain:.2f}x the best-gain "
+                      f"integrator, scored at the actuators, where there is no fitting error and no aliasing.")
+    nominal = sh["scenarios"]["nominal"]
+    b_int = (nominal.get("integrator") or {}).get("error_budget") or {}
+    b_best = (nominal.get(best) or {}).get("error_budget") or {}
+
+    def term(budget: dict, key: str) -> str:
+        return "—" if budget.get(key) is None else f"{budget[key]:.0f}"
+
+    unstable = [NAMES[n] for n in ("ol_eof", "cl_eof") if (nominal.get(n) or {}).get("diverged")]
+    unstable_text = (f" The {' and '.join(unstable)} diverged in the nominal plant: its closed-form fit is unstable "
+                     "there, as its analysis says." if unstable else "")
     return f"""## 2b. Through a real sensor: the main job's twin on a Shack-Hartmann
 
 **Verdict.** Through a 39 x 39 Shack-Hartmann with photon noise from an R = 8 guide star, the best predictor
-({NAMES[best]}) is {gain:.2f}x the best-gain integrator in median RMS over the pupil in the nominal plant.{zonal_text}
-What survives a real sensor is the temporal term (the error budget below); the fitting error, which no controller
-touches, and the aliasing and noise, which a predictor fed with the measurements passes on like the integrator,
-dominate the residual over the pupil.
+({NAMES[best]}) is {gain:.2f}x the best-gain integrator in median RMS over the pupil in the nominal plant: the main
+job's gain does not survive a real sensor.{zonal_text}{unstable_text} Over the pupil the residual is the fitting error
+({term(b_int, "fitting_nm")} nm, which no controller touches) and the aliasing ({term(b_int, "aliasing_nm")} nm for
+the integrator, {term(b_best, "aliasing_nm")} for the {NAMES[best]}), which a predictor fed with the measurements
+passes on like the integrator; the temporal term a predictor exists to remove is {term(b_int, "temporal_nm")} nm for
+the integrator and {term(b_best, "temporal_nm")} for the {NAMES[best]}, and its noise term {term(b_int, "noise_nm")}
+against {term(b_best, "noise_nm")}. One realisation: differences of a few per cent are within its scatter.
 
 `eofnn compare --config configs/realistic_sh.yaml` (`configs/realistic_small.yaml`'s sky, telescope, contenders and
 budgets; the sensor: Fried geometry between the 40 x 40 actuators, 4 x 4 phase samples per subaperture, Gaussian
@@ -75,7 +88,8 @@ statistic of one realisation scatters by 10-20%.
 """ + HEADER + "\n".join(rows) + """
 
 Limits: the sensor is geometric (no diffraction, no spot truncation, no optical gain), fully lit subapertures, a
-single guide-star magnitude; the predictors learn from the measurements (`s = R S phi`, aliasing included), so they
+single guide-star magnitude; a predictor's perfect-sensor run meets unaliased measurements it was not trained on, so
+its temporal term is an upper bound (the integrator's is not); the predictors learn from the measurements (`s = R S phi`, aliasing included), so they
 do not try to see through the aliasing (issue 30's anti-aliasing prediction); the analytic margins assume the
 measurement of the DM is the command itself, which holds on the reconstructor's modes and, by construction of the
 computer's fill, on the modes it cuts.
