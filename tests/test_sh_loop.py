@@ -199,3 +199,12 @@ def test_a_nominal_dm_skips_the_projector_and_measures_the_same(bright, monkeypa
                              record=("wfs",)))
         monkeypatch.setattr(sensing.ShackHartmannLoopSensing, "__init__", original)
     torch.testing.assert_close(runs[0].telemetry.wfs, runs[1].telemetry.wfs, rtol=1e-9, atol=1e-8)
+
+
+def test_the_sensor_config_repeats_the_shack_hartmann_constants_it_keeps_light():
+    from eofnn.sim.sensing import least_squares, sensor, shack_hartmann
+
+    assert sensor.GEOMETRIES == shack_hartmann.GEOMETRIES
+    assert sensor.MECHANICAL_COUPLING == least_squares.MECHANICAL_COUPLING
+    for name, constraint in shack_hartmann.ShackHartmann._constraints.items():
+        assert sensor.Sensor._constraints[name].describe() == constraint.describe()

@@ -237,6 +237,7 @@ def test_defaults_follow_the_fit_method():
 
 
 @pytest.mark.slow
+@pytest.mark.cli
 def test_eofnn_fit_trains_through_the_loop_and_the_checkpoint_is_analysed_like_any_other(tmp_path, cli):
     ckpt, tiny = tmp_path / "cl.ckpt", Path(__file__).parent / "conf" / "tiny_scenario.yaml"
     code, err = cli("fit", "--scenario", tiny, "--scenario.atmosphere.screen_frames", "600",

@@ -188,7 +188,7 @@ def loop_metrics(result: LoopResult, settle_frames: int, strehl_wavelength_m: fl
                  psd: WelchPSD | None = None) -> LoopMetrics:
     """Summarise a loop run after ``settle_frames`` (per-frame RMS pooled over realisations): the residual over the
     pupil where the run has one (a Shack-Hartmann scenario), the actuators' otherwise."""
-    pupil = result.pupil_residual_rms_nm
+    pupil = getattr(result, "pupil_residual_rms_nm", None)
     series = result.residual_rms_nm if pupil is None else pupil
     extra = {} if pupil is None else {"residual_over": "pupil"}
     rms = series[:, settle_frames:]

@@ -30,7 +30,7 @@ def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, floa
     """Median RMS (nm) per predictor (rows) and scenario (columns); ``reference`` adds the study's numbers."""
     scenarios = list(result.metrics)
     predictors = list(next(iter(result.metrics.values())))
-    over = " over the pupil" if next(iter(result.metrics[scenarios[0]].values())).residual_over == "pupil" else ""
+    over = " over the pupil" if getattr(next(iter(result.metrics[scenarios[0]].values())), "residual_over", "") == "pupil" else ""
     header = ["predictor"] + [f"{s} median RMS{over} (nm)" for s in scenarios]
     if reference:
         header += [f"{s} study (nm)" for s in scenarios]
@@ -307,7 +307,7 @@ def _budget(result: ExperimentResult) -> str:
     """The error budget of every contender that has one (:mod:`eofnn.evaluation.budget`), per scenario."""
     lines = []
     for scenario, contenders in result.metrics.items():
-        rows = [(name, m.error_budget) for name, m in contenders.items() if m.error_budget is not None]
+        rows = [(name, m.error_budget) for name, m in contenders.items() if getattr(m, "error_budget", None)]
         if not rows:
             continue
         over = next(iter(contenders.values())).residual_over

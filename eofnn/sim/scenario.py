@@ -144,7 +144,8 @@ class Scenario:
             need = max(peaks) + (n_screens - 1) * 4 * atm.screen_frames * grid.n_actuators
             if n_screens:
                 require_memory(need, f"{what}: the set of exact screens of non-lattice winds ({n_screens} screen(s) "
-                                     f"of {grid.n_actuators} points x screen_frames={atm.screen_frames})")
+                                     f"of {grid.n_actuators} {'points' if self.sensor.is_shack_hartmann else 'actuators'} x "
+                                     f"screen_frames={atm.screen_frames})")
 
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""

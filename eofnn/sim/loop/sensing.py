@@ -58,14 +58,17 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.sensing.pupil import LoopOperators
 from eofnn.sim.sensing.sensor import Sensor
-from eofnn.sim.sensing.shack_hartmann import ShackHartmann, ShackHartmannSensor
+
+if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
+    from eofnn.sim.sensing.pupil import LoopOperators
+    from eofnn.sim.sensing.shack_hartmann import ShackHartmann
 
 torch = lazy_module("torch")
 
@@ -87,6 +90,9 @@ def loop_operators(grid: ActuatorGrid, config: ShackHartmann) -> LoopOperators:
     if key not in _OPERATORS:
         if len(_OPERATORS) >= 4:
             _OPERATORS.pop(next(iter(_OPERATORS)))
+        from eofnn.sim.sensing.pupil import LoopOperators
+        from eofnn.sim.sensing.shack_hartmann import ShackHartmannSensor
+
         _OPERATORS[key] = LoopOperators(ShackHartmannSensor(grid, config))
     return _OPERATORS[key]
 

@@ -20,9 +20,13 @@ from typing import ClassVar
 from eofnn.errors import ConfigError, require
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.detector import Detector
-from eofnn.sim.sensing.least_squares import MECHANICAL_COUPLING
-from eofnn.sim.sensing.shack_hartmann import GEOMETRIES, ShackHartmann
-from eofnn.validation import Constraint, OneOf, from_mapping, validated
+from eofnn.validation import Constraint, Interval, OneOf, OrNone, from_mapping, validated
+
+#: Subaperture geometries (:data:`eofnn.sim.sensing.shack_hartmann.GEOMETRIES`; numpy, scipy and torch stay unimported
+#: until a Shack-Hartmann is built).
+GEOMETRIES = ("fried", "cell")
+#: OOPAO's default mechanical coupling (:data:`eofnn.sim.sensing.least_squares.MECHANICAL_COUPLING`).
+MECHANICAL_COUPLING = 0.35
 
 #: Sensor kinds a scenario may have.
 SENSOR_KINDS = ("subaperture", "shack_hartmann")
@@ -59,7 +63,10 @@ class Sensor:
     _constraints: ClassVar[dict[str, Constraint]] = {
         "kind": OneOf(SENSOR_KINDS),
         "geometry": OneOf(GEOMETRIES),
-        **{k: v for k, v in ShackHartmann._constraints.items() if k != "geometry"},
+        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
+        "subapertures_across": OrNone(Interval(2, 512, integer=True, unit="subapertures across")),
+        "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
+        "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
     }
 
     def __post_init__(self) -> None:
@@ -79,8 +86,10 @@ class Sensor:
     def is_shack_hartmann(self) -> bool:
         return self.kind == "shack_hartmann"
 
-    def shack_hartmann(self) -> ShackHartmann:
+    def shack_hartmann(self):  # -> ShackHartmann (not imported here: jsonargparse reads this module's types)
         """The Shack-Hartmann config of these fields."""
+        from eofnn.sim.sensing.shack_hartmann import ShackHartmann
+
         return ShackHartmann(self.geometry, self.samples_per_subaperture, self.subapertures_across,
                              self.mechanical_coupling, self.relative_cut)
 
