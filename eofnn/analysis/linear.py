@@ -80,7 +80,7 @@ def dm_gain_margin(frame_rate_hz: float = 1000.0):
         setup = LoopSetup(spec.delay_frames, plant_dm_gain, 1.0, dm_gain_model, spec.delay_frames, frame_rate_hz)
         result = analyse(weights, spec.kind, spec.history_length, setup, structure=network.structure,
                          neighbours=getattr(network, "neighbours", None),
-                         frequencies_hz=torch.empty(0, dtype=torch.float64))
+                         frequencies_hz=torch.empty(0, dtype=torch.float64), delay_margin=False)
         if not result.stable:
             return None
         low, high = result.gain_margin
