@@ -8,10 +8,16 @@ bracketing its spectral radius ``rho`` (a pocket of instability between two brac
 
 - up to :data:`DENSE_LIMIT` rows, every eigenvalue (LAPACK) and a bisection of stable / unstable;
 - beyond, the few largest eigenvalues (ARPACK), each solve started from the previous one's dominant eigenvector, and
-  Brent's method on ``rho - 1``, which is continuous in the DM gain and the delay: about ten radii per edge where
-  bisection takes thirty, and those near the edge, where the critical pole stands apart, converge fastest. At 40
-  across (1264 actuators) the poles of a 10-tap open-loop neighbourhood filter well inside the stable range form a
-  ring of thousands of nearly equal moduli, on which one ARPACK solve takes seconds to a minute.
+  Brent's method on ``rho - 1``, which is continuous in the DM gain and the delay: five to seven radii per edge once
+  bracketed, where bisection takes thirty, and those near the edge, where the critical pole stands apart, converge
+  fastest. At 40 across (1264 actuators) the poles of a 10-tap open-loop neighbourhood filter well inside the stable
+  range form a ring of thousands of nearly equal moduli, on which ARPACK's defaults (6 eigenvalues, a Krylov space
+  of 20) took up to a minute per radius, or did not converge.
+
+Measured (one core of a shared 2-core machine, CPU time; ``experiments/coupled_margins.py``): a fitted open-loop
+neighbourhood EOF at 40 across, 10 taps (13904 rows), pole, DM-gain interval and delay margins in 29 radii and 36 s,
+where the former bisection took 103 radii and 6.5 minutes of wall time; 12 taps (16432 rows) in 54 s; at ELT
+size (80 across, 5024 actuators, 10 taps: 55264 rows) in 29 radii and 6 minutes, beyond :data:`COMPANION_LIMIT`.
 """
 
 from __future__ import annotations
@@ -38,10 +44,11 @@ TRANSFER_LIMIT = 400
 ARPACK_EIGENVALUES, ARPACK_KRYLOV, ARPACK_TOL, ARPACK_SEED = 10, 60, 1e-10, 0
 #: Brent's method stops when an edge is known to this fraction of its bracket (bisection: 30 halvings, 5e-10).
 EDGE_TOLERANCE = 1e-10
-#: Largest block companion (rows: actuators x polynomial order) analysed: the margins take 30-40 sparse spectral
-#: radii (measured on 2 shared cores: 1264 actuators x 11 = 13904 rows, a fitted 10-tap open-loop neighbourhood
-#: filter, in about a minute, where thirty-step bisections took 6.5 minutes); beyond, the analysis is refused up
-#: front (:class:`CoupledAnalysisTooLarge`) instead of running for hours.
+#: Largest block companion (rows: actuators x polynomial order) analysed: 40 across with up to 14 taps, in about a
+#: minute of CPU (module docstring); a radius costs about rows^1.7 (1.1 s at 13904 rows, 12.5 s at 55264), so
+#: beyond, the analysis is refused up front (:class:`CoupledAnalysisTooLarge`). An ELT's 10-tap filter (55264 rows)
+#: takes about 6 CPU minutes: raise this to analyse it (and rerun the ELT runs of experiments/README.md, which say
+#: their neighbourhood filters were refused).
 COMPANION_LIMIT = 20000
 GAIN_STEPS_UP = (1.02, 1.05, 1.1, 1.25, 1.5, 2.0, 3.0, 5.0, 10.0, 100.0)
 GAIN_STEPS_DOWN = (0.98, 0.95, 0.9, 0.75, 0.5, 0.25, 0.1, 0.0, -0.1, -1.0, -10.0)
