@@ -13,7 +13,6 @@ from eofnn.analysis import block
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse
 from eofnn.control.baselines import critical_gain
-from eofnn.errors import ConfigError
 from eofnn.sim.grid import ActuatorGrid
 
 pytestmark = pytest.mark.slow
@@ -123,14 +122,23 @@ def test_the_margin_function_of_select_skips_the_delay_margin(monkeypatch):
 
 
 def test_a_coupled_analysis_that_does_not_fit_memory_is_refused_before_it_runs(monkeypatch):
+    """One line, as an analysis too large (so compare reports no analytic margins instead of stopping)."""
     import eofnn.resources
 
     weights, neighbours = _coupled_filter("open_loop", 3)
     monkeypatch.setattr(eofnn.resources, "available_memory_bytes", lambda: 2**20)
     monkeypatch.setattr(block, "matrix_polynomials", lambda *a, **k: pytest.fail("the analysis started"))
-    with pytest.raises(ConfigError, match=r"coupled stability analysis of a neighbourhood filter on 32 actuators "
-                                          r"\(9 neighbours each, block companions up to 448 rows\) needs about .* GiB"):
+    with pytest.raises(block.CoupledAnalysisTooLarge, match=r"analysis of a neighbourhood filter on 32 actuators \(9 "
+                       r"neighbours each, block companions up to 448 rows\) needs about .* GiB of memory"):
         analyse(weights, "open_loop", 3, LoopSetup(), structure="neighbourhood", neighbours=neighbours)
+
+
+def test_a_spectral_radius_that_does_not_converge_is_one_line(monkeypatch):
+    weights, neighbours = _coupled_filter("open_loop", 3)
+    monkeypatch.setattr(block, "DENSE_LIMIT", 0)
+    monkeypatch.setattr(block, "_largest_eigenvalues", lambda *a: (np.zeros(0), np.zeros((0, 0))))
+    with pytest.raises(block.CoupledAnalysisUnavailable, match=r"did not converge .* Krylov spaces of 60 and 120\)"):
+        analyse(weights, "open_loop", 3, LoopSetup(dm_gain=1.1), structure="neighbourhood", neighbours=neighbours)
 
 
 @pytest.mark.physics

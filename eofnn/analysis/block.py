@@ -40,11 +40,12 @@ DENSE_LIMIT = 2500
 TRANSFER_LIMIT = 400
 #: ARPACK's eigenvalues of largest modulus asked for, its Krylov space, its relative tolerance and the seed of the
 #: first start vector. Measured on the ring of poles above (1264 x 11 rows): 4 of 20 did not converge in 1000
-#: restarts, 6 of 20 took 1400-19000 products, 10 of 60 took 2000-6000 (1-2.5 s of one core).
+#: restarts, 6 of 20 took 1400-19000 products (once not converged in 2000), 10 of 60 took 2000-6000 (1-2.5 s of
+#: one core).
 ARPACK_EIGENVALUES, ARPACK_KRYLOV, ARPACK_TOL, ARPACK_SEED = 10, 60, 1e-10, 0
 #: Brent's method stops when an edge is known to this fraction of its bracket (bisection: 30 halvings, 5e-10).
 EDGE_TOLERANCE = 1e-10
-#: Largest block companion (rows: actuators x polynomial order) analysed: 40 across with up to 14 taps, in about a
+#: Largest block companion (rows: actuators x polynomial order) analysed: 40 across with up to 13 taps, in about a
 #: minute of CPU (module docstring); a radius costs about rows^1.7 (1.1 s at 13904 rows, 12.5 s at 55264), so
 #: beyond, the analysis is refused up front (:class:`CoupledAnalysisTooLarge`). An ELT's 10-tap filter (55264 rows)
 #: takes about 6 CPU minutes: raise this to analyse it (and rerun the ELT runs of experiments/README.md, which say
@@ -57,8 +58,17 @@ BISECTIONS = 30
 DELAY_SUBSTEPS = 10
 
 
-class CoupledAnalysisTooLarge(ConfigError):
-    """A neighbourhood filter's coupled analysis is beyond :data:`COMPANION_LIMIT` (the message gives the size)."""
+class CoupledAnalysisUnavailable(ConfigError):
+    """A neighbourhood filter has no analytic margins (the message says why): reported like a network's."""
+
+
+class CoupledAnalysisTooLarge(CoupledAnalysisUnavailable):
+    """A neighbourhood filter's coupled analysis is beyond :data:`COMPANION_LIMIT` or the memory available (the
+    message gives the size)."""
+
+
+class CoupledAnalysisNotConverged(CoupledAnalysisUnavailable):
+    """ARPACK found no eigenvalue of a companion, even in a larger Krylov space."""
 
 
 def companion_rows(n_actuators: int, kind: str, history_length: int, delay_frames: float,
@@ -95,9 +105,12 @@ def require_coupled_size(n_actuators: int, kind: str, history_length: int, setup
             "per-actuator filter, or measure this one's DM-gain interval by simulation (compare --simulated_margins)")
     longest = companion_rows(n_actuators, kind, history_length, setup.delay_frames + setup.max_extra_delay_frames,
                              setup.controller_delay)
-    require_memory(coupled_bytes(longest, slots, n_actuators),
-                   f"the coupled stability analysis of a neighbourhood filter on {n_actuators} actuators "
-                   f"({slots} neighbours each, block companions up to {longest} rows)")
+    try:
+        require_memory(coupled_bytes(longest, slots, n_actuators),
+                       f"the coupled stability analysis of a neighbourhood filter on {n_actuators} actuators "
+                       f"({slots} neighbours each, block companions up to {longest} rows)")
+    except ConfigError as err:
+        raise CoupledAnalysisTooLarge(str(err)) from None
 
 
 def matrix_polynomials(weights: torch.Tensor, neighbours: torch.Tensor, kind: str, history_length: int,
@@ -191,10 +204,10 @@ class SpectralRadius:
             values, vectors = _largest_eigenvalues(matrix, np.random.default_rng(ARPACK_SEED).standard_normal(rows),
                                                    2 * ARPACK_KRYLOV)
         if not len(values):
-            raise ConfigError(f"the spectral radius of a {rows}-row block companion did not converge (ARPACK, "
-                              f"{ARPACK_EIGENVALUES} eigenvalues, Krylov spaces of {ARPACK_KRYLOV} and "
-                              f"{2 * ARPACK_KRYLOV}): measure this filter's DM-gain interval by simulation (compare "
-                              "--simulated_margins)")
+            raise CoupledAnalysisNotConverged(
+                f"the spectral radius of a {rows}-row block companion did not converge (ARPACK, {ARPACK_EIGENVALUES} "
+                f"eigenvalues, Krylov spaces of {ARPACK_KRYLOV} and {2 * ARPACK_KRYLOV}): measure this filter's "
+                "DM-gain interval by simulation (compare --simulated_margins)")
         largest = int(np.abs(values).argmax())
         # A real start vector in the dominant (complex pair's) invariant plane.
         self._start = vectors[:, largest].real + vectors[:, largest].imag
