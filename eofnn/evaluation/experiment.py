@@ -9,7 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from eofnn.analysis.block import CoupledAnalysisTooLarge
+from eofnn.analysis.block import CoupledAnalysisUnavailable
 from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
@@ -222,7 +222,7 @@ class Experiment:
         predictor = self.predictor_if_any(name, scenario_name)
         try:
             result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
-        except CoupledAnalysisTooLarge as err:  # reported like a network's: no analytic margins
+        except CoupledAnalysisUnavailable as err:  # reported like a network's: no analytic margins
             self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
             return None
         return None if result is None else stability_summary(result)
@@ -243,7 +243,7 @@ class Experiment:
             return None
         try:
             result = controller_stability(self.config(name, scenario_name), trained, self.scenarios[scenario_name])
-        except CoupledAnalysisTooLarge:
+        except CoupledAnalysisUnavailable:
             return None
         return None if result is None else stability_summary(result)
 
