@@ -89,8 +89,8 @@ statistic of one realisation scatters by 10-20%.
 
 Limits: the sensor is geometric (no diffraction, no spot truncation, no optical gain), fully lit subapertures, a
 single guide-star magnitude; a predictor's perfect-sensor run meets unaliased measurements it was not trained on, so
-its temporal term is an upper bound (the integrator's is not); the predictors learn from the measurements (`s = R S phi`, aliasing included), so they
-do not try to see through the aliasing (issue 30's anti-aliasing prediction); the analytic margins assume the
-measurement of the DM is the command itself, which holds on the reconstructor's modes and, by construction of the
-computer's fill, on the modes it cuts.
+its temporal term is an upper bound (the integrator's is not); the predictors learn from the measurements
+(`s = R S phi`, aliasing included), so they do not try to see through the aliasing (issue 30's anti-aliasing
+prediction); the analytic margins assume the measurement of the DM is the command itself, which holds on the
+reconstructor's modes and, by construction of the computer's fill, on the modes it cuts.
 """

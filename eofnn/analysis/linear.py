@@ -17,6 +17,7 @@ from eofnn.analysis.stability import (
     default_frequencies_hz,
 )
 from eofnn.control.classical import ModalLQG, extrapolator_filter
+from eofnn.control.fourier import FourierPredictor
 from eofnn.control.registry import FROM_TELEMETRY, dm_gain_model_of
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.scenario import Scenario
@@ -53,15 +54,25 @@ def modal_stability(model: Any, setup: LoopSetup) -> StabilityResult:
     """A modal controller (``model.polynomials()``: per-mode ``D(z), N(z)``) analysed with the modes as groups.
 
     The modes decouple the loop when the DM acts as ``g`` times the command on every mode (no misregistration),
-    as the per-actuator analysis of a filter assumes for actuators.
+    as the per-actuator analysis of a filter assumes for actuators. The Fourier modes of predictive Fourier control
+    (complex polynomials, one mode of each conjugate pair) decouple it only approximately on a pupil (its module
+    says why; ``tests/test_pfc.py`` measures the DM-gain limit against simulation).
     """
     start = time.perf_counter()
     d_poly, n_poly = model.polynomials()
-    kind, length = ("open_loop", 2) if isinstance(model, ModalLQG) else ("closed_loop", 1)
+    moduli = None
+    if isinstance(model, FourierPredictor):
+        kind, length = "open_loop", int(model.transition.shape[1])
+
+        def moduli(plant: LoopSetup) -> torch.Tensor:
+            return model.closed_loop_moduli(plant.dm_gain, plant.wfs_gain, plant.delay_frames)
+    else:
+        kind, length = ("open_loop", 2) if isinstance(model, ModalLQG) else ("closed_loop", 1)
     result = analyse_polynomials(d_poly, n_poly, setup, default_frequencies_hz(setup.frame_rate_hz), kind=kind,
-                                 structure="modal", history_length=length)
+                                 structure="modal", history_length=length, root_modulus=moduli)
     result.analysis_seconds = time.perf_counter() - start
-    result.notes.append("groups are the controller's modes")
+    result.notes.append("groups are the controller's modes" + (" (spatial Fourier modes, taken as decoupled)"
+                                                                if isinstance(model, FourierPredictor) else ""))
     return result
 
 

@@ -2,7 +2,9 @@
 
 A polynomial ``p(z) = p[0] + p[1] z^-1 + ... + p[L] z^-L`` is a tensor ``(..., L + 1)`` of its coefficients, one
 row per actuator. A loop whose characteristic polynomial has ``p[0] = 1`` is stable when every root of
-``z^L p(z)`` lies strictly inside the unit circle.
+``z^L p(z)`` lies strictly inside the unit circle. Coefficients may be complex (one spatial Fourier mode of a loop,
+whose conjugate mode is the conjugate loop): every function takes them, and :func:`real_crossings` then searches
+the whole circle, with no mirror symmetry.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ def multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     if a.shape[-1] < b.shape[-1]:
         a, b = b, a
     shape = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])
-    out = torch.zeros(*shape, a.shape[-1] + b.shape[-1] - 1, dtype=DTYPE, device=a.device)
+    dtype = torch.promote_types(torch.promote_types(a.dtype, b.dtype), DTYPE)
+    out = torch.zeros(*shape, a.shape[-1] + b.shape[-1] - 1, dtype=dtype, device=a.device)
     for j in range(b.shape[-1]):  # the short factor: a few terms
         out[..., j: j + a.shape[-1]] += a * b[..., j: j + 1]
     return out
@@ -69,7 +72,7 @@ def max_root_modulus(p: torch.Tensor) -> torch.Tensor:
     n = p.shape[-1] - 1
     if n == 0:
         return torch.zeros(p.shape[:-1], dtype=DTYPE, device=p.device)
-    companion = torch.zeros(*p.shape[:-1], n, n, dtype=DTYPE, device=p.device)
+    companion = torch.zeros(*p.shape[:-1], n, n, dtype=p.dtype, device=p.device)
     companion[..., 0, :] = -p[..., 1:] / p[..., :1]
     if n > 1:
         companion[..., 1:, :-1] = torch.eye(n - 1, dtype=DTYPE, device=p.device)
@@ -92,10 +95,15 @@ def real_crossings(a: torch.Tensor, b: torch.Tensor, n_grid: int = 1024,
     grid of ``n_grid`` frequencies and refined to machine precision (Illinois false position). Zeros that touch
     without a sign change (tangencies) or two zeros within one grid step are missed.
 
+    Complex coefficients have no mirror: ``h`` is searched on the whole circle (``2 n_grid`` frequencies, brackets
+    across ``w = 0`` included), ``0`` and ``pi`` are crossings only where ``h`` vanishes, and a crossing's frequency
+    is given in ``[0, pi]`` (``w`` and ``-w``: the same oscillation of the real loop that a mode and its conjugate
+    make).
+
     Parameters
     ----------
     a, b : Tensor
-        ``(rows, L + 1)`` real coefficients.
+        ``(rows, L + 1)`` real (or complex) coefficients.
 
     Returns
     -------
@@ -104,6 +112,8 @@ def real_crossings(a: torch.Tensor, b: torch.Tensor, n_grid: int = 1024,
     """
     n = max(a.shape[-1], b.shape[-1])
     a, b = pad(a, n), pad(b, n)
+    if a.is_complex() or b.is_complex():
+        return _complex_crossings(a.to(torch.complex128), b.to(torch.complex128), n_grid, chunk_rows)
     out_rows, out_t, out_w = [], [], []
     for start in range(0, a.shape[0], chunk_rows):
         ac, bc = a[start: start + chunk_rows], b[start: start + chunk_rows]
@@ -127,6 +137,30 @@ def real_crossings(a: torch.Tensor, b: torch.Tensor, n_grid: int = 1024,
         out_rows.append(rows[ok] + start)
         out_t.append(t[ok])
         out_w.append(omega[ok])
+    return torch.cat(out_rows), torch.cat(out_t), torch.cat(out_w)
+
+
+def _complex_crossings(a: torch.Tensor, b: torch.Tensor, n_grid: int,
+                       chunk_rows: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`real_crossings` for complex coefficients: sign changes of ``h`` around the whole circle."""
+    out_rows, out_t, out_w = [], [], []
+    step = math.pi / n_grid
+    for start in range(0, a.shape[0], chunk_rows):
+        ac, bc = a[start: start + chunk_rows], b[start: start + chunk_rows]
+        h = (torch.fft.fft(ac, n=2 * n_grid) * torch.fft.fft(bc, n=2 * n_grid).conj()).imag  # w_j = pi j / n_grid
+        h = torch.cat([h, h[:, :1]], 1)  # the last cell closes the circle
+        change = ((h[:, 1:] >= 0) != (h[:, :-1] >= 0)) | (h[:, :-1] == 0)
+        rows, cell = change.nonzero(as_tuple=True)
+        lo = cell.to(DTYPE) * step
+        omega = _refine(ac[rows], bc[rows], lo, lo + step, h[rows, cell], h[rows, cell + 1])
+        value_a, value_b = _at(ac[rows], omega), _at(bc[rows], omega)
+        power = value_b.abs().pow(2)
+        t = -(value_a * value_b.conj()).real / power.clamp(min=torch.finfo(DTYPE).tiny)
+        ok = (power > 0) & ((value_a + t * value_b).abs() <= 1e-8 * (value_a.abs() + (t * value_b).abs() + 1e-300))
+        folded = torch.remainder(omega, 2 * math.pi)
+        out_rows.append(rows[ok] + start)
+        out_t.append(t[ok])
+        out_w.append(torch.minimum(folded, 2 * math.pi - folded)[ok])
     return torch.cat(out_rows), torch.cat(out_t), torch.cat(out_w)
 
 

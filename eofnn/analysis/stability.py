@@ -20,9 +20,8 @@ factors, so hidden controller modes count), and
 - DM gain interval: ``P`` is affine in ``g``, so a root crosses the unit circle where ``D / (Q N)`` is real;
   those gains are found exactly (:func:`~eofnn.analysis.polynomials.real_crossings`) and the stable interval is
   the one around the nominal gain;
-- delay margin: between integer delays ``m`` and ``m + 1`` the plant polynomial is affine in ``f``, so the first
-  delay at which a root reaches the unit circle is found the same way (fractional), besides the number of whole
-  extra frames tolerated (integer).
+- delay margin: between integer delays ``m`` and ``m + 1`` the plant polynomial is affine in ``f``: the first delay
+  at which a root reaches the unit circle is found the same way (fractional), and the whole extra frames tolerated.
 """
 
 from __future__ import annotations
@@ -30,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import ClassVar
 
@@ -44,6 +44,8 @@ from eofnn.models.linear import LinearFilter
 from eofnn.validation import FINITE, Constraint, Interval, OrNone, validated
 
 STRUCTURES = ("per_actuator", "shared", "neighbourhood")
+#: ``root_modulus(setup)``: a controller's largest closed-loop pole modulus per group in the plant ``setup``.
+RootModulus = Callable[["LoopSetup"], torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -330,15 +332,16 @@ def analyse_integrator(gain: float, leak: float = 0.0, setup: LoopSetup | None =
 
 
 def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup, frequencies_hz: torch.Tensor,
-                        *, kind: str = "closed_loop", structure: str = "per_actuator",
-                        history_length: int = 1, delay_margin: bool = True) -> StabilityResult:
-    """Analysis of any controller ``D(z) y = N(z) u`` given per group as ``(groups, L)`` polynomials (without
-    ``delay_margin``, the delay margins are left undefined: NaN and -1)."""
+                        *, kind: str = "closed_loop", structure: str = "per_actuator", history_length: int = 1,
+                        delay_margin: bool = True, root_modulus: RootModulus | None = None) -> StabilityResult:
+    """Analysis of any controller ``D(z) y = N(z) u`` given per group as ``(groups, L)`` polynomials (real or
+    complex); no ``delay_margin``: delay margins undefined (NaN, -1). ``root_modulus(setup)``: the largest pole
+    modulus per group (a state-space model's), where clustered roots of a high-order polynomial are ill-conditioned."""
     groups = d_poly.shape[0]
     g = setup.dm_gain
     q_n = poly.multiply(setup.plant_polynomial(), n_poly)  # Q N
     characteristic = poly.add(d_poly, -g * q_n)
-    modulus = poly.max_root_modulus(characteristic)
+    modulus = poly.max_root_modulus(characteristic) if root_modulus is None else root_modulus(setup)
     stable = modulus < 1
     # Gain: P(g) = D + g (-Q N).
     rows, gains, omega = poly.real_crossings(d_poly, -q_n)
@@ -350,11 +353,8 @@ def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopS
     for column, bound in enumerate((lower, upper)):
         hit = gains == bound[rows]
         crossing_hz[:, column].scatter_reduce_(0, rows[hit], hz[hit], "amin", include_self=False)
-    if delay_margin:
-        delay_margins, integer_margin = _delay_margins(d_poly, n_poly, setup)
-    else:
-        delay_margins = torch.full((groups,), math.nan, dtype=poly.DTYPE)
-        integer_margin = torch.full((groups,), -1, dtype=torch.int64)
+    delay_margins, integer_margin = (_delay_margins(d_poly, n_poly, setup, root_modulus) if delay_margin else (
+        torch.full((groups,), math.nan, dtype=poly.DTYPE), torch.full((groups,), -1, dtype=torch.int64)))
     delay_margins[~stable], integer_margin[~stable] = math.nan, -1
     omega_grid = 2 * math.pi * frequencies_hz / setup.frame_rate_hz
     p_value = poly.evaluate(characteristic, omega_grid)
@@ -364,7 +364,8 @@ def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopS
                            integer_margin, frequencies_hz, rejection, noise)
 
 
-def _delay_margins(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup) -> tuple[torch.Tensor, torch.Tensor]:
+def _delay_margins(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup,
+                   root_modulus: RootModulus | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Fractional and integer extra delay (frames) before a pole reaches the unit circle, per group."""
     groups, tau = d_poly.shape[0], float(setup.delay_frames)
     gw, first = setup.dm_gain * setup.wfs_gain, math.floor(tau)
@@ -389,6 +390,11 @@ def _delay_margins(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup)
         left = (integer == setup.max_extra_delay_frames).nonzero().squeeze(-1)
         if not len(left):
             break
-        p = poly.add(d_poly[left], -setup.dm_gain * poly.multiply(setup.plant_polynomial(tau + j), n_poly[left]))
-        integer[left[poly.max_root_modulus(p) >= 1]] = j - 1
+        if root_modulus is not None:
+            plant = replace(setup, delay_frames=tau + j, controller_delay_frames=setup.controller_delay)
+            unstable = root_modulus(plant)[left] >= 1
+        else:
+            p = poly.add(d_poly[left], -setup.dm_gain * poly.multiply(setup.plant_polynomial(tau + j), n_poly[left]))
+            unstable = poly.max_root_modulus(p) >= 1
+        integer[left[unstable]] = j - 1
     return delay_margin, integer

@@ -14,8 +14,8 @@ from eofnn.outputs import check_output_folder, staged_folder
 from eofnn.validation import Interval, OrNone, check_value
 
 DESCRIPTION = ("Analytic stability of a checkpoint's linear filter (per actuator, shared or neighbourhood), or of a "
-               "classical controller (--controller: integrator, extrapolator, modal_integrator, lqg; the last two "
-               "built from telemetry recorded in the scenario), in the scenario's plant: stable or not, the interval "
+               "classical controller (--controller: integrator, extrapolator, modal_integrator, lqg, pfc; the last "
+               "three built from telemetry recorded in the scenario), in the scenario's plant: stable or not, the interval "
                "of DM gain that keeps it stable, the delay margin, and the rejection and noise transfer functions. "
                "Writes stability.json and stability.png into --out.")
 
@@ -30,7 +30,7 @@ class StabilityConfig(SimulationCommand):
         Checkpoint of a linear predictor (.ckpt); or give --controller.
     controller : PredictorConfig, optional
         A classical controller to analyse instead of a checkpoint, e.g. {controller: lqg, data: {frames: 10000}}
-        (modal_integrator and lqg record their telemetry in the scenario).
+        (modal_integrator, lqg and pfc record their telemetry in the scenario).
     dm_gain_model : float, optional
         DM gain the controller believes (its pseudo-open-loop reconstruction); unset, the checkpoint's own
         (identified from telemetry, or 1).

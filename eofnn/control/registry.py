@@ -148,3 +148,18 @@ def _lqg_from_telemetry(config: Any, scenario: Any) -> Any:
 def _lqg(config: Any, predictor: Any) -> Controller:
     """Kalman filter + LQG command, AR(2) (or ``ar_order``) per KL mode (:func:`eofnn.control.modal.build_lqg`)."""
     return replace(predictor)
+
+
+def _pfc_from_telemetry(config: Any, scenario: Any) -> Any:
+    """The predictive Fourier model: ``config.data`` telemetry recorded in the scenario, winds identified from it
+    (or ``config.pfc.winds``), with the config's ``dm_gain_model`` or (unset) the DM gain the dither measures."""
+    from eofnn.control.frozen_flow import build_pfc
+
+    return build_pfc(scenario, config.data, config.pfc, getattr(config, "dm_gain_model", None))
+
+
+@register_controller("pfc", from_telemetry=_pfc_from_telemetry)
+def _pfc(config: Any, predictor: Any) -> Controller:
+    """Predictive Fourier control: a frozen-flow Kalman filter per spatial Fourier mode
+    (:mod:`eofnn.control.fourier`, built by :func:`eofnn.control.frozen_flow.build_pfc`)."""
+    return replace(predictor)

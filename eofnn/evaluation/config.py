@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 
 from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
-from eofnn.control.config import AR_ORDERS, EXTRAPOLATION_ORDERS, MAX_EXTRAPOLATION_SMOOTHING
+from eofnn.control.config import AR_ORDERS, EXTRAPOLATION_ORDERS, MAX_EXTRAPOLATION_SMOOTHING, PfcConfig
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_names
 from eofnn.data.config import DataConfig
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
@@ -98,6 +98,10 @@ class PredictorConfig:
         ``controller: lqg``: AR orders to choose from, like the extrapolator's ``orders``: in each scenario an LQG is
         built with each from the same telemetry, closes the loop on the scan stream (``data.frames`` frames, seed
         ``data.seed``, never the test stream) and the lowest median residual wins (``classical_settings``).
+    pfc : PfcConfig
+        ``controller: pfc`` (predictive Fourier control: a frozen-flow Kalman filter per spatial Fourier mode, built
+        in each scenario from ``data.frames`` frames of dithered-integrator telemetry like the LQG): ``layers``
+        identified, or known ``winds``, ``alpha``, ``aliases``, ``padding``, ``max_speed_mps``.
     """
 
     controller: str = "predictor"
@@ -121,6 +125,7 @@ class PredictorConfig:
     modes: int | None = None
     ar_order: int = 2
     ar_orders: list[int] | None = None
+    pfc: PfcConfig = field(default_factory=PfcConfig)
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -137,7 +142,8 @@ class PredictorConfig:
     }
 
     def __post_init__(self) -> None:
-        for name, cls in (("data", DataConfig), ("optimization", OptimizationConfig), ("adaptation", AdaptationConfig)):
+        for name, cls in (("data", DataConfig), ("optimization", OptimizationConfig), ("adaptation", AdaptationConfig),
+                          ("pfc", PfcConfig)):
             if isinstance(getattr(self, name), dict):
                 setattr(self, name, from_mapping(cls, getattr(self, name), name))
         if self.checkpoint is None:
@@ -148,9 +154,12 @@ class PredictorConfig:
                               f"{self.checkpoint!r} is for controller: predictor")
         if self.controller == "integrator":
             Integrator(self.gain, self.leak)  # validates gain and leak
-        if self.modes is not None and self.controller not in FROM_TELEMETRY:
-            raise ConfigError(f"modes={self.modes!r} is for controller: {' or '.join(FROM_TELEMETRY)}, not "
+        modal = [name for name in FROM_TELEMETRY if name != "pfc"]  # (the Fourier controller has no KL modes)
+        if self.modes is not None and self.controller not in modal:
+            raise ConfigError(f"modes={self.modes!r} is for controller: {' or '.join(modal)}, not "
                               f"{self.controller!r}")
+        if self.controller != "pfc" and self.pfc != PfcConfig():
+            raise ConfigError(f"pfc={vars(self.pfc)!r} is for controller: pfc, not {self.controller!r}")
         if self.gains is not None:
             if self.controller != "integrator":
                 raise ConfigError(f"gains={self.gains!r} is for controller: integrator, not {self.controller!r}")
