@@ -15,7 +15,6 @@ from eofnn.analysis.stability import LoopSetup, analyse
 from eofnn.control.baselines import critical_gain
 from eofnn.sim.grid import ActuatorGrid
 
-pytestmark = pytest.mark.slow
 NONE = torch.empty(0, dtype=torch.float64)
 
 
@@ -50,6 +49,7 @@ def _counted(monkeypatch) -> list[int]:
     return calls
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, p, delay", [("open_loop", 3, 2), ("open_loop", 2, 2.5), ("closed_loop", 2, 2)])
 def test_the_sparse_path_finds_the_dense_paths_margins_with_fewer_eigenvalue_problems(monkeypatch, kind, p, delay):
     weights, neighbours = _coupled_filter(kind, p)
@@ -70,6 +70,7 @@ def test_the_sparse_path_finds_the_dense_paths_margins_with_fewer_eigenvalue_pro
     assert calls[0] < 0.6 * dense_calls, (calls[0], dense_calls)  # three bisections of 30 steps vs Brent's ~8
 
 
+@pytest.mark.slow
 def test_the_sparse_path_finds_the_coupled_integrators_closed_form(monkeypatch):
     """y = y(n-1) - k (I + e A) u: the modes of I + e A are integrators of gain k (1 + e lambda)."""
     grid = ActuatorGrid(2.0, 6)
@@ -92,6 +93,7 @@ def test_the_sparse_path_finds_the_coupled_integrators_closed_form(monkeypatch):
     assert result.gain_margin[1] == pytest.approx(critical_gain(2) / (gain * largest), rel=1e-8)
 
 
+@pytest.mark.slow
 def test_a_sequence_of_sparse_analyses_is_reproducible(monkeypatch):
     """ARPACK's first start vector is seeded, the later ones are the previous solve's: the same numbers every time."""
     weights, neighbours = _coupled_filter("open_loop", 3, seed=1)
@@ -102,6 +104,7 @@ def test_a_sequence_of_sparse_analyses_is_reproducible(monkeypatch):
     assert runs[0] == runs[1]
 
 
+@pytest.mark.slow
 def test_the_margin_function_of_select_skips_the_delay_margin(monkeypatch):
     """optimization.select needs the DM-gain interval only: the delay scan is not run, the interval is the same."""
     weights, neighbours = _coupled_filter("open_loop", 3)
@@ -141,6 +144,7 @@ def test_a_spectral_radius_that_does_not_converge_is_one_line(monkeypatch):
         analyse(weights, "open_loop", 3, LoopSetup(dm_gain=1.1), structure="neighbourhood", neighbours=neighbours)
 
 
+@pytest.mark.slow
 @pytest.mark.physics
 def test_the_sparse_analytic_interval_matches_simulated_bisection(monkeypatch, small_scenario):
     """A fitted neighbourhood EOF: the interval of the sparse path (forced on this small grid) and the closed-loop

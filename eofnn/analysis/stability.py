@@ -18,7 +18,7 @@ factors, so hidden controller modes count), and
 - rejection (sensitivity) ``eps / s = D / P``; noise transfer ``eps / v = g z^-d H N / P`` (nm per nm of WFS noise);
 - stability: every root of ``P`` inside the unit circle;
 - DM gain interval: ``P`` is affine in ``g``, so a root crosses the unit circle where ``D / (Q N)`` is real; those
-  gains are found exactly (:func:`~eofnn.analysis.polynomials.real_crossings`), the interval is the one around 1;
+  gains are found exactly (:func:`~eofnn.analysis.polynomials.real_crossings`), the interval the one around nominal;
 - delay margin: between integer delays ``m`` and ``m + 1`` the plant polynomial is affine in ``f``: the first delay
   at which a root reaches the unit circle is found the same way (fractional), and the whole extra frames tolerated.
 """
