@@ -16,7 +16,8 @@ bracketing its spectral radius ``rho`` (a pocket of instability between two brac
 
 Measured (one core of a shared 2-core machine, CPU time; ``experiments/coupled_margins.py``): a fitted open-loop
 neighbourhood EOF at 40 across, 10 taps (13904 rows), pole, DM-gain interval and delay margins in 29 radii and 36 s,
-where the former bisection took 103 radii and 6.5 minutes of wall time; 12 taps (16432 rows) in 54 s; at ELT
+where the former bisection took 103 radii (its DM-gain interval alone: 160 s against 39 s, the benchmark's
+``coupled/1264x10`` row); 12 taps (16432 rows) in 54 s; at ELT
 size (80 across, 5024 actuators, 10 taps: 55264 rows) in 29 radii and 6 minutes, beyond :data:`COMPANION_LIMIT`.
 """
 
