@@ -5,7 +5,8 @@ scenario on an ``n_across`` grid at the same pitch (40 across: 1264 actuators), 
 :func:`eofnn.analysis.stability.analyse` (``delay_margin=False``: what ``optimization.select`` asks for; beyond
 ``DENSE_LIMIT`` companion rows, ARPACK started from the previous solve's eigenvector and Brent's method on the
 spectral radius), against the same interval found as eofnn found it before (the same bracketing steps, then 30
-bisections of stable / unstable, each radius a fresh ARPACK solve of 6 eigenvalues in its default Krylov space).
+bisections of stable / unstable, each radius a fresh ARPACK solve of 6 eigenvalues in its default Krylov space; one
+BLAS thread for both).
 ``coupled/<K>x<taps>/budget``: the same time against a budget (goal: the interval in minutes). ``info`` holds both
 intervals and their largest difference.
 """
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse.linalg as spla
 import torch
+from threadpoolctl import threadpool_limits
 
 from benchmarks.bench_turbulence import scenario_with_grid
 from benchmarks.common import Row, Timing, time_interleaved
@@ -47,16 +49,18 @@ def fitted_neighbourhood_filter(n_across: int, history_length: int, train_frames
 
 def _former_radius(p_list) -> float:
     """The spectral radius as computed before: dense up to DENSE_LIMIT rows, else ARPACK (6 eigenvalues, its default
-    Krylov space and its own random start)."""
+    Krylov space and its own random start), here on one BLAS thread like eofnn's (on 2 busy cores, 2 threads made
+    either several times slower): the ratio is the method's, not the threads'."""
     matrix = block.companion(p_list)
     if matrix is None:
         return 0.0
     if matrix.shape[0] <= block.DENSE_LIMIT:
         return float(np.abs(np.linalg.eigvals(matrix.toarray())).max())
-    try:
-        values = spla.eigs(matrix, k=6, which="LM", return_eigenvectors=False, tol=1e-10, maxiter=20000)
-    except spla.ArpackNoConvergence as err:
-        values = err.eigenvalues
+    with threadpool_limits(1, user_api="blas"):  # as eofnn's solves now run (threads only slow them down)
+        try:
+            values = spla.eigs(matrix, k=6, which="LM", return_eigenvectors=False, tol=1e-10, maxiter=20000)
+        except spla.ArpackNoConvergence as err:
+            values = err.eigenvalues
     return float(np.abs(values).max())
 
 

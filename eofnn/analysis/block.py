@@ -16,7 +16,8 @@ bracketing its spectral radius ``rho`` (a pocket of instability between two brac
 
 Measured (one core of a shared 2-core machine, CPU time; ``experiments/coupled_margins.py``): a fitted open-loop
 neighbourhood EOF at 40 across, 10 taps (13904 rows), pole, DM-gain interval and delay margins in 29 radii and 36 s,
-where the former bisection took 103 radii and 6.5 minutes of wall time; 12 taps (16432 rows) in 54 s; at ELT
+where the former bisection took 103 radii (its DM-gain interval alone: 160 s against 39 s, the benchmark's
+``coupled/1264x10`` row); 12 taps (16432 rows) in 54 s; at ELT
 size (80 across, 5024 actuators, 10 taps: 55264 rows) in 29 radii and 6 minutes, beyond :data:`COMPANION_LIMIT`.
 """
 
@@ -29,6 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 from scipy.optimize import brentq
+from threadpoolctl import threadpool_limits
 
 from eofnn.analysis import polynomials as poly
 from eofnn.errors import ConfigError
@@ -215,12 +217,16 @@ class SpectralRadius:
 
 
 def _largest_eigenvalues(matrix: sp.csr_matrix, start: np.ndarray, krylov: int) -> tuple[np.ndarray, np.ndarray]:
-    """ARPACK's :data:`ARPACK_EIGENVALUES` of largest modulus and their eigenvectors (those that converged)."""
-    try:
-        return spla.eigs(matrix, k=ARPACK_EIGENVALUES, ncv=min(krylov, matrix.shape[0]), which="LM", v0=start,
-                         tol=ARPACK_TOL, maxiter=20000)
-    except spla.ArpackNoConvergence as err:  # use what converged
-        return err.eigenvalues, err.eigenvectors
+    """ARPACK's :data:`ARPACK_EIGENVALUES` of largest modulus and their eigenvectors (those that converged), on one
+    BLAS thread: its thousands of small products (a Krylov basis of ``rows x krylov``) gain nothing from threads, and
+    on a busy machine threaded BLAS made the 1264-actuator interval 13 times slower (316 s against 24 s of wall
+    time, 228 s of CPU against 24, with 2 threads on 2 shared cores)."""
+    with threadpool_limits(1, user_api="blas"):
+        try:
+            return spla.eigs(matrix, k=ARPACK_EIGENVALUES, ncv=min(krylov, matrix.shape[0]), which="LM", v0=start,
+                             tol=ARPACK_TOL, maxiter=20000)
+        except spla.ArpackNoConvergence as err:  # use what converged
+            return err.eigenvalues, err.eigenvectors
 
 
 def block_analysis(weights: torch.Tensor, neighbours: torch.Tensor, kind: str, history_length: int, setup,
