@@ -168,8 +168,9 @@ def bench_scaling(scenario: Scenario, n_across: tuple[int, ...] = (20, 40, 80), 
 
 
 #: The end-to-end series' contenders: an integrator, open- and closed-loop EOF per actuator. (A neighbourhood
-#: filter's coupled stability analysis grows much faster than linearly and is refused beyond 12000 companion rows,
-#: 80 across among them: it would time that analysis, not the comparison.)
+#: filter's coupled stability analysis grows much faster than linearly and is refused beyond 20000 companion rows,
+#: 80 across among them: it would time that analysis, not the comparison; the ``coupled`` rows of the stability
+#: benchmark time it.)
 COMPARE_PREDICTORS = {
     "integrator": {"controller": "integrator", "gain": 0.4},
     "ol_eof": {"history_length": 4, "optimization": {"alpha": 1e-9}},

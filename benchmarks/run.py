@@ -44,7 +44,9 @@ FULL = {
     "loop": {"n_across": (40, 80), "history_length": 12, "n_frames": 2000, "step_count": 2000, "repeat": 5},
     "fit": {"n_frames": 60000, "n_actuators": 1264, "n_taps": 12, "repeat": 3,
             "elt": {"n_frames": 60000, "n_actuators": 5024, "n_taps": 12, "pool_frames": 4000, "repeat": 2}},
-    "stability": {"n_actuators": (1264, 5024), "history_length": 6, "repeat": 3, "goal_seconds": 10.0},
+    "stability": {"n_actuators": (1264, 5024), "history_length": 6, "repeat": 3, "goal_seconds": 10.0,
+                  "coupled": {"n_across": 40, "history_length": 10, "train_frames": 4000, "val_frames": 1000,
+                              "repeat": 1, "budget_seconds": 300.0}},
     "end_to_end": {"diameter_m": 4.0, "n_across": 20, "history_length": 4, "train_frames": 20000,
                    "val_frames": 2000, "eval_frames": 5000, "repeat": 2},
     "scaling": {},
@@ -60,7 +62,9 @@ QUICK = {
              "bandwidth_bytes": 16 * 2**20},
     "fit": {"n_frames": 2000, "n_actuators": 80, "n_taps": 12, "batch_frames": (256, 1024), "repeat": 2,
             "elt": {"n_frames": 2000, "n_actuators": 76, "n_taps": 12, "pool_frames": 500, "repeat": 1}},
-    "stability": {"n_actuators": (76,), "history_length": 6, "repeat": 1, "goal_seconds": 10.0},
+    "stability": {"n_actuators": (76,), "history_length": 6, "repeat": 1, "goal_seconds": 10.0,
+                  "coupled": {"n_across": 10, "history_length": 4, "train_frames": 400, "val_frames": 200,
+                              "repeat": 1, "budget_seconds": 300.0}},
     "end_to_end": {"diameter_m": 2.0, "n_across": 10, "history_length": 4, "train_frames": 1000, "val_frames": 200,
                    "eval_frames": 300, "repeat": 1, "warmup": 0},
     "scaling": {"n_across": (6, 8, 10), "histories": (2, 4, 8), "turbulence_frames": (400, 800, 1600),
@@ -113,10 +117,12 @@ def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, 
         return rows, skipped
     if name == "stability":
         from benchmarks.bench_adaptive import stability_rows
+        from benchmarks.bench_coupled import coupled_rows
 
-        return [row for n in sizes["n_actuators"]
+        rows = [row for n in sizes["n_actuators"]
                 for row in stability_rows(n, sizes["history_length"], sizes["repeat"], 0, "stability",
-                                          f"analysis/{n}", sizes["goal_seconds"])], []
+                                          f"analysis/{n}", sizes["goal_seconds"])]
+        return rows + coupled_rows(**sizes["coupled"]), []
     if name == "end_to_end":
         from benchmarks.bench_end_to_end import bench_end_to_end, small_reference_scenario
 

@@ -25,6 +25,7 @@ from pathlib import Path
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
 from report_scale import elt_section, interop_section
+from report_sh import sh_section
 
 
 def study_section() -> str:
@@ -319,6 +320,7 @@ from telemetry alone (`telemetry.md`).
 
 {study_section()}
 {realistic_section()}
+{sh_section()}
 {cl_study_section()}
 {robustness_section()}
 {elt_section()}

@@ -51,7 +51,7 @@ screens are shared between steps):
 {chr(10).join(lines)}
 
 - The neighbourhood filters' coupled stability analysis is refused at this size (its companion matrix exceeds
-  12000 rows; `eofnn.analysis.block`); their DM-gain interval can be measured by simulation
+  20000 rows; `eofnn.analysis.block`); their DM-gain interval can be measured by simulation
   (`--simulated_margins`), which this short run does not do.
 - *Limits*: short telemetry (2000 frames) and test stream; one realisation.
 

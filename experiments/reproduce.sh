@@ -34,6 +34,9 @@ $eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact
   --out $r/fair/paper_gap/exact --overwrite true
 $eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact \
   --out $r/fair/paper_gap/exact_subaperture --overwrite true
+# 2b. The main job through a Shack-Hartmann (photon noise, R = 8), beside the same job through the zonal sensor.
+$eofnn compare --config configs/realistic_small.yaml --out $r/realistic_small --overwrite true
+$eofnn compare --config configs/realistic_sh.yaml --out $r/realistic_sh --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \

@@ -26,7 +26,7 @@ RUNS = HERE / "runs"
 COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy", "fair/paper_gap/exact",
             "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
-            "adaptive/dm_gain_drift_2.0", "elt_small", "elt")
+            "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing")  # experiments/interop/<name>, written by experiments/interop/run.sh
 PAGES = ("results.md", "pareto.md")
@@ -35,7 +35,8 @@ PAGES = ("results.md", "pareto.md")
 _PER = lambda keep: {"*": {"*": keep}}  # noqa: E731  (scenario -> predictor -> keep)
 METRICS = {
     "scenarios": _PER({"median_rms_nm", "diverged", "diverged_frame", "settle_frames", "n_frames", "reconvergence",
-                       "fallback_frame"}),
+                       "fallback_frame", "residual_over", "actuator_median_rms_nm", "error_budget"}),
+    "raw_contrast": {"*": {"*": True}},
     "stability": _PER({"stable", "dm_gain_interval"}),
     "simulated_stability": _PER({"dm_gain_interval", "tolerance"}),
     "integrator_gains": _PER({"gain"}),

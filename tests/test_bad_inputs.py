@@ -25,10 +25,10 @@ NUMERIC_KEYS = [
 NON_FINITE = [".inf", "-.inf", ".nan", "null"]
 
 
-# null is allowed for dm_gain_model (the predictor's own DM model) and alpha (chosen on validation data), so those
-# pairs are not bad inputs.
+# null is allowed for dm_gain_model (the predictor's own DM model), alpha (chosen on validation data) and lr (the
+# optimiser's default), so those pairs are not bad inputs.
 CASES = [(key, value) for key in NUMERIC_KEYS for value in NON_FINITE
-         if not (value == "null" and key.endswith(("dm_gain_model", "alpha")))]
+         if not (value == "null" and key.endswith(("dm_gain_model", "alpha", ".lr")))]
 
 
 @pytest.mark.cli

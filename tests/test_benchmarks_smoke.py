@@ -29,7 +29,7 @@ EXPECTED_ROWS = {
     "loop": ("run_loop/bound/", "run_loop/realtime/", "run_loop_pregenerated/numpy/", "step/bound/", "step/numpy/",
              "step/budget/"),
     "fit": ("fit/",),
-    "stability": ("analysis/",),
+    "stability": ("analysis/", "coupled/"),
     "end_to_end": ("total", "fit", "evaluate"),
     "stream": ("memory/", "fit_time/"),
     "startup": ("startup/help", "startup/unknown_key", "startup/out_of_range"),

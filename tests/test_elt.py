@@ -123,11 +123,13 @@ def test_a_coupled_analysis_beyond_the_limit_is_refused_with_its_size(monkeypatc
         analyse(weights, "open_loop", 4, LoopSetup(), structure="neighbourhood", neighbours=neighbours)
 
 
-def test_the_elt_grid_is_ten_times_beyond_the_coupled_limit_but_per_actuator_is_not():
+def test_the_elt_grid_is_beyond_the_coupled_limit_but_40_across_with_12_taps_and_per_actuator_are_not():
     k_act = ActuatorGrid(39.0, 80).n_actuators
     assert k_act == 5024
     assert block.companion_rows(k_act, "open_loop", 4, 2, 2) > block.COMPANION_LIMIT
     assert block.companion_rows(ActuatorGrid(8.0, 40).n_actuators, "closed_loop", 5, 2, 2) <= block.COMPANION_LIMIT
+    # Issue 31: an open-loop neighbourhood filter at 40 across with 10-12 taps, integer or fractional delay.
+    assert block.companion_rows(ActuatorGrid(8.0, 40).n_actuators, "open_loop", 12, 2.5, 2.5) <= block.COMPANION_LIMIT
 
 
 @pytest.mark.cli

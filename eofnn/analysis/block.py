@@ -4,7 +4,21 @@ Each actuator's command reads its neighbours' histories, so ``D(z) y = N(z) u`` 
 polynomials and the loop obeys ``P(z) = D(z) - g Q(z) N(z)`` (``Q`` the scalar plant polynomial of
 :mod:`eofnn.analysis.stability`). ``P_0 = I``, so the loop is the recursion ``y(n) = -sum_k P_k y(n-k)``, whose
 block companion matrix (sparse, ``K L x K L``) has the closed-loop poles as eigenvalues. Margins are found by
-bracketing and bisecting its spectral radius (a pocket of instability between two bracketing points is missed).
+bracketing its spectral radius ``rho`` (a pocket of instability between two bracketing points is missed), then:
+
+- up to :data:`DENSE_LIMIT` rows, every eigenvalue (LAPACK) and a bisection of stable / unstable;
+- beyond, the few largest eigenvalues (ARPACK), each solve started from the previous one's dominant eigenvector, and
+  Brent's method on ``rho - 1``, which is continuous in the DM gain and the delay: five to seven radii per edge once
+  bracketed, where bisection takes thirty, and those near the edge, where the critical pole stands apart, converge
+  fastest. At 40 across (1264 actuators) the poles of a 10-tap open-loop neighbourhood filter well inside the stable
+  range form a ring of thousands of nearly equal moduli, on which ARPACK's defaults (6 eigenvalues, a Krylov space
+  of 20) took up to a minute per radius, or did not converge.
+
+Measured (one core of a shared 2-core machine, CPU time; ``experiments/coupled_margins.py``): a fitted open-loop
+neighbourhood EOF at 40 across, 10 taps (13904 rows), pole, DM-gain interval and delay margins in 29 radii and 36 s,
+where the former bisection took 103 radii (its DM-gain interval alone: 160 s against 39 s, the benchmark's
+``coupled/1264x10`` row); 12 taps (16432 rows) in 54 s; at ELT
+size (80 across, 5024 actuators, 10 taps: 55264 rows) in 29 radii and 6 minutes, beyond :data:`COMPANION_LIMIT`.
 """
 
 from __future__ import annotations
@@ -15,19 +29,30 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
+from scipy.optimize import brentq
+from threadpoolctl import threadpool_limits
 
 from eofnn.analysis import polynomials as poly
 from eofnn.errors import ConfigError
+from eofnn.resources import require_memory
 
-#: Dense eigenvalues up to this companion size, ARPACK beyond.
+#: Dense eigenvalues (and bisected edges) up to this companion size, ARPACK (and Brent's method) beyond.
 DENSE_LIMIT = 2500
 #: Transfer functions (a K x K solve per frequency) up to this many actuators.
 TRANSFER_LIMIT = 400
-#: Largest block companion (rows: actuators x polynomial order) analysed. The margins take ~100 spectral radii;
-#: ARPACK converges slowly on the clustered poles of thousands of similar loops (measured on 2 shared cores: 1264
-#: actuators x 7 = 8848 rows in 8 s, 5024 x 5 = 25120 rows 100-130 s for *one* radius), so beyond this a coupled
-#: analysis is refused up front (:class:`CoupledAnalysisTooLarge`) instead of running for hours.
-COMPANION_LIMIT = 12000
+#: ARPACK's eigenvalues of largest modulus asked for, its Krylov space, its relative tolerance and the seed of the
+#: first start vector. Measured on the ring of poles above (1264 x 11 rows): 4 of 20 did not converge in 1000
+#: restarts, 6 of 20 took 1400-19000 products (once not converged in 2000), 10 of 60 took 2000-6000 (1-2.5 s of
+#: one core).
+ARPACK_EIGENVALUES, ARPACK_KRYLOV, ARPACK_TOL, ARPACK_SEED = 10, 60, 1e-10, 0
+#: Brent's method stops when an edge is known to this fraction of its bracket (bisection: 30 halvings, 5e-10).
+EDGE_TOLERANCE = 1e-10
+#: Largest block companion (rows: actuators x polynomial order) analysed: 40 across with up to 13 taps, in about a
+#: minute of CPU (module docstring); a radius costs about rows^1.7 (1.1 s at 13904 rows, 12.5 s at 55264), so
+#: beyond, the analysis is refused up front (:class:`CoupledAnalysisTooLarge`). An ELT's 10-tap filter (55264 rows)
+#: takes about 6 CPU minutes: raise this to analyse it (and rerun the ELT runs of experiments/README.md, which say
+#: their neighbourhood filters were refused).
+COMPANION_LIMIT = 20000
 GAIN_STEPS_UP = (1.02, 1.05, 1.1, 1.25, 1.5, 2.0, 3.0, 5.0, 10.0, 100.0)
 GAIN_STEPS_DOWN = (0.98, 0.95, 0.9, 0.75, 0.5, 0.25, 0.1, 0.0, -0.1, -1.0, -10.0)
 BISECTIONS = 30
@@ -35,8 +60,17 @@ BISECTIONS = 30
 DELAY_SUBSTEPS = 10
 
 
-class CoupledAnalysisTooLarge(ConfigError):
-    """A neighbourhood filter's coupled analysis is beyond :data:`COMPANION_LIMIT` (the message gives the size)."""
+class CoupledAnalysisUnavailable(ConfigError):
+    """A neighbourhood filter has no analytic margins (the message says why): reported like a network's."""
+
+
+class CoupledAnalysisTooLarge(CoupledAnalysisUnavailable):
+    """A neighbourhood filter's coupled analysis is beyond :data:`COMPANION_LIMIT` or the memory available (the
+    message gives the size)."""
+
+
+class CoupledAnalysisNotConverged(CoupledAnalysisUnavailable):
+    """ARPACK found no eigenvalue of a companion, even in a larger Krylov space."""
 
 
 def companion_rows(n_actuators: int, kind: str, history_length: int, delay_frames: float,
@@ -50,15 +84,35 @@ def companion_rows(n_actuators: int, kind: str, history_length: int, delay_frame
     return n_actuators * max(d_order, lag(delay_frames) + history_length - 1)
 
 
-def require_coupled_size(n_actuators: int, kind: str, history_length: int, setup) -> None:
-    """Refuse, up front, a coupled analysis whose companion exceeds :data:`COMPANION_LIMIT` rows."""
+def coupled_bytes(rows: int, slots: int, n_actuators: int) -> int:
+    """Memory (bytes) of the spectral radii of a ``rows``-row block companion whose ``K = n_actuators`` rows of
+    coefficients hold ``slots`` neighbours each: the dense matrix and LAPACK's copy and workspace up to
+    :data:`DENSE_LIMIT` rows; beyond, the sparse companion (its COO and CSR forms while it is built) and ARPACK's
+    Krylov basis, work arrays and eigenvectors."""
+    if rows <= DENSE_LIMIT:
+        return 3 * 8 * rows * rows
+    nonzeros = n_actuators * slots * (rows // max(n_actuators, 1)) + rows
+    return 40 * nonzeros + 16 * rows * (ARPACK_KRYLOV + 2 * ARPACK_EIGENVALUES + 6)
+
+
+def require_coupled_size(n_actuators: int, kind: str, history_length: int, setup, slots: int = 9) -> None:
+    """Refuse, up front, a coupled analysis whose companion exceeds :data:`COMPANION_LIMIT` rows, or whose largest
+    companion (the delay scan's, ``max_extra_delay_frames`` on) does not fit the memory available (one line each)."""
     rows = companion_rows(n_actuators, kind, history_length, setup.delay_frames, setup.controller_delay)
     if rows > COMPANION_LIMIT:
         raise CoupledAnalysisTooLarge(
             f"the coupled stability analysis of a neighbourhood filter on {n_actuators} actuators needs a "
             f"{rows}-row block companion (actuators x order), more than the {COMPANION_LIMIT} it handles in minutes "
-            "(each margin takes about 100 sparse eigenvalue problems): analyse a per-actuator filter, or measure "
-            "this one's DM-gain interval by simulation (compare --simulated_margins)")
+            "(the margins take 30-40 sparse eigenvalue problems, each slower as the companion grows): analyse a "
+            "per-actuator filter, or measure this one's DM-gain interval by simulation (compare --simulated_margins)")
+    longest = companion_rows(n_actuators, kind, history_length, setup.delay_frames + setup.max_extra_delay_frames,
+                             setup.controller_delay)
+    try:
+        require_memory(coupled_bytes(longest, slots, n_actuators),
+                       f"the coupled stability analysis of a neighbourhood filter on {n_actuators} actuators "
+                       f"({slots} neighbours each, block companions up to {longest} rows)")
+    except ConfigError as err:
+        raise CoupledAnalysisTooLarge(str(err)) from None
 
 
 def matrix_polynomials(weights: torch.Tensor, neighbours: torch.Tensor, kind: str, history_length: int,
@@ -110,78 +164,130 @@ def characteristic(d_list: list, n_list: list, plant: np.ndarray, dm_gain: float
     return out
 
 
-def spectral_radius(p_list: list[sp.csr_matrix]) -> float:
-    """Largest pole modulus of the recursion ``sum_k P_k y(n-k) = 0`` (``P_0 = I``)."""
+def companion(p_list: list[sp.csr_matrix]) -> sp.csr_matrix | None:
+    """The block companion matrix of the recursion ``sum_k P_k y(n-k) = 0`` (``P_0 = I``; ``None`` for order 0)."""
     k_act, order = p_list[0].shape[0], len(p_list) - 1
     if order == 0:
-        return 0.0
+        return None
     blocks = [[None] * order for _ in range(order)]
     for k in range(order):
         blocks[0][k] = -p_list[k + 1]
     for k in range(1, order):
         blocks[k][k - 1] = sp.identity(k_act, format="csr")
-    companion = sp.bmat(blocks, format="csr")
-    if companion.shape[0] <= DENSE_LIMIT:
-        return float(np.abs(np.linalg.eigvals(companion.toarray())).max())
-    try:
-        values = spla.eigs(companion, k=6, which="LM", return_eigenvectors=False, tol=1e-10, maxiter=20000)
-    except spla.ArpackNoConvergence as err:  # use what converged
-        values = err.eigenvalues
-    return float(np.abs(values).max())
+    return sp.bmat(blocks, format="csr")
+
+
+def spectral_radius(p_list: list[sp.csr_matrix]) -> float:
+    """Largest pole modulus of the recursion ``sum_k P_k y(n-k) = 0`` (``P_0 = I``)."""
+    return SpectralRadius()(p_list)
+
+
+class SpectralRadius:
+    """:func:`spectral_radius`, called again and again on nearby systems: every eigenvalue up to
+    :data:`DENSE_LIMIT` rows; beyond, ARPACK's :data:`ARPACK_EIGENVALUES` of largest modulus, started from the
+    previous call's dominant eigenvector when the companion has the same size (a seeded random vector otherwise, so
+    a sequence of calls is reproducible)."""
+
+    def __init__(self) -> None:
+        self._start: np.ndarray | None = None
+
+    def __call__(self, p_list: list[sp.csr_matrix]) -> float:
+        matrix = companion(p_list)
+        if matrix is None:
+            return 0.0
+        rows = matrix.shape[0]
+        if rows <= DENSE_LIMIT:
+            return float(np.abs(np.linalg.eigvals(matrix.toarray())).max())
+        start = self._start
+        if start is None or len(start) != rows:
+            start = np.random.default_rng(ARPACK_SEED).standard_normal(rows)
+        values, vectors = _largest_eigenvalues(matrix, start, ARPACK_KRYLOV)
+        if not len(values):  # none converged: a larger Krylov space, from a fresh start
+            values, vectors = _largest_eigenvalues(matrix, np.random.default_rng(ARPACK_SEED).standard_normal(rows),
+                                                   2 * ARPACK_KRYLOV)
+        if not len(values):
+            raise CoupledAnalysisNotConverged(
+                f"the spectral radius of a {rows}-row block companion did not converge (ARPACK, {ARPACK_EIGENVALUES} "
+                f"eigenvalues, Krylov spaces of {ARPACK_KRYLOV} and {2 * ARPACK_KRYLOV}): measure this filter's "
+                "DM-gain interval by simulation (compare --simulated_margins)")
+        largest = int(np.abs(values).argmax())
+        # A real start vector in the dominant (complex pair's) invariant plane.
+        self._start = vectors[:, largest].real + vectors[:, largest].imag
+        return float(np.abs(values[largest]))
+
+
+def _largest_eigenvalues(matrix: sp.csr_matrix, start: np.ndarray, krylov: int) -> tuple[np.ndarray, np.ndarray]:
+    """ARPACK's :data:`ARPACK_EIGENVALUES` of largest modulus and their eigenvectors (those that converged), on one
+    BLAS thread: its thousands of small products (a Krylov basis of ``rows x krylov``) gain nothing from threads, and
+    on a busy machine threaded BLAS made the 1264-actuator interval 13 times slower (316 s against 24 s of wall
+    time, 228 s of CPU against 24, with 2 threads on 2 shared cores)."""
+    with threadpool_limits(1, user_api="blas"):
+        try:
+            return spla.eigs(matrix, k=ARPACK_EIGENVALUES, ncv=min(krylov, matrix.shape[0]), which="LM", v0=start,
+                             tol=ARPACK_TOL, maxiter=20000)
+        except spla.ArpackNoConvergence as err:  # use what converged
+            return err.eigenvalues, err.eigenvectors
 
 
 def block_analysis(weights: torch.Tensor, neighbours: torch.Tensor, kind: str, history_length: int, setup,
-                   frequencies_hz: torch.Tensor) -> tuple:
-    """Fields of a one-group :class:`~eofnn.analysis.stability.StabilityResult` for the coupled system."""
-    require_coupled_size(neighbours.shape[0], kind, history_length, setup)
+                   frequencies_hz: torch.Tensor, delay_margin: bool = True) -> tuple:
+    """Fields of a one-group :class:`~eofnn.analysis.stability.StabilityResult` for the coupled system (without
+    ``delay_margin``, the delay margins are left undefined: NaN and -1)."""
+    k_act, slots = neighbours.shape
+    require_coupled_size(k_act, kind, history_length, setup, slots)
     d_list, n_list = matrix_polynomials(weights, neighbours, kind, history_length, setup.dm_gain_model,
                                         setup.controller_delay)
+    # Up to DENSE_LIMIT rows every eigenvalue and bisected edges, as always; beyond, ARPACK and Brent's method.
+    bisect = companion_rows(k_act, kind, history_length, setup.delay_frames, setup.controller_delay) <= DENSE_LIMIT
+    spectral, known = SpectralRadius(), {}
 
     def radius(dm_gain: float, delay_frames: float) -> float:
-        plant = setup.plant_polynomial(delay_frames).numpy()
-        return spectral_radius(characteristic(d_list, n_list, plant, dm_gain))
+        if (dm_gain, delay_frames) not in known:
+            plant = setup.plant_polynomial(delay_frames).numpy()
+            known[dm_gain, delay_frames] = spectral(characteristic(d_list, n_list, plant, dm_gain))
+        return known[dm_gain, delay_frames]
 
     g, tau = setup.dm_gain, float(setup.delay_frames)
     modulus = radius(g, tau)
     nan2 = torch.full((1, 2), math.nan, dtype=torch.float64)
-    interval, delay_margin, integer = nan2.clone(), math.nan, -1
+    interval, margin, integer = nan2.clone(), math.nan, -1
     if modulus < 1:
-        stable_at = lambda gain: radius(gain, tau) < 1  # noqa: E731
-        lower = _bisect_edge(stable_at, g, [g * s if g else s - 1 for s in GAIN_STEPS_DOWN])
-        upper = _bisect_edge(stable_at, g, [g * s if g else s - 1 for s in GAIN_STEPS_UP])
+        at_gain = lambda gain: radius(gain, tau)  # noqa: E731
+        lower = _edge(at_gain, g, [g * s if g else s - 1 for s in GAIN_STEPS_DOWN], bisect)
+        upper = _edge(at_gain, g, [g * s if g else s - 1 for s in GAIN_STEPS_UP], bisect)
         interval = torch.tensor([[lower, upper]], dtype=torch.float64)
-        known: dict[float, bool] = {}
-
-        def stable_with(delay: float) -> bool:
-            if delay not in known:
-                known[delay] = radius(g, delay) < 1
-            return known[delay]
-
-        integer = next((j - 1 for j in range(1, setup.max_extra_delay_frames + 1) if not stable_with(tau + j)),
+    if modulus < 1 and delay_margin:
+        at_delay = lambda delay: radius(g, delay)  # noqa: E731
+        integer = next((j - 1 for j in range(1, setup.max_extra_delay_frames + 1) if not at_delay(tau + j) < 1),
                        setup.max_extra_delay_frames)
         # Stability is not monotone in a fractional delay (the plant interpolates between two whole lags): scan in
-        # steps of 1 / DELAY_SUBSTEPS frame up to the first unstable delay, then bisect.
+        # steps of 1 / DELAY_SUBSTEPS frame up to the first unstable delay, then refine.
         steps = [tau + k / DELAY_SUBSTEPS for k in range(1, DELAY_SUBSTEPS * setup.max_extra_delay_frames + 1)]
-        delay_margin = _bisect_edge(stable_with, tau, steps) - tau
+        margin = _edge(at_delay, tau, steps, bisect) - tau
     freqs = frequencies_hz
     rejection = noise = torch.zeros(1, 0, dtype=torch.complex128)
-    if neighbours.shape[0] <= TRANSFER_LIMIT:
+    if k_act <= TRANSFER_LIMIT:
         rejection, noise = _mean_diagonal_transfer(d_list, n_list, setup, freqs)
     else:
         freqs = freqs[:0]
     return (torch.tensor([modulus], dtype=torch.float64), interval, nan2.clone(),
-            torch.tensor([delay_margin], dtype=torch.float64), torch.tensor([integer]), freqs, rejection, noise)
+            torch.tensor([margin], dtype=torch.float64), torch.tensor([integer]), freqs, rejection, noise)
 
 
-def _bisect_edge(stable_at, inside: float, candidates: list[float]) -> float:
-    """Edge of the stable set from ``inside`` towards the first unstable candidate (``+-inf`` if none is)."""
+def _edge(radius_at, inside: float, candidates: list[float], bisect: bool) -> float:
+    """Edge of the stable set (``radius_at(x) < 1``) from ``inside`` towards the first unstable candidate (``+-inf``
+    if none is): :data:`BISECTIONS` halvings of the bracket, or Brent's method on ``radius_at - 1`` (continuous) to
+    :data:`EDGE_TOLERANCE` of it."""
     previous = inside
     for candidate in candidates:
-        if not stable_at(candidate):
+        if not radius_at(candidate) < 1:
+            if not bisect:
+                return float(brentq(lambda x: radius_at(x) - 1, previous, candidate,
+                                    xtol=EDGE_TOLERANCE * abs(candidate - previous)))
             lo, hi = previous, candidate
             for _ in range(BISECTIONS):
                 mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if stable_at(mid) else (lo, mid)
+                lo, hi = (mid, hi) if radius_at(mid) < 1 else (lo, mid)
             return 0.5 * (lo + hi)
         previous = candidate
     return math.inf if candidates[-1] > inside else -math.inf

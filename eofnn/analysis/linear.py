@@ -87,12 +87,12 @@ def dm_gain_margin(frame_rate_hz: float = 1000.0):
     """``margin(network, weights, spec, plant_dm_gain, dm_gain_model)``: the stable DM-gain interval, relative to
     ``plant_dm_gain`` (the DM gain of the plant the filter is made for), of a linear filter shaped like ``network``
     with other ``weights``, reading ``spec`` histories; ``None`` when that loop is unstable. What
-    ``optimization.select`` checks each alpha of the path with."""
+    ``optimization.select`` checks each alpha of the path with (no delay margin, no transfer functions)."""
     def margin(network, weights: torch.Tensor, spec, plant_dm_gain: float, dm_gain_model: float):
         setup = LoopSetup(spec.delay_frames, plant_dm_gain, 1.0, dm_gain_model, spec.delay_frames, frame_rate_hz)
         result = analyse(weights, spec.kind, spec.history_length, setup, structure=network.structure,
                          neighbours=getattr(network, "neighbours", None),
-                         frequencies_hz=torch.empty(0, dtype=torch.float64))
+                         frequencies_hz=torch.empty(0, dtype=torch.float64), delay_margin=False)
         if not result.stable:
             return None
         low, high = result.gain_margin

@@ -17,12 +17,10 @@ factors, so hidden controller modes count), and
 
 - rejection (sensitivity) ``eps / s = D / P``; noise transfer ``eps / v = g z^-d H N / P`` (nm per nm of WFS noise);
 - stability: every root of ``P`` inside the unit circle;
-- DM gain interval: ``P`` is affine in ``g``, so a root crosses the unit circle where ``D / (Q N)`` is real;
-  those gains are found exactly (:func:`~eofnn.analysis.polynomials.real_crossings`) and the stable interval is
-  the one around the nominal gain;
-- delay margin: between integer delays ``m`` and ``m + 1`` the plant polynomial is affine in ``f``, so the first
-  delay at which a root reaches the unit circle is found the same way (fractional), besides the number of whole
-  extra frames tolerated (integer).
+- DM gain interval: ``P`` is affine in ``g``, so a root crosses the unit circle where ``D / (Q N)`` is real; those
+  gains are found exactly (:func:`~eofnn.analysis.polynomials.real_crossings`), the interval the one around nominal;
+- delay margin: between integer delays ``m`` and ``m + 1`` the plant polynomial is affine in ``f``: the first delay
+  at which a root reaches the unit circle is found the same way (fractional), and the whole extra frames tolerated.
 """
 
 from __future__ import annotations
@@ -273,7 +271,7 @@ def default_frequencies_hz(frame_rate_hz: float, n: int = 256) -> torch.Tensor:
 
 def analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSetup | None = None, *,
             structure: str = "per_actuator", neighbours: torch.Tensor | None = None,
-            frequencies_hz: torch.Tensor | None = None) -> StabilityResult:
+            frequencies_hz: torch.Tensor | None = None, delay_margin: bool = True) -> StabilityResult:
     """Stability margins and transfer functions of linear filter ``weights`` in the loop ``setup``.
 
     Parameters
@@ -291,6 +289,8 @@ def analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSe
         :meth:`~eofnn.sim.grid.ActuatorGrid.neighbours`, is required).
     frequencies_hz : Tensor, optional
         Where to evaluate the transfer functions (:func:`default_frequencies_hz` by default).
+    delay_margin : bool
+        Whether to find the delay margins (``False``: NaN and -1, for a caller that wants the DM-gain interval only).
     """
     setup = setup or LoopSetup()
     _check_weights(weights, kind, history_length, structure, neighbours)
@@ -298,12 +298,13 @@ def analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSe
     freqs = default_frequencies_hz(setup.frame_rate_hz) if frequencies_hz is None else frequencies_hz.to(poly.DTYPE)
     if structure == "neighbourhood":
         result = StabilityResult(kind, structure, history_length, setup,
-                                 *block_analysis(weights, neighbours, kind, history_length, setup, freqs))
+                                 *block_analysis(weights, neighbours, kind, history_length, setup, freqs,
+                                                 delay_margin))
     else:
         d_poly, n_poly = controller_polynomials(weights, kind, history_length, setup.dm_gain_model,
                                                 setup.controller_delay)
         result = analyse_polynomials(d_poly, n_poly, setup, freqs, kind=kind, structure=structure,
-                                     history_length=history_length)
+                                     history_length=history_length, delay_margin=delay_margin)
     result.analysis_seconds = time.perf_counter() - start
     return result
 
@@ -327,9 +328,10 @@ def analyse_integrator(gain: float, leak: float = 0.0, setup: LoopSetup | None =
 
 
 def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup, frequencies_hz: torch.Tensor,
-                        *, kind: str = "closed_loop", structure: str = "per_actuator",
-                        history_length: int = 1) -> StabilityResult:
-    """Analysis of any controller ``D(z) y = N(z) u`` given per group as ``(groups, L)`` polynomials."""
+                        *, kind: str = "closed_loop", structure: str = "per_actuator", history_length: int = 1,
+                        delay_margin: bool = True) -> StabilityResult:
+    """Analysis of any controller ``D(z) y = N(z) u`` given per group as ``(groups, L)`` polynomials; no
+    ``delay_margin``: delay margins undefined (NaN, -1)."""
     groups = d_poly.shape[0]
     g = setup.dm_gain
     q_n = poly.multiply(setup.plant_polynomial(), n_poly)  # Q N
@@ -346,13 +348,14 @@ def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopS
     for column, bound in enumerate((lower, upper)):
         hit = gains == bound[rows]
         crossing_hz[:, column].scatter_reduce_(0, rows[hit], hz[hit], "amin", include_self=False)
-    delay_margin, integer_margin = _delay_margins(d_poly, n_poly, setup)
-    delay_margin[~stable], integer_margin[~stable] = math.nan, -1
+    delay_margins, integer_margin = (_delay_margins(d_poly, n_poly, setup) if delay_margin else (
+        torch.full((groups,), math.nan, dtype=poly.DTYPE), torch.full((groups,), -1, dtype=torch.int64)))
+    delay_margins[~stable], integer_margin[~stable] = math.nan, -1
     omega_grid = 2 * math.pi * frequencies_hz / setup.frame_rate_hz
     p_value = poly.evaluate(characteristic, omega_grid)
     rejection = poly.evaluate(d_poly, omega_grid) / p_value
     noise = g * poly.evaluate(poly.multiply(poly.fractional_delay(setup.delay_frames), n_poly), omega_grid) / p_value
-    return StabilityResult(kind, structure, history_length, setup, modulus, interval, crossing_hz, delay_margin,
+    return StabilityResult(kind, structure, history_length, setup, modulus, interval, crossing_hz, delay_margins,
                            integer_margin, frequencies_hz, rejection, noise)
 
 

@@ -78,5 +78,9 @@ def _fit(cfg: FitConfig, config_dump: str | None = None) -> dict:
         partial.write_text(config_yaml(cfg, config_dump))
     summary = {"checkpoint": str(out), "train_loss_nm2": result.train_loss, "val_loss_nm2": result.val_loss,
                "rounds": result.rounds, "targets": "telemetry" if cfg.telemetry else "simulator truth"}
+    if "through_loop" in result.info:  # closed-loop residuals (nm^2) of the closed-form start and of the result
+        loop = result.info["through_loop"]
+        summary["through_loop"] = {"start_val_residual_nm2": loop["start"]["val_residual_nm2"],
+                                   "val_residual_nm2": loop["val_residual_nm2"], "best_epoch": loop["best_epoch"]}
     log(json.dumps(summary))
     return summary

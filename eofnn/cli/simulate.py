@@ -19,7 +19,8 @@ from eofnn.sim.loop.runner import run_loop
 from eofnn.validation import Interval, OneOf, check_value
 
 DESCRIPTION = ("Run one controller (a baseline or a checkpoint) in a scenario and save its telemetry (s, y, eps, wfs "
-               "in nm) as FITS or .npz, with a plot of the RMS residual beside it.")
+               "in nm; with a Shack-Hartmann also its slopes, interaction matrix and reconstructor) as FITS or .npz, "
+               "with a plot of the RMS residual beside it.")
 SUFFIXES = (".fits", ".fit", ".npz")
 
 
@@ -87,8 +88,10 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
     from eofnn.reporting.report import plot_rms_vs_time
 
     scenario = cfg.scenario
-    # Telemetry keeps s, y, eps, wfs of every frame in float64.
-    require_memory(4 * 8 * cfg.frames * cfg.realisations * scenario.grid.n_actuators,
+    # Telemetry keeps s, y, eps, wfs of every frame in float64, and a Shack-Hartmann's slopes (fewer than 2 per
+    # actuator: counted as 2) beside them.
+    slopes = scenario.sensor.is_shack_hartmann
+    require_memory((6 if slopes else 4) * 8 * cfg.frames * cfg.realisations * scenario.grid.n_actuators,
                    f"simulate with frames={cfg.frames}, realisations={cfg.realisations} and "
                    f"{scenario.grid.n_actuators} actuators")
     scenario.require_stream_frames(cfg.frames, f"frames={cfg.frames}", cfg.realisations)
@@ -96,8 +99,11 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
     if p.controller in NEEDS_PREDICTOR:
         predictor = load_configured_checkpoint("controller", p, {"scenario": scenario},
                                                trusted_class_paths({"controller": p}, cfg.trusted_networks))
+    # A Shack-Hartmann's slopes go beside wfs, with the matrices that make wfs of them: readers use wfs, and a copy
+    # without it is read as anyone's slopes (docs/telemetry.md); telemetry.config["sensor"] says which sensor.
     result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
-                      build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress)
+                      build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress,
+                      record=("s", "y", "eps", "wfs", *(("slopes",) if slopes else ())))
     telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)
     telemetry.config.update({"eofnn": yaml.safe_load(config_yaml(cfg, config_dump)),
                              "diverged_frame": result.diverged_frame})

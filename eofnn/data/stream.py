@@ -116,6 +116,9 @@ class SimulatedTelemetry(IterableDataset):
         turbulence = self.scenario.turbulence(seed, name, self.data.realisations)
         plant = self.plant(index)
         if self.spec.kind == "open_loop" and not self.data.plant_range:
+            if hasattr(turbulence, "open_loop"):  # a Shack-Hartmann's: reconstructed slopes, aliasing and noise
+                s, s_hat = turbulence.open_loop(0, self.data.sequence_frames, plant, torch_generator(seed, name, 1))
+                return {"s": s, "s_hat": s_hat}
             s = turbulence.frames(0, self.data.sequence_frames)
             s_hat = s
             if plant.wfs_noise_nm > 0:

@@ -14,7 +14,7 @@ from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
 from eofnn.errors import ConfigError
 from eofnn.models.build import import_class
 from eofnn.training.config import OptimizationConfig
-from eofnn.validation import Constraint, Interval, IsString, OneOf, OrNone, check_value, from_mapping, validated
+from eofnn.validation import Constraint, Interval, IsBool, IsString, OneOf, OrNone, check_value, from_mapping, validated
 
 #: Most frames of one closed-loop evaluation (per realisation).
 MAX_EVALUATION_FRAMES = 10_000_000
@@ -168,6 +168,9 @@ class PredictorConfig:
             for gain in self.gains:
                 Integrator(gain, self.leak)
         self._check_setting_scans()
+        if self.trains and self.optimization.fit_method == "closed_loop" and not self.data.truth:
+            raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs "
+                              "data.truth: true (a fit from telemetry alone has no turbulence to close it on)")
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
@@ -175,8 +178,9 @@ class PredictorConfig:
                 cls = import_class(self.network["class_path"])  # a network: torch is imported by now
                 from eofnn.training.ridge import supports_closed_form
 
-                if self.optimization.fit_method == "closed_form" and not supports_closed_form(cls):
-                    raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; {cls.__name__} "
+                method = self.optimization.fit_method
+                if method in ("closed_form", "closed_loop") and not supports_closed_form(cls):
+                    raise ConfigError(f"optimization.fit_method={method!r} needs a linear network; {cls.__name__} "
                                       "has no features()/load_solution(): use optimization.fit_method: sgd")
 
     def _check_setting_scans(self) -> None:
@@ -253,6 +257,10 @@ class EvaluationConfig:
         Segment length of the residual PSD, frames: at most the settled frames (``frames - settle_frames``).
         Unset, 1024, or when a shorter run settles fewer frames the largest power of two they hold (said in one
         line when the run starts).
+    error_budget : bool or None
+        Split every contender's residual into fitting, aliasing, noise and temporal terms
+        (:mod:`eofnn.evaluation.budget`: two more runs of each, noise-free and with a perfect sensor; metrics.json
+        ``error_budget``, results.md). ``None`` (the default): only in scenarios with a Shack-Hartmann.
     """
 
     frames: int = 5000
@@ -262,6 +270,7 @@ class EvaluationConfig:
     strehl_wavelength_m: float = 1.65e-6
     divergence_factor: float = 10.0
     psd_segment_frames: int | None = None
+    error_budget: bool | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(2, MAX_EVALUATION_FRAMES, integer=True),
@@ -271,6 +280,7 @@ class EvaluationConfig:
         "strehl_wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
         "divergence_factor": Interval(1, 1e6, closed="right"),
         "psd_segment_frames": OrNone(Interval(MIN_PSD_SEGMENT_FRAMES, MAX_EVALUATION_FRAMES, integer=True)),
+        "error_budget": OrNone(IsBool()),
     }
     _where: ClassVar[str] = "evaluation."
 

@@ -29,6 +29,7 @@ from eofnn.training.checkpoint import load_predictor
 from eofnn.training.conditions import scenario_conditions, warn_shift
 from eofnn.training.fit import FitOutput, FitResult, TrainedPredictor, fit_predictor
 from eofnn.training.from_telemetry import fit_from_scenario_telemetry, telemetry_sequences
+from eofnn.training.through_loop import loop_work
 
 
 def fit_from_config(scenario: Scenario, cfg: PredictorConfig, output: FitOutput | None = None) -> FitResult:
@@ -218,8 +219,8 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
                 for cfg in predictors.values() if cfg.gains is not None)
     work += sum(len(cfg.setting_grid) * cfg.data.frames * n_act * len(scenarios)
                 for cfg in predictors.values() if cfg.setting_grid is not None)
-    work += sum(cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1)
-                * n_act * (1 if cfg.train_in else len(scenarios))
+    work += sum((cfg.data.realisations * (cfg.data.frames + cfg.data.val_frames) * (cfg.data.refit_rounds + 1) * n_act
+                 + loop_work(cfg.optimization, cfg.data, n_act)) * (1 if cfg.train_in else len(scenarios))
                 for cfg in predictors.values() if cfg.trains)
     require_time(work, f"this experiment ({len(predictors)} controllers x {len(scenarios)} scenarios, "
                  f"{n_act} actuators)", allow_long)

@@ -36,16 +36,31 @@ class RawContrast:
         One frame in ``every`` is propagated (frames a few ms apart are nearly the same speckles).
     padding : int
         Zero padding of the pupil: focal-plane pixels per lambda/D.
+    pupil : ndarray of bool, optional
+        A Shack-Hartmann scenario: ``grid`` is the sensor's fine grid, ``pupil`` its points inside the telescope's
+        pupil (of diameter ``pupil_diameter_m``), and the residual comes from ``arrays["pupil_residual"](frame)``
+        (:func:`~eofnn.sim.loop.runner.run_loop`): fitting error and aliasing are in the speckles. Separations are
+        still in lambda/D of the pupil, up to the actuators' control radius.
+    pupil_diameter_m : float, optional
+        The telescope's diameter, with ``pupil``.
+    control_radius_lod : float, optional
+        With ``pupil``: the profile's outer edge (lambda/D), the actuators' ``n_across / 2``.
     """
 
     def __init__(self, grid: ActuatorGrid, wavelength_m: float, settle_frames: int = 0, every: int = 10,
-                 padding: int = 4) -> None:
+                 padding: int = 4, pupil=None, pupil_diameter_m: float | None = None,
+                 control_radius_lod: float | None = None) -> None:
         check_value("every", every, Interval(1, 10_000, integer=True))
         check_value("padding", padding, Interval(2, 16, integer=True))
         self.grid, self.wavelength_m, self.settle, self.every, self.padding = grid, wavelength_m, settle_frames, every, padding
         n = grid.n_across
         self._size = padding * n
-        self._index = torch.as_tensor(grid.indices[:, 0] * self._size + grid.indices[:, 1])
+        indices = grid.indices if pupil is None else grid.indices[pupil]
+        self._pupil = pupil is not None
+        # Focal-plane pixels per lambda/D of the pupil: `padding` on the actuator grid (its side is the diameter).
+        self._pixels_per_lod = padding if pupil is None else padding * n * grid.pitch_m / pupil_diameter_m
+        self._limit_lod = n / 2 if pupil is None else control_radius_lod
+        self._index = torch.as_tensor(indices[:, 0] * self._size + indices[:, 1])
         amplitude = torch.zeros(self._size * self._size, dtype=torch.complex128)
         amplitude[self._index] = 1.0
         self._peak = float(torch.fft.fft2(amplitude.view(self._size, self._size)).abs().max() ** 2)
@@ -57,7 +72,11 @@ class RawContrast:
         frames = [i for i in range(eps.shape[1]) if (first_frame + i) >= self.settle and (first_frame + i) % self.every == 0]
         if not frames:
             return
-        phase = eps[:, frames].reshape(-1, eps.shape[-1]) * (2 * math.pi * 1e-9 / self.wavelength_m)
+        if self._pupil:
+            residual = torch.stack([arrays["pupil_residual"](first_frame + i) for i in frames], 1)
+            phase = residual.reshape(-1, residual.shape[-1]) * (2 * math.pi * 1e-9 / self.wavelength_m)
+        else:
+            phase = eps[:, frames].reshape(-1, eps.shape[-1]) * (2 * math.pi * 1e-9 / self.wavelength_m)
         field = torch.exp(1j * phase)
         field = field - field.mean(-1, keepdim=True)  # the perfect coronagraph: no coherent part is left
         pupil = torch.zeros(field.shape[0], self._size * self._size, dtype=torch.complex128)
@@ -73,8 +92,13 @@ class RawContrast:
         image = torch.fft.fftshift(self._sum / (self._count * self._peak))
         c = self._size // 2
         yy, xx = torch.meshgrid(torch.arange(self._size) - c, torch.arange(self._size) - c, indexing="ij")
-        radius = torch.round(torch.hypot(yy.double(), xx.double())).long()
-        limit = self.grid.n_across * self.padding // 2  # the control radius n/2 lambda/D
+        radius = torch.hypot(yy.double(), xx.double())
+        if self._pupil:  # bins of 1 / padding lambda/D of the pupil
+            radius = radius * (self.padding / self._pixels_per_lod)
+            limit = int(self._limit_lod * self.padding)
+        else:
+            limit = self.grid.n_across * self.padding // 2  # the control radius n/2 lambda/D
+        radius = torch.round(radius).long()
         sums = torch.zeros(limit + 1, dtype=torch.float64).scatter_add_(0, radius.clamp(max=limit).flatten(),
                                                                        image.flatten())
         counts = torch.zeros(limit + 1, dtype=torch.float64).scatter_add_(0, radius.clamp(max=limit).flatten(),
@@ -90,3 +114,15 @@ class RawContrast:
             index = round(s * self.padding)
             out[f"{s:g}"] = values[index] if values and index < len(values) else None
         return out
+
+
+def scenario_contrast(scenario, wavelength_m: float, settle_frames: int) -> RawContrast:
+    """The raw contrast of a run in ``scenario``: from the actuators' residual (zonal sensor), or from the residual
+    over the pupil on a Shack-Hartmann's fine grid, every :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`-th frame."""
+    if not scenario.sensor.is_shack_hartmann:
+        return RawContrast(scenario.grid, wavelength_m, settle_frames)
+    from eofnn.sim.loop.sensing import PHASE_EVERY, loop_operators
+
+    geometry = loop_operators(scenario.grid, scenario.sensor.shack_hartmann()).sensor.geometry
+    return RawContrast(geometry.fine_grid, wavelength_m, settle_frames, every=PHASE_EVERY, pupil=geometry.fine_in_pupil,
+                       pupil_diameter_m=scenario.grid.diameter_m, control_radius_lod=scenario.grid.n_across / 2)

@@ -9,11 +9,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from eofnn.analysis.block import CoupledAnalysisTooLarge
+from eofnn.analysis.block import CoupledAnalysisUnavailable
 from eofnn.analysis.linear import controller_stability
 from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.errors import require
+from eofnn.evaluation.budget import budget_line, budget_runs, fitting_nm
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.contenders import (
     SCAN_FIELDS,
@@ -23,7 +24,7 @@ from eofnn.evaluation.contenders import (
     scan_classical_settings,
     scan_integrator_gains,
 )
-from eofnn.evaluation.contrast import RawContrast
+from eofnn.evaluation.contrast import scenario_contrast
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
@@ -189,7 +190,7 @@ class Experiment:
         scenario = plant_scenario if plant_scenario is not None else self.scenarios[scenario_name]
         controller = self.controller(name, scenario_name)
         psd = WelchPSD(ev.psd_segment_frames_used, scenario.frame_rate_hz, ev.settle_frames)
-        contrast = RawContrast(scenario.grid, ev.strehl_wavelength_m, ev.settle_frames)
+        contrast = scenario_contrast(scenario, ev.strehl_wavelength_m, ev.settle_frames)
         growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
 
         def on_chunk(first: int, arrays: dict) -> None:
@@ -208,6 +209,12 @@ class Experiment:
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
+        wanted = ev.error_budget if ev.error_budget is not None else scenario.sensor.is_shack_hartmann
+        if plant_scenario is None and wanted and not result.diverged:  # a diverged run has no budget to split
+            fitting = fitting_nm(scenario, ev.seed, "test", ev.frames, ev.settle_frames, ev.realisations)
+            metrics.error_budget = budget_runs(scenario, lambda: self.controller(name, scenario_name), ev,
+                                               metrics.median_rms_nm, fitting)
+            self.log(f"{scenario_name:>12s} {name:>18s}: {budget_line(metrics.error_budget)}")
         return metrics
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
@@ -215,7 +222,7 @@ class Experiment:
         predictor = self.predictor_if_any(name, scenario_name)
         try:
             result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
-        except CoupledAnalysisTooLarge as err:  # reported like a network's: no analytic margins
+        except CoupledAnalysisUnavailable as err:  # reported like a network's: no analytic margins
             self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
             return None
         return None if result is None else stability_summary(result)
@@ -236,7 +243,7 @@ class Experiment:
             return None
         try:
             result = controller_stability(self.config(name, scenario_name), trained, self.scenarios[scenario_name])
-        except CoupledAnalysisTooLarge:
+        except CoupledAnalysisUnavailable:
             return None
         return None if result is None else stability_summary(result)
 

@@ -151,6 +151,13 @@ class LoopMetrics:
     #: turbulence seed of the test stream): the spread the verdict reports. Empty when the loop diverged. Not in
     #: :meth:`summary` (the pooled median above is the headline number).
     realisation_median_rms_nm: list[float] = field(default_factory=list, repr=False)
+    #: Where the residual is scored: ``"actuators"`` (the zonal sensor) or ``"pupil"`` (a Shack-Hartmann scenario:
+    #: the statistics above are then the piston-removed RMS over the pupil on the fine grid, fitting error included).
+    residual_over: str = "actuators"
+    #: A Shack-Hartmann scenario's median RMS of the command-space residual ``s + DM(y)`` at the actuators.
+    actuator_median_rms_nm: float | None = None
+    #: The error budget (:mod:`eofnn.evaluation.budget`), when one was asked for or the scenario has a real sensor.
+    error_budget: dict | None = None
 
     def summary(self) -> dict:
         """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back, ``reconvergence``
@@ -164,6 +171,11 @@ class LoopMetrics:
         out["diverging"] = self.diverging
         if self.growth is not None:
             out["growth"] = self.growth
+        if self.residual_over != "actuators":
+            out["residual_over"] = self.residual_over
+            out["actuator_median_rms_nm"] = self.actuator_median_rms_nm
+        if self.error_budget is not None:
+            out["error_budget"] = self.error_budget
         return out
 
 
@@ -174,13 +186,19 @@ def marechal_strehl(rms_nm: torch.Tensor, wavelength_m: float) -> torch.Tensor:
 
 def loop_metrics(result: LoopResult, settle_frames: int, strehl_wavelength_m: float,
                  psd: WelchPSD | None = None) -> LoopMetrics:
-    """Summarise a loop run after ``settle_frames`` (per-frame RMS pooled over realisations)."""
-    rms = result.residual_rms_nm[:, settle_frames:]
-    n_frames = result.residual_rms_nm.shape[1]
+    """Summarise a loop run after ``settle_frames`` (per-frame RMS pooled over realisations): the residual over the
+    pupil where the run has one (a Shack-Hartmann scenario), the actuators' otherwise."""
+    pupil = getattr(result, "pupil_residual_rms_nm", None)
+    series = result.residual_rms_nm if pupil is None else pupil
+    extra = {} if pupil is None else {"residual_over": "pupil"}
+    rms = series[:, settle_frames:]
+    n_frames = series.shape[1]
     freqs, power = psd.result() if psd is not None else ([], [])
     if result.diverged or rms.numel() == 0:
         return LoopMetrics(None, None, None, None, result.diverged, result.diverged_frame, settle_frames, n_frames,
-                           result.residual_rms_nm.mean(0).tolist(), freqs, power)
+                           series.mean(0).tolist(), freqs, power, **extra)
+    if pupil is not None:
+        extra["actuator_median_rms_nm"] = float(torch.quantile(result.residual_rms_nm[:, settle_frames:].flatten(), 0.5))
     flat = rms.flatten()
     return LoopMetrics(
         median_rms_nm=float(torch.quantile(flat, 0.5)),
@@ -191,8 +209,9 @@ def loop_metrics(result: LoopResult, settle_frames: int, strehl_wavelength_m: fl
         diverged_frame=None,
         settle_frames=settle_frames,
         n_frames=n_frames,
-        rms_nm=result.residual_rms_nm.mean(0).tolist(),
+        rms_nm=series.mean(0).tolist(),
         psd_freq_hz=freqs,
         psd_nm2_per_hz=power,
         realisation_median_rms_nm=torch.quantile(rms, 0.5, dim=1).tolist(),
+        **extra,
     )

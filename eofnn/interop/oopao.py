@@ -9,8 +9,15 @@ made, so ``import eofnn`` never needs it. The system is OOPAO's own objects, bui
   Gaussian influence functions of OOPAO's default coupling), whose coefficients are set to
   ``dm_gain * command`` (a DM that applies ``dm_gain`` times what the controller believes);
 - a diffractive ``ShackHartmann`` (OOPAO's default pixels per subaperture, centre of gravity), photon noise
-  on or off; or ``sensor="perfect"``: the least-squares projection of the residual OPD on the influence
-  functions (no aliasing, no noise), for separating what aliasing costs.
+  on or off; ``sensor="geometric"``: OOPAO's geometric Shack-Hartmann (the mean phase gradient over each lenslet's
+  lit pixels: aliasing without diffraction, pixels or noise); or ``sensor="perfect"``: the least-squares
+  projection of the residual OPD on the influence functions (no aliasing, no noise), for separating what aliasing
+  costs.
+
+``opd_source`` replaces OOPAO's atmosphere by another turbulence: a function of the seed that yields one OPD map
+(nm, ``(resolution, resolution)`` on the telescope's pixels) per frame, which the light crosses before the DM
+(:mod:`eofnn.interop.sh_compare` feeds OOPAO eofnn's exact frozen flow this way, to tell the sensors apart from the
+atmospheres).
 
 The interaction matrix is OOPAO's (``InteractionMatrix``, one push per actuator), in slopes per nm of command;
 the loop's reconstructor is its truncated pseudo-inverse (singular values below ``rcond`` of the largest dropped:
@@ -31,7 +38,7 @@ from eofnn.errors import ConfigError
 from eofnn.interop.loop import check_command
 from eofnn.validation import Interval, OneOf, check_value
 
-SENSORS = ("shack_hartmann", "perfect")
+SENSORS = ("shack_hartmann", "geometric", "perfect")
 
 
 def quiet():
@@ -45,12 +52,13 @@ def _import_oopao():
             from OOPAO.Atmosphere import Atmosphere
             from OOPAO.calibration.InteractionMatrix import InteractionMatrix
             from OOPAO.DeformableMirror import DeformableMirror
+            from OOPAO.OPD_map import OPD_map
             from OOPAO.ShackHartmann import ShackHartmann
             from OOPAO.Source import Source
             from OOPAO.Telescope import Telescope
     except ImportError as err:
         raise ConfigError(f"the OOPAO adapter needs OOPAO ({err}): pip install 'eofnn[interop]'") from None
-    return Atmosphere, InteractionMatrix, DeformableMirror, ShackHartmann, Source, Telescope
+    return Atmosphere, InteractionMatrix, DeformableMirror, OPD_map, ShackHartmann, Source, Telescope
 
 
 class OopaoLoop:
@@ -64,10 +72,11 @@ class OopaoLoop:
         Telescope diameter (m).
     pupil_pixels_per_subaperture : int
         Pupil sampling: OPD pixels per subaperture (also the SH's pixels per subaperture, OOPAO's default).
-    sensor : {"shack_hartmann", "perfect"}
-        OOPAO's diffractive Shack-Hartmann, or the least-squares projection of the residual on the DM.
+    sensor : {"shack_hartmann", "geometric", "perfect"}
+        OOPAO's diffractive Shack-Hartmann, its geometric one, or the least-squares projection of the residual on
+        the DM.
     photon_noise : bool
-        Photon noise on the SH detector (flux from ``magnitude``).
+        Photon noise on the SH detector (flux from ``magnitude``; the diffractive SH only).
     magnitude : float
         Guide star I magnitude.
     r0_m, outer_scale_m, wind_speed_mps, wind_direction_deg : float
@@ -80,6 +89,9 @@ class OopaoLoop:
         What the DM applies per unit of command (1: a calibrated DM).
     rcond : float
         Singular values of the interaction matrix below this fraction of the largest are not controlled.
+    opd_source : callable or None
+        ``opd_source(seed)`` yields the turbulence OPD (nm, ``(resolution, resolution)``) of each frame in place of
+        OOPAO's atmosphere (module docstring); ``None``: OOPAO's atmosphere.
     """
 
     name = "oopao"
@@ -88,7 +100,7 @@ class OopaoLoop:
                  sensor: str = "shack_hartmann", photon_noise: bool = False, magnitude: float = 8.0,
                  r0_m: float = 0.15, outer_scale_m: float = 25.0, wind_speed_mps: float = 10.0,
                  wind_direction_deg: float = 0.0, frame_rate_hz: float = 1000.0, delay_frames: int = 2,
-                 dm_gain: float = 1.0, rcond: float = 0.15) -> None:
+                 dm_gain: float = 1.0, rcond: float = 0.15, opd_source=None) -> None:
         check_value("n_subapertures", n_subapertures, Interval(2, 200, integer=True))
         check_value("diameter_m", diameter_m, Interval(0, 100, closed="right", unit="m"))
         check_value("pupil_pixels_per_subaperture", pupil_pixels_per_subaperture, Interval(2, 32, integer=True))
@@ -96,6 +108,13 @@ class OopaoLoop:
         check_value("delay_frames", delay_frames, Interval(1, 100, integer=True, unit="frames"))
         check_value("dm_gain", dm_gain, Interval(0, 100, closed="right"))
         check_value("rcond", rcond, Interval(0, 1, closed="neither"))
+        if photon_noise and sensor != "shack_hartmann":
+            raise ConfigError(f"photon_noise=True is invalid with sensor={sensor!r}: only the diffractive "
+                              "Shack-Hartmann ('shack_hartmann') has a detector")
+        if opd_source is not None and not callable(opd_source):
+            raise ConfigError(f"opd_source={opd_source!r} is invalid: it must be a function of the seed that yields "
+                              "OPD maps (nm), or None for OOPAO's atmosphere")
+        self._opd_source, self._opd_frames, self._opd_nm = opd_source, None, None
         self.settings = {"n_subapertures": n_subapertures, "diameter_m": diameter_m,
                          "pupil_pixels_per_subaperture": pupil_pixels_per_subaperture, "sensor": sensor,
                          "photon_noise": bool(photon_noise), "magnitude": magnitude, "r0_m": r0_m,
@@ -107,7 +126,8 @@ class OopaoLoop:
         self._build(*_import_oopao())
         self._calibrate(rcond)
 
-    def _build(self, Atmosphere, InteractionMatrix, DeformableMirror, ShackHartmann, Source, Telescope) -> None:
+    def _build(self, Atmosphere, InteractionMatrix, DeformableMirror, OPD_map, ShackHartmann, Source,
+               Telescope) -> None:
         s, n = self.settings, self.settings["n_subapertures"]
         self._InteractionMatrix = InteractionMatrix
         with quiet():
@@ -120,8 +140,10 @@ class OopaoLoop:
                                   windDirection=[s["wind_direction_deg"]], altitude=[0.0])
             self.atm.initializeAtmosphere(self.tel)
             self.dm = DeformableMirror(telescope=self.tel, nSubap=n, mechCoupling=0.35, print_dm_properties=False)
-            self.wfs = ShackHartmann(nSubap=n, telescope=self.tel, lightRatio=0.5)
+            self.wfs = ShackHartmann(nSubap=n, telescope=self.tel, lightRatio=0.5,
+                                     is_geometric=s["sensor"] == "geometric")
             self.ngs * self.tel * self.wfs
+        self._opd_map = OPD_map(np.zeros((self.tel.resolution, self.tel.resolution)))
         self.positions_m = np.asarray(self.dm.coordinates, dtype=np.float64)
         self._pupil = np.asarray(self.tel.pupil) > 0
 
@@ -158,18 +180,25 @@ class OopaoLoop:
         return int(self.wfs.n_pix_subap)
 
     def describe(self) -> dict:
-        measured = ("wfs = R @ slopes: OOPAO Shack-Hartmann slopes through the truncated pseudo-inverse of OOPAO's "
+        kind = "geometric Shack-Hartmann" if self.sensor == "geometric" else "Shack-Hartmann"
+        measured = (f"wfs = R @ slopes: OOPAO {kind} slopes through the truncated pseudo-inverse of OOPAO's "
                     f"interaction matrix ({self.n_seen} of {self.n_actuators} modes)" if self.sensor != "perfect"
                     else "wfs = least-squares projection of the residual OPD on the DM (no aliasing)")
         return {"simulator": "oopao", **self.settings, "n_actuators": self.n_actuators, "n_seen_modes": self.n_seen,
                 "sh_pixels_per_subaperture": self.n_pixels_per_subaperture, "n_slopes": int(self.wfs.nSignal),
-                "measurement": measured}
+                "measurement": measured,
+                "turbulence": "OOPAO atmosphere" if self._opd_source is None else "external OPD maps"}
 
     def reset(self, seed: int) -> None:
         with quiet():
-            if not self.tel.isPaired:
+            if self._opd_source is not None:
+                if self.tel.isPaired:
+                    self.tel - self.atm
+                self._opd_frames = iter(self._opd_source(int(seed)))
+            elif not self.tel.isPaired:
                 self.tel + self.atm
-            self.atm.generateNewPhaseScreen(seed=int(seed))
+            if self._opd_source is None:
+                self.atm.generateNewPhaseScreen(seed=int(seed))
             self.dm.coefs = 0
         self.wfs.cam.photonNoise = self.photon_noise
         self.wfs.cam.random_state_photon_noise = np.random.RandomState(int(seed) + 7)  # OOPAO seeds by the clock
@@ -177,10 +206,32 @@ class OopaoLoop:
     def project(self, command_nm: np.ndarray) -> np.ndarray:
         return self._seen @ (self._seen.T @ command_nm)
 
+    def step_turbulence(self) -> None:
+        """The turbulence of the next frame, with the light restarted through it (``src ** atm * tel``)."""
+        if self._opd_source is None:
+            with quiet():
+                self.atm.update()
+            return
+        opd = np.asarray(next(self._opd_frames), dtype=np.float64)
+        res = self.tel.resolution
+        if opd.shape != (res, res):
+            raise ConfigError(f"opd_source gave a map of shape {opd.shape}: the telescope has {res} x {res} pixels")
+        self._opd_nm = opd
+        self._opd_map.OPD = opd * 1e-9
+        self._restart_light()
+
+    def _restart_light(self) -> None:
+        """The source's light through the turbulence of the current frame and the telescope (no DM yet)."""
+        with quiet():
+            if self._opd_source is None:
+                self.ngs ** self.atm * self.tel
+            else:
+                self.ngs ** self.tel * self._opd_map
+
     def advance(self, command_nm: np.ndarray) -> tuple[np.ndarray, float]:
         command = check_command(command_nm, self.n_actuators)
+        self.step_turbulence()
         with quiet():
-            self.atm.update()  # moves the screen and restarts the light through it (``src ** atm * tel``)
             self.dm.coefs = self.dm_gain * command * 1e-9
             if self.sensor == "perfect":
                 self.ngs * self.tel * self.dm
@@ -198,6 +249,8 @@ class OopaoLoop:
 
     def turbulence_opd_nm(self) -> np.ndarray:
         """The current turbulence OPD over the pupil (nm), without the DM."""
+        if self._opd_source is not None:
+            return self._opd_nm[self._pupil]
         return np.asarray(self.atm.OPD)[self._pupil] * 1e9
 
     def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray) -> float:
@@ -207,24 +260,24 @@ class OopaoLoop:
         probe = self.project(check_command(probe_nm, self.n_actuators, "probe"))
         response = []
         for sign in (1.0, -1.0):
+            self._restart_light()  # ``*`` alone would add the DM to what is there
             with quiet():
                 self.dm.coefs = self.dm_gain * (command_nm + sign * probe) * 1e-9
-                # ``**`` restarts the light from the source (``*`` alone would add the DM to what is there)
-                self.ngs ** self.atm * self.tel * self.dm * self.wfs
+                self.ngs * self.tel * self.dm * self.wfs
             response.append(self.reconstructor @ self.slopes())
         return float((response[0] - response[1]) @ probe / (2 * self.dm_gain * probe @ probe))
 
 
-def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5) -> dict:
+def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5, start: int = 0) -> dict:
     """What the DM cannot correct: the RMS (nm, piston removed) of the turbulence minus its least-squares fit by
-    the seen DM modes, every ``every`` frames of the realisation ``seed``; ``{"median_rms_nm", "n_frames"}``."""
+    the seen DM modes, every ``every`` frames from frame ``start`` to ``n_frames - 1`` of the realisation ``seed``;
+    ``{"median_rms_nm", "n_frames"}``."""
     modes, projection = sim._fit_operator()
     sim.reset(seed)
     values = []
     for n in range(n_frames):
-        with quiet():
-            sim.atm.update()
-        if n % every == 0:
+        sim.step_turbulence()
+        if n >= start and (n - start) % every == 0:
             opd = sim.turbulence_opd_nm()
             opd = opd - opd.mean()
             values.append(float(np.sqrt(np.mean((opd - modes @ (projection @ opd)) ** 2))))

@@ -30,7 +30,8 @@ def markdown_table(result: ExperimentResult, reference: dict[str, dict[str, floa
     """Median RMS (nm) per predictor (rows) and scenario (columns); ``reference`` adds the study's numbers."""
     scenarios = list(result.metrics)
     predictors = list(next(iter(result.metrics.values())))
-    header = ["predictor"] + [f"{s} median RMS (nm)" for s in scenarios]
+    over = " over the pupil" if getattr(next(iter(result.metrics[scenarios[0]].values())), "residual_over", "") == "pupil" else ""
+    header = ["predictor"] + [f"{s} median RMS{over} (nm)" for s in scenarios]
     if reference:
         header += [f"{s} study (nm)" for s in scenarios]
     header += [f"{s} p95 (nm)" for s in scenarios] + [f"{s} {strehl_label(strehl_wavelength_m)}" for s in scenarios]
@@ -302,6 +303,26 @@ def _margins(result: ExperimentResult) -> str:
     return "\nStable DM-gain intervals (the DM applying g times the command):\n" + "\n".join(lines) + "\n"
 
 
+def _budget(result: ExperimentResult) -> str:
+    """The error budget of every contender that has one (:mod:`eofnn.evaluation.budget`), per scenario."""
+    lines = []
+    for scenario, contenders in result.metrics.items():
+        rows = [(name, m.error_budget) for name, m in contenders.items() if getattr(m, "error_budget", None)]
+        if not rows:
+            continue
+        over = next(iter(contenders.values())).residual_over
+        lines += ["", f"Error budget in {scenario} (median residual, nm, over the {over}; split in quadrature from "
+                      "runs without noise and with a perfect sensor: evaluation.error_budget):", "",
+                  "| contender | fitting | aliasing | noise | temporal | total |", "|---|---|---|---|---|---|"]
+        for name, budget in rows:
+            cells = ["n/a" if budget[k] is None and k in ("fitting_nm", "aliasing_nm") else
+                     "—" if budget[k] is None else f"{budget[k]:.1f}"
+                     for k in ("fitting_nm", "aliasing_nm", "noise_nm", "temporal_nm")]
+            total = budget["runs_nm"]["total"]
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {'—' if total is None else f'{total:.1f}'} |")
+    return "\n".join(lines) + "\n" if lines else ""
+
+
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                  reference: dict[str, dict[str, float]] | None = None,
                  strehl_wavelength_m: float | None = None) -> list[Path]:
@@ -312,7 +333,7 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
     table.write_text("# Closed-loop comparison\n\n" + verdict + "## Median RMS per scenario\n\n"
                      + markdown_table(result, reference, strehl_wavelength_m)
                      + _gains(result) + _fixed_gains(result) + _classical_settings(result) + _alphas(result)
-                     + _margins(result) + _caveat(result))
+                     + _margins(result) + _budget(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])

@@ -18,6 +18,8 @@ from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.plant import Plant
 from eofnn.sim.loop.runner import Controller, run_loop
+from eofnn.sim.loop.sensing import ShackHartmannTurbulence, loop_operators
+from eofnn.sim.sensing.sensor import Sensor, build_sensor
 from eofnn.validation import Constraint, Interval, from_mapping, validated
 
 
@@ -40,6 +42,10 @@ class Scenario:
         Telescope vibrations added to the turbulence ``s(n)`` (after the atmosphere's piston/tip/tilt removal, so
         they are seen): e.g. ``[{mode: tip, frequency_hz: 40, amplitude_nm: 30, damping: 0.01}]``; fields in
         :class:`~eofnn.sim.atmosphere.disturbances.Vibration`. None by default.
+    sensor : Sensor
+        The wavefront sensor (:class:`~eofnn.sim.sensing.sensor.Sensor`): ``{kind: subaperture}`` (the default, the
+        zonal average at each actuator) or ``{kind: shack_hartmann, detector: {magnitude: 8, ...}, ...}`` (slopes,
+        reconstructor, photon noise, and the residual over the pupil: :mod:`eofnn.sim.loop.sensing`).
     """
 
     grid: ActuatorGrid = field(default_factory=ActuatorGrid)
@@ -47,6 +53,7 @@ class Scenario:
     frame_rate_hz: float = 1000.0
     plant: Plant = field(default_factory=Plant)
     vibrations: list[Vibration] = field(default_factory=list)
+    sensor: Sensor = field(default_factory=Sensor)
 
     _constraints: ClassVar[dict[str, Constraint]] = {"frame_rate_hz": Interval(0, 1e6, closed="right", unit="Hz")}
 
@@ -58,6 +65,9 @@ class Scenario:
             elif not isinstance(value, cls):
                 raise ConfigError(f"{name}={value!r} is invalid: it must be a mapping of {cls.__name__} fields")
         object.__setattr__(self, "vibrations", build_vibrations(self.vibrations, self.frame_rate_hz))
+        object.__setattr__(self, "sensor", build_sensor(self.sensor))
+        if self.sensor.is_shack_hartmann:
+            self._check_shack_hartmann()
         for axis in ("x", "y"):  # the plant's own limit is +-10 pitches whatever the grid
             shift = getattr(self.plant, f"misregistration_{axis}")
             if abs(shift) >= self.grid.n_across:
@@ -66,25 +76,54 @@ class Scenario:
                                   f"+-{self.grid.n_across - 1} (actuator pitches)")
 
     @property
+    def turbulence_grid(self) -> ActuatorGrid:
+        """Where the turbulence is synthesised: the actuators, or a Shack-Hartmann's fine grid."""
+        if self.sensor.is_shack_hartmann:
+            return loop_operators(self.grid, self.sensor.shack_hartmann()).sensor.geometry.fine_grid
+        return self.grid
+
+    @property
     def delay_frames(self) -> int | float:
         """The loop delay in frames (the plant's; fractional allowed)."""
         return self.plant.delay_frames
 
-    def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1) -> Turbulence:
-        """The turbulence stream of this scenario for ``seed`` and ``stream``."""
+    def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1,
+                   isolate: str = "none") -> Turbulence | ShackHartmannTurbulence:
+        """The turbulence stream of this scenario for ``seed`` and ``stream`` (a Shack-Hartmann scenario's carries its
+        sensor; ``isolate`` makes it noise-free or perfect for the error budget, :mod:`eofnn.sim.loop.sensing`)."""
+        if self.sensor.is_shack_hartmann:
+            return ShackHartmannTurbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream,
+                                           n_realisations, self.vibrations, self.sensor, isolate)
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
                           self.vibrations)
+
+    def _check_shack_hartmann(self) -> None:
+        """Refuse, in one line each, what a Shack-Hartmann scenario cannot run."""
+        atm = self.atmosphere
+        if atm.model != "exact":
+            raise ConfigError(f"atmosphere.model={atm.model!r} is invalid with sensor.kind shack_hartmann: its phase is "
+                              "synthesised exactly on the sensor's fine grid; use model 'exact'")
+        if atm.kernel not in (None, "point"):
+            raise ConfigError(f"atmosphere.kernel={atm.kernel!r} is invalid with sensor.kind shack_hartmann: the "
+                              "zonal kernel is the subaperture sensor's; the Shack-Hartmann samples the phase at "
+                              "points of its fine grid (remove kernel, or set it to point)")
+        self.sensor.check_fits(self.grid)
+        loop_operators(self.grid, self.sensor.shack_hartmann())  # builds the geometry and R: their checks too
 
     def median_residual_nm(self, controller: Controller, n_frames: int, seed: int, stream: str, settle_frames: int, *,
                            realisations: int = 1, plant: Plant | None = None, divergence_factor: float = 10.0,
                            on_chunk=None) -> float | None:
         """Close the loop with ``controller`` for ``n_frames`` on stream ``stream`` of ``seed`` (a stream of its own,
         WFS noise included), in this scenario's plant or ``plant``: the median residual RMS (nm) after
-        ``settle_frames``, ``None`` when the loop diverged. How tuning scans and robustness probes judge a setting."""
+        ``settle_frames`` (over the pupil in a Shack-Hartmann scenario), ``None`` when the loop diverged. How tuning
+        scans and robustness probes judge a setting."""
         result = run_loop(self.turbulence(seed, stream, realisations), plant or self.plant, controller, n_frames,
                           noise_seed=int_seed(seed, stream), record=(), divergence_factor=divergence_factor,
                           progress=False, on_chunk=on_chunk)
-        return None if result.diverged else float(result.residual_rms_nm[:, settle_frames:].median())
+        if result.diverged:
+            return None
+        rms = result.residual_rms_nm if result.pupil_residual_rms_nm is None else result.pupil_residual_rms_nm
+        return float(rms[:, settle_frames:].median())
 
     def require_stream_frames(self, n_frames: int, what: str, realisations: int = 1) -> None:
         """Refuse, up front, a stream of ``n_frames`` frames (of ``realisations`` realisations side by side) that the
@@ -94,17 +133,19 @@ class Scenario:
             raise ConfigError(f"{what} needs {n_frames} frames of one turbulence realisation but "
                               f"atmosphere.screen_frames={atm.screen_frames} (model exact): raise "
                               f"atmosphere.screen_frames to at least {n_frames}, or use shorter streams")
+        grid = self.turbulence_grid
         if atm.model == "exact":  # a non-lattice wind builds its whole screen at once: refuse what cannot fit
             winds = [w for i, lay in enumerate(atm.layers)
                      for w in [lay, *layer_winds(lay, [c for c in atm.changes if c.layer == i])]]
-            peaks = [screen_bytes(self.grid, atm.outer_scale_m, w.wind_speed_mps, w.wind_direction_deg,
+            peaks = [screen_bytes(grid, atm.outer_scale_m, w.wind_speed_mps, w.wind_direction_deg,
                                   1 / self.frame_rate_hz, atm.screen_frames) for w in winds]
             # One screen is being built at a time; every realisation keeps each built screen while it streams.
             n_screens = realisations * sum(1 for peak in peaks if peak)
-            need = max(peaks) + (n_screens - 1) * 4 * atm.screen_frames * self.grid.n_actuators
+            need = max(peaks) + (n_screens - 1) * 4 * atm.screen_frames * grid.n_actuators
             if n_screens:
                 require_memory(need, f"{what}: the set of exact screens of non-lattice winds ({n_screens} screen(s) "
-                                     f"of {self.grid.n_actuators} actuators x screen_frames={atm.screen_frames})")
+                                     f"of {grid.n_actuators} {'points' if self.sensor.is_shack_hartmann else 'actuators'} x "
+                                     f"screen_frames={atm.screen_frames})")
 
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""
@@ -114,6 +155,8 @@ class Scenario:
         out = asdict(self)
         out["atmosphere"]["layers"] = [dict(lay) for lay in out["atmosphere"]["layers"]]
         out["vibrations"] = [dict(vib) for vib in out["vibrations"]]
+        if not self.sensor.is_shack_hartmann:  # the default sensor: configs written before it existed still match
+            del out["sensor"]
         return out
 
     @classmethod

@@ -10,7 +10,9 @@ Arrays are ``(frames, n_actuators)`` or ``(batch, frames, n_actuators)``, in nm:
 
 Files from other simulators or a real-time computer need only ``y`` and ``wfs`` (or ``slopes`` with an interaction
 matrix or a reconstructor, :mod:`eofnn.telemetry.spaces`) and the loop delay; ``y`` and ``wfs`` may be modal coefficients
-of a ``modal_basis``. The layout (HDU names, header keys, npz keys) is documented in ``docs/telemetry.md``.
+of a ``modal_basis``. A loop that measures slopes (eofnn's Shack-Hartmann) writes them, with its interaction matrix and
+reconstructor, beside ``y`` and ``wfs``: readers use ``wfs`` when present. The layout (HDU names, header keys, npz
+keys) is documented in ``docs/telemetry.md``.
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ DELAY_KEYS = ("DELAY", "DELAY_FRAMES")
 FRAME_RATE_KEYS = ("FRATE", "FRAME_RATE_HZ")
 #: Arrays of the spaces real loops record (docs/telemetry.md): slopes and the matrices that bring them to ``wfs``.
 SPACE_ARRAYS = ("slopes", "interaction_matrix", "reconstructor", "modal_basis")
+#: Those a :class:`Telemetry` carries as the sensor's own, written beside ``y`` and ``wfs``.
+SENSOR_ARRAYS = ("slopes", "interaction_matrix", "reconstructor")
 
 
 @dataclass
@@ -64,6 +68,9 @@ class Telemetry:
         actuator-space telemetry.
     measurement : str
         How ``wfs`` was formed when it was not recorded as such (e.g. from slopes); empty otherwise.
+    slopes, interaction_matrix, reconstructor : Tensor or None
+        The sensor's own measurements ``(frames, S)`` or ``(batch, frames, S)`` and its matrices ``(S, K)`` and
+        ``(K, S)`` (``docs/telemetry.md``), when it measures slopes: saved beside the arrays, read back from a file.
     """
 
     s: torch.Tensor | None = None
@@ -76,6 +83,9 @@ class Telemetry:
     positions_m: torch.Tensor | None = None
     modal_basis: torch.Tensor | None = None
     measurement: str = ""
+    slopes: torch.Tensor | None = None
+    interaction_matrix: torch.Tensor | None = None
+    reconstructor: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         shape = None
@@ -109,6 +119,28 @@ class Telemetry:
                 raise TelemetryError(f"telemetry positions_m has shape {tuple(self.positions_m.shape)}: expected "
                                      f"({n_act if n_act is not None else 'actuators'}, 2) actuator (x, y) in metres")
             check_positions(self.positions_m)  # duplicates, fewer than 4
+        self._check_sensor_arrays(shape)
+
+    def _check_sensor_arrays(self, shape: tuple | None) -> None:
+        """Slopes: one row per frame of the arrays; the matrices: ``(S, K)`` and ``(K, S)``; else one line."""
+        if self.slopes is not None:
+            self.slopes = _real_tensor(self.slopes, "slopes")
+            if self.slopes.ndim not in (2, 3) or (shape is not None and tuple(self.slopes.shape[:-1]) != shape[:-1]):
+                raise TelemetryError(f"telemetry slopes have shape {tuple(self.slopes.shape)} but the arrays "
+                                     f"{shape}: expected the same frames (and batch), one row of slopes per frame")
+        n_slopes = None if self.slopes is None else self.slopes.shape[-1]
+        n_cmd = None if shape is None else shape[-1]
+        for name, rows, cols, relation in (("interaction_matrix", n_slopes, n_cmd, "slopes = IM @ y"),
+                                           ("reconstructor", n_cmd, n_slopes, "wfs = R @ slopes")):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = _real_tensor(value, name)
+            if value.ndim != 2 or (rows or value.shape[0], cols or value.shape[1]) != tuple(value.shape):
+                raise TelemetryError(f"telemetry {name} has shape {tuple(value.shape)}: expected "
+                                     f"({rows or 'S'}, {cols or 'K'}) ({relation}, {n_slopes} slopes, {n_cmd} columns "
+                                     "of y)")
+            setattr(self, name, value)
 
     @classmethod
     def from_slopes(cls, y, slopes, *, interaction_matrix=None, reconstructor=None, rcond: float = RCOND,
@@ -138,7 +170,13 @@ class Telemetry:
         one = Telemetry(**{k: v[index] for k, v in self.arrays().items()}, delay_frames=self.delay_frames,
                         config=self.config, frame_rate_hz=self.frame_rate_hz, measurement=self.measurement)
         one.positions_m, one.modal_basis = self.positions_m, self.modal_basis  # checked already (the basis by an SVD)
+        one.interaction_matrix, one.reconstructor = self.interaction_matrix, self.reconstructor
+        one.slopes = None if self.slopes is None else self.slopes[index] if self.slopes.ndim == 3 else self.slopes
         return one
+
+    def sensor_arrays(self) -> dict[str, torch.Tensor]:
+        """The sensor's own arrays present (:data:`SENSOR_ARRAYS`), by name."""
+        return {name: getattr(self, name) for name in SENSOR_ARRAYS if getattr(self, name) is not None}
 
     def sequences(self) -> list[Telemetry]:
         """The independent sequences of this telemetry: its realisations, each ``(frames, K)``."""
@@ -170,6 +208,9 @@ class Telemetry:
                 hdus.append(fits.ImageHDU(self.positions_m.numpy(), name="POSITIONS"))
             if self.modal_basis is not None:
                 hdus.append(fits.ImageHDU(self.modal_basis.numpy(), name="MODAL_BASIS"))
+            for name, value in self.sensor_arrays().items():  # slopes in the arrays' dtype, matrices in float64
+                hdus.append(fits.ImageHDU(value.numpy().astype(dtype if name == "slopes" else "float64"),
+                                          name=name.upper()))
             hdus.append(fits.BinTableHDU.from_columns(
                 [fits.Column(name="json", format=f"{max(len(meta), 1)}A", array=np.array([meta]))], name="CONFIG"))
             fits.HDUList(hdus).writeto(path, overwrite=overwrite)
@@ -181,6 +222,8 @@ class Telemetry:
                 extra["positions_m"] = self.positions_m.numpy()
             if self.modal_basis is not None:
                 extra["modal_basis"] = self.modal_basis.numpy()
+            for name, value in self.sensor_arrays().items():
+                extra[name] = value.numpy().astype(dtype if name == "slopes" else "float64")
             np.savez(path, meta=np.array(meta), **extra, **{k: v.numpy().astype(dtype) for k, v in self.arrays().items()})
         else:
             raise TelemetryError(f"telemetry file {str(path)!r} has suffix {path.suffix!r}: allowed are .fits, .npz")
@@ -225,7 +268,8 @@ class Telemetry:
         # Arrays are checked first (shapes, values), then the delay: a file with both wrong names its arrays.
         telemetry = cls(**arrays, delay_frames=1 if delay is None else _delay(delay, f"{where}: delay_frames"),
                         config=meta.get("config", {}), frame_rate_hz=rate, positions_m=positions,
-                        modal_basis=space.get("modal_basis"), measurement=measurement)
+                        modal_basis=space.get("modal_basis"), measurement=measurement,
+                        **{name: found[name] for name in SENSOR_ARRAYS if name in found})
         if delay is None:
             raise TelemetryError(f"{where} lacks the loop delay: set header key DELAY (FITS) or array delay_frames "
                                  "(npz) to an integer >= 1 (frames)")

@@ -57,10 +57,13 @@ def check_search(search: dict | None, lr: float, where: str = "optimization.") -
     return space
 
 
-FIT_METHODS = ("closed_form", "sgd")
+FIT_METHODS = ("closed_form", "sgd", "closed_loop")
 #: The relative ridge alpha of a closed-form fit with no validation data to choose one on (``alpha`` unset).
 FALLBACK_ALPHA = 1e-9
 OPTIMIZERS = ("adam", "sgd", "lbfgs")
+#: The optimiser and learning rate of each fit method when ``optimizer`` and ``lr`` are unset.
+DEFAULT_OPTIMIZER = {"closed_form": "adam", "sgd": "adam", "closed_loop": "lbfgs"}
+DEFAULT_LR = {"adam": 1e-3, "sgd": 1e-3, "lbfgs": 1.0}
 ACCELERATORS = ("auto", "cpu", "cuda", "gpu", "mps")
 
 
@@ -71,8 +74,12 @@ class OptimizationConfig:
 
     Parameters
     ----------
-    fit_method : {"closed_form", "sgd"}
-        ``closed_form``: one streamed pass of ridge regression (linear networks); ``sgd``: gradient descent.
+    fit_method : {"closed_form", "sgd", "closed_loop"}
+        ``closed_form``: one streamed pass of ridge regression (linear networks); ``sgd``: gradient descent;
+        ``closed_loop``: a linear network trained through the closed loop (:mod:`eofnn.training.through_loop`):
+        started from the closed-form fit, it descends on the mean squared closed-loop residual of the same training
+        frames (the same turbulence and noise draws, the same ``data.plant_range``), backpropagated through windows
+        of the loop; the epoch of least residual on the validation frames is kept (the closed-form start included).
     alpha : float or "auto", optional
         Ridge parameter of the closed-form fit. ``auto`` (and unset, for a closed-form fit) chooses it on the
         validation frames along ``alpha_path`` (:mod:`eofnn.training.alpha`): the least validation error, or under
@@ -88,14 +95,20 @@ class OptimizationConfig:
     select : dict, optional
         A robustness constraint on the ``auto`` choice: ``{dm_gain_interval: [low, high]}`` keeps the best alpha
         whose analytic stable DM-gain interval contains ``[low, high]`` (which must contain 1).
-    optimizer : {"adam", "sgd", "lbfgs"}
-        Gradient optimiser (``fit_method: sgd``).
-    lr : float
-        Learning rate.
+    optimizer : {"adam", "sgd", "lbfgs"}, optional
+        Gradient optimiser (``fit_method: sgd`` or ``closed_loop``); unset, ``adam`` for ``sgd`` and ``lbfgs`` for
+        ``closed_loop`` (one quasi-Newton step on all the training windows per epoch).
+    lr : float, optional
+        Learning rate; unset, 1e-3 for ``adam`` and ``sgd``, 1 for ``lbfgs``.
     weight_decay : float
         Weight decay of the gradient optimiser.
     epochs : int
         Epochs of gradient descent (a closed-form fit is one pass).
+    loop_window : int
+        ``closed_loop``: frames of each window whose residuals are the loss and backpropagated through.
+    loop_warmup : int
+        ``closed_loop``: frames before each window, run without gradients from a reset of the loop (truncated
+        backpropagation: the loop's state comes from them, its gradient does not).
     accelerator : str
         Lightning accelerator: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ``gpu`` or ``mps``.
     normalize : bool or None
@@ -110,10 +123,12 @@ class OptimizationConfig:
     alpha_path: list[float] | None = None
     select: dict | None = None
     search: dict | None = None
-    optimizer: str = "adam"
-    lr: float = 1e-3
+    optimizer: str | None = None
+    lr: float | None = None
     weight_decay: float = 0.0
     epochs: int = 1
+    loop_window: int = 100
+    loop_warmup: int = 50
     accelerator: str = "auto"
     normalize: bool | None = None
 
@@ -121,10 +136,12 @@ class OptimizationConfig:
         "fit_method": OneOf(FIT_METHODS),
         "alpha": OrNone(Either(Interval(0, 1e12), OneOf(("auto",)))),
         "alpha_relative": IsBool(),
-        "optimizer": OneOf(OPTIMIZERS),
-        "lr": Interval(0, 1e3, closed="right"),
+        "optimizer": OrNone(OneOf(OPTIMIZERS)),
+        "lr": OrNone(Interval(0, 1e3, closed="right")),
         "weight_decay": NON_NEGATIVE,
         "epochs": Interval(1, 100_000, integer=True),
+        "loop_window": Interval(1, 100_000, integer=True, unit="frames"),
+        "loop_warmup": Interval(0, 100_000, integer=True, unit="frames"),
         "accelerator": OneOf(ACCELERATORS),
         "normalize": OrNone(IsBool()),
     }
@@ -137,14 +154,27 @@ class OptimizationConfig:
         if self.fit_method == "sgd" and self.select is not None:
             raise ConfigError("optimization.select is invalid with fit_method: sgd: it constrains the closed-form "
                               "fit's alpha: auto")
+        if self.fit_method == "closed_loop" and self.select is not None:
+            raise ConfigError("optimization.select is invalid with fit_method: closed_loop: it constrains the "
+                              "closed-form alpha that training through the loop then moves away from")
         if self.search is not None and self.fit_method != "sgd":
             raise ConfigError("optimization.search is for fit_method: sgd (a closed-form fit tunes alpha: auto)")
-        check_search(self.search, self.lr)
+        check_search(self.search, self.learning_rate)
         check_alpha_path(self.alpha_path)
         check_select(self.select)
         if self.select is not None and self.ridge_alpha != "auto":
             raise ConfigError(f"optimization.select needs alpha: auto, not alpha={self.alpha!r}: the constraint "
                               "chooses among the alphas of the path")
+
+    @property
+    def gradient_optimizer(self) -> str:
+        """The optimiser of a fit by gradient descent: ``optimizer``, or unset the fit method's default."""
+        return self.optimizer or DEFAULT_OPTIMIZER[self.fit_method]
+
+    @property
+    def learning_rate(self) -> float:
+        """``lr``, or unset the default of :attr:`gradient_optimizer`."""
+        return DEFAULT_LR[self.gradient_optimizer] if self.lr is None else self.lr
 
     @property
     def ridge_alpha(self) -> float | str:
@@ -164,5 +194,5 @@ class OptimizationConfig:
         return check_select(self.select)
 
 
-__all__ = ["ACCELERATORS", "FALLBACK_ALPHA", "FIT_METHODS", "OPTIMIZERS", "SEARCH_KEYS", "OptimizationConfig",
-           "SearchSpace", "check_search"]
+__all__ = ["ACCELERATORS", "DEFAULT_LR", "DEFAULT_OPTIMIZER", "FALLBACK_ALPHA", "FIT_METHODS", "OPTIMIZERS",
+           "SEARCH_KEYS", "OptimizationConfig", "SearchSpace", "check_search"]

@@ -9,7 +9,9 @@ with :func:`new_task`, fit it with :func:`solve` (the one place that tells the t
 
 1. *closed form* (linear networks): one streamed pass of ridge regression, :func:`~eofnn.training.ridge.fit_closed_form`,
    then Lightning's ``validate`` for the held-out loss;
-2. *SGD* (any network): Lightning's ``fit`` (or a budgeted search, :mod:`eofnn.training.search`).
+2. *SGD* (any network): Lightning's ``fit`` (or a budgeted search, :mod:`eofnn.training.search`);
+3. *through the loop* (linear networks): the closed-form fit, then Lightning's ``fit`` on the closed-loop residual
+   of the same frames (:mod:`eofnn.training.through_loop`).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from eofnn.control.baselines import Dithered, Integrator
 from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import DataConfig, LoopDataModule
-from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError
+from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError, DivergedError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.layout import layout_to_dict
 from eofnn.sim.loop.runner import Controller
@@ -41,6 +43,7 @@ from eofnn.training.conditions import scenario_conditions
 from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
 from eofnn.training.search import check_search, run_search
 from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
+from eofnn.training.through_loop import LoopData, loop_data, train_through_loop
 
 DEFAULT_NETWORK = {"class_path": "eofnn.models.linear.LinearFilter", "init_args": {}}
 
@@ -132,11 +135,13 @@ class FitOutput:
 @dataclass
 class FitData:
     """What one solve learns from: ``train`` and held-out ``validation`` (optional) ``(history, target)`` batches (a
-    DataLoader, or any iterable of ready batches), and the frames one pass over ``train`` holds (a search's budget)."""
+    DataLoader, or any iterable of ready batches), the frames one pass over ``train`` holds (a search's budget), and
+    the same streams as windows of the loop (training through the loop; simulator truth only)."""
 
     train: Iterable
     validation: Iterable | None
     frames: int
+    loop: LoopData | None = None
 
 
 def recording_controller(spec: HistorySpec, data: DataConfig) -> Controller | None:
@@ -205,10 +210,21 @@ def fit_predictor(
         if round_index > 0:
             data_controller = Dithered(PredictiveController(copy.deepcopy(task.network), spec), data.dither_nm,
                                        data.seed + round_index)
-        datamodule = LoopDataModule(scenario, spec, replace(data, seed=data.seed + 1000 * round_index), data_controller)
-        solved = solve(task, FitData(datamodule.train_dataloader(), datamodule.val_dataloader(), data.frames),
-                       optimization, output=output, seed=data.seed,
-                       margin=bind_margin(margin, task.network, spec, plant_gain, 1.0))
+        round_data = replace(data, seed=data.seed + 1000 * round_index)
+        datamodule = LoopDataModule(scenario, spec, round_data, data_controller)
+        try:
+            loop = loop_data(datamodule, round_data, optimization) if optimization.fit_method == "closed_loop" else None
+            solved = solve(task, FitData(datamodule.train_dataloader(), datamodule.val_dataloader(), data.frames, loop),
+                           optimization, output=output, seed=data.seed,
+                           margin=bind_margin(margin, task.network, spec, plant_gain, 1.0))
+        except DivergedError as err:
+            if round_index == 0:
+                raise
+            # The previous round's filter cannot hold the loop it would record in: keep it, say so, stop refitting.
+            warnings.warn(f"data.refit_rounds: round {round_index} skipped, the round-{round_index - 1} fit cannot "
+                          f"record it ({err}); the round-{round_index - 1} fit is kept", stacklevel=2)
+            rounds.append({"round": round_index, "skipped": str(err)})
+            break
         task = solved.task
         rounds.append({"round": round_index, **solved.metrics})
     return solved.result(output, rounds)
@@ -222,8 +238,8 @@ def new_task(network: dict, n_actuators: int, spec: HistorySpec, grid: dict | No
     L.seed_everything(seed, workers=True, verbose=False)
     task = PredictorTask(network, n_actuators, spec.to_dict(), grid, resolve_normalize(network, asdict(optimization)),
                          info)
-    if optimization.fit_method == "closed_form" and not supports_closed_form(task.network):
-        raise ConfigError(f"optimization.fit_method='closed_form' needs a linear network; "
+    if optimization.fit_method in ("closed_form", "closed_loop") and not supports_closed_form(task.network):
+        raise ConfigError(f"optimization.fit_method={optimization.fit_method!r} needs a linear network; "
                           f"{type(task.network).__name__} has no features()/load_solution(): use "
                           "optimization.fit_method: sgd")
     return task
@@ -247,7 +263,7 @@ class Solved:
         task = self.task
         train_loss, val_loss = self.metrics.get("train_loss"), self.metrics.get("val_loss")
         val_loss = None if val_loss is None else float(val_loss)
-        sgd = task.optimization.fit_method != "closed_form"
+        sgd = task.optimization.fit_method == "sgd"
         check_fit(task, train_loss, val_loss, _loader(self.data.validation) if sgd else None)
         predictor = TrainedPredictor(task.network.eval(), task.spec, task.hparams.network, task.hparams.n_actuators,
                                      task.hparams["info"], self.ridge_path)
@@ -266,8 +282,9 @@ def solve(task: PredictorTask, data: FitData, optimization: OptimizationConfig, 
     ``closed_form``: :func:`solve_closed_form` (``margin``: ``weights -> interval``, :func:`bind_margin`), then
     Lightning's ``validate`` on the validation batches (on the training ones when there are none but a checkpoint is
     to be written: validating attaches the trainer that saves). ``sgd``: Lightning's ``fit``, or with
-    ``optimization.search`` the budgeted search (each trial seeded with ``seed``). The fit's provenance
-    (``task.hparams["info"]``) gets the alpha and its choice, or the search.
+    ``optimization.search`` the budgeted search (each trial seeded with ``seed``). ``closed_loop``: the closed-form
+    fit, then :func:`~eofnn.training.through_loop.train_through_loop` on ``data.loop``. The fit's provenance
+    (``task.hparams["info"]``) gets the alpha and its choice, the search, or the training through the loop.
     """
     output = output or FitOutput()
     info = task.hparams["info"]
@@ -288,10 +305,14 @@ def solve(task: PredictorTask, data: FitData, optimization: OptimizationConfig, 
                     validated = trainer.validate(task, dataloaders=_loader(checked), verbose=False, weights_only=True)[0]
                     if data.validation is not None:
                         metrics.update(validated)
+            elif optimization.fit_method == "closed_loop":
+                start = solve_closed_form(task.network, data.train, data.validation, optimization)
+                trainer, metrics = train_through_loop(task, data.loop, start, lambda callbacks: make_trainer(
+                    optimization, output.progress, callbacks))
             elif optimization.search is not None:
                 hp = task.hparams
                 task, trainer, searched = run_search(
-                    check_search(optimization.search, optimization.lr), hp.network, optimization,
+                    check_search(optimization.search, optimization.learning_rate), hp.network, optimization,
                     lambda net_cfg, opt: PredictorTask(net_cfg, hp.n_actuators, hp.spec, hp.grid,
                                                        resolve_normalize(net_cfg, asdict(opt)), info),
                     lambda t, tr: tr.fit(t, train_dataloaders=_loader(data.train),

@@ -109,9 +109,12 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
         :data:`~eofnn.training.alpha.MarginFunction`, for an ``optimization.select`` constraint (checked in the
         loop the fit believes in: the identified or given DM gain).
     """
+    optimization = optimization or OptimizationConfig()
+    if optimization.fit_method == "closed_loop":
+        raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs a "
+                          "scenario and simulator truth, not telemetry alone (use closed_form or sgd)")
     sequences = check_sequences(telemetry, spec)
     data = data or TelemetryDataConfig()
-    optimization = optimization or OptimizationConfig()
     output = (output or FitOutput()).checked()
     n_act, n_frames = sequences[0].y.shape[-1], min(seq.y.shape[0] for seq in sequences)
     first_item = telemetry_items(telemetry)[0]

@@ -24,6 +24,7 @@ from eofnn.training.config import (  # noqa: F401  (re-exported: the config's ho
     OPTIMIZERS,
     OptimizationConfig,
 )
+from eofnn.training.rollout import LoopBatch, log_loop_residual, loop_step
 
 
 class PredictorTask(L.LightningModule):
@@ -51,6 +52,8 @@ class PredictorTask(L.LightningModule):
         self.save_hyperparameters()
         self.spec = HistorySpec(**spec)
         self.optimization = OptimizationConfig(**(optimization or {}))
+        # Training through the loop takes its own optimiser steps (each backpropagates window by window).
+        self.automatic_optimization = self.optimization.fit_method != "closed_loop"
         self.configure_models()
 
     def configure_models(self) -> None:
@@ -88,6 +91,8 @@ class PredictorTask(L.LightningModule):
         return (prediction - target.to(prediction.dtype)).pow(2).mean()
 
     def training_step(self, batch, batch_idx):
+        if isinstance(batch, LoopBatch):
+            return loop_step(self, batch)
         if isinstance(self.network, Normalized) and not self.network.fitted:
             self.network.fit_scales(*batch)
         loss = self._loss(batch)
@@ -97,6 +102,8 @@ class PredictorTask(L.LightningModule):
         return loss
 
     def validation_step(self, batch, batch_idx):
+        if isinstance(batch, LoopBatch):
+            return log_loop_residual(self, batch, "val_loss")
         loss = self._loss(batch)
         self.log("val_loss", loss, prog_bar=True, batch_size=batch[0].shape[0])
         return loss
@@ -106,12 +113,12 @@ class PredictorTask(L.LightningModule):
         if not any(p.requires_grad for p in self.network.parameters()):
             raise ConfigError(f"network {self.network_name} has no trainable parameters: there is nothing for "
                               "optimization.fit_method sgd to fit")
-        params = self.network.parameters()
-        if opt.optimizer == "lbfgs":
-            return torch.optim.LBFGS(params, lr=opt.lr, history_size=50, max_iter=20, line_search_fn="strong_wolfe")
-        if opt.optimizer == "sgd":
-            return torch.optim.SGD(params, lr=opt.lr, momentum=0.9, weight_decay=opt.weight_decay)
-        return torch.optim.Adam(params, lr=opt.lr, weight_decay=opt.weight_decay)
+        params, name, lr = self.network.parameters(), opt.gradient_optimizer, opt.learning_rate
+        if name == "lbfgs":
+            return torch.optim.LBFGS(params, lr=lr, history_size=50, max_iter=20, line_search_fn="strong_wolfe")
+        if name == "sgd":
+            return torch.optim.SGD(params, lr=lr, momentum=0.9, weight_decay=opt.weight_decay)
+        return torch.optim.Adam(params, lr=lr, weight_decay=opt.weight_decay)
 
 
 def resolve_normalize(network: dict, optimization: dict | None) -> dict:

@@ -70,7 +70,7 @@ _BLOCK_FRAMES = 4096
 #: Spectrum samples (frequencies x lattice x aliases) evaluated together: bounds the set-up's memory (8 MB).
 _FREQUENCY_CHUNK_ELEMENTS = 2**20
 #: Variance tables up to this size are kept and shared by the realisations of a layer (they need no seed).
-_MAX_SHARED_VARIANCE_BYTES = 64 * 2**20
+_MAX_SHARED_VARIANCE_BYTES = 128 * 2**20
 #: Refuse a screen whose fine series would exceed this many bytes per layer and realisation.
 _MAX_SERIES_BYTES = 2 * 2**30
 #: Wind directions (q, p) along which the actuators line up: atan2(p, q) with small coprime p, q.

@@ -122,6 +122,12 @@ class PlantModel:
         if plant.misregistration_x or plant.misregistration_y:
             self._shift = _shift_operator(grid, plant.misregistration_x, plant.misregistration_y, dtype)
 
+    def to(self, device: torch.device | str) -> PlantModel:
+        """This model with its misregistration operator on ``device`` (where the commands it applies live)."""
+        if self._shift is not None:
+            self._shift = tuple(t.to(device) for t in self._shift)
+        return self
+
     def apply_dm(self, y: torch.Tensor, frame: int | None = None) -> torch.Tensor:
         """Correction the DM really applies (nm) for commands ``y`` (nm), ``(..., n_actuators)``, at ``frame``
         (the gain of a drifting DM at that frame; without a frame, the static ``dm_gain``)."""

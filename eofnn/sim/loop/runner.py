@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -14,6 +15,7 @@ from eofnn.lazy import lazy_module
 from eofnn.seeding import torch_generator
 from eofnn.sim.atmosphere.turbulence import Turbulence
 from eofnn.sim.loop.plant import Plant, PlantModel
+from eofnn.sim.loop.sensing import loop_sensing
 from eofnn.telemetry.record import Telemetry
 from eofnn.validation import COUNT, check_value
 
@@ -63,6 +65,10 @@ class LoopResult:
         ``(batch, frames)`` spatial RMS of the true residual ``eps``.
     turbulence_rms_nm : Tensor
         ``(batch, frames)`` spatial RMS of the turbulence ``s``.
+    pupil_residual_rms_nm : Tensor or None
+        ``(batch, frames)`` piston-removed RMS of the residual over the pupil on the sensor's fine grid, fitting error
+        included (a Shack-Hartmann scenario, :mod:`eofnn.sim.loop.sensing`); ``None`` for the zonal sensor, whose
+        residual exists only at the actuators (``residual_rms_nm``).
     diverged : bool
         Whether the loop diverged (non-finite residual or one above ``divergence_factor`` x the turbulence).
     diverged_frame : int or None
@@ -74,6 +80,7 @@ class LoopResult:
     turbulence_rms_nm: torch.Tensor
     diverged: bool = False
     diverged_frame: int | None = None
+    pupil_residual_rms_nm: torch.Tensor | None = None
 
 
 def run_loop(
@@ -95,6 +102,8 @@ def run_loop(
     it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS measures ``eps(n)``. For a fractional delay
     ``d + f`` (:mod:`eofnn.delay`) the DM term is the time average ``(1 - f) DM(y(n)) + f DM(y(n - 1))``:
     telemetry's ``y`` is the command computed for frame ``n``, its ``eps`` and ``wfs`` include the averaged DM.
+    A Shack-Hartmann scenario's turbulence (:class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`) measures through
+    slopes and a reconstructor and scores the residual over the pupil too (:mod:`eofnn.sim.loop.sensing`).
 
     Parameters
     ----------
@@ -109,7 +118,10 @@ def run_loop(
     noise_seed : int
         Seed of the WFS noise.
     record : tuple of str
-        Which of ``s, y, eps, wfs`` to keep in the returned telemetry (empty for long runs: RMS is always kept).
+        Which of ``s, y, eps, wfs`` to keep in the returned telemetry (empty for long runs: RMS is always kept);
+        ``slopes`` (a Shack-Hartmann scenario only) also keeps the sensor's slopes, ``(batch, frames, 2 n_sub)`` nm of
+        OPD difference across each subaperture, with its interaction matrix and reconstructor and a note of the
+        sensor in the telemetry's config (:mod:`eofnn.sim.loop.sensing`).
     chunk_frames : int
         Turbulence frames generated at a time.
     divergence_factor : float
@@ -117,13 +129,16 @@ def run_loop(
     progress : bool or None
         Show a progress bar; ``None`` shows it only when stderr is a terminal.
     on_chunk : callable, optional
-        Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk.
+        Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk; in a
+        Shack-Hartmann scenario ``arrays["pupil_residual"](frame)`` also gives the residual over the pupil's fine
+        points at a frame of the chunk that is a multiple of :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`.
     """
     check_value("n_frames", n_frames, COUNT)
-    unknown = set(record) - {"s", "y", "eps", "wfs"}
-    require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs")
+    unknown = set(record) - {"s", "y", "eps", "wfs", "slopes"}
+    require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs, slopes")
     grid = turbulence.grid
     model = PlantModel(plant, grid, frame_rate_hz=getattr(turbulence, "frame_rate_hz", None))
+    sensing = loop_sensing(turbulence, model, "slopes" in record)
     batch, n_act = turbulence.n_realisations, grid.n_actuators
     delay, fraction = plant.whole_delay_frames, plant.delay_fraction
     dtype = torch.float64
@@ -137,21 +152,26 @@ def run_loop(
     kept_arrays = set(record) | ({"y", "eps", "wfs"} if on_chunk is not None else set())
     eps_scratch = None
     kept: dict[str, list[torch.Tensor]] = {name: [] for name in record}
-    residual_rms, turbulence_rms = [], []
+    residual_rms, turbulence_rms, pupil_rms = [], [], []
+    dm_chunk = None
     diverged_frame = None
     if progress is None:
         progress = sys.stderr.isatty()
     bar = tqdm(total=n_frames, unit="frame", disable=not progress, leave=False)
     try:
-        for first, s_chunk in turbulence.chunks(n_frames, chunk_frames):
+        for first, s_chunk in sensing.chunks(n_frames, chunk_frames, generator):
             t = s_chunk.shape[1]
+            if sensing.pupil and (dm_chunk is None or dm_chunk.shape[1] < t):
+                dm_chunk = torch.empty(batch, t, n_act, dtype=dtype)
             arrays = {name: torch.empty(batch, t, n_act, dtype=dtype) for name in ("y", "eps", "wfs")
                       if name in kept_arrays}
+            if "slopes" in record:
+                arrays["slopes"] = torch.empty(batch, t, sensing.n_slopes, dtype=dtype)
             if "eps" not in arrays:
                 if eps_scratch is None or eps_scratch.shape[1] < t:
                     eps_scratch = torch.empty(batch, t, n_act, dtype=dtype)
                 arrays["eps"] = eps_scratch[:, :t]
-            y_out, eps_out, wfs_out = arrays.get("y"), arrays["eps"], arrays.get("wfs")
+            y_out, eps_out, wfs_out, slopes_out = arrays.get("y"), arrays["eps"], arrays.get("wfs"), arrays.get("slopes")
             arrays["s"] = s_chunk
             for i in range(t):
                 n = first + i
@@ -162,13 +182,17 @@ def run_loop(
                 if fraction:  # the shape acting over frame n: the time average of the commands acting over it
                     dm, dm_previous = (1 - fraction) * dm + fraction * dm_previous, dm
                 eps = torch.add(s_n, dm, out=eps_out[:, i])
-                wfs = model.measure(eps, generator)
+                wfs = sensing.measure(i, eps, dm, y, generator)
+                if dm_chunk is not None:
+                    dm_chunk[:, i] = dm
                 wfs_ring[slot].copy_(wfs)
                 turb_ring[slot].copy_(s_n)
                 if y_out is not None:
                     y_out[:, i] = y
                 if wfs_out is not None:
                     wfs_out[:, i] = wfs
+                if slopes_out is not None:
+                    slopes_out[:, i] = sensing.slopes(i, dm)
             rms = arrays["eps"].pow(2).mean(-1).sqrt()
             turb = s_chunk.pow(2).mean(-1).sqrt()
             bad = ~torch.isfinite(rms) | (rms > divergence_factor * turb)
@@ -177,22 +201,28 @@ def run_loop(
                 diverged_frame = first + stop
                 arrays = {k: v[:, :stop] for k, v in arrays.items()}
                 rms, turb = rms[:, :stop], turb[:, :stop]
+            if sensing.pupil:
+                pupil_rms.append(sensing.pupil_rms(dm_chunk[:, :rms.shape[1]]))
             residual_rms.append(rms)
             turbulence_rms.append(turb)
             for name in record:
                 kept[name].append(arrays[name])
             if on_chunk is not None and arrays["s"].shape[1]:
+                if sensing.pupil:  # a Shack-Hartmann's residual over the pupil at frames where its phase is kept
+                    arrays["pupil_residual"] = functools.partial(_pupil_residual, sensing, dm_chunk, first)
                 on_chunk(first, arrays)
             bar.update(t)
             if diverged_frame is not None:
                 break
     finally:
         bar.close()
+    matrices, note = sensing.space() if "slopes" in record else ({}, None)
     telemetry = Telemetry(
         **{name: torch.cat(kept[name], 1) for name in record},
         delay_frames=plant.delay_frames,
-        config={"plant": plant.to_dict()},
+        config={"plant": plant.to_dict(), **({"sensor": note} if note else {})},
         positions_m=torch.as_tensor(grid.positions_m),
+        **matrices,
     )
     return LoopResult(
         telemetry=telemetry,
@@ -200,7 +230,13 @@ def run_loop(
         turbulence_rms_nm=torch.cat(turbulence_rms, 1),
         diverged=diverged_frame is not None,
         diverged_frame=diverged_frame,
+        pupil_residual_rms_nm=torch.cat(pupil_rms, 1) if pupil_rms else None,
     )
+
+
+def _pupil_residual(sensing, dm_chunk: torch.Tensor, first: int, frame: int) -> torch.Tensor:
+    """``(batch, n_pupil)`` residual over the pupil at ``frame`` of the chunk starting at ``first``."""
+    return sensing.pupil_residual(frame, dm_chunk[:, frame - first])
 
 
 def record_loop(turbulence: Turbulence, plant: Plant, controller: Controller, n_frames: int, *, noise_seed: int,

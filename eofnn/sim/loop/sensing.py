@@ -1,0 +1,336 @@
+"""The loop's wavefront sensor: how ``run_loop`` turns turbulence and the DM into the controller's measurement.
+
+Two sensings share one interface (:func:`loop_sensing`):
+
+- **Zonal** (``sensor.kind: subaperture``, the default): ``s(n)`` is the turbulence at the actuators through the
+  atmosphere's kernel; the measurement is ``wfs_gain eps(n) + noise`` (:meth:`PlantModel.measure`), drawn frame by
+  frame exactly as before the Shack-Hartmann existed, so no committed number moves.
+- **Shack-Hartmann** (``sensor.kind: shack_hartmann``, :class:`ShackHartmannTurbulence`). The exact frozen-flow
+  phase ``phi(n)`` is synthesised on the sensor's fine grid (``kernel: point``: every fine point is exact, no
+  interpolation). With ``S`` the slope operator, ``IF`` the DM's influence functions, ``D = S IF``, ``R`` the
+  truncated least-squares reconstructor and ``P = R D`` (the projector on the command modes ``R`` keeps):
+
+  - the turbulence in command space, the controllers' truth and the predictors' target, is what a noise-free copy
+    of the sensor reconstructs, ``s = R S phi``: aliasing included, as every measurement of it. The actuator-space
+    residual is ``eps = s + DM(y)`` (``DM`` the plant's: gain, misregistration, nonlinearity), and in a nominal plant
+    the measurement below is ``eps`` plus noise, exactly as in the zonal loop;
+  - what the sensor cannot tell, the fitting error and the aliasing, is scored over the pupil. The DM's best fit of
+    the phase on the modes the sensor sees is ``P F phi`` with ``F = (IF^T W IF)^-1 IF^T W`` (``W`` the fine points in
+    the pupil): ``phi - IF P F phi`` is the fitting error, ``R S phi - P F phi`` the aliasing in command space.
+    Why not ``s = P F phi`` (measured, 16 across, R = 8): the aliasing is large in command space (high spatial
+    frequencies of the commands, which the influence functions barely pass: 520 nm there against 85 nm over the
+    pupil at 20 across), so a predictor fitted to it from the measurements shrinks towards zero and loses to the
+    integrator even without noise (292 against 275 nm over the pupil); a target without aliasing is issue 30's
+    anti-aliasing prediction, a choice of target, not of the loop's truth;
+  - the measurement is the real-time computer's: ``wfs = wfs_gain R S (phi + IF DM(y)) + R n + (I - P) y =
+    wfs_gain (R S phi + P DM(y)) + R n + (I - P) y``, with ``n`` white slope noise of the sensor's RMS (photon and
+    read noise, :class:`~eofnn.sim.sensing.detector.Detector`, and the plant's ``wfs_noise_nm`` per slope). ``R S phi
+    - s`` is the aliasing: the phase the DM cannot fit, seen by the subapertures and reconstructed onto the actuators.
+    The last term is how the computer fills the modes its reconstructor cuts (waffle, piston, edge modes): it sees
+    nothing of them, so it reports there the command it sent (``y``, averaged like the DM for a fractional delay).
+    Every controller's pseudo-open-loop value ``wfs - y`` is then ``R S phi + R n`` in a nominal plant, exactly as a
+    slope-space ``R (s - D y)`` would be, and an integrator leaks whatever it put in those modes away instead of
+    letting a per-actuator filter feed it back on itself (measured: without it an open-loop EOF diverges within 100
+    frames while its analysis, which assumes ``wfs - y`` is the turbulence, calls it stable). The DM still applies
+    those commands: the pupil's residual has them;
+  - the residual over the pupil is ``phi + IF DM(y)`` on the fine points inside the pupil, its RMS taken with
+    piston removed (as OOPAO's ``np.std(tel.OPD[pupil])``): fitting error included.
+
+  ``isolate`` (the error budget's runs) swaps parts of the sensor for perfect ones: ``noise_free`` drops ``n``;
+  ``perfect`` also reads ``P F phi`` in place of ``R S phi`` (no aliasing; ``s`` is then ``P F phi`` too).
+
+  Recorded slopes (``run_loop(record=(..., "slopes"))``) are the sensor's own, nm of OPD difference across each
+  subaperture: ``slopes = wfs_gain (S phi + D DM(y)) + n`` with ``D`` in the loop's command units (``R D = P``) and
+  the very draws ``n`` whose ``R n`` the measurement holds, so ``R slopes + (I - P) y = wfs`` to rounding. ``S phi`` is
+  kept in the chunk only when slopes are recorded (a chunk cached without it is synthesised again), and the noise is
+  drawn as always, then multiplied by ``R^T``: a loop that records no slopes costs and draws what it did before.
+
+  The fine-grid phase is what costs (16 points per actuator at 4 samples per subaperture). Everything the loop
+  needs of it, ``s``, ``R S phi`` and the pupil's numbers (:mod:`eofnn.sim.sensing.pupil`), is computed a chunk of
+  frames at a time and kept in a bounded cache (:data:`CACHE_BYTES`), with the phase itself at every
+  :data:`PHASE_EVERY`-th frame (raw contrast): a study runs the same test stream for every controller and every
+  gain of a scan, and it is synthesised once. Chunks start on multiples of their size, so a cached chunk and a
+  recomputed one are the same numbers. Per frame the loop costs two ``K x K`` products (``P DM(y)`` and the pupil's
+  ``u.G u``).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+from eofnn.errors import require
+from eofnn.lazy import lazy_module
+from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.sensor import Sensor
+
+if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
+    from eofnn.sim.sensing.pupil import LoopOperators
+    from eofnn.sim.sensing.shack_hartmann import ShackHartmann
+
+torch = lazy_module("torch")
+
+#: What the budget's runs may swap for perfect: nothing, the noise, or the noise and the aliasing.
+ISOLATE = ("none", "noise_free", "perfect")
+#: Fine-grid values one chunk holds at most while it is computed (float64): 128 MB.
+_CHUNK_VALUES = 2 ** 24
+#: The chunk cache's budget (bytes): least recently used chunks leave first.
+CACHE_BYTES = 2 ** 30
+#: The fine-grid phase is kept at frames that are multiples of this (raw contrast's default sampling).
+PHASE_EVERY = 10
+_CACHE: OrderedDict = OrderedDict()
+_OPERATORS: dict = {}
+
+
+def loop_operators(grid: ActuatorGrid, config: ShackHartmann) -> LoopOperators:
+    """The sensor built on ``grid`` with the operators the loop needs (kept: a study builds it once)."""
+    key = (repr(grid), repr(config))
+    if key not in _OPERATORS:
+        if len(_OPERATORS) >= 4:
+            _OPERATORS.pop(next(iter(_OPERATORS)))
+        from eofnn.sim.sensing.pupil import LoopOperators
+        from eofnn.sim.sensing.shack_hartmann import ShackHartmannSensor
+
+        _OPERATORS[key] = LoopOperators(ShackHartmannSensor(grid, config))
+    return _OPERATORS[key]
+
+
+def clear_cache() -> None:
+    """Forget every cached chunk (tests that time a first synthesis)."""
+    _CACHE.clear()
+
+
+class ShackHartmannTurbulence:
+    """The turbulence of a Shack-Hartmann scenario: the fine-grid phase and what the loop and its data derive from it.
+
+    It streams like :class:`~eofnn.sim.atmosphere.turbulence.Turbulence` on the actuator grid (``frames``,
+    ``chunks``: ``s = R S phi``) and adds the sensor's side (:meth:`products`, :meth:`open_loop`)."""
+
+    def __init__(self, atmosphere: Atmosphere, grid: ActuatorGrid, frame_rate_hz: float, seed: int, stream: str,
+                 n_realisations: int, vibrations, sensor: Sensor, isolate: str = "none") -> None:
+        require(isolate in ISOLATE, f"isolate={isolate!r} is invalid: allowed are {', '.join(ISOLATE)}")
+        self.grid, self.frame_rate_hz, self.n_realisations = grid, frame_rate_hz, n_realisations
+        self.atmosphere, self.sensor, self.isolate = atmosphere, sensor, isolate
+        self.operators = loop_operators(grid, sensor.shack_hartmann())
+        self.fine_grid = self.operators.sensor.geometry.fine_grid
+        self._args = (replace(atmosphere, kernel="point"), self.fine_grid, frame_rate_hz, seed, stream,
+                      n_realisations, vibrations)
+        self._fine: Turbulence | None = None  # built when a chunk is not cached
+        self._key = repr((self._args, repr(sensor.shack_hartmann()), repr(grid)))
+
+    @property
+    def n_fine(self) -> int:
+        return self.operators.sensor.geometry.n_fine
+
+    @property
+    def fine(self) -> Turbulence:
+        """The fine-grid turbulence (built on first use)."""
+        if self._fine is None:
+            self._fine = Turbulence(*self._args)
+        return self._fine
+
+    def release(self) -> None:
+        """Drop the fine-grid turbulence (its screens and a block of up to 4096 frames of fine phase, about 1 GB at 40
+        across): the cached chunks stay, a later chunk builds it again."""
+        self._fine = None
+
+    def slope_noise_nm(self, extra_nm: float) -> float:
+        """RMS white noise per slope (nm): the detector's and the plant's ``extra_nm``; 0 when isolated."""
+        if self.isolate != "none":
+            return 0.0
+        geometry = self.operators.sensor.geometry
+        return self.sensor.slope_noise_nm(geometry.pitch_m, 1.0 / self.frame_rate_hz, extra_nm)
+
+    @property
+    def chunk_frames(self) -> int:
+        """Frames per chunk (a multiple of :data:`PHASE_EVERY`) that keep one chunk's fine phase within 128 MB."""
+        frames = _CHUNK_VALUES // (self.n_realisations * self.n_fine)
+        return max(PHASE_EVERY, frames - frames % PHASE_EVERY)
+
+    def _chunk(self, index: int, slopes: bool = False) -> dict:
+        """The products of aligned chunk ``index`` (frames ``index * chunk_frames ...``), cached; ``slopes``: with
+        ``S phi`` (a cached chunk without it is computed again, to the same numbers, and replaced)."""
+        key = (self._key, index)
+        if key in _CACHE and (not slopes or "slopes" in _CACHE[key]):
+            _CACHE.move_to_end(key)
+            return _CACHE[key]
+        _CACHE.pop(key, None)
+        step = self.chunk_frames
+        start, stop = index * step, min((index + 1) * step, self.atmosphere.screen_frames)
+        phase = self.fine.frames(start, stop)  # (R, t, n_fine)
+        flat = phase.reshape(-1, phase.shape[-1]).numpy()
+        shape = phase.shape[:2]
+        out = {k: v.reshape(*shape, *v.shape[1:]) for k, v in self.operators.products(flat, slopes).items()}
+        out["phase"] = phase[:, (-start) % PHASE_EVERY::PHASE_EVERY].clone()
+        size = sum(v.numel() * v.element_size() for v in out.values())
+        while _CACHE and sum(c["bytes"] for c in _CACHE.values()) + size > CACHE_BYTES:
+            _CACHE.popitem(last=False)
+        out["bytes"] = size
+        _CACHE[key] = out
+        return out
+
+    def products(self, start: int, stop: int, slopes: bool = False) -> dict[str, torch.Tensor]:
+        """``s, sensed, fit, z, sum, sumsq`` of frames ``start..stop-1`` (``(R, frames, ...)``), from the cached chunks;
+        ``s`` is ``sensed`` (``R S phi``; ``fit = P F phi`` for ``isolate: perfect``); ``slopes`` adds ``S phi``."""
+        require(0 <= start <= stop <= self.atmosphere.screen_frames,
+                f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop <= atmosphere.screen_frames="
+                f"{self.atmosphere.screen_frames}")
+        step = self.chunk_frames
+        parts = []
+        skip = ("phase", "bytes") if slopes else ("phase", "bytes", "slopes")
+        for index in range(start // step, -(-stop // step)):
+            chunk, lo = self._chunk(index, slopes), index * step
+            parts.append({k: v[:, max(start - lo, 0): stop - lo] for k, v in chunk.items() if k not in skip})
+        out = {k: torch.cat([p[k] for p in parts], 1) for k in parts[0]}
+        if self.isolate == "perfect":
+            out["sensed"] = out["fit"]
+        out["s"] = out["sensed"]
+        return out
+
+    def phase_at(self, frame: int) -> torch.Tensor:
+        """The fine-grid phase ``(R, n_fine)`` of ``frame``, a multiple of :data:`PHASE_EVERY`."""
+        require(frame % PHASE_EVERY == 0, f"frame={frame} is invalid: the phase is kept at multiples of {PHASE_EVERY}")
+        step = self.chunk_frames
+        return self._chunk(frame // step)["phase"][:, (frame % step) // PHASE_EVERY]
+
+    def slope_noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
+        """``n``: ``(R, frames, 2 n_sub)`` white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
+        if sigma_nm <= 0:
+            return None
+        return sigma_nm * torch.randn((*shape, self.operators.sensor.n_slopes), generator=generator,
+                                      dtype=torch.float64)
+
+    def noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
+        """``R n`` for ``(R, frames)`` frames of white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
+        n = self.slope_noise(shape, sigma_nm, generator)
+        return None if n is None else n @ self.operators.reconstructor.T
+
+    def frames(self, start: int, stop: int) -> torch.Tensor:
+        """``s`` of frames ``start..stop-1``: ``(R, frames, K)`` nm."""
+        return self.products(start, stop)["s"]
+
+    def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
+        """Yield ``(first_frame, s)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
+        for first in range(start, start + n_frames, chunk):
+            yield first, self.frames(first, min(first + chunk, start + n_frames))
+
+    def open_loop(self, start: int, stop: int, plant, generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(s, s_hat)`` of frames ``start..stop-1`` with no correction: the truth and the sensor's reading of it
+        with the gain divided out, ``R S phi + R n / wfs_gain`` (what pseudo-open-loop data is)."""
+        out = self.products(start, stop)
+        self.release()
+        s, s_hat = out["s"], out["sensed"]
+        noise = self.noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)
+        return s, s_hat if noise is None else s_hat + noise / plant.wfs_gain
+
+
+class ZonalLoopSensing:
+    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise`` frame by frame."""
+
+    pupil = False
+    n_slopes = 0
+
+    def __init__(self, turbulence: Turbulence, model) -> None:
+        self.turbulence, self.model = turbulence, model
+
+    def chunks(self, n_frames: int, chunk: int, generator):
+        return self.turbulence.chunks(n_frames, chunk)
+
+    def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
+        return self.model.measure(eps, generator)
+
+
+class ShackHartmannLoopSensing:
+    """The Shack-Hartmann in the loop (module docstring): a chunk's ``s``, sensed turbulence and noise at once, the
+    DM term and the pupil's residual per frame."""
+
+    pupil = True
+
+    def __init__(self, turbulence: ShackHartmannTurbulence, model, slopes: bool = False) -> None:
+        require(not slopes or turbulence.isolate != "perfect",
+                "record 'slopes' is invalid with isolate='perfect': that sensor reads the DM's fit, not slopes")
+        self.turbulence, self.model, self.record_slopes = turbulence, model, slopes
+        self.gain = model.plant.wfs_gain
+        self.sigma_nm = turbulence.slope_noise_nm(model.plant.wfs_noise_nm)
+        ops = turbulence.operators
+        self.n_slopes = ops.sensor.n_slopes
+        self.projector_t = ops.projector.T.contiguous()
+        self.interaction_t = ops.interaction_matrix.T.contiguous() if slopes else None
+        self.fraction = model.plant.delay_fraction
+        plant = model.plant
+        # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
+        self.identity_dm = (plant.dm_gain == 1.0 and not plant.misregistration_x and not plant.misregistration_y
+                            and plant.nonlinearity == "none" and plant.dm_gain_drift is None and self.gain == 1.0)
+        self._chunk: dict = {}
+        self._noise = self._slope_noise = self._y_previous = None
+
+    def chunks(self, n_frames: int, chunk: int, generator):
+        for first in range(0, n_frames, chunk):
+            out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes)
+            self._chunk = out
+            # R n from the very draws recorded slopes hold: the same draws, and numbers, as without them.
+            n = self.turbulence.slope_noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
+            self._slope_noise = n if self.record_slopes else None
+            self._noise = None if n is None else n @ self.turbulence.operators.reconstructor.T
+            if first + chunk >= n_frames:
+                self.turbulence.release()
+            yield first, out["s"]
+
+    def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
+        if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
+            wfs = self._chunk["sensed"][:, i] + dm
+            return wfs if self._noise is None else wfs + self._noise[:, i]
+        wfs = self._chunk["sensed"][:, i] + dm @ self.projector_t
+        if self.gain != 1.0:
+            wfs = self.gain * wfs
+        sent = y
+        if self.fraction:  # the commands acting over the frame, as the DM averages them
+            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
+            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
+        wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
+        return wfs if self._noise is None else wfs + self._noise[:, i]
+
+    def slopes(self, i: int, dm: torch.Tensor) -> torch.Tensor:
+        """``(R, 2 n_sub)``: the sensor's slopes of frame ``i`` of the chunk, ``wfs_gain (S phi + D dm) + n`` (nm of OPD
+        difference across each subaperture; ``dm`` the DM term :meth:`measure` got)."""
+        slopes = self._chunk["slopes"][:, i] + dm @ self.interaction_t
+        if self.gain != 1.0:
+            slopes = self.gain * slopes
+        return slopes if self._slope_noise is None else slopes + self._slope_noise[:, i]
+
+    def space(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """What telemetry with slopes carries beside them: the ``interaction_matrix`` ``D`` ``(2 n_sub, K)`` and the
+        ``reconstructor`` ``R`` ``(K, 2 n_sub)`` in the loop's units, and a note saying which sensor made them."""
+        ops = self.turbulence.operators
+        sensor, geometry = ops.sensor, ops.sensor.geometry
+        note = {**self.turbulence.sensor.to_dict(), "subapertures_across": geometry.subapertures_across,
+                "subapertures": geometry.n_subapertures, "kept_modes": sensor.kept_modes,
+                "relative_cut": sensor.relative_cut, "slope_noise_nm": self.sigma_nm,
+                "slopes": "nm of OPD difference across each subaperture, x slopes then y slopes: "
+                          "wfs_gain (S phi + D DM(y)) + noise",
+                "measurement": "wfs = reconstructor @ slopes + (I - P) y, P = reconstructor @ interaction_matrix "
+                               "(the cut modes report the command sent)"}
+        return {"interaction_matrix": ops.interaction_matrix, "reconstructor": ops.reconstructor}, note
+
+    def pupil_rms(self, dm: torch.Tensor) -> torch.Tensor:
+        """``(R, frames)`` piston-removed RMS over the pupil of ``phi + IF DM`` for the chunk's applied ``dm``."""
+        t = dm.shape[1]
+        c = self._chunk
+        return self.turbulence.operators.pupil_rms(c["z"][:, :t], c["sum"][:, :t], c["sumsq"][:, :t], dm)
+
+    def pupil_residual(self, frame: int, dm: torch.Tensor) -> torch.Tensor:
+        """``(R, n_pupil)``: ``phi + IF DM`` over the pupil at ``frame`` (a multiple of :data:`PHASE_EVERY`)."""
+        ops = self.turbulence.operators
+        return (self.turbulence.phase_at(frame) + ops.surface(dm))[:, ops.pupil]
+
+
+def loop_sensing(turbulence, model, slopes: bool = False):
+    """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one); ``slopes``: record
+    the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none)."""
+    if isinstance(turbulence, ShackHartmannTurbulence):
+        return ShackHartmannLoopSensing(turbulence, model, slopes)
+    require(not slopes, "record 'slopes' is invalid in this scenario: the zonal sensor (sensor.kind: subaperture) "
+            "measures no slopes; record them with sensor.kind: shack_hartmann")
+    return ZonalLoopSensing(turbulence, model)

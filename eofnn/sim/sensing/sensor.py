@@ -1,0 +1,122 @@
+"""The scenario's wavefront sensor (``scenario.sensor``): today's zonal subaperture average, or a Shack-Hartmann.
+
+- ``kind: subaperture`` (the default; nothing else to set): the loop senses the turbulence at each actuator through
+  the atmosphere's sensing kernel (:mod:`eofnn.sim.sensing.kernels`) plus the plant's white ``wfs_noise_nm``. No
+  slopes, no aliasing into a reconstruction, no photon statistics; the residual is scored at the actuators.
+- ``kind: shack_hartmann``: the geometric Shack-Hartmann of :mod:`eofnn.sim.sensing.shack_hartmann` (Fried geometry
+  by default, slopes by Gauss's theorem on a fine grid of exact frozen-flow phase, a truncated least-squares
+  reconstructor) with photon and read noise from :class:`~eofnn.sim.sensing.detector.Detector` (``detector:``; none:
+  noise-free) plus the plant's ``wfs_noise_nm`` as white noise per slope (nm of OPD difference across the
+  subaperture). The loop then runs as :mod:`eofnn.sim.loop.sensing` describes, with the residual also scored over the
+  pupil on the fine grid (fitting error included).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
+
+from eofnn.errors import ConfigError, require
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.detector import Detector
+from eofnn.validation import Constraint, Interval, OneOf, OrNone, from_mapping, validated
+
+#: Subaperture geometries (:data:`eofnn.sim.sensing.shack_hartmann.GEOMETRIES`; numpy, scipy and torch stay unimported
+#: until a Shack-Hartmann is built).
+GEOMETRIES = ("fried", "cell")
+#: OOPAO's default mechanical coupling (:data:`eofnn.sim.sensing.least_squares.MECHANICAL_COUPLING`).
+MECHANICAL_COUPLING = 0.35
+
+#: Sensor kinds a scenario may have.
+SENSOR_KINDS = ("subaperture", "shack_hartmann")
+
+
+@dataclass(frozen=True)
+@validated
+class Sensor:
+    """The wavefront sensor a scenario's loop runs with.
+
+    Parameters
+    ----------
+    kind : {"subaperture", "shack_hartmann"}
+        ``subaperture`` (default): the zonal average at each actuator (the atmosphere's ``kernel``), plus the
+        plant's ``wfs_noise_nm``. ``shack_hartmann``: slopes, reconstructor, photon noise (the fields below).
+    geometry, samples_per_subaperture, subapertures_across, mechanical_coupling, relative_cut
+        The Shack-Hartmann and its reconstructor (:class:`~eofnn.sim.sensing.shack_hartmann.ShackHartmann`):
+        ``fried`` (default) or ``cell`` subapertures; fine-grid intervals per subaperture side (4); subapertures across
+        (``cell`` only); the DM's mechanical coupling (0.35); the reconstructor's relative singular-value cut (``None``:
+        ``min(0.1, 3 / subapertures across)``).
+    detector : Detector or None
+        Guide star and detector (band, magnitude, throughput, pixels, read noise): photon and read noise on every
+        slope by Rousset's formulas (:class:`~eofnn.sim.sensing.detector.Detector`). ``None``: no photon noise.
+    """
+
+    kind: str = "subaperture"
+    geometry: str = "fried"
+    samples_per_subaperture: int = 4
+    subapertures_across: int | None = None
+    mechanical_coupling: float = MECHANICAL_COUPLING
+    relative_cut: float | None = None
+    detector: Detector | None = None
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "kind": OneOf(SENSOR_KINDS),
+        "geometry": OneOf(GEOMETRIES),
+        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
+        "subapertures_across": OrNone(Interval(2, 512, integer=True, unit="subapertures across")),
+        "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
+        "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
+    }
+
+    def __post_init__(self) -> None:
+        if self.detector is not None:
+            object.__setattr__(self, "detector", from_mapping(Detector, self.detector, "sensor.detector"))
+        if self.kind == "subaperture":
+            changed = [f.name for f in fields(self) if f.name != "kind" and getattr(self, f.name) != f.default]
+            if changed:
+                raise ConfigError(f"sensor.{changed[0]}={getattr(self, changed[0])!r} is invalid for sensor kind "
+                                  "'subaperture' (the zonal average has no slopes, reconstructor or detector): set "
+                                  "sensor.kind: shack_hartmann, or remove it")
+        if self.detector is not None:
+            require(math.isfinite(self.detector.magnitude), f"sensor.detector.magnitude={self.detector.magnitude!r} "
+                                                            "is invalid: it must be a finite number")
+
+    @property
+    def is_shack_hartmann(self) -> bool:
+        return self.kind == "shack_hartmann"
+
+    def shack_hartmann(self):  # -> ShackHartmann (not imported here: jsonargparse reads this module's types)
+        """The Shack-Hartmann config of these fields."""
+        from eofnn.sim.sensing.shack_hartmann import ShackHartmann
+
+        return ShackHartmann(self.geometry, self.samples_per_subaperture, self.subapertures_across,
+                             self.mechanical_coupling, self.relative_cut)
+
+    def slope_noise_nm(self, subaperture_m: float, frame_period_s: float, extra_nm: float = 0.0) -> float:
+        """RMS white noise per slope (nm): the detector's photon and read noise and ``extra_nm`` in quadrature."""
+        detector = 0.0 if self.detector is None else self.detector.slope_noise_variance_nm2(subaperture_m,
+                                                                                             frame_period_s)
+        return math.sqrt(detector + extra_nm ** 2)
+
+    def check_fits(self, grid: ActuatorGrid) -> None:
+        """Refuse up front, in one line, a Shack-Hartmann that cannot be built on ``grid``."""
+        if not self.is_shack_hartmann:
+            return
+        if self.subapertures_across is not None and self.subapertures_across > grid.n_across:
+            raise ConfigError(f"sensor.subapertures_across={self.subapertures_across!r} is invalid: the grid has "
+                              f"{grid.n_across} actuators across; allowed 2 to {grid.n_across}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def build_sensor(value) -> Sensor:
+    """A :class:`Sensor` from a scenario's ``sensor:`` value (a mapping, a Sensor or ``None``)."""
+    if value is None:
+        return Sensor()
+    if isinstance(value, Sensor):
+        return value
+    if not isinstance(value, dict):
+        raise ConfigError(f"sensor={value!r} is invalid: it must be a mapping such as {{kind: shack_hartmann}}")
+    return from_mapping(Sensor, value, "sensor")
