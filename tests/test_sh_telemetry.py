@@ -170,7 +170,7 @@ def test_simulate_writes_slopes_that_identify_fit_and_replay_read(tmp_path, cli)
     # A nominal plant: both find a DM gain of 1 within their standard errors.
     for plant in plants.values():
         assert plant["identified"] and abs(plant["dm_gain"] - 1.0) < 3 * plant["dm_gain_se"] < 0.3
-    weights = [torch.load(tmp_path / f"{name}.ckpt", weights_only=False)["state_dict"]["network.weight"]
+    weights = [torch.load(tmp_path / f"{name}.ckpt", weights_only=True)["state_dict"]["network.weight"]
                for name in ("wfs", "slopes")]
     torch.testing.assert_close(weights[1], weights[0], rtol=1e-9, atol=1e-12)
 
