@@ -9,6 +9,7 @@ row per actuator. A loop whose characteristic polynomial has ``p[0] = 1`` is sta
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -149,22 +150,32 @@ def _im_product(a: torch.Tensor, b: torch.Tensor, omega: torch.Tensor) -> tuple[
 
 def _refine(a: torch.Tensor, b: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, h_lo: torch.Tensor,
             h_hi: torch.Tensor, iterations: int = 60) -> torch.Tensor:
-    """Zeros of ``Im(a conj b)`` in brackets ``[lo, hi]`` by false position with the Illinois modification.
+    """Zeros of ``Im(a conj b)`` in brackets ``[lo, hi]`` (:func:`illinois_zeros`)."""
+    return illinois_zeros(lambda mid, open_: _im_product(a[open_], b[open_], mid), lo, hi, h_lo, h_hi, iterations)
 
-    Each bracket stops once it has converged (a bracket below 1e-13 rad, or ``Im(a conj b)`` at rounding level);
-    later iterations work on the brackets still open only, so a few slow ones cost little (thousands of actuators
-    have tens of thousands of brackets)."""
+
+#: ``evaluate(mid, open)``: the function and its scale (``|a| |b|``) at ``mid`` for the brackets ``open``.
+BracketFunction = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+def illinois_zeros(evaluate: BracketFunction, lo: torch.Tensor, hi: torch.Tensor, h_lo: torch.Tensor,
+                   h_hi: torch.Tensor, iterations: int = 60) -> torch.Tensor:
+    """Zeros of a function in brackets ``[lo, hi]`` (values ``h_lo``, ``h_hi`` of opposite signs) by false position
+    with the Illinois modification; ``evaluate(mid, open)`` gives the function at ``mid`` for the brackets still open.
+
+    Each bracket stops once it has converged (a bracket below 1e-13 rad, or the function at rounding level of its
+    scale); later iterations work on the brackets still open only, so a few slow ones cost little (thousands of
+    actuators have tens of thousands of brackets)."""
     lo, hi, h_lo, h_hi = lo.clone(), hi.clone(), h_lo.clone(), h_hi.clone()
     side = torch.zeros_like(lo)  # -1: lo moved last time, +1: hi moved
     open_ = torch.arange(len(lo))
-    a_open, b_open = a, b
     for _ in range(iterations):
         if not len(open_):
             break
         left, right, hl, hh, sd = lo[open_], hi[open_], h_lo[open_], h_hi[open_], side[open_]
         mid = (left * hh - right * hl) / (hh - hl)
         mid = torch.where((mid > left) & (mid < right), mid, 0.5 * (left + right))
-        h_mid, scale = _im_product(a_open, b_open, mid)
+        h_mid, scale = evaluate(mid, open_)
         move_lo = (h_mid >= 0) == (hl >= 0)
         # Illinois: an end kept twice in a row has its value halved, so that both ends converge.
         hh = torch.where(move_lo, torch.where(sd < 0, 0.5 * hh, hh), h_mid)
@@ -173,8 +184,7 @@ def _refine(a: torch.Tensor, b: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor
         lo[open_], hi[open_], h_lo[open_], h_hi[open_] = left, right, hl, hh
         side[open_] = torch.where(move_lo, -1.0, 1.0).to(lo.dtype)
         still = ~((right - left <= 1e-13) | (h_mid.abs() <= 1e-14 * scale))
-        if not bool(still.all()):
-            open_, a_open, b_open = open_[still], a_open[still], b_open[still]
+        open_ = open_[still]
     return torch.where(h_lo.abs() < h_hi.abs(), lo, hi)
 
 

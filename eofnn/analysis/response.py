@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import torch
 
-from eofnn.analysis.polynomials import nearest_around
+from eofnn.analysis.polynomials import illinois_zeros, nearest_around
 from eofnn.analysis.stability import LoopSetup, StabilityResult
 from eofnn.resources import require_memory
 
@@ -39,28 +39,13 @@ Response = Callable[[torch.Tensor, torch.Tensor | None], tuple[torch.Tensor, tor
 def _refine(pair: Response, rows: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, h_lo: torch.Tensor,
             h_hi: torch.Tensor, iterations: int = 60) -> torch.Tensor:
     """Zeros of ``Im(a conj b)`` of ``pair`` in brackets ``[lo, hi]`` (one per entry of ``rows``), by false position
-    with the Illinois modification (an end kept twice has its value halved)."""
-    lo, hi, h_lo, h_hi = lo.clone(), hi.clone(), h_lo.clone(), h_hi.clone()
-    side = torch.zeros_like(lo)
-    open_ = torch.arange(len(lo))
-    for _ in range(iterations):
-        if not len(open_):
-            break
-        left, right, hl, hh, sd = lo[open_], hi[open_], h_lo[open_], h_hi[open_], side[open_]
-        mid = (left * hh - right * hl) / (hh - hl)
-        mid = torch.where((mid > left) & (mid < right), mid, 0.5 * (left + right))
+    with the Illinois modification (:func:`~eofnn.analysis.polynomials.illinois_zeros`)."""
+    def evaluate(mid: torch.Tensor, open_: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         a, b = pair(mid.unsqueeze(1), rows[open_])
         product = (a * b.conj()).squeeze(1)
-        h_mid = product.imag
-        move_lo = (h_mid >= 0) == (hl >= 0)
-        hh = torch.where(move_lo, torch.where(sd < 0, 0.5 * hh, hh), h_mid)
-        hl = torch.where(move_lo, h_mid, torch.where(sd > 0, 0.5 * hl, hl))
-        left, right = torch.where(move_lo, mid, left), torch.where(move_lo, right, mid)
-        lo[open_], hi[open_], h_lo[open_], h_hi[open_] = left, right, hl, hh
-        side[open_] = torch.where(move_lo, -1.0, 1.0).to(DTYPE)
-        still = ~((right - left <= 1e-13) | (h_mid.abs() <= 1e-14 * product.abs()))
-        open_ = open_[still]
-    return torch.where(h_lo.abs() < h_hi.abs(), lo, hi)
+        return product.imag, product.abs()
+
+    return illinois_zeros(evaluate, lo, hi, h_lo, h_hi, iterations)
 
 
 def crossings(pair: Response, grid_values: tuple[torch.Tensor, torch.Tensor],
