@@ -17,12 +17,9 @@ Goal: identification within 2x of the fit (``ratio = fit / identify >= 0.5``).
 
 from __future__ import annotations
 
-import argparse
-import json
-
 import torch
 
-from benchmarks.common import Row, time_interleaved
+from benchmarks.common import Row, sized_main, time_interleaved
 from eofnn.data.history import HistorySpec
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.plant import Plant, PlantModel
@@ -66,17 +63,11 @@ def bench_identify(n_frames: int = 60000, n_across: int = 40, diameter_m: float 
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=60000)
-    parser.add_argument("--n-across", type=int, default=40)
-    parser.add_argument("--repeat", type=int, default=2)
-    args = parser.parse_args(argv)
-    rows = [row.to_dict() for row in bench_identify(args.frames, args.n_across, repeat=args.repeat)]
-    for row in rows:
-        print(f"{row['name']}: identify {row['eofnn_s']['min']:.2f} s, fit {row['baseline_s']['min']:.2f} s, "
-              f"ratio {row['ratio']:.2f} (goal {row['goal']}: {'met' if row['goal_met'] else 'missed'})")
-    print(json.dumps(rows, indent=1))
-    return rows
+    return sized_main(argv, __doc__, 60000,
+                      lambda frames, n_across, repeat: bench_identify(frames, n_across, repeat=repeat),
+                      lambda row: f"{row['name']}: identify {row['eofnn_s']['min']:.2f} s, fit "
+                                  f"{row['baseline_s']['min']:.2f} s, ratio {row['ratio']:.2f} (goal {row['goal']}: "
+                                  f"{'met' if row['goal_met'] else 'missed'})")
 
 
 if __name__ == "__main__":

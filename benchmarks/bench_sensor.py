@@ -19,12 +19,9 @@ sensor's loop is. ``results_sensor.json`` holds the last run.
 
 from __future__ import annotations
 
-import argparse
-import json
-
 import torch
 
-from benchmarks.common import Row, time_interleaved
+from benchmarks.common import Row, sized_main, time_interleaved
 from eofnn.control.baselines import Integrator
 from eofnn.sim.loop import sensing
 from eofnn.sim.loop.runner import run_loop
@@ -61,17 +58,9 @@ def bench_sensor(n_across: int = 40, frames: int = 1000, repeat: int = 2) -> lis
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=1000)
-    parser.add_argument("--n-across", type=int, default=40)
-    parser.add_argument("--repeat", type=int, default=2)
-    args = parser.parse_args(argv)
-    rows = [row.to_dict() for row in bench_sensor(args.n_across, args.frames, args.repeat)]
-    for row in rows:
-        print(f"{row['name']}: Shack-Hartmann {row['eofnn_s']['min']:.2f} s, zonal {row['baseline_s']['min']:.2f} s, "
-              f"ratio {row['ratio']:.3f}")
-    print(json.dumps(rows, indent=1))
-    return rows
+    return sized_main(argv, __doc__, 1000, lambda frames, n_across, repeat: bench_sensor(n_across, frames, repeat),
+                      lambda row: f"{row['name']}: Shack-Hartmann {row['eofnn_s']['min']:.2f} s, zonal "
+                                  f"{row['baseline_s']['min']:.2f} s, ratio {row['ratio']:.3f}")
 
 
 if __name__ == "__main__":

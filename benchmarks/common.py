@@ -9,6 +9,8 @@ disturbed estimate on a shared machine); the median ratio is kept beside it.
 
 from __future__ import annotations
 
+import argparse
+import json
 import math
 import time
 from collections.abc import Callable
@@ -253,3 +255,19 @@ def reset_peak_memory() -> None:
             f.write("5")
     except OSError:
         pass
+
+
+def sized_main(argv: list[str] | None, doc: str, frames: int, run: Callable[[int, int, int], list[Row]],
+               describe: Callable[[dict], str]) -> list[dict]:
+    """The command line of a benchmark sized by ``--frames`` (default ``frames``), ``--n-across`` (40) and
+    ``--repeat`` (2): ``run(frames, n_across, repeat)``'s rows, a line each by ``describe``, then all as JSON."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=frames)
+    parser.add_argument("--n-across", type=int, default=40)
+    parser.add_argument("--repeat", type=int, default=2)
+    args = parser.parse_args(argv)
+    rows = [row.to_dict() for row in run(args.frames, args.n_across, args.repeat)]
+    for row in rows:
+        print(describe(row))
+    print(json.dumps(rows, indent=1))
+    return rows
