@@ -25,7 +25,7 @@ predictors:
   ol_eof:
     history_length: 3
     data: {{frames: 1500, val_frames: 500, sequence_frames: 1000}}
-    optimization: {{alpha_path: [1.0e-12, 1.0e-8, 1.0e-4, 1.0e-2]}}
+    optimization: {{alpha_path: [1.0e-12, 1.0e-8, 1.0e-4, 1.0e-2], select: {{dm_gain_interval: [0.95, 1.05]}}}}
 evaluation: {{frames: 800, settle_frames: 200, psd_segment_frames: 256}}
 """)
     out = tmp_path / "out"
@@ -39,6 +39,13 @@ evaluation: {{frames: 800, settle_frames: 200, psd_segment_frames: 256}}
     chosen = [p for p in ol if p["chosen"]]
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(chosen) == 1 and chosen[0]["value"] == metrics["ridge_alphas"]["nominal"]["ol_eof"]["alpha"]
+    # select asked for [0.95, 1.05]: every point says whether its interval contains it, the chosen one does.
+    assert data["required_dm_gain_interval"] == [0.95, 1.05] and chosen[0]["meets"]
+    for p in ol + families["integrator"]:
+        interval = p["dm_gain_interval"]
+        assert p["meets"] == (interval is not None and p["median_rms_nm"] is not None
+                              and interval[0] <= 0.95 and interval[1] >= 1.05)
+    assert "contains it |" in (out / "pareto.md").read_text()
     # More ridge: a wider stable interval, a worse residual (the trade-off the figure shows).
     assert ol[-1]["width"] > ol[0]["width"]
     assert ol[-1]["median_rms_nm"] > min(p["median_rms_nm"] for p in ol)

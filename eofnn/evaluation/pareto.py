@@ -35,15 +35,24 @@ class ParetoResult:
 
     scenario: str
     families: dict[str, list[dict]] = field(default_factory=dict)
+    #: The DM-gain interval a predictor's ``optimization.select`` asked for (the first asked), relative to the
+    #: scenario's DM gain; each point then says whether its interval contains it (``meets``). ``None``: none asked.
+    required: tuple[float, float] | None = None
 
     def to_json(self) -> str:
-        return json.dumps({"scenario": self.scenario, "stream": "pareto", "families": self.families}, indent=1)
+        required = {} if self.required is None else {"required_dm_gain_interval": list(self.required)}
+        return json.dumps({"scenario": self.scenario, "stream": "pareto", **required, "families": self.families},
+                          indent=1)
 
     def markdown(self) -> str:
         lines = [f"# Performance beside robustness ({self.scenario})", "",
                  "Median RMS on a stream of its own (not the test stream) against the analytic stable DM-gain "
-                 "interval, relative to the scenario's DM gain; `*` marks each family's chosen setting.", "",
-                 "| controller | setting | median RMS (nm) | stable DM gain | width |", "|---|---|---|---|---|"]
+                 "interval, relative to the scenario's DM gain; `*` marks each family's chosen setting"
+                 + ("." if self.required is None else
+                    "; the last column says whether the interval contains [{:g}, {:g}].".format(*self.required)), "",
+                 "| controller | setting | median RMS (nm) | stable DM gain | width |"
+                 + ("" if self.required is None else " contains it |"),
+                 "|---|---|---|---|---|" + ("" if self.required is None else "---|")]
         for name, points in self.families.items():
             for p in points:
                 rms = "diverged" if p["median_rms_nm"] is None else f"{p['median_rms_nm']:.3g}"
@@ -51,8 +60,9 @@ class ParetoResult:
                             else "{:.3g} to {:.3g}".format(*p["dm_gain_interval"]))
                 width = "—" if p["width"] is None else f"{p['width']:.3g}"
                 setting = p["setting"] if p["value"] is None else f"{p['setting']} {p['value']:g}"
+                meets = "" if self.required is None else (" yes |" if p.get("meets") else " no |")
                 lines.append(f"| {name}{' *' if p['chosen'] else ''} | {setting} | {rms} | "
-                             f"{interval} | {width} |")
+                             f"{interval} | {width} |{meets}")
         return "\n".join(lines) + "\n"
 
 
@@ -82,7 +92,8 @@ def pareto(experiment: Experiment, scenario_name: str | None = None) -> ParetoRe
         return scenario.median_residual_nm(controller, ev.frames, ev.seed, "pareto", ev.settle_frames,
                                            realisations=ev.realisations, divergence_factor=ev.divergence_factor)
 
-    out = ParetoResult(scenario_name)
+    asked = [cfg.optimization.dm_gain_interval for cfg in experiment.predictors.values() if cfg.trains]
+    out = ParetoResult(scenario_name, required=next((tuple(a) for a in asked if a is not None), None))
     for name, cfg in experiment.predictors.items():
         run_cfg = experiment.config(name, scenario_name)
         predictor = experiment.predictor_if_any(name, scenario_name)
@@ -114,6 +125,11 @@ def pareto(experiment: Experiment, scenario_name: str | None = None) -> ParetoRe
             points.append({"setting": "as configured", "value": None,
                            "median_rms_nm": median_rms(experiment.controller(name, scenario_name)),
                            "dm_gain_interval": interval, "width": width, "chosen": True})
+        if points and out.required is not None:
+            low, high = out.required
+            for p in points:
+                p["meets"] = (p["median_rms_nm"] is not None and p["dm_gain_interval"] is not None
+                              and p["dm_gain_interval"][0] <= low and p["dm_gain_interval"][1] >= high)
         if points:
             out.families[name] = points
     return out

@@ -21,13 +21,17 @@ def plot_pareto(result: ParetoResult, path: Path) -> None:
         ax.plot([p["width"] for p in drawn], [p["median_rms_nm"] for p in drawn], linestyle="-", label=name,
                 alpha=0.8, **style)
         for p in drawn:
+            if result.required is not None and not p.get("meets"):  # hollow: not stable over the asked interval
+                ax.plot(p["width"], p["median_rms_nm"], markerfacecolor="white", linestyle="none", **style)
             if p["chosen"]:
                 ax.plot(p["width"], p["median_rms_nm"], markersize=14, markerfacecolor="none", linestyle="none",
                         markeredgewidth=1.5, **style)
     ax.set_yscale("log")
     ax.set_xlabel("width of the stable DM-gain interval (relative to the plant's DM gain)")
     ax.set_ylabel("median RMS residual (nm)")
-    ax.set_title(f"Performance beside robustness, {result.scenario} (open circle: chosen setting)", fontsize=10)
+    asked = ("" if result.required is None else
+             "; hollow marker: not stable over DM gain [{:g}, {:g}]".format(*result.required))
+    ax.set_title(f"Performance beside robustness, {result.scenario}\n(large circle: chosen setting{asked})", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
