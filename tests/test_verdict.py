@@ -32,7 +32,8 @@ def diverged(frame=7):
 def cfg(controller, **kw):
     """A stand-in of PredictorConfig with the fields the verdict reads."""
     return SimpleNamespace(controller=controller, checkpoint=kw.get("checkpoint"), train_in=kw.get("train_in"),
-                           gains=kw.get("gains"), gain=kw.get("gain", 0.5))
+                           gains=kw.get("gains"), gain=kw.get("gain", 0.5),
+                           data=SimpleNamespace(plant_range=kw.get("plant_range")))
 
 
 PREDICTORS = {"uncorrected": cfg("uncorrected"), "pseudo_integrator": cfg("pseudo_integrator"),
@@ -114,6 +115,13 @@ def test_a_tuned_classical_controller_says_its_chosen_setting():
     assert "best classical controller, extrapolator (best order 2, smoothing 0), 9 nm" in verdict_markdown(verdict)
 
 
+def test_a_predictor_trained_over_a_plant_range_says_so():
+    roles = contender_roles({"ol_eof_range": cfg("predictor", train_in="nominal", plant_range={"dm_gain": [0.8, 1.25]}),
+                             "ol_eof": cfg("predictor", train_in="nominal")})
+    assert roles["ol_eof_range"]["training"] == "trained in nominal over dm_gain 0.8 to 1.25"
+    assert roles["ol_eof"]["training"] == "trained in nominal"
+
+
 def test_a_predictor_with_thin_margins_is_said_close_to_instability():
     r = result()
     r.stability["dm_gain_2"]["cl_eof"] = stable(1.9, 2.15, margin_db=0.62, delay=0.025)
@@ -183,6 +191,9 @@ def test_realisations_give_a_spread(tmp_path):
     assert verdict["realisations"] == 2 and len(spread["medians_nm"]) == 2
     assert spread["min_nm"] < spread["max_nm"]  # two seeds, two different turbulences
     assert spread["min_nm"] <= metrics["scenarios"]["nominal"][best["name"]]["median_rms_nm"] <= spread["max_nm"]
+    medians = metrics["realisation_median_rms_nm"]["nominal"]  # every contender's spread, not only the best's
+    assert set(medians) == set(predictors) and all(len(m) == 2 for m in medians.values())
+    assert medians[best["name"]] == spread["medians_nm"]
     text = (out / "results.md").read_text()
     assert "2 realisations of the test turbulence per run" in text
     assert f"{best['name']} {spread['median_nm']:.3g} nm ({spread['min_nm']:.3g} to {spread['max_nm']:.3g})" in text

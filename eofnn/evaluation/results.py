@@ -48,6 +48,10 @@ class ExperimentResult:
 
     def to_json(self) -> dict:
         verdict = {} if self.verdict is None else {"verdict": self.verdict}
+        spread = {s: {p: m.realisation_median_rms_nm for p, m in preds.items() if len(m.realisation_median_rms_nm) > 1}
+                  for s, preds in self.metrics.items()}
+        if any(spread.values()):  # every contender's median per realisation (evaluation.realisations > 1)
+            verdict["realisation_median_rms_nm"] = spread
         return {**verdict,
             "scenarios": {s: {p: m.summary() for p, m in preds.items()} for s, preds in self.metrics.items()},
             "stability": self.stability,

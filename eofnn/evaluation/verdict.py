@@ -46,6 +46,9 @@ def contender_roles(predictors: Mapping[str, Any]) -> dict[str, dict]:
             role = "predictor"
             training = ("from a checkpoint" if cfg.checkpoint is not None else
                         f"trained in {cfg.train_in}" if cfg.train_in else "retrained in each scenario")
+            if cfg.checkpoint is None and cfg.train_in and cfg.data.plant_range:
+                training += " over " + ", ".join(f"{field} {low:g} to {high:g}"
+                                                 for field, (low, high) in cfg.data.plant_range.items())
         else:
             role = "reference" if cfg.controller in REFERENCES else "classical"
             training = None
