@@ -44,8 +44,8 @@ from eofnn.control.fallback import ModalFallback
 from eofnn.control.modal import homogeneous_covariance
 from eofnn.control.registry import dm_gain_model_of
 from eofnn.data.config import DataConfig
-from eofnn.evaluation.config import PredictorConfig
 from eofnn.errors import DivergedError
+from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.contenders import scan_integrator_gains
 from eofnn.models.linear import LinearFilter
 from eofnn.seeding import int_seed

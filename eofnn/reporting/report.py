@@ -231,7 +231,8 @@ def _fallbacks(result: ExperimentResult) -> str:
             if "n_modes" in report:
                 fallen = report["fallen_back"]
                 modes = (f"; the predictor won {report['predictor_modes']} of {report['n_modes']} "
-                         f"{'KL modes' if report['modes'] == 'kl' else 'actuators'}, {len(fallen['worse'])} fell back as worse and {len(fallen['within_scatter'])} as no "
+                         f"{'KL modes' if report['modes'] == 'kl' else 'actuators'}, {len(fallen['worse'])} fell "
+                         f"back as worse and {len(fallen['within_scatter'])} as no "
                          "better than the scatter")
             lines.append(f"- {name} in {scenario}: **{report['deployed']}** deployed (per {report['per']}, integrator "
                          f"gain {report['integrator_gain']:g}{modes}): {report['why']}")
