@@ -106,7 +106,9 @@ class FallbackConfig:
         the validation stream), or each actuator.
     gains : list of float
         Integrator gains scanned for the best-gain integrator (refined around the best, as ``gains`` of
-        ``controller: integrator``), on the gain-scan stream of seed ``seed``.
+        ``controller: integrator``), on the gain-scan stream of seed ``seed``, ``frames`` frames: the same
+        ``gains``, ``frames`` and ``seed`` as an experiment's best-gain integrator (``gains``, ``data.frames``,
+        ``data.seed``) make the same scan, so the fallback deploys that very integrator.
     frames : int
         Frames per realisation of the validation stream (and of the gain scan).
     settle_frames : int

@@ -195,7 +195,8 @@ class Experiment:
             predictor = self.predictor_if_any(name, scenario_name)
             config = self.config(name, scenario_name)
             decision = decide_fallback(lambda: build_controller(config, predictor), config.fallback,
-                                       self.scenarios[scenario_name], self.evaluation.divergence_factor)
+                                       self.scenarios[scenario_name], self.evaluation.divergence_factor,
+                                       self.evaluation.settle_frames)
             self.fallbacks[key] = decision
             report = decision.report
             modes = "" if "n_modes" not in report else (

@@ -124,11 +124,16 @@ def kl_modes(s: torch.Tensor, scenario: Scenario) -> torch.Tensor:
 
 
 def decide_fallback(make_predictor: Callable[[], Controller], cfg: FallbackConfig, scenario: Scenario,
-                    divergence_factor: float = 10.0) -> FallbackDecision:
-    """Whether, and where, the predictor ``make_predictor()`` beats the best-gain integrator (module docstring)."""
+                    divergence_factor: float = 10.0, scan_settle_frames: int | None = None) -> FallbackDecision:
+    """Whether, and where, the predictor ``make_predictor()`` beats the best-gain integrator (module docstring).
+
+    ``scan_settle_frames`` (default ``cfg.settle_frames``): the frames the gain scan leaves out, as an experiment's
+    best-gain integrator does (its ``evaluation.settle_frames``): with the same ``gains``, ``frames`` and seed as
+    that integrator's ``gains``, ``data.frames`` and ``data.seed``, the scan is the same, and so is the gain."""
     scan_cfg = PredictorConfig(controller="integrator", gains=list(cfg.gains),
                                data=DataConfig(frames=cfg.frames, seed=cfg.seed))
-    scan = scan_integrator_gains(scan_cfg, scenario, cfg.settle_frames, divergence_factor)
+    settle = cfg.settle_frames if scan_settle_frames is None else scan_settle_frames
+    scan = scan_integrator_gains(scan_cfg, scenario, settle, divergence_factor)
     gain = scan["gain"]
     report = {"per": cfg.per, "integrator_gain": gain, "gain_scan": scan["scanned"], "sigmas": cfg.sigmas,
               "stream": {"name": FALLBACK_STREAM, "seed": cfg.seed, "frames": cfg.frames,
