@@ -9,6 +9,7 @@ from pathlib import Path
 import eofnn
 from eofnn.cli.common import config_yaml, log
 from eofnn.cli.groups import ExperimentCommand
+from eofnn.control.config import FallbackConfig
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.outputs import check_output_folder, staged_folder
@@ -68,11 +69,17 @@ class EvaluateConfig(ExperimentCommand):
         [0.2, 0.3, 0.4, 0.5, 0.6] (in each scenario the loop is closed with each gain on a stream of its own,
         data.frames frames, refined around the best; the fair baseline). metrics.json (integrator_gain_used),
         results.md and the progress line say the gain it ran at.
+    fallback : FallbackConfig
+        Never worse than the integrator, for every checkpoint: ``per: whole`` or ``per: mode`` deploys it only where
+        it beats the best-gain integrator on a validation stream of its own (``modes``, ``gains``, ``frames``,
+        ``realisations``, ``blocks``, ``sigmas``, ``seed``); metrics.json ``fallback`` and results.md say which
+        modes fell back and why. Off (``per: none``) by default.
     """
 
     checkpoints: dict[str, str]
     baselines: list[str] = field(default_factory=lambda: ["uncorrected", "pseudo_integrator", "integrator"])
     integrator: PredictorConfig = field(default_factory=lambda: PredictorConfig(controller="integrator"))
+    fallback: FallbackConfig = field(default_factory=FallbackConfig)
 
 
 def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None, *,
@@ -151,6 +158,8 @@ def evaluate(cfg: EvaluateConfig, config_dump: str | None = None) -> eofnn.evalu
                           "integrator out")
     predictors = {name: integrator if name == "integrator" else PredictorConfig(controller=name)
                   for name in cfg.baselines}
+    fallback = cfg.fallback if not isinstance(cfg.fallback, dict) else from_mapping(FallbackConfig, cfg.fallback,
+                                                                                    "fallback")
     for name, path in cfg.checkpoints.items():
-        predictors[name] = PredictorConfig(checkpoint=path)
+        predictors[name] = PredictorConfig(checkpoint=path, fallback=fallback)
     return run_experiment(cfg, predictors, config_dump)

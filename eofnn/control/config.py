@@ -1,15 +1,16 @@
 """Values the controllers' configs accept, free of torch: the command line checks a config against them before the
-controllers (:mod:`eofnn.control.classical`, which re-exports them) are imported; and the configuration of
-predictive Fourier control (:class:`PfcConfig`)."""
+controllers (:mod:`eofnn.control.classical`, which re-exports them) are imported; the configuration of
+predictive Fourier control (:class:`PfcConfig`) and of the fallback to the best-gain integrator
+(:class:`FallbackConfig`)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 from eofnn.errors import ConfigError
-from eofnn.validation import Constraint, Interval, validated
+from eofnn.validation import COUNT, Constraint, Interval, OneOf, validated
 
 #: Polynomial orders of the POL extrapolator: 0 is a POL zero-order hold, 1 linear, 2 quadratic.
 EXTRAPOLATION_ORDERS = (0, 1, 2)
@@ -80,4 +81,90 @@ class PfcConfig:
                                   "direction_deg, weight > 0]")
 
 
-__all__ = ["AR_ORDERS", "EXTRAPOLATION_ORDERS", "MAX_EXTRAPOLATION_SMOOTHING", "MAX_PFC_LAYERS", "PfcConfig"]
+#: How a predictor falls back to the best-gain integrator: not at all, as a whole, or mode by mode.
+FALLBACK_PER = ("none", "whole", "mode")
+#: The modes a per-mode fallback judges: the turbulence's Karhunen-Loeve modes, or each actuator.
+FALLBACK_MODES = ("kl", "actuators")
+
+
+@dataclass
+@validated
+class FallbackConfig:
+    """Never worse than the integrator: the predictor is deployed only where it beats the best-gain integrator, on a
+    validation stream of its own (never the test stream), by more than the scatter; elsewhere the integrator's
+    command (:mod:`eofnn.evaluation.fallback`).
+
+    Parameters
+    ----------
+    per : {"none", "whole", "mode"}
+        ``none``: the predictor as it is (the default); ``whole``: the predictor or the integrator, whichever wins;
+        ``mode``: per mode, the predictor's command on the modes where it wins and the integrator's on the others
+        (the composite is kept only if it beats the integrator as a whole, else the better of predictor and
+        integrator).
+    modes : {"kl", "actuators"}
+        The modes judged by ``per: mode``: the Karhunen-Loeve modes of the turbulence on the actuators (measured on
+        the validation stream), or each actuator.
+    gains : list of float
+        Integrator gains scanned for the best-gain integrator (refined around the best, as ``gains`` of
+        ``controller: integrator``), on the gain-scan stream of seed ``seed``, ``frames`` frames: the same
+        ``gains``, ``frames`` and ``seed`` as an experiment's best-gain integrator (``gains``, ``data.frames``,
+        ``data.seed``) make the same scan, so the fallback deploys that very integrator.
+    frames : int
+        Frames per realisation of the validation stream (and of the gain scan).
+    settle_frames : int
+        Frames of each validation run left out before the residuals are compared.
+    realisations : int
+        Independent turbulence realisations of the validation stream.
+    blocks : int
+        Each realisation's settled frames are cut into this many blocks: the scatter of the predictor's gain over the
+        integrator (residual variance, per mode or over the pupil) is the standard error of its mean over the
+        ``realisations x blocks`` blocks, both controllers on the same turbulence and noise.
+    sigmas : float
+        The predictor (or the composite) is deployed where its mean gain exceeds ``sigmas`` times that scatter.
+    seed : int
+        Seed of the validation stream and of the gain scan.
+    """
+
+    per: str = "none"
+    modes: str = "kl"
+    gains: list[float] = field(default_factory=lambda: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    frames: int = 2000
+    settle_frames: int = 200
+    realisations: int = 2
+    blocks: int = 4
+    sigmas: float = 2.0
+    seed: int = 0
+
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "per": OneOf(FALLBACK_PER),
+        "modes": OneOf(FALLBACK_MODES),
+        "frames": Interval(16, 1_000_000, integer=True, unit="frames"),
+        "settle_frames": Interval(0, 1_000_000, integer=True, unit="frames"),
+        "realisations": Interval(1, 64, integer=True),
+        "blocks": COUNT,
+        "sigmas": Interval(0, 100, unit="standard errors"),
+        "seed": Interval(0, 2**63 - 1, integer=True),
+    }
+    _where: ClassVar[str] = "fallback."
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.gains, (list, tuple)) or not self.gains or not all(
+                isinstance(g, (int, float)) and not isinstance(g, bool) and 0 < g <= 10 for g in self.gains):
+            raise ConfigError(f"fallback.gains={self.gains!r} is invalid: give a non-empty list of integrator gains "
+                              "in (0, 10]")
+        if self.realisations * self.blocks < 2:
+            raise ConfigError(f"fallback.realisations={self.realisations} x blocks={self.blocks} is invalid: the "
+                              "scatter needs at least 2 blocks in all")
+        if (self.frames - self.settle_frames) < 8 * self.blocks:
+            raise ConfigError(f"fallback.frames={self.frames} with settle_frames={self.settle_frames} leaves "
+                              f"{self.frames - self.settle_frames} frames: each of the {self.blocks} blocks needs at "
+                              "least 8")
+
+    @property
+    def active(self) -> bool:
+        """Whether the predictor is guarded at all (``per`` is not ``none``)."""
+        return self.per != "none"
+
+
+__all__ = ["AR_ORDERS", "EXTRAPOLATION_ORDERS", "FALLBACK_MODES", "FALLBACK_PER", "MAX_EXTRAPOLATION_SMOOTHING",
+           "MAX_PFC_LAYERS", "FallbackConfig", "PfcConfig"]

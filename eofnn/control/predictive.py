@@ -119,6 +119,13 @@ class LinearFilterStep:
             y_past.copy_(y)
         return y
 
+    def applied(self, command: torch.Tensor, frame: int) -> None:
+        """The command really applied for ``frame`` (the last step's) replaces the filter's own in its histories."""
+        if self._closed:
+            self._y_slots[self._ring.pos].copy_(command)
+        else:
+            self._y_past[frame % self.spec.whole_delay].copy_(command)
+
     def _pseudo_open_loop(self, out: torch.Tensor, wfs: torch.Tensor, y_old: torch.Tensor) -> None:
         """``out = wfs - dm_gain_model * y(n - d)``, the POL value of frame ``n - d``, rounded as the general path."""
         if self.dm_gain_model == 1.0:
@@ -194,6 +201,15 @@ class PredictiveController:
         if self._fast is not None:
             return self._fast.step(inp.wfs, n, n >= self.spec.first_frame)
         return self._general_step(inp.wfs, n >= self.spec.first_frame)
+
+    def applied(self, command: torch.Tensor) -> None:
+        """The command the loop really applied for the last step's frame, when it is not this controller's own (a
+        composite that runs this predictor on some modes only, :class:`eofnn.control.fallback.ModalFallback`): the
+        closed-loop taps and the pseudo-open-loop reconstruction read it from now on, as they read telemetry."""
+        if self._fast is not None:
+            self._fast.applied(command, self._frames_seen - 1)
+        else:
+            self._y[0].copy_(command)
 
     @torch.no_grad()
     def _general_step(self, wfs: torch.Tensor, active: bool) -> torch.Tensor:

@@ -7,7 +7,13 @@ from typing import Any, ClassVar
 
 from eofnn.control.adaptation import AdaptationConfig
 from eofnn.control.baselines import Integrator
-from eofnn.control.config import AR_ORDERS, EXTRAPOLATION_ORDERS, MAX_EXTRAPOLATION_SMOOTHING, PfcConfig
+from eofnn.control.config import (
+    AR_ORDERS,
+    EXTRAPOLATION_ORDERS,
+    MAX_EXTRAPOLATION_SMOOTHING,
+    FallbackConfig,
+    PfcConfig,
+)
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_names
 from eofnn.data.config import DataConfig
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
@@ -102,6 +108,12 @@ class PredictorConfig:
         ``controller: pfc`` (predictive Fourier control: a frozen-flow Kalman filter per spatial Fourier mode, built
         in each scenario from ``data.frames`` frames of dithered-integrator telemetry like the LQG): ``layers``
         identified, or known ``winds``, ``alpha``, ``aliases``, ``padding``, ``max_speed_mps``.
+    fallback : FallbackConfig
+        Never worse than the integrator: ``per: whole`` or ``per: mode`` deploys this controller only where it beats
+        the best-gain integrator on a validation stream of its own by more than the scatter, the integrator's command
+        elsewhere (``modes: kl | actuators``, ``gains``, ``frames``, ``realisations``, ``blocks``, ``sigmas``,
+        ``seed``); which modes fell back and why go to ``metrics.json`` (``fallback``) and ``results.md``. Off
+        (``per: none``) by default.
     """
 
     controller: str = "predictor"
@@ -126,6 +138,7 @@ class PredictorConfig:
     ar_order: int = 2
     ar_orders: list[int] | None = None
     pfc: PfcConfig = field(default_factory=PfcConfig)
+    fallback: FallbackConfig = field(default_factory=FallbackConfig)
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -143,7 +156,7 @@ class PredictorConfig:
 
     def __post_init__(self) -> None:
         for name, cls in (("data", DataConfig), ("optimization", OptimizationConfig), ("adaptation", AdaptationConfig),
-                          ("pfc", PfcConfig)):
+                          ("pfc", PfcConfig), ("fallback", FallbackConfig)):
             if isinstance(getattr(self, name), dict):
                 setattr(self, name, from_mapping(cls, getattr(self, name), name))
         if self.checkpoint is None:
@@ -168,6 +181,7 @@ class PredictorConfig:
             for gain in self.gains:
                 Integrator(gain, self.leak)
         self._check_setting_scans()
+        self._check_fallback()
         if self.trains and self.optimization.fit_method == "closed_loop" and not self.data.truth:
             raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs "
                               "data.truth: true (a fit from telemetry alone has no turbulence to close it on)")
@@ -182,6 +196,20 @@ class PredictorConfig:
                 if method in ("closed_form", "closed_loop") and not supports_closed_form(cls):
                     raise ConfigError(f"optimization.fit_method={method!r} needs a linear network; {cls.__name__} "
                                       "has no features()/load_solution(): use optimization.fit_method: sgd")
+
+    def _check_fallback(self) -> None:
+        """A fallback guards a controller that is not the integrator; per mode, one that reads back the command
+        applied (a predictor without online adaptation)."""
+        if not self.fallback.active:
+            return
+        if self.controller in FALLBACK_REFUSED:
+            raise ConfigError(f"fallback.per={self.fallback.per!r} is for a controller that may lose to the integrator, "
+                              f"not {self.controller!r}")
+        if self.fallback.per == "mode" and (self.controller != "predictor" or self.adaptation.method != "none"):
+            raise ConfigError(f"fallback.per: mode needs controller: predictor without adaptation (its histories read "
+                              f"the composite command back), not {self.controller!r}"
+                              + ("" if self.adaptation.method == "none" else
+                                 f" with adaptation.method={self.adaptation.method!r}") + ": use per: whole")
 
     def _check_setting_scans(self) -> None:
         """``orders`` and ``smoothings`` (extrapolator) and ``ar_orders`` (LQG): each for its controller only, a
@@ -227,6 +255,9 @@ class PredictorConfig:
         """Whether this controller is a predictor trained by the experiment (not a baseline or a checkpoint)."""
         return self.controller in NEEDS_PREDICTOR and self.checkpoint is None
 
+
+#: Controllers a fallback does not guard: the integrators themselves and the references that are not deployed.
+FALLBACK_REFUSED = ("integrator", "dithered_integrator", "uncorrected", "pseudo_integrator")
 
 # The help lists the registry's names, so a controller added there is never missing from ``--help``.
 PredictorConfig.__doc__ = PredictorConfig.__doc__.replace("{controllers}", ", ".join(controller_names()))

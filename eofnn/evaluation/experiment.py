@@ -25,6 +25,7 @@ from eofnn.evaluation.contenders import (
     scan_integrator_gains,
 )
 from eofnn.evaluation.contrast import scenario_contrast
+from eofnn.evaluation.fallback import FallbackDecision, decide_fallback, fallback_stability
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
@@ -85,6 +86,9 @@ class Experiment:
         #: Classical models built from telemetry (modal integrator, LQG): (controller, scenario) -> model.
         self.classical_models: dict[tuple[str, str], Any] = {}
         self.checkpoints: dict[str, str] = {}
+        #: Fallbacks to the best-gain integrator (``fallback:``), decided on a stream of their own: (controller,
+        #: scenario) -> decision (what is deployed, which modes fell back and why).
+        self.fallbacks: dict[tuple[str, str], FallbackDecision] = {}
         self._loaded = check_experiment(self.scenarios, self.predictors, evaluation, trusted_networks, allow_long)
         if evaluation.psd_segment_note is not None:
             self.log(evaluation.psd_segment_note)
@@ -176,9 +180,31 @@ class Experiment:
         return self.setting_scans[key]
 
     def controller(self, name: str, scenario_name: str) -> Controller:
-        """The controller ``name`` as it runs in ``scenario_name``."""
+        """The controller ``name`` as it runs in ``scenario_name`` (with a ``fallback:``, what its decision deploys)."""
         predictor = self.predictor_if_any(name, scenario_name)
-        return build_controller(self.config(name, scenario_name), predictor)
+        config = self.config(name, scenario_name)
+        if not config.fallback.active:
+            return build_controller(config, predictor)
+        return self.fallback(name, scenario_name).build(lambda: build_controller(config, predictor))
+
+    def fallback(self, name: str, scenario_name: str) -> FallbackDecision:
+        """Where controller ``name`` falls back to the best-gain integrator in ``scenario_name`` (decided on first use,
+        on a stream of its own: :func:`~eofnn.evaluation.fallback.decide_fallback`)."""
+        key = (name, scenario_name)
+        if key not in self.fallbacks:
+            predictor = self.predictor_if_any(name, scenario_name)
+            config = self.config(name, scenario_name)
+            decision = decide_fallback(lambda: build_controller(config, predictor), config.fallback,
+                                       self.scenarios[scenario_name], self.evaluation.divergence_factor,
+                                       self.evaluation.settle_frames)
+            self.fallbacks[key] = decision
+            report = decision.report
+            modes = "" if "n_modes" not in report else (
+                f"; predictor on {report['predictor_modes']} of {report['n_modes']} "
+                f"{'KL modes' if report['modes'] == 'kl' else 'actuators'}")
+            self.log(f"{scenario_name:>12s} {name:>18s}: fallback per {report['per']}: {decision.deployed} deployed "
+                     f"(integrator gain {decision.gain:g}{modes}): {report['why']}")
+        return self.fallbacks[key]
 
     def evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
         """Closed-loop metrics of controller ``name`` as made for ``scenario_name``, on the test stream.
@@ -220,8 +246,10 @@ class Experiment:
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
         predictor = self.predictor_if_any(name, scenario_name)
+        config, scenario = self.config(name, scenario_name), self.scenarios[scenario_name]
         try:
-            result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
+            result = (fallback_stability(self.fallback(name, scenario_name), config, predictor, scenario)
+                      if config.fallback.active else controller_stability(config, predictor, scenario))
         except CoupledAnalysisUnavailable as err:  # reported like a network's: no analytic margins
             self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
             return None
@@ -289,7 +317,9 @@ class Experiment:
                                   scenario_dm_gains={name: float(sc.plant.dm_gain)
                                                      for name, sc in self.scenarios.items()},
                                   integrator_gain_used=_by_scenario(gains_used),
-                                  classical_settings=_by_scenario(self.setting_scans))
+                                  classical_settings=_by_scenario(self.setting_scans),
+                                  fallbacks=_by_scenario({key: decision.report
+                                                          for key, decision in self.fallbacks.items()}))
         result.verdict = self.verdict(result)
         return result
 

@@ -45,6 +45,10 @@ class ExperimentResult:
     #: ``smoothing``, the LQG's ``ar_order``): scenario -> controller -> {the chosen setting's fields, "median_rms_nm"
     #: (of the choice, on that stream), "scanned": [every setting tried with its median_rms_nm, None if it diverged]}.
     classical_settings: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: Fallbacks to the best-gain integrator (``fallback:``): scenario -> controller -> {"deployed": predictor,
+    #: composite or integrator, "why", "integrator_gain", per mode "n_modes", "predictor_modes", "fallen_back":
+    #: {"worse": [modes], "within_scatter": [modes]}, "per_mode" and "whole" gains with their scatter (nm²), ...}.
+    fallbacks: dict[str, dict[str, dict]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         verdict = {} if self.verdict is None else {"verdict": self.verdict}
@@ -58,6 +62,7 @@ class ExperimentResult:
             "integrator_gains": self.integrator_gains,
             "integrator_gain_used": self.integrator_gain_used,
             "classical_settings": self.classical_settings,
+            **({"fallback": self.fallbacks} if self.fallbacks else {}),
             "ridge_alphas": self.ridge_alphas,
             "searches": self.searches,
             "simulated_stability": self.simulated_stability,

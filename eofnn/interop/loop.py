@@ -23,6 +23,7 @@ Controllers are objects with ``reset(n_actuators)`` and ``step(measurement) -> c
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -31,8 +32,9 @@ import torch
 
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec, pseudo_open_loop
-from eofnn.errors import ConfigError, require
+from eofnn.errors import ConfigError, ShiftWarning, require
 from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
+from eofnn.interop.shift import warn_loop_shift
 from eofnn.models.linear import LinearFilter
 from eofnn.runtime import PredictiveFilter
 from eofnn.sim.loop.runner import LoopInput, LoopResult
@@ -132,9 +134,12 @@ class FilterControl:
     """
 
     def __init__(self, runtime: PredictiveFilter, warmup_gain: float = 0.3, warmup_frames: int = 0,
-                 dither_nm: float = 0.0, seed: int = 0) -> None:
+                 dither_nm: float = 0.0, seed: int = 0, conditions: dict | None = None) -> None:
         check_value("warmup_frames", warmup_frames, Interval(0, None, integer=True, unit="frames"))
         self.runtime, self.warmup_frames = runtime, warmup_frames
+        #: The conditions the filter was trained in (a checkpoint's ``info["conditions"]``), or ``None``: the loop
+        #: warns in one line when its own differ (:mod:`eofnn.interop.shift`).
+        self.trained_conditions = conditions
         self._warmup = IntegratorControl(warmup_gain)
         self._dither = IntegratorControl(0.0, dither_nm, seed)  # white dither alone (a zero-gain integrator)
 
@@ -158,10 +163,21 @@ class FilterControl:
 
 
 class TorchControl:
-    """An eofnn :class:`~eofnn.control.predictive.PredictiveController` (any torch network) as the controller."""
+    """An eofnn :class:`~eofnn.control.predictive.PredictiveController` (any torch network) as the controller;
+    ``conditions``: those its predictor was trained in (:meth:`from_predictor` takes them from the checkpoint), which
+    the loop compares with its own (:mod:`eofnn.interop.shift`)."""
 
-    def __init__(self, controller: PredictiveController, delay_frames: int) -> None:
-        self.controller, self.delay_frames = controller, delay_frames
+    def __init__(self, controller: PredictiveController, delay_frames: int, conditions: dict | None = None) -> None:
+        self.controller, self.delay_frames, self.trained_conditions = controller, delay_frames, conditions
+
+    @classmethod
+    def from_predictor(cls, predictor, delay_frames: int, dm_gain_model: float | None = None,
+                       name: str = "the predictor") -> TorchControl:
+        """A trained predictor (:func:`eofnn.training.checkpoint.load_predictor`) as the controller, with the
+        conditions its checkpoint recorded; ``name`` (e.g. the checkpoint's path) names it in a shift warning."""
+        control = cls(predictor.controller(dm_gain_model), delay_frames, predictor.info.get("conditions"))
+        control.name = name
+        return control
 
     def reset(self, n_actuators: int) -> None:
         self.controller.reset(1, n_actuators, self.delay_frames, torch.float64)
@@ -249,6 +265,9 @@ class LoopRecord:
     frame_rate_hz: float
     config: dict = field(default_factory=dict)
     diverged_frame: int | None = None
+    #: One line per condition (WFS noise, DM gain, wind) in which the loop differs from what the controller's
+    #: predictor was trained in (:mod:`eofnn.interop.shift`); empty when none does or nothing is known.
+    shift: list[str] = field(default_factory=list)
 
     def telemetry(self, start: int = 0) -> Telemetry:
         """The recorded ``y`` and ``wfs`` from frame ``start`` on as eofnn telemetry (positions, delay, rate)."""
@@ -271,7 +290,9 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
     Per frame ``n``: the controller gets the measurement of frame ``n - d`` (zeros before the first) and returns
     ``y(n)``; the loop applies ``sim.project(y(n))`` (the modes the sensor sees) and the simulator advances one
     frame with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
-    turbulence) stops the run as diverged.
+    turbulence) stops the run as diverged. A controller that carries the conditions its predictor was trained in
+    (``trained_conditions``) is compared with the loop's (:func:`eofnn.interop.shift.warn_loop_shift`): the record's
+    ``shift`` holds the lines, and the first run of that controller issues them as one warning each.
     """
     check_value("n_frames", n_frames, COUNT)
     k, d = sim.n_actuators, sim.delay_frames
@@ -294,8 +315,15 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
             diverged = n
             break
     stop = n_frames if diverged is None else diverged
-    return LoopRecord(y_all[:stop], wfs_all[:stop], rms_all[:stop], np.asarray(sim.positions_m), int(d),
-                      float(sim.frame_rate_hz), sim.describe(), diverged)
+    record = LoopRecord(y_all[:stop], wfs_all[:stop], rms_all[:stop], np.asarray(sim.positions_m), int(d),
+                        float(sim.frame_rate_hz), sim.describe(), diverged)
+    if getattr(controller, "trained_conditions", None) is not None:
+        with warnings.catch_warnings():
+            if getattr(controller, "_shift_said", False):  # said once per controller, recorded in every run
+                warnings.simplefilter("ignore", ShiftWarning)
+            record.shift = warn_loop_shift(sim, controller, record, stop // 10)
+        controller._shift_said = True
+    return record
 
 
 #: Gains a scan adds past the top of its grid while the best gain is still the highest one tried.

@@ -176,6 +176,13 @@ class OopaoLoop:
         return int(self.dm.nValidAct)
 
     @property
+    def wfs_noise_nm(self) -> float | None:
+        """The measurement noise per actuator and frame (nm RMS) where the sensor has a known one: 0 without photon
+        noise; ``None`` with it (it depends on the flux and the reconstructor: identified from the telemetry,
+        :mod:`eofnn.interop.shift`)."""
+        return None if self.photon_noise else 0.0
+
+    @property
     def n_pixels_per_subaperture(self) -> int:
         return int(self.wfs.n_pix_subap)
 

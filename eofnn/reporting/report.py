@@ -222,6 +222,26 @@ def _classical_settings(result: ExperimentResult) -> str:
             "residual there, nm):\n" + "\n".join(lines) + "\n")
 
 
+def _fallbacks(result: ExperimentResult) -> str:
+    """A line per guarded controller and scenario: what was deployed, on how many modes, and why."""
+    lines = []
+    for scenario, decisions in result.fallbacks.items():
+        for name, report in decisions.items():
+            modes = ""
+            if "n_modes" in report:
+                fallen = report["fallen_back"]
+                modes = (f"; the predictor won {report['predictor_modes']} of {report['n_modes']} "
+                         f"{'KL modes' if report['modes'] == 'kl' else 'actuators'}, {len(fallen['worse'])} fell "
+                         f"back as worse and {len(fallen['within_scatter'])} as no "
+                         "better than the scatter")
+            lines.append(f"- {name} in {scenario}: **{report['deployed']}** deployed (per {report['per']}, integrator "
+                         f"gain {report['integrator_gain']:g}{modes}): {report['why']}")
+    if not lines:
+        return ""
+    return ("\nFallbacks to the best-gain integrator (decided on a validation stream of their own, not the test "
+            "stream; which modes: metrics.json `fallback`):\n" + "\n".join(lines) + "\n")
+
+
 def _fixed_gains(result: ExperimentResult) -> str:
     """A line per integrator run at the gain its config fixed (not chosen): what it ran at, and how to ask for the
     best gain instead."""
@@ -332,7 +352,8 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
     verdict = "" if result.verdict is None else verdict_markdown(result.verdict) + "\n"
     table.write_text("# Closed-loop comparison\n\n" + verdict + "## Median RMS per scenario\n\n"
                      + markdown_table(result, reference, strehl_wavelength_m)
-                     + _gains(result) + _fixed_gains(result) + _classical_settings(result) + _alphas(result)
+                     + _gains(result) + _fixed_gains(result) + _classical_settings(result) + _fallbacks(result)
+                     + _alphas(result)
                      + _margins(result) + _budget(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])

@@ -1,0 +1,248 @@
+"""Never worse than the integrator: where a predictor does not beat the best-gain integrator on data it is not scored
+on, the integrator's command (``fallback:`` of a controller, :class:`~eofnn.control.config.FallbackConfig`).
+
+:func:`decide_fallback`, in a scenario, before the test stream is touched:
+
+1. the best-gain integrator: ``fallback.gains`` scanned and refined on the gain-scan stream of seed ``fallback.seed``
+   (:func:`~eofnn.evaluation.contenders.scan_integrator_gains`);
+2. the predictor and that integrator close the loop on the validation stream (:data:`FALLBACK_STREAM`,
+   ``fallback.realisations`` realisations of ``fallback.frames``, the same turbulence and noise for both); the
+   settled frames of each realisation are cut into ``fallback.blocks`` blocks;
+3. ``per: mode``: each block's residual variance per mode (the true residual on the actuators projected on the
+   turbulence's Karhunen-Loeve modes, measured on the same stream, or on each actuator); the predictor keeps a mode
+   where its mean gain over the integrator exceeds ``fallback.sigmas`` times the standard error of that mean over
+   the blocks, and the composite (:class:`~eofnn.control.fallback.ModalFallback`) is run on the same stream;
+4. every candidate (the predictor, the composite) is judged as a whole on the scored residual (over the pupil with
+   a Shack-Hartmann), block by block against the integrator: the best of those that beat it by more than
+   ``sigmas`` standard errors is deployed, the integrator otherwise.
+
+Nothing here reads the test stream, so the evaluation that follows scores a choice made elsewhere.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import torch
+
+from eofnn.analysis.block import CoupledAnalysisUnavailable
+from eofnn.analysis.linear import controller_stability
+from eofnn.analysis.stability import (
+    LoopSetup,
+    StabilityResult,
+    analyse_integrator,
+    analyse_polynomials,
+    controller_polynomials,
+    default_frequencies_hz,
+    integrator_weights,
+)
+from eofnn.control.baselines import Integrator
+from eofnn.control.config import FallbackConfig
+from eofnn.control.fallback import ModalFallback
+from eofnn.control.modal import homogeneous_covariance
+from eofnn.control.registry import dm_gain_model_of
+from eofnn.data.config import DataConfig
+from eofnn.errors import DivergedError
+from eofnn.evaluation.config import PredictorConfig
+from eofnn.evaluation.contenders import scan_integrator_gains
+from eofnn.models.linear import LinearFilter
+from eofnn.seeding import int_seed
+from eofnn.sim.loop.runner import Controller, run_loop
+from eofnn.sim.scenario import Scenario
+
+#: The stream the fallback's decisions are made on: never the test stream, nor a training or gain-scan stream.
+FALLBACK_STREAM = "fallback"
+
+
+@dataclass
+class FallbackDecision:
+    """What :func:`decide_fallback` chose: ``deployed`` (``"predictor"``, ``"composite"`` or ``"integrator"``), the
+    integrator's ``gain``, the modes the predictor keeps (``kept``: ``(K, M)`` columns or a ``(K,)`` actuator mask;
+    ``None`` unless the composite is deployed) and the report that goes to ``metrics.json``."""
+
+    deployed: str
+    gain: float
+    kept: torch.Tensor | None
+    report: dict
+
+    def build(self, make_predictor: Callable[[], Controller]) -> Controller:
+        """The controller deployed (``make_predictor()``: a fresh controller of the predictor)."""
+        if self.deployed == "integrator":
+            return Integrator(self.gain)
+        if self.deployed == "predictor":
+            return make_predictor()
+        return ModalFallback(make_predictor(), self.gain, self.kept)
+
+
+@dataclass
+class _Run:
+    """One validation run: its settled residuals on the actuators ``(R, T, K)`` (``None`` when not kept), the scored
+    residual RMS ``(R, T)`` and the turbulence ``(R, T, K)`` (the integrator's run only)."""
+
+    eps: torch.Tensor | None
+    scored: torch.Tensor | None
+    s: torch.Tensor | None = None
+    diverged_frame: int | None = None
+
+
+def _validate(controller: Controller, cfg: FallbackConfig, scenario: Scenario, divergence_factor: float,
+              turbulence: bool = False) -> _Run:
+    record = ("eps", "s") if turbulence else ("eps",)
+    result = run_loop(scenario.turbulence(cfg.seed, FALLBACK_STREAM, cfg.realisations), scenario.plant, controller,
+                      cfg.frames, noise_seed=int_seed(cfg.seed, FALLBACK_STREAM), record=record,
+                      divergence_factor=divergence_factor, progress=False)
+    if result.diverged:
+        return _Run(None, None, diverged_frame=result.diverged_frame)
+    rms = result.residual_rms_nm if result.pupil_residual_rms_nm is None else result.pupil_residual_rms_nm
+    settle = cfg.settle_frames
+    return _Run(result.telemetry.eps[:, settle:], rms[:, settle:],
+                result.telemetry.s[:, settle:] if turbulence else None)
+
+
+def _blocks(values: torch.Tensor, blocks: int) -> torch.Tensor:
+    """``(R, T, ...)`` squared residuals averaged over each of ``blocks`` blocks of frames: ``(R * blocks, ...)``."""
+    r, t = values.shape[:2]
+    length = t // blocks
+    return values[:, :length * blocks].reshape(r, blocks, length, *values.shape[2:]).mean(2).flatten(0, 1)
+
+
+def _gain(integrator: torch.Tensor, candidate: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean over blocks of the integrator's residual variance minus the candidate's (nm²), and its standard error."""
+    difference = integrator - candidate
+    return difference.mean(0), difference.std(0) / math.sqrt(difference.shape[0])
+
+
+def kl_modes(s: torch.Tensor, scenario: Scenario) -> torch.Tensor:
+    """``(K, K)`` Karhunen-Loeve modes of ``(R, T, K)`` turbulence on the actuators, by decreasing variance (the
+    covariance homogenised over actuator separations, as :mod:`eofnn.control.modal` does)."""
+    flat = (s - s.mean((0, 1))).reshape(-1, s.shape[-1]).to(torch.float64)
+    covariance = homogeneous_covariance(flat.T @ flat / flat.shape[0], torch.as_tensor(scenario.grid.indices))
+    variance, modes = torch.linalg.eigh(covariance)
+    return modes.flip(1)
+
+
+def decide_fallback(make_predictor: Callable[[], Controller], cfg: FallbackConfig, scenario: Scenario,
+                    divergence_factor: float = 10.0, scan_settle_frames: int | None = None) -> FallbackDecision:
+    """Whether, and where, the predictor ``make_predictor()`` beats the best-gain integrator (module docstring).
+
+    ``scan_settle_frames`` (default ``cfg.settle_frames``): the frames the gain scan leaves out, as an experiment's
+    best-gain integrator does (its ``evaluation.settle_frames``): with the same ``gains``, ``frames`` and seed as
+    that integrator's ``gains``, ``data.frames`` and ``data.seed``, the scan is the same, and so is the gain."""
+    scan_cfg = PredictorConfig(controller="integrator", gains=list(cfg.gains),
+                               data=DataConfig(frames=cfg.frames, seed=cfg.seed))
+    settle = cfg.settle_frames if scan_settle_frames is None else scan_settle_frames
+    scan = scan_integrator_gains(scan_cfg, scenario, settle, divergence_factor)
+    gain = scan["gain"]
+    report = {"per": cfg.per, "integrator_gain": gain, "gain_scan": scan["scanned"], "sigmas": cfg.sigmas,
+              "stream": {"name": FALLBACK_STREAM, "seed": cfg.seed, "frames": cfg.frames,
+                         "settle_frames": cfg.settle_frames, "realisations": cfg.realisations, "blocks": cfg.blocks}}
+    integrator = _validate(Integrator(gain), cfg, scenario, divergence_factor, turbulence=cfg.per == "mode")
+    if integrator.scored is None:
+        raise DivergedError(f"the best-gain integrator (gain {gain:g}) diverged on the fallback's validation stream "
+                            f"at frame {integrator.diverged_frame}: check fallback.gains")
+    baseline = _blocks(integrator.scored.pow(2), cfg.blocks)
+    medians = {"integrator": float(integrator.scored.median())}
+    predictor = _validate(make_predictor(), cfg, scenario, divergence_factor)
+    if predictor.scored is None:
+        report.update(deployed="integrator", validation_median_rms_nm={**medians, "predictor": None},
+                      why=f"the predictor diverged at frame {predictor.diverged_frame} of the validation stream")
+        return FallbackDecision("integrator", gain, None, report)
+    candidates = {"predictor": (predictor, None)}
+    if cfg.per == "mode":
+        kept = _per_mode(integrator, predictor, cfg, scenario, report)
+        if kept is not None:
+            composite = _validate(ModalFallback(make_predictor(), gain, kept), cfg, scenario, divergence_factor)
+            if composite.scored is not None:
+                candidates["composite"] = (composite, kept)
+            else:
+                medians["composite"] = None
+    judged = {}
+    for name, (run, _) in candidates.items():
+        mean, se = _gain(baseline, _blocks(run.scored.pow(2), cfg.blocks))
+        medians[name] = float(run.scored.median())
+        judged[name] = {"gain_nm2": float(mean), "scatter_nm2": float(se), "wins": bool(mean > cfg.sigmas * se)}
+    report.update(validation_median_rms_nm=medians, whole=judged)
+    winners = [name for name in judged if judged[name]["wins"]]
+    if not winners:
+        best = max(judged, key=lambda name: judged[name]["gain_nm2"])
+        report.update(deployed="integrator", why=(
+            f"no candidate beats the integrator by more than {cfg.sigmas:g} standard errors on the validation "
+            f"stream (best: {best}, {judged[best]['gain_nm2']:+.3g} +- {judged[best]['scatter_nm2']:.2g} nm²)"))
+        return FallbackDecision("integrator", gain, None, report)
+    deployed = max(winners, key=lambda name: judged[name]["gain_nm2"])
+    report.update(deployed=deployed, why=(
+        f"the {deployed} beats the integrator by {judged[deployed]['gain_nm2']:.3g} +- "
+        f"{judged[deployed]['scatter_nm2']:.2g} nm² of residual variance on the validation stream"))
+    return FallbackDecision(deployed, gain, candidates[deployed][1], report)
+
+
+def _per_mode(integrator: _Run, predictor: _Run, cfg: FallbackConfig, scenario: Scenario,
+              report: dict) -> torch.Tensor | None:
+    """The modes the predictor keeps (``(K, M)`` columns, or an actuator mask), ``None`` when it keeps none or all
+    (then the composite is the integrator or the predictor); the per-mode figures go to ``report``."""
+    basis = kl_modes(integrator.s, scenario) if cfg.modes == "kl" else None
+
+    def per_mode(eps: torch.Tensor) -> torch.Tensor:
+        return _blocks((eps if basis is None else eps @ basis).pow(2), cfg.blocks)
+
+    mean, se = _gain(per_mode(integrator.eps), per_mode(predictor.eps))
+    keep = mean > cfg.sigmas * se
+    worse = mean < -cfg.sigmas * se
+    n = int(keep.numel())
+    report.update(modes=cfg.modes, n_modes=n, predictor_modes=int(keep.sum()),
+                  fallen_back={"worse": worse.nonzero().flatten().tolist(),
+                               "within_scatter": (~keep & ~worse).nonzero().flatten().tolist()},
+                  per_mode={"gain_nm2": [float(f"{v:.4g}") for v in mean.tolist()],
+                            "scatter_nm2": [float(f"{v:.3g}") for v in se.tolist()]})
+    if not keep.any() or keep.all():
+        return None
+    return keep if basis is None else basis[:, keep]
+
+
+def fallback_stability(decision: FallbackDecision, config: PredictorConfig, predictor, scenario: Scenario
+                       ) -> StabilityResult | None:
+    """The analytic stability of what ``decision`` deploys: the integrator's, the predictor's own (``None`` when it
+    has no linear model), or the composite's with its modes as groups, the predictor's filter on those it keeps and
+    the integrator's on the others. That split holds where the filter acts alike on every mode (a shared filter, on
+    any modes) or the modes are its own groups (a per-actuator filter, ``modes: actuators``); anything else is
+    coupled, and raises :class:`~eofnn.analysis.block.CoupledAnalysisUnavailable` (reported like a network's: no
+    analytic margins)."""
+    setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
+    if decision.deployed == "integrator":
+        return analyse_integrator(decision.gain, 0.0, setup)
+    if decision.deployed == "predictor":
+        return controller_stability(config, predictor, scenario)
+    network, kept = getattr(predictor, "network", None), decision.kept
+    structure = getattr(network, "structure", None)
+    if not isinstance(network, LinearFilter) or structure not in ("shared", "per_actuator") or (
+            structure == "per_actuator" and kept.dim() == 2):
+        raise CoupledAnalysisUnavailable(
+            f"the per-mode fallback of a {structure or type(network).__name__} "
+            f"{'filter' if isinstance(network, LinearFilter) else 'network'} on {decision.report['modes']} modes "
+            "couples the modes (no linear model by groups; a shared filter, or modes: actuators with a per-actuator "
+            "filter, has one)")
+    spec = predictor.spec
+    if setup.controller_delay_frames is None:
+        setup = replace(setup, controller_delay_frames=spec.delay_frames)
+    d_p, n_p = controller_polynomials(network.weight.detach(), spec.kind, spec.history_length, setup.dm_gain_model,
+                                      setup.controller_delay)
+    d_i, n_i = controller_polynomials(integrator_weights(decision.gain), "closed_loop", 1)
+    if kept.dim() == 1:
+        mask = kept
+    else:  # a shared filter acts alike on every mode: M groups of its own, K - M of the integrator
+        mask = torch.arange(kept.shape[0]) < kept.shape[1]
+    k = mask.shape[0]
+
+    def stack(own: torch.Tensor, integrator: torch.Tensor) -> torch.Tensor:
+        length = max(own.shape[1], integrator.shape[1])
+        own = torch.nn.functional.pad(own, (0, length - own.shape[1])).expand(k, -1)
+        integrator = torch.nn.functional.pad(integrator, (0, length - integrator.shape[1])).expand(k, -1)
+        return torch.where(mask[:, None], own, integrator)
+
+    result = analyse_polynomials(stack(d_p, d_i), stack(n_p, n_i), setup, default_frequencies_hz(setup.frame_rate_hz),
+                                 kind=spec.kind, structure=structure, history_length=spec.history_length)
+    result.notes.append(f"groups are the fallback's modes: the predictor's filter on {int(mask.sum())}, the "
+                        f"integrator (gain {decision.gain:g}) on {k - int(mask.sum())}")
+    return result
