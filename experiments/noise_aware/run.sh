@@ -4,9 +4,10 @@
 # integrator telemetry at 0, 2 and 5 nm of white WFS noise (8000 frames to fit on, 4000 held out); open-loop EOFs
 # (4 taps, alpha: auto on the last 1500 frames) are fitted from each file alone (plant and noise identified) with
 # optimization.noise_model none, errors_in_variables and per_mode_snr, per actuator and per KL mode; the noise-free
-# fit is also refitted for 2 and 5 nm of deployment noise (optimization.noise_at_deployment_nm). The checkpoints run
-# in the closed loop at the noise they are meant for (evaluate_<N>nm.yaml, 3 realisations) and are replayed on
-# held-out telemetry of that noise. About an hour on 2 busy cores. Raw outputs go to experiments/runs/noise_aware/.
+# fits (per actuator and per mode) are also refitted for 2 and 5 nm of deployment noise
+# (optimization.noise_at_deployment_nm). The checkpoints run in the closed loop at the noise they are meant for
+# (evaluate_*.yaml, 3 realisations) and are replayed on held-out telemetry of that noise. About an hour on 2 busy
+# cores. Raw outputs go to experiments/runs/noise_aware/.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 eofnn=${EOFNN:-.venv/bin/eofnn}
@@ -38,9 +39,10 @@ for n in 2 5; do
   fit t${n}_modal $n "${modal[@]}"
   fit t${n}_modal_snr $n "${modal[@]}" --predictor.optimization.noise_model per_mode_snr
   fit t0_deploy${n} 0 --predictor.optimization.noise_at_deployment_nm $n.0
+  fit t0_modal_deploy${n} 0 "${modal[@]}" --predictor.optimization.noise_at_deployment_nm $n.0
 done
-for n in 0 2 5; do
-  $eofnn evaluate --config $x/evaluate_${n}nm.yaml --out $r/evaluate_${n}nm --overwrite true
+for name in 0nm 2nm 5nm modal_deploy; do
+  $eofnn evaluate --config $x/evaluate_$name.yaml --out $r/evaluate_$name --overwrite true
 done
 replay() {  # replay NAME NOISE: a checkpoint on held-out telemetry
   $eofnn replay --checkpoint $r/ckpt/$1.ckpt --telemetry "[$r/held_$2nm.npz]" --settle_frames 100 \
@@ -48,6 +50,8 @@ replay() {  # replay NAME NOISE: a checkpoint on held-out telemetry
 }
 replay t0_none 0
 for n in 2 5; do
-  for name in t${n}_none t${n}_eiv t${n}_snr t${n}_modal t${n}_modal_snr t0_none t0_deploy${n}; do replay $name $n; done
+  for name in t${n}_none t${n}_eiv t${n}_snr t${n}_modal t${n}_modal_snr t0_none t0_deploy${n} t0_modal_deploy${n}; do
+    replay $name $n
+  done
 done
 .venv/bin/python $x/summarise.py $r $x/summary.json
