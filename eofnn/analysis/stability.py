@@ -41,7 +41,7 @@ from eofnn.errors import require
 from eofnn.models.linear import LinearFilter
 from eofnn.validation import FINITE, Constraint, Interval, OrNone, validated
 
-STRUCTURES = ("per_actuator", "shared", "neighbourhood")
+STRUCTURES = ("per_actuator", "shared", "neighbourhood", "modal")
 
 
 @dataclass(frozen=True)
@@ -258,9 +258,9 @@ def _check_weights(weights: torch.Tensor, kind: str, history_length: int, struct
                 f"neighbourhood weights of shape {shape} do not fit neighbours of shape "
                 f"{None if neighbours is None else tuple(neighbours.shape)} and {taps} taps per actuator")
     else:
-        require(shape[1] == taps and (structure == "per_actuator" or shape[0] == 1),
+        require(shape[1] == taps and (structure in ("per_actuator", "modal") or shape[0] == 1),
                 f"weights of shape {shape} do not fit structure={structure!r} with {taps} taps per actuator "
-                f"({kind}, history_length={history_length}): expected ({'K' if structure == 'per_actuator' else 1}, {taps})")
+                f"({kind}, history_length={history_length}): expected ({'1' if structure == 'shared' else 'K'}, {taps})")
     require(bool(torch.isfinite(weights).all()), "weights hold non-finite values")
 
 
@@ -285,7 +285,8 @@ def analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSe
     setup : LoopSetup
         Plant and controller assumptions (nominal, 2 frames of delay by default).
     structure : str
-        ``per_actuator``, ``shared`` or ``neighbourhood`` (then ``neighbours``, the ``(K, M)`` index of
+        ``per_actuator``, ``shared``, ``modal`` (groups are modes, decoupled when the DM acts as ``g y``) or
+        ``neighbourhood`` (then ``neighbours``, the ``(K, M)`` index of
         :meth:`~eofnn.sim.grid.ActuatorGrid.neighbours`, is required).
     frequencies_hz : Tensor, optional
         Where to evaluate the transfer functions (:func:`default_frequencies_hz` by default).

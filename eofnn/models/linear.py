@@ -1,14 +1,18 @@
 """Linear predictors over history tensors: the EOF filters of the study and their relatives.
 
-A :class:`LinearFilter` maps a history ``(batch, K, taps)`` to commands ``(batch, K)`` with one of three structures:
+A :class:`LinearFilter` maps a history ``(batch, K, taps)`` to commands ``(batch, K)`` with one of four structures:
 
 - ``per_actuator``: one filter per actuator (the study),
 - ``shared``: one filter for all actuators,
 - ``neighbourhood``: each actuator's filter reads the histories of the actuators within ``radius`` pitches
-  (Guyon & Males 2017); slots beyond the pupil edge read zeros.
+  (Guyon & Males 2017); slots beyond the pupil edge read zeros;
+- ``modal``: one temporal filter per Karhunen-Loeve mode of Kolmogorov turbulence on the layout
+  (:func:`kolmogorov_modes`; van Kooten et al. 2020 predict per mode): ``y = B (w_m . (B^T h)_m)_m``. The basis is
+  orthonormal and complete, so white noise stays white and equal in every mode, and with a DM that acts as ``g y``
+  the modes decouple in the loop as actuators do.
 
 Linear filters can be fitted in closed form: :meth:`features` and :meth:`group_targets` give the regression
-problem per *group* (an actuator, or everything for ``shared``) and :meth:`load_solution` sets the weights.
+problem per *group* (an actuator, a mode, or everything for ``shared``) and :meth:`load_solution` sets the weights.
 """
 
 from __future__ import annotations
@@ -20,7 +24,26 @@ from eofnn.errors import require
 from eofnn.sim.layout import layout_from_dict
 from eofnn.validation import COUNT, Interval, OneOf, check_value
 
-STRUCTURES = ("per_actuator", "shared", "neighbourhood")
+STRUCTURES = ("per_actuator", "shared", "neighbourhood", "modal")
+
+
+def kolmogorov_modes(positions_m) -> torch.Tensor:
+    """``(K, K)`` orthonormal columns: the Karhunen-Loeve modes of Kolmogorov turbulence sampled at ``positions_m``
+    ``(K, 2)`` (metres), by decreasing variance, piston last.
+
+    The phase covariance of Kolmogorov turbulence diverges, its piston-removed form does not: the modes are the
+    eigenvectors of ``P (-D / 2) P`` with ``D_ij = |r_i - r_j|^(5/3)`` (the structure function up to its scale, which
+    the modes do not depend on) and ``P = I - 1 1^T / K``. Each column's sign makes its largest entry positive, so the
+    basis is a function of the layout alone.
+    """
+    pos = torch.as_tensor(positions_m, dtype=torch.float64)
+    distance = torch.cdist(pos, pos)
+    k = pos.shape[0]
+    centring = torch.eye(k, dtype=torch.float64) - 1.0 / k
+    values, vectors = torch.linalg.eigh(centring @ (-0.5 * distance.pow(5.0 / 3.0)) @ centring)
+    vectors = vectors[:, values.argsort(descending=True)]
+    largest = vectors.gather(0, vectors.abs().argmax(0, keepdim=True))
+    return vectors * largest.sign()
 
 
 def gather_neighbourhood(x: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
@@ -42,8 +65,8 @@ class LinearFilter(nn.Module):
         Active actuators ``K``.
     n_taps : int
         Taps per actuator in the history.
-    structure : {"per_actuator", "shared", "neighbourhood"}
-        How filters are shared between actuators.
+    structure : {"per_actuator", "shared", "neighbourhood", "modal"}
+        How filters are shared between actuators (``modal``: one per Kolmogorov KL mode of the layout).
     radius : float
         Neighbourhood radius in pitches (``neighbourhood`` only).
     grid : dict, optional
@@ -67,6 +90,12 @@ class LinearFilter(nn.Module):
                     f"grid has {neighbours.shape[0]} actuators but n_actuators={n_actuators}")
             self.register_buffer("neighbours", neighbours)
             shape = (n_actuators, neighbours.shape[1] * n_taps)
+        elif structure == "modal":
+            require(grid is not None, "structure='modal' needs the actuator grid (its modes are the layout's)")
+            positions = layout_from_dict(grid).positions_m
+            require(len(positions) == n_actuators, f"grid has {len(positions)} actuators but n_actuators={n_actuators}")
+            self.register_buffer("modes", kolmogorov_modes(positions))
+            shape = (n_actuators, n_taps)
         elif structure == "shared":
             shape = (1, n_taps)
         else:
@@ -74,12 +103,15 @@ class LinearFilter(nn.Module):
         self.weight = nn.Parameter(torch.zeros(shape, dtype=torch.float64))
 
     def _inputs(self, history: torch.Tensor) -> torch.Tensor:
-        """``(batch, K, features)``: the history itself, or the neighbourhood histories side by side."""
+        """``(batch, K, features)``: the history itself, the neighbourhood histories side by side, or the modes'."""
+        if self.structure == "modal":
+            return torch.einsum("km,bkt->bmt", self.modes.to(history.dtype), history)
         return gather_neighbourhood(history, self.neighbours) if self.structure == "neighbourhood" else history
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
         x = self._inputs(history.to(self.weight.dtype))
-        return (x * self.weight).sum(-1)
+        out = (x * self.weight).sum(-1)
+        return out @ self.modes.T.to(out.dtype) if self.structure == "modal" else out
 
     # -- closed-form fitting -------------------------------------------------------------------------------------
     def features(self, history: torch.Tensor) -> torch.Tensor:
@@ -92,6 +124,8 @@ class LinearFilter(nn.Module):
     def group_targets(self, target: torch.Tensor) -> torch.Tensor:
         """Targets per group, ``(groups, samples)``, matching :meth:`features`."""
         target = target.to(self.weight.dtype)
+        if self.structure == "modal":  # the modes' targets: the loss in actuators is their sum (orthonormal basis)
+            target = target @ self.modes.to(target.dtype)
         return target.reshape(1, -1) if self.structure == "shared" else target.transpose(0, 1)
 
     @torch.no_grad()

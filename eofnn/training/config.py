@@ -65,6 +65,8 @@ OPTIMIZERS = ("adam", "sgd", "lbfgs")
 DEFAULT_OPTIMIZER = {"closed_form": "adam", "sgd": "adam", "closed_loop": "lbfgs"}
 DEFAULT_LR = {"adam": 1e-3, "sgd": 1e-3, "lbfgs": 1.0}
 ACCELERATORS = ("auto", "cpu", "cuda", "gpu", "mps")
+#: How a closed-form fit accounts for white WFS noise on its pseudo-open-loop histories (:mod:`eofnn.training.noise`).
+NOISE_MODELS = ("none", "errors_in_variables", "per_mode_snr")
 
 
 @dataclass
@@ -115,6 +117,18 @@ class OptimizationConfig:
         Gradient descent on scaled numbers: the history divided by its RMS and the output multiplied by the
         targets' RMS (both measured on the first training batch and saved; :class:`~eofnn.models.normalized.Normalized`).
         Unset: on for networks that are not eofnn's own (those scale themselves or are fitted in closed form).
+    noise_model : {"none", "errors_in_variables", "per_mode_snr"}
+        How a closed-form fit on pseudo-open-loop histories accounts for the white WFS noise of its training data
+        (the level identified from the telemetry, or the scenario's; :mod:`eofnn.training.noise`). ``none``: the
+        data as recorded (already the minimum-error predictor for histories as noisy as the training data's).
+        ``errors_in_variables``: the noise covariance subtracted from the normal equations, a filter for noise-free
+        histories. ``per_mode_snr``: the ridge alpha in units of the noise power (samples x sigma²) instead of
+        each group's signal power, so every mode (with ``network.init_args.structure: modal``) or actuator is shrunk
+        by its own signal-to-noise ratio; unset, ``alpha_path`` is then 1e-4 to 1e2 (two per decade).
+    noise_at_deployment_nm : float, optional
+        The white WFS noise (nm RMS per actuator and frame) the filter will meet: the normal equations are made
+        those of histories with that noise (``+ n (sigma_deploy² - sigma_train²) I``, the Wiener filter for it),
+        validation included. Unset: the training data's noise.
     """
 
     fit_method: str = "closed_form"
@@ -131,6 +145,8 @@ class OptimizationConfig:
     loop_warmup: int = 50
     accelerator: str = "auto"
     normalize: bool | None = None
+    noise_model: str = "none"
+    noise_at_deployment_nm: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "fit_method": OneOf(FIT_METHODS),
@@ -144,6 +160,8 @@ class OptimizationConfig:
         "loop_warmup": Interval(0, 100_000, integer=True, unit="frames"),
         "accelerator": OneOf(ACCELERATORS),
         "normalize": OrNone(IsBool()),
+        "noise_model": OneOf(NOISE_MODELS),
+        "noise_at_deployment_nm": OrNone(Interval(0, 1e6, unit="nm")),
     }
     _where: ClassVar[str] = "optimization."
 
@@ -159,12 +177,27 @@ class OptimizationConfig:
                               "closed-form alpha that training through the loop then moves away from")
         if self.search is not None and self.fit_method != "sgd":
             raise ConfigError("optimization.search is for fit_method: sgd (a closed-form fit tunes alpha: auto)")
+        if self.noise_aware and self.fit_method != "closed_form":
+            raise ConfigError(f"optimization.noise_model={self.noise_model!r} / noise_at_deployment_nm="
+                              f"{self.noise_at_deployment_nm!r} act on the normal equations of fit_method: closed_form, "
+                              f"not {self.fit_method!r}")
+        if self.noise_model == "errors_in_variables" and self.noise_at_deployment_nm is not None:
+            raise ConfigError("optimization.noise_model: errors_in_variables fits for noise-free histories: it is "
+                              "noise_at_deployment_nm: 0; give one of the two")
+        if self.noise_model == "per_mode_snr" and not self.alpha_relative:
+            raise ConfigError("optimization.noise_model: per_mode_snr measures alpha in units of the noise power: "
+                              "alpha_relative: false contradicts it")
         check_search(self.search, self.learning_rate)
         check_alpha_path(self.alpha_path)
         check_select(self.select)
         if self.select is not None and self.ridge_alpha != "auto":
             raise ConfigError(f"optimization.select needs alpha: auto, not alpha={self.alpha!r}: the constraint "
                               "chooses among the alphas of the path")
+
+    @property
+    def noise_aware(self) -> bool:
+        """Whether the fit models the WFS noise (``noise_model`` or ``noise_at_deployment_nm`` set)."""
+        return self.noise_model != "none" or self.noise_at_deployment_nm is not None
 
     @property
     def gradient_optimizer(self) -> str:
@@ -194,5 +227,5 @@ class OptimizationConfig:
         return check_select(self.select)
 
 
-__all__ = ["ACCELERATORS", "DEFAULT_LR", "DEFAULT_OPTIMIZER", "FALLBACK_ALPHA", "FIT_METHODS", "OPTIMIZERS",
+__all__ = ["ACCELERATORS", "DEFAULT_LR", "DEFAULT_OPTIMIZER", "FALLBACK_ALPHA", "FIT_METHODS", "NOISE_MODELS", "OPTIMIZERS",
            "SEARCH_KEYS", "OptimizationConfig", "SearchSpace", "check_search"]

@@ -32,6 +32,9 @@ def filter_coefficients(network: LinearFilter) -> tuple[np.ndarray, np.ndarray |
     if network.structure == "neighbourhood":
         neighbours = network.neighbours.cpu().numpy()
         return weight.reshape(k, neighbours.shape[1], taps), np.where(neighbours >= k, -1, neighbours)
+    if network.structure == "modal":  # every actuator reads every actuator: F_t = B diag(w_t) B^T per tap
+        modes = network.modes.detach().to(torch.float64).cpu().numpy()
+        return np.einsum("im,mt,jm->ijt", modes, weight, modes), np.tile(np.arange(k), (k, 1))
     return weight, None
 
 
@@ -81,7 +84,7 @@ def export_filter(network: LinearFilter, spec: HistorySpec, path: str | Path, *,
              ("HISTLEN", spec.history_length, "history length p (taps per signal)"),
              ("DELAY", spec.delay_frames, "loop delay d in frames"),
              ("NACT", network.n_actuators, "actuators K"), ("NTAPS", spec.n_taps, "taps per actuator"),
-             ("STRUCT", network.structure, "per_actuator, shared or neighbourhood"),
+             ("STRUCT", network.structure, "per_actuator, shared, neighbourhood, modal (all neighbours)"),
              ("DMGAIN", float(dm_gain_model), "DM gain of the POL reconstruction wfs - g y"),
              ("FIRST", spec.first_frame, "zero commands for the first FIRST steps"),
              ("BUNIT", "nm/nm", "coefficients: command nm per input nm"),

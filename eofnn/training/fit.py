@@ -40,7 +40,8 @@ from eofnn.sim.loop.runner import Controller
 from eofnn.sim.scenario import Scenario
 from eofnn.training.alpha import MarginFunction, RidgePath
 from eofnn.training.conditions import scenario_conditions
-from eofnn.training.ridge import ClosedFormFit, fit_closed_form, supports_closed_form
+from eofnn.training.noise import noise_term
+from eofnn.training.ridge import solve_closed_form, supports_closed_form
 from eofnn.training.search import check_search, run_search
 from eofnn.training.task import OptimizationConfig, PredictorTask, check_fit, resolve_normalize
 from eofnn.training.through_loop import LoopData, loop_data, train_through_loop
@@ -292,7 +293,9 @@ def solve(task: PredictorTask, data: FitData, optimization: OptimizationConfig, 
     try:
         with quiet_lightning():
             if optimization.fit_method == "closed_form":
-                solved = solve_closed_form(task.network, data.train, data.validation, optimization, margin)
+                noise = noise_term(optimization, info.get("conditions"), task.spec.kind)
+                solved = solve_closed_form(task.network, data.train, data.validation, optimization, margin, noise)
+                info = info if noise is None else noise.recorded(info)
                 metrics = {"train_loss": solved.train_loss, "condition": solved.condition, "alpha": solved.alpha}
                 info["alpha"] = solved.alpha
                 if solved.choice is not None:
@@ -371,16 +374,6 @@ def _loader(batches: Iterable | None) -> DataLoader | None:
     if batches is None or isinstance(batches, DataLoader):
         return batches
     return DataLoader(batches, batch_size=None)
-
-
-def solve_closed_form(network: nn.Module, train, validation, optimization: OptimizationConfig,
-                      margin: MarginFunction | None = None) -> ClosedFormFit:
-    """The closed-form fit of ``optimization``: its fixed alpha, or (``alpha: auto``) the alpha chosen on
-    ``validation`` under its ``select`` constraint (checked with ``margin``)."""
-    alpha = optimization.alpha_for(validation is not None)
-    return fit_closed_form(network, train, alpha, optimization.alpha_relative,
-                           validation=validation if alpha == "auto" else None, alpha_path=optimization.alpha_path,
-                           interval=optimization.dm_gain_interval, margin=margin)
 
 
 def bind_margin(margin: MarginFunction | None, network: nn.Module, spec: HistorySpec, plant_dm_gain: float,

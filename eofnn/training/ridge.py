@@ -11,6 +11,8 @@ from torch import nn
 
 from eofnn.errors import CollinearityWarning, require
 from eofnn.training.alpha import AlphaChoice, MarginFunction, RidgePath, check_alpha_path
+from eofnn.training.config import OptimizationConfig
+from eofnn.training.noise import NoiseTerm, alpha_path
 from eofnn.validation import NON_NEGATIVE, check_value
 
 
@@ -46,6 +48,17 @@ class NormalEquations:
         self._cross: torch.Tensor | None = None  # (groups, features, 1)
         self._power: torch.Tensor | None = None  # (groups, 1, 1)
         self.n_samples = 0
+        #: ``(groups,)``: the unit of a relative alpha when set (a noise power, :mod:`eofnn.training.noise`); unset,
+        #: the mean diagonal of each group's Gram.
+        self.ridge_unit: torch.Tensor | None = None
+
+    def with_gram(self, gram: torch.Tensor, ridge_unit: torch.Tensor | None = None) -> NormalEquations:
+        """These equations with another Gram matrix ``(groups, features, features)`` (the same cross products, target
+        power and samples) and alpha's unit ``ridge_unit`` (:attr:`ridge_unit`)."""
+        out = NormalEquations()
+        out._gram, out._cross, out._power, out.n_samples = gram, self._cross, self._power, self.n_samples
+        out.ridge_unit = ridge_unit
+        return out
 
     @property
     def gram(self) -> torch.Tensor | None:
@@ -111,13 +124,16 @@ class NormalEquations:
 
     def regular_gram(self, relative: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """``(D D^T, scale)``: the Gram matrix made regular where features are structurally zero, and the unit of a
-        relative alpha per group (the mean of its diagonal; ones when ``relative`` is false)."""
+        relative alpha per group (the mean of its diagonal, or :attr:`ridge_unit` when set; ones when ``relative`` is
+        false)."""
         diagonal = self._gram.diagonal(dim1=1, dim2=2)
         # Features that are zero in every sample (neighbourhood slots beyond the pupil edge) get zero weight:
         # a unit on their diagonal makes the system regular without touching the other weights.
         structural = diagonal == 0
         gram = self._gram + torch.diag_embed(structural.to(torch.float64) * diagonal.mean(-1, keepdim=True))
         scale = diagonal.mean(-1) if relative else torch.ones_like(diagonal[:, 0])
+        if relative and self.ridge_unit is not None:
+            scale = self.ridge_unit
         return gram, scale
 
     def loss(self, weights: torch.Tensor) -> float:
@@ -155,7 +171,7 @@ def _accumulate(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.
 def fit_closed_form(network: nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], alpha: float | str,
                     alpha_relative: bool = True, *, validation: Iterable[tuple[torch.Tensor, torch.Tensor]] | None = None,
                     alpha_path: Sequence[float] | None = None, interval: tuple[float, float] | None = None,
-                    margin: MarginFunction | None = None) -> ClosedFormFit:
+                    margin: MarginFunction | None = None, noise: NoiseTerm | None = None) -> ClosedFormFit:
     """Fit a linear network in one streamed pass: accumulate its normal equations over ``batches``, solve, load.
 
     The network's fitted state is overwritten. ``batches`` yields ``(history, target)`` pairs (a DataLoader of
@@ -165,20 +181,38 @@ def fit_closed_form(network: nn.Module, batches: Iterable[tuple[torch.Tensor, to
     ``alpha_path`` (:data:`~eofnn.training.alpha.DEFAULT_ALPHA_PATH` by default), from one eigendecomposition
     (:class:`~eofnn.training.alpha.RidgePath`); with ``interval`` the least-error alpha whose stable DM-gain
     interval (``margin(weights)``) contains it.
+
+    ``noise`` (:class:`~eofnn.training.noise.NoiseTerm`) makes the training and validation normal equations those of
+    histories carrying the noise the filter will meet (and alpha's unit a noise power when it asks); the training
+    loss stays that of the data as recorded.
     """
     require(supports_closed_form(network),
             f"fit_method='closed_form' needs a linear network; {type(network).__name__} has no features()/"
             "load_solution(): use fit_method: sgd")
-    equations = _accumulate(network, batches)
-    require(equations.gram is not None, "no training data: the training stream yielded no batch")
+    recorded = _accumulate(network, batches)
+    require(recorded.gram is not None, "no training data: the training stream yielded no batch")
+    equations = recorded if noise is None else noise.adjust(recorded)
     if alpha == "auto":
         require(validation is not None, "alpha: auto needs validation data (data.val_frames > 0)")
-        path = RidgePath.compute(equations, _accumulate(network, validation), check_alpha_path(alpha_path),
-                                 alpha_relative)
+        held = _accumulate(network, validation)
+        if noise is not None and held.gram is not None:
+            held = noise.adjust(held)
+        path = RidgePath.compute(equations, held, check_alpha_path(alpha_path), alpha_relative)
         choice = path.select(interval, margin)
         weights = path.weights(choice.alpha)
         network.load_solution(weights.to(network.weight.dtype))
-        return ClosedFormFit(equations.loss(weights), path.condition, choice.alpha, choice)
+        return ClosedFormFit(recorded.loss(weights), path.condition, choice.alpha, choice)
     solution = equations.solve(alpha, alpha_relative)
     network.load_solution(solution.weights.to(network.weight.dtype))
-    return ClosedFormFit(equations.loss(solution.weights), solution.condition, float(alpha))
+    return ClosedFormFit(recorded.loss(solution.weights), solution.condition, float(alpha))
+
+
+def solve_closed_form(network: nn.Module, train, validation, optimization: OptimizationConfig,
+                      margin: MarginFunction | None = None, noise: NoiseTerm | None = None) -> ClosedFormFit:
+    """The closed-form fit of ``optimization``: its fixed alpha, or (``alpha: auto``) the alpha chosen on
+    ``validation`` under its ``select`` constraint (checked with ``margin``), modelling ``noise``
+    (:mod:`eofnn.training.noise`)."""
+    alpha = optimization.alpha_for(validation is not None)
+    return fit_closed_form(network, train, alpha, optimization.alpha_relative,
+                           validation=validation if alpha == "auto" else None, alpha_path=alpha_path(optimization, noise),
+                           interval=optimization.dm_gain_interval, margin=margin, noise=noise)
