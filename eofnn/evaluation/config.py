@@ -171,6 +171,10 @@ class PredictorConfig:
         if self.trains and self.optimization.fit_method == "closed_loop" and not self.data.truth:
             raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs "
                               "data.truth: true (a fit from telemetry alone has no turbulence to close it on)")
+        if self.trains and self.optimization.fit_method == "closed_loop" and self.data.target != "measured":
+            raise ConfigError(f"data.target={self.data.target!r} is invalid with optimization.fit_method: closed_loop: "
+                              "training through the loop scores the measured s it closes on; use fit_method: "
+                              "closed_form or sgd")
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")

@@ -99,7 +99,7 @@ class Experiment:
         if key not in self._trained:
             path = None if self.checkpoint_dir is None else self.checkpoint_dir / f"{name}__{train_in}.ckpt"
             self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
-                     f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
+                     f"{cfg.optimization.fit_method}, {cfg.data.learns_from})")
             result = fit_from_config(self.scenarios[train_in], cfg, FitOutput(path, True, bool(self.progress)))
             self._trained[key] = result.predictor
             searched = result.predictor.info.get("search")
