@@ -13,7 +13,8 @@ from eofnn.data.config import DataConfig
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import SimulatedTelemetry
 from eofnn.errors import ConfigError
-from eofnn.evaluation.config import PredictorConfig
+from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.experiment import Experiment
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import fit_predictor
 
@@ -93,3 +94,15 @@ def test_a_checkpoint_says_which_target_it_learnt():
     data = DataConfig(frames=FRAMES, val_frames=FRAMES, sequence_frames=FRAMES, target="dm_fit")
     predictor = fit_predictor(_scenario(), "open_loop", 2, data=data).predictor
     assert predictor.info["data"]["target"] == "dm_fit"
+
+
+@pytest.mark.parametrize("analytic", [True, False])
+def test_analytic_stability_is_reported_by_default_and_can_be_skipped(small_scenario, analytic):
+    predictors = {"integrator": PredictorConfig(controller="integrator", gain=0.4),
+                  "extrapolator": PredictorConfig(controller="extrapolator", order=1)}
+    evaluation = EvaluationConfig(frames=300, settle_frames=100, analytic_stability=analytic)
+    result = Experiment(small_scenario, {"nominal": {}}, predictors, evaluation, log=lambda _: None).run().to_json()
+    assert set(result["stability"].get("nominal", {})) == ({"integrator", "extrapolator"} if analytic else set())
+    assert EvaluationConfig().analytic_stability is True
+    with pytest.raises(ConfigError, match="evaluation.analytic_stability='no' is invalid"):
+        EvaluationConfig(analytic_stability="no")

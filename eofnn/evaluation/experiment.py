@@ -219,6 +219,8 @@ class Experiment:
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
+        if not self.evaluation.analytic_stability:
+            return None
         predictor = self.predictor_if_any(name, scenario_name)
         try:
             result = controller_stability(self.config(name, scenario_name), predictor, self.scenarios[scenario_name])
@@ -239,7 +241,7 @@ class Experiment:
 
     def _analyse_nominal_filter(self, name: str, scenario_name: str) -> dict | None:
         trained = self._trained.get((name, next(iter(self.scenarios))))
-        if trained is None:
+        if trained is None or not self.evaluation.analytic_stability:
             return None
         try:
             result = controller_stability(self.config(name, scenario_name), trained, self.scenarios[scenario_name])
