@@ -11,10 +11,13 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from eofnn.errors import require
-from eofnn.validation import Constraint, Interval, IsBool, check_value, validated
+from eofnn.validation import Constraint, Interval, IsBool, OneOf, check_value, validated
 
 #: Most frames one fit may simulate (training plus validation): about three hours of CPU at 1264 actuators.
 MAX_FRAMES = 10_000_000
+
+#: What a simulator-truth predictor learns to cancel (``data.target``).
+TARGETS = ("measured", "dm_fit")
 
 #: Plant fields ``data.plant_range`` may draw per training sequence.
 RANGED_PLANT_FIELDS = ("dm_gain", "wfs_gain", "misregistration_x", "misregistration_y")
@@ -58,6 +61,13 @@ class DataConfig:
         index). Closed-loop data is recorded in the drawn plant; open-loop data too (by the recording integrator
         plus dither), its POL values reconstructed with the DM gain the filter believes (1), so they carry the
         mismatch; targets cancel the turbulence in the drawn plant. Needs ``truth``.
+    target : {"measured", "dm_fit"}
+        The turbulence a simulator-truth predictor's target cancels (``-s / g``, :func:`eofnn.data.history.targets`).
+        ``measured``: the loop's ``s``, as the sensor sees it (with a Shack-Hartmann its noise-free reconstruction
+        ``R S phi``, aliasing included). ``dm_fit`` (a Shack-Hartmann scenario only): the DM's least-squares fit of
+        the true phase over the pupil, ``P F phi``, with no aliasing (issue 30's anti-aliasing prediction). Either
+        way the inputs are the measured histories, and the delay and fractional delay are handled alike. Needs
+        ``truth`` and a closed-form or SGD fit (training through the loop closes it on the measured ``s``).
     """
 
     frames: int = 20000
@@ -72,6 +82,7 @@ class DataConfig:
     refit_rounds: int = 0
     truth: bool = True
     plant_range: dict | None = None
+    target: str = "measured"
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(1, MAX_FRAMES, integer=True),
@@ -85,6 +96,7 @@ class DataConfig:
         "dither_nm": Interval(0, 1e5, unit="nm"),
         "refit_rounds": Interval(0, 100, integer=True),
         "truth": IsBool(),
+        "target": OneOf(TARGETS),
     }
     _where: ClassVar[str] = "data."
 
@@ -95,6 +107,16 @@ class DataConfig:
         self.plant_range = check_plant_range(self.plant_range)
         require(self.plant_range is None or self.truth,
                 "data.plant_range needs data.truth: true (a fit from telemetry alone learns the one plant it recorded)")
+        require(self.target == "measured" or self.truth,
+                f"data.target={self.target!r} needs data.truth: true (telemetry alone holds the measurement, never "
+                "the DM's fit of the true phase)")
+
+    @property
+    def learns_from(self) -> str:
+        """What the targets come from, in words (the experiment's log)."""
+        if not self.truth:
+            return "telemetry alone"
+        return "simulator truth" + (", target: the DM's fit of the true phase" if self.target == "dm_fit" else "")
 
 
 def check_plant_range(value: object) -> dict[str, list[float]] | None:
@@ -121,4 +143,4 @@ def check_plant_range(value: object) -> dict[str, list[float]] | None:
     return ranges or None
 
 
-__all__ = ["MAX_FRAMES", "RANGED_PLANT_FIELDS", "DataConfig", "check_plant_range"]
+__all__ = ["MAX_FRAMES", "RANGED_PLANT_FIELDS", "TARGETS", "DataConfig", "check_plant_range"]

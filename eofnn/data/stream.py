@@ -1,4 +1,22 @@
-"""Telemetry simulated on the fly, cut into history tensors: the training data of every predictor."""
+"""Telemetry simulated on the fly, cut into history tensors: the training data of every predictor.
+
+Anti-aliasing targets (``data.target: dm_fit``, issue 30)
+--------------------------------------------------------
+With a Shack-Hartmann the loop's ``s`` is the sensor's noise-free reconstruction ``R S phi``: a predictor trained on
+it learns to predict the aliasing too, and sends it back into the loop. In simulation the DM's least-squares fit of
+the true phase, ``P F phi`` (:mod:`eofnn.sim.sensing.pupil`), is known: with ``dm_fit`` the targets cancel it (same
+sign, DM gain and fractional-delay average as ``-s / g``), while the histories stay the measured, noisy POL values.
+A filter wide enough in space and time can then learn to see through the aliasing (Correia & Teixeira 2014 do it
+with a Wiener reconstructor).
+
+Measured (``configs/antialias_sh_small.yaml``: 4 m, 16 across, two frozen-flow layers, 3 realisations): the
+fit-trained radius-2.5 EOF has the lowest residual over the pupil, by little (noise-free 158.4 nm against 159.2 for the
+same filter trained on the measurement and 160.9 for the best-gain integrator; R = 8: 159.6, 160.3, 161.7): the
+aliasing term falls from 74 to 54 nm, but the filter, fitted in command space, also spends itself on command modes
+the DM barely renders (P F phi has a quarter of its command energy in the quarter of modes the pupil weighs least) and
+its raw contrast at 2-3 lambda/D is worse than the measured-target EOF's. A loss weighted by the pupil's Gram matrix
+is the next step.
+"""
 
 from __future__ import annotations
 
@@ -35,6 +53,14 @@ def require_training_memory(scenario: Scenario, spec: HistorySpec, data: DataCon
                    f"{data.realisations}, data.batch_frames={data.batch_frames} and {n_act} actuators")
 
 
+def require_target(scenario: Scenario, data: DataConfig) -> None:
+    """Refuse, in one line, a ``data.target`` that ``scenario`` cannot give: ``dm_fit`` needs a Shack-Hartmann (the
+    zonal sensor's ``s`` is the turbulence at the actuators, with no aliasing: it is already the DM's view of it)."""
+    require(data.target == "measured" or scenario.sensor.is_shack_hartmann,
+            f"data.target={data.target!r} is for a Shack-Hartmann scenario (sensor.kind: shack_hartmann): the zonal "
+            "sensor has no aliasing, its s is already what the DM can fit; use data.target: measured")
+
+
 def sequence_plant(plant: Plant, data: DataConfig, name: str) -> Plant:
     """The plant sequence ``name`` (``"<stream>:<index>"``) is simulated in: ``plant`` itself without
     ``data.plant_range``, else ``plant`` with each ranged field drawn uniformly from its interval, from a generator
@@ -61,6 +87,9 @@ class SimulatedTelemetry(IterableDataset):
     the filter believes (``dm_gain_model``, 1), carrying the mismatch of the drawn plant; targets are the commands
     that cancel the turbulence in the drawn plant (``-s / g`` with its DM gain ``g``) unless ``target_dm_gain`` is
     given.
+
+    With ``data.target: dm_fit`` (a Shack-Hartmann scenario) the targets cancel the DM's fit of the true phase
+    ``P F phi`` in place of the loop's ``s = R S phi``: same sign, gain and (fractional) delay, same histories.
 
     Parameters
     ----------
@@ -98,6 +127,7 @@ class SimulatedTelemetry(IterableDataset):
             require(data_controller is not None, "open-loop data with data.plant_range needs a data_controller (the "
                                                  "loop whose POL values carry the drawn plant's mismatch)")
         require_training_memory(scenario, spec, data)
+        require_target(scenario, data)
         self.scenario, self.spec, self.stream, self.data = scenario, spec, stream, data
         self.n_sequences = -(-frames // data.sequence_frames)
         self.data_controller = data_controller
@@ -111,9 +141,19 @@ class SimulatedTelemetry(IterableDataset):
         self.dm_gain_model = 1.0
 
     def telemetry(self, index: int) -> dict[str, torch.Tensor]:
-        """Arrays ``(R, frames, K)`` of sequence ``index``: ``s`` and ``s_hat`` (open loop) or ``s, y, wfs``."""
+        """Arrays ``(R, frames, K)`` of sequence ``index``: ``s`` and ``s_hat`` (open loop) or ``s, y, wfs``; ``s`` is
+        the turbulence the targets cancel (``data.target``: the loop's, or the DM's fit of the true phase)."""
         name, seed = f"{self.stream}:{index}", self.data.seed
         turbulence = self.scenario.turbulence(seed, name, self.data.realisations)
+        arrays = self._recorded(turbulence, index)
+        if self.data.target == "dm_fit":  # the same cached chunks: P F phi beside the R S phi the loop saw
+            arrays["s"] = turbulence.products(0, arrays["s"].shape[-2])["fit"]
+            turbulence.release()
+        return arrays
+
+    def _recorded(self, turbulence, index: int) -> dict[str, torch.Tensor]:
+        """What :meth:`telemetry` holds before ``data.target`` picks the turbulence of the targets."""
+        name, seed = f"{self.stream}:{index}", self.data.seed
         plant = self.plant(index)
         if self.spec.kind == "open_loop" and not self.data.plant_range:
             if hasattr(turbulence, "open_loop"):  # a Shack-Hartmann's: reconstructed slopes, aliasing and noise

@@ -185,6 +185,10 @@ class PredictorConfig:
         if self.trains and self.optimization.fit_method == "closed_loop" and not self.data.truth:
             raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs "
                               "data.truth: true (a fit from telemetry alone has no turbulence to close it on)")
+        if self.trains and self.optimization.fit_method == "closed_loop" and self.data.target != "measured":
+            raise ConfigError(f"data.target={self.data.target!r} is invalid with optimization.fit_method: closed_loop: "
+                              "training through the loop scores the measured s it closes on; use fit_method: "
+                              "closed_form or sgd")
         if self.network is not None:
             if not isinstance(self.network, dict) or "class_path" not in self.network:
                 raise ConfigError(f"network={self.network!r} is invalid: give class_path and init_args")
@@ -292,6 +296,10 @@ class EvaluationConfig:
         Split every contender's residual into fitting, aliasing, noise and temporal terms
         (:mod:`eofnn.evaluation.budget`: two more runs of each, noise-free and with a perfect sensor; metrics.json
         ``error_budget``, results.md). ``None`` (the default): only in scenarios with a Shack-Hartmann.
+    analytic_stability : bool
+        Analyse every linear controller's stability (DM-gain interval, delay margin) and report it (the default).
+        ``false`` skips it: a neighbourhood filter's coupled analysis takes minutes of CPU on a busy machine (16
+        across, radius 1.5: more than 10 minutes on a shared core), which a study of residuals alone does without.
     """
 
     frames: int = 5000
@@ -302,6 +310,7 @@ class EvaluationConfig:
     divergence_factor: float = 10.0
     psd_segment_frames: int | None = None
     error_budget: bool | None = None
+    analytic_stability: bool = True
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(2, MAX_EVALUATION_FRAMES, integer=True),
@@ -312,6 +321,7 @@ class EvaluationConfig:
         "divergence_factor": Interval(1, 1e6, closed="right"),
         "psd_segment_frames": OrNone(Interval(MIN_PSD_SEGMENT_FRAMES, MAX_EVALUATION_FRAMES, integer=True)),
         "error_budget": OrNone(IsBool()),
+        "analytic_stability": IsBool(),
     }
     _where: ClassVar[str] = "evaluation."
 

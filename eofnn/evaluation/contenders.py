@@ -18,7 +18,7 @@ from eofnn.control.baselines import Integrator
 from eofnn.control.modal import require_telemetry, within_screen
 from eofnn.control.registry import FROM_TELEMETRY, build_controller
 from eofnn.data.history import HistorySpec
-from eofnn.data.stream import require_training_memory
+from eofnn.data.stream import require_target, require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
 from eofnn.evaluation.nonstationary import require_changes_within
@@ -207,6 +207,7 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
             for scenario_value in scenarios.values():
                 spec = HistorySpec.from_scenario(cfg.history, cfg.history_length, scenario_value)
                 require_training_memory(scenario_value, spec, cfg.data)
+                require_target(scenario_value, cfg.data)
         if cfg.train_in is not None and cfg.train_in not in scenarios:
             raise ConfigError(f"predictor {name!r}: train_in={cfg.train_in!r} is not a scenario: allowed are "
                               f"{', '.join(scenarios)}")

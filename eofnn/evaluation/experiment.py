@@ -103,7 +103,7 @@ class Experiment:
         if key not in self._trained:
             path = None if self.checkpoint_dir is None else self.checkpoint_dir / f"{name}__{train_in}.ckpt"
             self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
-                     f"{cfg.optimization.fit_method}, {'simulator truth' if cfg.data.truth else 'telemetry alone'})")
+                     f"{cfg.optimization.fit_method}, {cfg.data.learns_from})")
             result = fit_from_config(self.scenarios[train_in], cfg, FitOutput(path, True, bool(self.progress)))
             self._trained[key] = result.predictor
             searched = result.predictor.info.get("search")
@@ -245,6 +245,8 @@ class Experiment:
 
     def stability(self, name: str, scenario_name: str) -> dict | None:
         """Analytic stability summary of controller ``name`` in ``scenario_name`` (``None`` if not linear)."""
+        if not self.evaluation.analytic_stability:
+            return None
         predictor = self.predictor_if_any(name, scenario_name)
         config, scenario = self.config(name, scenario_name), self.scenarios[scenario_name]
         try:
@@ -267,7 +269,7 @@ class Experiment:
 
     def _analyse_nominal_filter(self, name: str, scenario_name: str) -> dict | None:
         trained = self._trained.get((name, next(iter(self.scenarios))))
-        if trained is None:
+        if trained is None or not self.evaluation.analytic_stability:
             return None
         try:
             result = controller_stability(self.config(name, scenario_name), trained, self.scenarios[scenario_name])

@@ -47,7 +47,8 @@ def _ratio_text(against: dict) -> str:
 def _stability_text(entry: dict, dm_gain: float | None) -> str:
     stability = entry["stability"]
     if stability is None:
-        return f"{entry['name']}: no stable DM-gain interval (no linear model, none found by simulation)"
+        return (f"{entry['name']}: not known (no linear analysis: no linear model, or evaluation.analytic_stability: "
+                "false; no simulated margins)")
     if not stability["stable"]:
         return f"{entry['name']}: {unstable_text(dm_gain)} ({stability['source']})"
     interval = stability["dm_gain_interval"]

@@ -46,6 +46,9 @@ class LoopData:
 def loop_data(datamodule: LoopDataModule, data: DataConfig, optimization: OptimizationConfig) -> LoopData:
     """The training and validation streams of ``datamodule`` (those of the closed-form fit) as windows of the loop;
     all the windows in one batch for L-BFGS, one batch per sequence otherwise."""
+    require(data.target == "measured", f"data.target={data.target!r} is invalid with optimization.fit_method: "
+                                       "closed_loop: training through the loop scores the measured s it closes on; "
+                                       "use fit_method: closed_form or sgd")
     full = optimization.gradient_optimizer == "lbfgs"
     window, warmup = optimization.loop_window, optimization.loop_warmup
     return LoopData(LoopWindows(datamodule.dataset("train", data.frames), window, warmup, full),
