@@ -24,6 +24,7 @@ from pathlib import Path
 
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
+from report_robust import robust_section
 from report_scale import elt_section, interop_section
 from report_sh import sh_section
 
@@ -316,11 +317,14 @@ summaries from `experiments/runs/`). The inputs are committed: `configs/*.yaml` 
 The reference study is Fowler, van Kooten & Jensen-Clem, "Closed-Loop Until Further Notice", AO4ELT 2023
 (arXiv 2310.02514). Other experiments, each with its own page or folder: telescope vibrations
 (`vibrations/`, `configs/vibrations.yaml`), online adaptation under changing conditions (`ADAPTIVE.md`), learning
-from telemetry alone (`telemetry.md`).
+from telemetry alone (`telemetry.md`), noise-aware fits from telemetry (`noise_aware/README.md`: a fit made on
+noise-free telemetry for the noise it will meet, `optimization.noise_at_deployment_nm`, matches the fit on noisy
+telemetry; errors-in-variables loses; per-mode temporal filters win by about 10%).
 
 {study_section()}
 {realistic_section()}
 {sh_section()}
+{robust_section()}
 {cl_study_section()}
 {robustness_section()}
 {elt_section()}

@@ -19,7 +19,7 @@ STUDY = {  # Fowler, van Kooten & Jensen-Clem 2023, median RMS residual (nm)
 NAMES = {"uncorrected": "uncorrected", "pseudo_integrator": "pseudo-integrator (oracle)", "integrator": "integrator",
          "ol_eof": "open-loop EOF", "cl_eof": "closed-loop EOF", "mlp": "MLP (open loop)",
          "ol_eof_nb": "open-loop EOF, neighbourhood", "mlp_nb": "MLP, neighbourhood", "extrapolator": "POL extrapolation",
-         "modal_integrator": "modal integrator", "lqg": "LQG (AR(2) per mode)"}
+         "modal_integrator": "modal integrator", "lqg": "LQG (AR per mode)", "pfc": "predictive Fourier control"}
 
 
 def load(name: str, part: str = "metrics") -> dict | None:

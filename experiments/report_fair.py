@@ -6,7 +6,7 @@ import math
 
 from report_common import HERE, NAMES, cell, fmt, load, margin, rms
 
-CLASSICAL = ("integrator", "extrapolator", "modal_integrator", "lqg")
+CLASSICAL = ("integrator", "extrapolator", "modal_integrator", "lqg", "pfc")
 PREDICTORS = ("ol_eof", "ol_eof_nb", "cl_eof", "mlp", "mlp_nb")
 
 
@@ -37,10 +37,32 @@ def tuning_text(result: dict, scenario: str, name: str) -> str:
     if searched:
         chosen, budget = searched["chosen"], searched["budget"]
         return f"lr {chosen['lr']:g}, {chosen['best_epoch']}/{budget['max_epochs_per_trial']} ep."
+    setting = result.get("classical_settings", {}).get(scenario, {}).get(name)
+    if setting:
+        return setting_text(setting)
     model = result.get("classical_models", {}).get(scenario, {}).get(name)
     if model:
         return f"{model.get('modes', '')} modes" if model.get("modes") else "from telemetry"
     return ""
+
+
+def setting_text(setting: dict) -> str:
+    """A classical controller's setting chosen on a stream of its own: ``order 2, smoothing 0`` or ``AR(2)``."""
+    if "ar_order" in setting:
+        return f"AR({setting['ar_order']})"
+    return ", ".join(f"{k} {setting[k]}" for k in ("order", "smoothing") if k in setting)
+
+
+def settings_won(result: dict, noise: list[str]) -> str:
+    """Which setting each tuned classical controller chose at each noise level (on a stream of its own)."""
+    parts = []
+    for s in noise:
+        chosen = [f"integrator gain {result['integrator_gains'][s]['integrator']['gain']:g}"
+                  ] if "integrator" in result.get("integrator_gains", {}).get(s, {}) else []
+        chosen += [f"{NAMES.get(n, n)} {setting_text(v)}"
+                   for n, v in result.get("classical_settings", {}).get(s, {}).items()]
+        parts.append(f"{s.replace('noise_', '')} nm: " + ", ".join(chosen))
+    return "; ".join(parts)
 
 
 def best_of(metrics: dict, names: tuple[str, ...]) -> tuple[str | None, float]:
@@ -144,9 +166,11 @@ layers of exact frozen flow (5.1 m/s along x and 10 m/s along y, half the Cn² e
 20 m), evaluated exactly at every actuator and seen through each subaperture, with 0, 1 or 3 nm RMS of white WFS
 noise per actuator and frame (the study's 2x DM gain is section 1's and section 4's). Every contender is tuned the
 same way and never on the test stream: the integrator's gain by a refined scan on a stream of its
-own; ridge alphas by `alpha: auto` on validation frames; the MLPs by a budgeted search (two learning rates, early
-stopping on validation, at most 3 epochs); the modal integrator and LQG are built from 10000 frames of
-dithered-integrator telemetry (believing the DM gain the dither measures). Every predictor reads 4 frames of
+own; the extrapolator's order (0, 1, 2) and least-squares smoothing (0, 2, 4 frames) and the LQG's AR order (1, 2)
+by the same scan; ridge alphas by `alpha: auto` on validation frames; the MLPs by a budgeted search (two learning
+rates, early stopping on validation, at most 3 epochs); the modal integrator, LQG and predictive Fourier control
+(its two winds identified) are built from 10000 frames of dithered-integrator telemetry (believing the DM gain the
+dither measures). Every predictor reads 4 frames of
 pseudo-open-loop history (closed-loop EOF: 5 commands and 5 residuals) and learns from 10000 frames of its own
 scenario. "Stable DM gain" is the analytic interval for linear controllers and, for the MLPs, the one found by
 closed-loop bisection on a stream of its own (diverged or diverging; bounds bracketed within 0.05). Median RMS
@@ -154,9 +178,13 @@ residual in nm:
 
 {chr(10).join(lines)}
 
-**Against the best classical controller, not only the integrator:**
+**Against the best classical controller, not only the integrator** (the best of the tuned classical set:
+best-gain integrator, POL extrapolator of order 0-2 with smoothing 0-4, modal integrator, LQG with AR(1) or
+AR(2) per mode, predictive Fourier control):
 
 {chr(10).join(versus)}
+
+Settings chosen on a stream of their own: {settings_won(result, noise)}.
 
 **Structure before nonlinearity** (same 4 frames, same data, same tuning budget; median RMS in nm):
 

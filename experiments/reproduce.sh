@@ -37,6 +37,13 @@ $eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact
 # 2b. The main job through a Shack-Hartmann (photon noise, R = 8), beside the same job through the zonal sensor.
 $eofnn compare --config configs/realistic_small.yaml --out $r/realistic_small --overwrite true
 $eofnn compare --config configs/realistic_sh.yaml --out $r/realistic_sh --overwrite true
+# 2c. Robust by design: the best predictor stable over DM gain [0.8, 1.25] against the best tuned classical
+#     controller; plant-range and loop-trained filters on a small loop; the coupled analysis against bisection.
+$eofnn compare --config $x/fair/moonshot.yaml --out $r/fair/moonshot --overwrite true --pareto noise_1
+$eofnn compare --config configs/through_loop_small.yaml --out $r/through_loop/noisy --overwrite true
+$eofnn compare --config configs/through_loop_small.yaml --scenario.plant.wfs_noise_nm 0 \
+  --out $r/through_loop/noise_free --overwrite true
+.venv/bin/python $x/coupled_margins.py --out $r/coupled_margins/realistic_10.json
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \
@@ -67,8 +74,10 @@ for run in wind_speed wind_turn dm_gain_drift; do
 done
 $eofnn compare --config $x/adaptive/dm_gain_drift.yaml --scenario.plant.dm_gain_drift.to 2.0 \
   --out $r/adaptive/dm_gain_drift_2.0 --overwrite true
-# 6. Learning from telemetry alone against simulator truth (its page: telemetry.md).
+# 6. Learning from telemetry alone against simulator truth (its page: telemetry.md), and noise-aware fits from
+#    telemetry (their page: noise_aware/README.md; about an hour).
 .venv/bin/python $x/telemetry_training.py
+bash $x/noise_aware/run.sh
 # 7. An ELT-class loop (5024 actuators, three non-lattice layers), every predictor from telemetry alone.
 $eofnn compare --config configs/elt_small.yaml --out $r/elt_small --overwrite true
 $eofnn compare --config configs/elt_scao.yaml --out $r/elt --overwrite true --simulated_margins '[nominal]'

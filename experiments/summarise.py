@@ -26,7 +26,8 @@ RUNS = HERE / "runs"
 COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy", "fair/paper_gap/exact",
             "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
-            "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh")
+            "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
+            "fair/moonshot", "through_loop/noisy", "through_loop/noise_free")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing")  # experiments/interop/<name>, written by experiments/interop/run.sh
 PAGES = ("results.md", "pareto.md")
@@ -43,6 +44,9 @@ METRICS = {
     "ridge_alphas": _PER({"alpha": True, "val_loss": True, "unregularised_val_loss": True, "path": {"alpha"}}),
     "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
     "classical_models": _PER({"frames", "modes", "gain_margin"}),
+    "classical_settings": _PER({"order", "smoothing", "ar_order", "median_rms_nm"}),
+    "verdict": True,
+    "realisation_median_rms_nm": True,
     "timings_s": True,
     "peak_memory_bytes": True,
 }
@@ -129,9 +133,23 @@ def interop_summary(run: str) -> bool:
     return True
 
 
+def json_summary(name: str, file: str) -> bool:
+    """A script's own JSON result (experiments/runs/<name>/<file>) kept whole."""
+    result = _read(RUNS / name / file)
+    if result is None:
+        return False
+    _write(name, file, {"result": result})
+    return True
+
+
+#: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).
+JSONS = {"coupled_margins": "realistic_10.json"}
+
+
 def collect() -> list[str]:
     """Write the summaries, figures and pages of every experiment found under experiments/runs/; return the missing."""
     missing = [n for n in COMPARES if not compare_summary(n)]
     missing += [f"sweeps/{s}" for s in SWEEPS if not sweep_summary(s)]
     missing += [f"interop/{r}" for r in INTEROP if not interop_summary(r)]
+    missing += [name for name, file in JSONS.items() if not json_summary(name, file)]
     return missing
