@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Regenerate experiments/: the study's reproduction and its design sweeps, the realistic comparison, the
 # closed-loop EOF study, the robustness maps, vibrations and online adaptation; then rewrite
-# experiments/README.md from their result files. Well over two hours on 2 cores (the fair contest of section 2 took
-# 24-34 minutes, its alpha check 31, the MLP budget check 36 and the paper-gap runs 10 each on a shared machine;
-# the ELT runs 1.5 and 6.5 minutes, the interop runs about 30; the rest about 40). Run after scripts/setup.sh.
+# experiments/README.md from their result files. Well over four hours on 2 cores (the fair contest of section 2 took
+# 1 h 40 min on a heavily loaded machine, its alpha check 31 minutes, the MLP budget check 36 and the paper-gap runs
+# 10 each on a shared machine; section 2c's moonshot 1 h 8 min; the ELT runs 1.5 and 6.5 minutes, the interop runs
+# about 30, the noise-aware fits about 60; the rest about 40). Run after scripts/setup.sh.
 # Every sweep is resumable: rerun this script after an interruption and finished points are kept.
 #
 # Inputs are committed: configs/*.yaml and experiments/{fair,adaptive,sweeps}/*.yaml. Every raw output (compare and
