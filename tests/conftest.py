@@ -36,6 +36,20 @@ def cli(capsys):
 
 
 @pytest.fixture
+def clean_and_noisy_telemetry(cli, tmp_path):
+    """``tmp_path`` holding dithered-integrator telemetry of the tiny scenario (1500 frames, gain 0.3, 10 nm dither):
+    ``clean.npz`` without WFS noise (seed 1) and ``noisy.npz`` with 3 nm of it (seed 2)."""
+    scenario = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
+    for name, noise, seed in (("clean.npz", 0.0, 1), ("noisy.npz", 3.0, 2)):
+        code, err = cli("simulate", "--scenario", scenario, "--scenario.plant.wfs_noise_nm", noise,
+                        "--predictor.controller", "dithered_integrator", "--predictor.gain", "0.3",
+                        "--predictor.data.dither_nm", "10.0", "--frames", "1500", "--seed", seed,
+                        "--out", tmp_path / name)
+        assert code == 0, err
+    return tmp_path
+
+
+@pytest.fixture
 def cli_error(cli):
     """``cli_error(args, expected, out)`` runs a command that must be refused and gives its error line.
 

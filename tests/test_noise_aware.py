@@ -4,7 +4,6 @@ the modal structure of linear filters, against their definitions and the Wiener 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -16,7 +15,6 @@ from eofnn.training.export import filter_coefficients
 from eofnn.training.noise import NOISE_ALPHA_PATH, NoiseTerm, alpha_path, noise_term
 from eofnn.training.ridge import NormalEquations, fit_closed_form
 
-SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 GRID = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}
 
 
@@ -155,17 +153,11 @@ def test_a_modal_filter_fits_per_mode_and_exports_as_a_full_spatial_filter():
 @pytest.mark.cli
 @pytest.mark.slow
 def test_a_noise_free_fit_made_for_deployment_noise_records_it_and_meets_noisy_telemetry_without_a_warning(
-        cli, tmp_path):
+        cli, tmp_path, clean_and_noisy_telemetry):
     """Fitted on noise-free telemetry for 3 nm of deployment noise: the checkpoint says so, its filter is more
     attenuated than the plain fit's, and its replay on 3 nm telemetry raises no noise-shift warning."""
     from eofnn.training.checkpoint import load_predictor
 
-    for name, noise, seed in (("clean.npz", 0.0, 1), ("noisy.npz", 3.0, 2)):
-        code, err = cli("simulate", "--scenario", SCENARIO, "--scenario.plant.wfs_noise_nm", noise,
-                        "--predictor.controller", "dithered_integrator", "--predictor.gain", "0.3",
-                        "--predictor.data.dither_nm", "10.0", "--frames", "1500", "--seed", seed,
-                        "--out", tmp_path / name)
-        assert code == 0, err
     fits = {}
     for name, extra in (("plain", []), ("deploy", ["--predictor.optimization.noise_at_deployment_nm", "3.0"])):
         code, err = cli("fit", "--telemetry", f"[{tmp_path / 'clean.npz'}]", "--predictor.history_length", "3",

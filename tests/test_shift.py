@@ -4,13 +4,10 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import pytest
 
 from eofnn.training.conditions import TOLERANCES, Conditions, shift_warnings
-
-SCENARIO = Path(__file__).parent / "conf" / "tiny_scenario.yaml"
 
 
 def _conditions(noise=0.0, gain=1.0, winds=(10.0,), source="scenario") -> Conditions:
@@ -48,15 +45,9 @@ def test_a_checkpoint_without_recorded_conditions_warns_nothing():
 
 @pytest.mark.cli
 @pytest.mark.slow
-def test_replay_of_a_noise_free_fit_on_noisy_telemetry_warns_in_one_line(cli, tmp_path):
+def test_replay_of_a_noise_free_fit_on_noisy_telemetry_warns_in_one_line(cli, tmp_path, clean_and_noisy_telemetry):
     """Fitted on noise-free telemetry, replayed on telemetry with 3 nm of WFS noise: one ``eofnn: warning:`` line
     naming both noise levels (identified from each file), and the same line in replay.json."""
-    for name, noise, seed in (("clean.npz", 0.0, 1), ("noisy.npz", 3.0, 2)):
-        code, err = cli("simulate", "--scenario", SCENARIO, "--scenario.plant.wfs_noise_nm", noise,
-                        "--predictor.controller", "dithered_integrator", "--predictor.gain", "0.3",
-                        "--predictor.data.dither_nm", "10.0", "--frames", "1500", "--seed", seed,
-                        "--out", tmp_path / name)
-        assert code == 0, err
     code, err = cli("fit", "--telemetry", f"[{tmp_path / 'clean.npz'}]", "--predictor.history", "closed_loop",
                     "--predictor.history_length", "3", "--predictor.data.val_frames", "300",
                     "--out", tmp_path / "cl.ckpt")
