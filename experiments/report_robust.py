@@ -133,7 +133,8 @@ def robust_section() -> str:
     return f"""## 2c. Robust by design: a robust predictor against the best tuned classical controller
 
 **The moonshot** (`eofnn compare --config experiments/fair/moonshot.yaml --out experiments/runs/fair/moonshot
---pareto noise_1`): `configs/realistic.yaml` at its own 1 nm of WFS noise. Every classical contender tuned on a
+--pareto noise_1`): `configs/realistic.yaml` at its own 1 nm of WFS noise, seen through the idealised zonal sensor
+(the subaperture average: no aliasing; through a Shack-Hartmann see section 2b). Every classical contender tuned on a
 stream of its own, as in section 2 (predictive Fourier control included); every predictor learns from 10000 frames
 and takes the least-error ridge alpha whose analytic interval contains DM gain [0.8, 1.25]
 (`optimization.select`). Three ways to buy that robustness side by side: more taps, a wider neighbourhood, and a
