@@ -1,0 +1,194 @@
+"""Collect the raw runs under experiments/runs/ into the committed summaries, pages and figures of experiments/.
+
+``experiments/reproduce.sh`` writes every raw output (``eofnn compare``/``sweep`` folders, per-point records,
+checkpoints, time series) under the ignored ``experiments/runs/<name>/``. This module keeps, for each experiment,
+only what the pages need in the committed ``experiments/<name>/``:
+
+- ``summary.json``: the numbers the pages quote, pruned from the run's ``metrics.json`` (and ``robustness.json``),
+  or from a sweep's ``sweep.csv`` and its points' ``metrics.json``;
+- the figures (``*.png``) and the run's own pages (``results.md``, ``pareto.md``).
+
+``python experiments/make_report.py --collect`` calls :func:`collect` and then writes experiments/README.md from the
+summaries alone; without ``--collect`` it needs no raw run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+HERE = Path(__file__).parent
+RUNS = HERE / "runs"
+
+# Every ``eofnn compare`` output the pages read (experiments/<name> <- experiments/runs/<name>).
+COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy", "fair/paper_gap/exact",
+            "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
+            "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
+            "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
+            "fair/moonshot", "through_loop/noisy", "through_loop/noise_free")
+SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
+INTEROP = ("hcipy", "oopao", "oopao_aliasing")  # experiments/interop/<name>, written by experiments/interop/run.sh
+PAGES = ("results.md", "pareto.md")
+
+# What is kept of each result file: a set keeps those keys whole, a dict descends ("*": every key), True keeps all.
+_PER = lambda keep: {"*": {"*": keep}}  # noqa: E731  (scenario -> predictor -> keep)
+METRICS = {
+    "scenarios": _PER({"median_rms_nm", "diverged", "diverged_frame", "settle_frames", "n_frames", "reconvergence",
+                       "fallback_frame", "residual_over", "actuator_median_rms_nm", "error_budget"}),
+    "raw_contrast": {"*": {"*": True}},
+    "stability": _PER({"stable", "dm_gain_interval"}),
+    "simulated_stability": _PER({"dm_gain_interval", "tolerance"}),
+    "integrator_gains": _PER({"gain"}),
+    "ridge_alphas": _PER({"alpha": True, "val_loss": True, "unregularised_val_loss": True, "path": {"alpha"}}),
+    "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
+    "classical_models": _PER({"frames", "modes", "gain_margin"}),
+    "classical_settings": _PER({"order", "smoothing", "ar_order", "median_rms_nm"}),
+    "verdict": True,
+    "realisation_median_rms_nm": True,
+    "timings_s": True,
+    "peak_memory_bytes": True,
+}
+ROBUSTNESS = {"keys", "values", "median_rms_nm", "analytic_dm_gain_interval"}
+SCORED = ("median_rms_nm", "realisations_median_rms_nm", "mean_of_realisations_nm")  # a contender in the loop
+INTEROP_METRICS = {
+    "runs": {"*": {"identified": {"dm_gain", "dm_gain_times_optical_gain", "dm_gain_true"},
+                   "simulator": {"n_subapertures", "diameter_m", "rcond", "n_seen_modes", "n_actuators"},
+                   "eof": {"diverged", "refits", *SCORED},
+                   "split": {"integrated_modes", "mix", "gain", "scan", "scan_median_rms_nm", "n_modes", *SCORED},
+                   "replay": {"predictor_median_rms_nm", "integrator_median_rms_nm"},
+                   "integrator": {"best_gain", "scan", "scan_median_rms_nm", *SCORED}}},
+    "budget": {"fitting_error_nm": True, "controllers": {"*": {
+        "residual_perfect_sensor_nm", "residual_shack_hartmann_nm", "residual_photon_noise_nm", "temporal_nm",
+        "aliasing_nm", "noise_nm"}}},
+}
+SWEEP_DROPPED = {"status", "mean_rms_nm", "p95_rms_nm", "strehl", "diverged", "diverged_frame", "settle_frames",
+                 "n_frames", "error"}  # sweep.csv columns the pages do not quote
+
+
+def prune(value, keep):
+    """``value`` reduced to the keys ``keep`` names (see METRICS), in ``value``'s order."""
+    if keep is True or not isinstance(value, dict):
+        return value
+    if isinstance(keep, set):
+        keep = dict.fromkeys(keep, True)
+    return {k: prune(v, keep[k] if k in keep else keep["*"]) for k, v in value.items() if k in keep or "*" in keep}
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _write(name: str, source: str, parts: dict) -> None:
+    target = HERE / name / "summary.json"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    summary = {"source": f"experiments/runs/{name}/{source}, pruned to the numbers the pages quote", **parts}
+    target.write_text(json.dumps(summary, indent=1) + "\n")
+
+
+def _copy_figures_and_pages(name: str) -> None:
+    run, target = RUNS / name, HERE / name
+    for file in sorted(run.glob("*.png")) + [run / page for page in PAGES if (run / page).is_file()]:
+        shutil.copyfile(file, target / file.name)
+
+
+def compare_summary(name: str) -> bool:
+    metrics = _read(RUNS / name / "metrics.json")
+    if metrics is None:
+        return False
+    parts = {"metrics": prune(metrics, METRICS)}
+    robustness = _read(RUNS / name / "robustness.json")
+    if robustness is not None:
+        parts["robustness"] = prune(robustness, ROBUSTNESS)
+    _write(name, "metrics.json" + (" and robustness.json" if robustness is not None else ""), parts)
+    _copy_figures_and_pages(name)
+    return True
+
+
+def sweep_summary(sweep: str) -> bool:
+    name = f"sweeps/{sweep}"
+    table = RUNS / name / "sweep.csv"
+    if not table.is_file():
+        return False
+    with table.open() as f:
+        rows = [{k: v for k, v in row.items() if k not in SWEEP_DROPPED}
+                for row in csv.DictReader(f) if row["status"] == "done"]
+    stability: dict[str, dict] = {}
+    for row in rows:
+        point = _read(RUNS / name / "points" / row["point"] / "run" / "metrics.json") or {}
+        stability[row["point"]] = prune(point.get("stability", {}), METRICS["stability"])
+    _write(name, "sweep.csv (done points) and points/*/run/metrics.json", {"rows": rows, "stability": stability})
+    _copy_figures_and_pages(name)
+    return True
+
+
+def interop_summary(run: str) -> bool:
+    name = f"interop/{run}"
+    metrics = _read(RUNS / name / "metrics.json")
+    if metrics is None:
+        return False
+    _write(name, "metrics.json", {"metrics": prune(metrics, INTEROP_METRICS)})
+    _copy_figures_and_pages(name)
+    return True
+
+
+def map_summary(name: str) -> bool:
+    """A sweep drawn as a map (experiments/runs/<name>/): per point its swept values and, per contender, the median
+    RMS, its realisations, the error budget and the raw contrast at 3 lambda/D; the fallbacks' decisions."""
+    table = RUNS / name / "sweep.csv"
+    if not table.is_file():
+        return False
+    with table.open() as f:
+        reader = csv.DictReader(f)
+        keys = reader.fieldnames[1:reader.fieldnames.index("status")]  # the swept keys (short names)
+        done = {row["point"]: {k: json.loads(row[k]) for k in keys} for row in reader if row["status"] == "done"}
+    points = []
+    for point, values in sorted(done.items()):
+        metrics = _read(RUNS / name / "points" / point / "run" / "metrics.json")
+        if metrics is None:
+            continue
+        scenario = next(iter(metrics["scenarios"]))
+        contenders = {}
+        for contender, m in metrics["scenarios"][scenario].items():
+            contenders[contender] = {
+                "median_rms_nm": m["median_rms_nm"], "diverged": m["diverged"],
+                "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario, {}).get(contender),
+                "error_budget": m.get("error_budget"),
+                "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3")}
+        fallback = {c: {"deployed": f.get("deployed"), "why": f.get("why")}
+                    for c, f in metrics.get("fallback", {}).get(scenario, {}).items()}
+        points.append({"point": point, "values": values, "contenders": contenders, "fallback": fallback})
+    _write(name, "points/*/run/metrics.json", {"points": points})
+    _copy_figures_and_pages(name)
+    from report_where import plot, rows  # the map's figure, drawn from the summary just written
+
+    plot(rows(), HERE / name / "gain_map.png")
+    return True
+
+
+#: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
+MAPS = ("where/sh",)
+
+
+def json_summary(name: str, file: str) -> bool:
+    """A script's own JSON result (experiments/runs/<name>/<file>) kept whole."""
+    result = _read(RUNS / name / file)
+    if result is None:
+        return False
+    _write(name, file, {"result": result})
+    return True
+
+
+#: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).
+JSONS = {"coupled_margins": "realistic_10.json"}
+
+
+def collect() -> list[str]:
+    """Write the summaries, figures and pages of every experiment found under experiments/runs/; return the missing."""
+    missing = [n for n in COMPARES if not compare_summary(n)]
+    missing += [f"sweeps/{s}" for s in SWEEPS if not sweep_summary(s)]
+    missing += [f"interop/{r}" for r in INTEROP if not interop_summary(r)]
+    missing += [name for name, file in JSONS.items() if not json_summary(name, file)]
+    missing += [name for name in MAPS if not map_summary(name)]
+    return missing
