@@ -19,6 +19,7 @@ what it cannot (fitting error, aliasing, noise).
 
     python examples/oopao_loop.py --small                          # 10 x 10 on 2 m, CI size (about a minute)
     python examples/oopao_loop.py --small --aliasing --out DIR     # plus the decomposition; DIR/metrics.json
+    python examples/oopao_loop.py --small --photon-noise --magnitude 10 --wind 10   # photon noise only
     python examples/oopao_loop.py --n-subapertures 40 --diameter 8 --out experiments/runs/interop/oopao
 """
 
@@ -62,6 +63,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser = example_parser(__doc__.splitlines()[0])
     parser.add_argument("--magnitude", type=float, default=8.0, help="guide star I magnitude (photon noise runs)")
     parser.add_argument("--aliasing", action="store_true", help="also the perfect-sensor and photon-noise runs")
+    parser.add_argument("--photon-noise", action="store_true",
+                        help="only the Shack-Hartmann run with photon noise (a point of a wind x magnitude map)")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
@@ -70,7 +73,13 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_example(parser, argv)
     config = replace(StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4)),
                      scored_realisations=args.realisations)
-    runs = {"shack_hartmann": study("shack_hartmann", False, args, config)}
+    if args.photon_noise and args.aliasing:
+        parser.error("--photon-noise runs only the photon-noise study; --aliasing runs it beside the others: "
+                     "give one of them")
+    if args.photon_noise:
+        runs = {"shack_hartmann_photon_noise": study("shack_hartmann", True, args, config)}
+    else:
+        runs = {"shack_hartmann": study("shack_hartmann", False, args, config)}
     if args.aliasing:
         runs["perfect"] = study("perfect", False, args, config)
         runs["shack_hartmann_photon_noise"] = study("shack_hartmann", True, args, config)

@@ -27,6 +27,7 @@ from report_fair import realistic_section
 from report_robust import robust_section
 from report_scale import elt_section, interop_section
 from report_sh import sh_section
+from report_where import where_section
 
 
 def study_section() -> str:
@@ -326,6 +327,7 @@ telemetry; errors-in-variables loses; per-mode temporal filters win by about 10%
 {realistic_section()}
 {sh_section()}
 {robust_section()}
+{where_section()}
 {cl_study_section()}
 {robustness_section()}
 {elt_section()}

@@ -45,6 +45,8 @@ $eofnn compare --config configs/through_loop_small.yaml --out $r/through_loop/no
 $eofnn compare --config configs/through_loop_small.yaml --scenario.plant.wfs_noise_nm 0 \
   --out $r/through_loop/noise_free --overwrite true
 .venv/bin/python $x/coupled_margins.py --out $r/coupled_margins/realistic_10.json
+# 2d. Where prediction pays through a real sensor: wind speed x guide-star magnitude on eofnn's Shack-Hartmann loop.
+$eofnn sweep --config $x/where/base_sh.yaml --grid $x/where/grid.yaml --out $r/where/sh --workers 2 --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \

@@ -29,7 +29,8 @@ COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/pa
             "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
             "fair/moonshot", "through_loop/noisy", "through_loop/noise_free")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
-INTEROP = ("hcipy", "oopao", "oopao_aliasing")  # experiments/interop/<name>, written by experiments/interop/run.sh
+INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh
+           *(f"oopao_map/v{wind}_m{mag}" for wind in (10, 20) for mag in (8, 10)))
 PAGES = ("results.md", "pareto.md")
 
 # What is kept of each result file: a set keeps those keys whole, a dict descends ("*": every key), True keeps all.
@@ -58,6 +59,7 @@ INTEROP_METRICS = {
                    "eof": {"diverged", "refits", *SCORED},
                    "split": {"integrated_modes", "mix", "gain", "scan", "scan_median_rms_nm", "n_modes", *SCORED},
                    "replay": {"predictor_median_rms_nm", "integrator_median_rms_nm"},
+                   "fitting_error": {"median_rms_nm"},
                    "integrator": {"best_gain", "scan", "scan_median_rms_nm", *SCORED}}},
     "budget": {"fitting_error_nm": True, "controllers": {"*": {
         "residual_perfect_sensor_nm", "residual_shack_hartmann_nm", "residual_photon_noise_nm", "temporal_nm",
@@ -142,6 +144,44 @@ def json_summary(name: str, file: str) -> bool:
     return True
 
 
+def map_summary(name: str) -> bool:
+    """A sweep drawn as a map (experiments/runs/<name>/): per point its swept values and, per contender, the median
+    RMS, its realisations, the error budget and the raw contrast at 3 lambda/D; the fallbacks' decisions."""
+    table = RUNS / name / "sweep.csv"
+    if not table.is_file():
+        return False
+    with table.open() as f:
+        reader = csv.DictReader(f)
+        keys = reader.fieldnames[1:reader.fieldnames.index("status")]  # the swept keys (short names)
+        done = {row["point"]: {k: json.loads(row[k]) for k in keys} for row in reader if row["status"] == "done"}
+    points = []
+    for point, values in sorted(done.items()):
+        metrics = _read(RUNS / name / "points" / point / "run" / "metrics.json")
+        if metrics is None:
+            continue
+        scenario = next(iter(metrics["scenarios"]))
+        contenders = {}
+        for contender, m in metrics["scenarios"][scenario].items():
+            contenders[contender] = {
+                "median_rms_nm": m["median_rms_nm"], "diverged": m["diverged"],
+                "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario, {}).get(contender),
+                "error_budget": m.get("error_budget"),
+                "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3")}
+        fallback = {c: {"deployed": f.get("deployed"), "why": f.get("why")}
+                    for c, f in metrics.get("fallback", {}).get(scenario, {}).items()}
+        points.append({"point": point, "values": values, "contenders": contenders, "fallback": fallback})
+    _write(name, "points/*/run/metrics.json", {"points": points})
+    _copy_figures_and_pages(name)
+    from report_where import plot, rows  # the map's figure, drawn from the summary just written
+
+    plot(rows(), HERE / name / "gain_map.png")
+    return True
+
+
+#: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
+MAPS = ("where/sh",)
+
+
 #: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).
 JSONS = {"coupled_margins": "realistic_10.json"}
 
@@ -152,4 +192,5 @@ def collect() -> list[str]:
     missing += [f"sweeps/{s}" for s in SWEEPS if not sweep_summary(s)]
     missing += [f"interop/{r}" for r in INTEROP if not interop_summary(r)]
     missing += [name for name, file in JSONS.items() if not json_summary(name, file)]
+    missing += [name for name in MAPS if not map_summary(name)]
     return missing

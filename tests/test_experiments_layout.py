@@ -131,7 +131,7 @@ def test_every_collected_experiment_has_a_committed_summary():
     finally:
         sys.path.remove(str(EXPERIMENTS))
     names = [*summarise.COMPARES, *(f"sweeps/{s}" for s in summarise.SWEEPS),
-             *(f"interop/{r}" for r in summarise.INTEROP), *summarise.JSONS]
+             *(f"interop/{r}" for r in summarise.INTEROP), *summarise.JSONS, *summarise.MAPS]
     assert [n for n in names if f"experiments/{n}/summary.json" not in FILES] == []
 
 

@@ -6,6 +6,7 @@
 #     recording, every contender scored on 3 realisations (about 17 min on 2 cores, 2026-12-02);
 #   - oopao_aliasing: the error budget (perfect sensor, SH noise-free, SH with photon noise) at 20 x 20 on 4 m
 #     (about 9 min);
+#   - oopao_map: 20 x 20 on 4 m with photon noise only, at 10 and 20 m/s x I = 8 and 10 (four points);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -18,6 +19,15 @@ fi
 if [ "$what" = all ] || [ "$what" = oopao_aliasing ]; then
     $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --aliasing --realisations 3 \
         --out experiments/runs/interop/oopao_aliasing
+fi
+if [ "$what" = all ] || [ "$what" = oopao_map ]; then
+    # Where prediction pays in OOPAO's loop (the smaller map of issue 30): 20 x 20 on 4 m, photon noise only.
+    for wind in 10 20; do
+        for mag in 8 10; do
+            $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --photon-noise --wind $wind \
+                --magnitude $mag --realisations 3 --out experiments/runs/interop/oopao_map/v${wind}_m${mag}
+        done
+    done
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \

@@ -1,0 +1,76 @@
+"""Section 2d's arithmetic (experiments/report_where.py): the map's gains are the best classical controller's over
+the best predictor's, in residual variance after the fitting error is removed and in raw contrast; a diverged
+contender is never the best; the never-worse check: worse on every realisation is worse."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+
+
+@pytest.fixture
+def where(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(EXPERIMENTS))
+    import report_common
+    import report_where
+
+    monkeypatch.setattr(report_common, "HERE", tmp_path)
+    yield report_where, tmp_path
+    sys.modules.pop("report_where", None)
+
+
+def contender(rms, fitting=100.0, contrast=1e-4, diverged=False, realisations=None):
+    return {"median_rms_nm": rms, "diverged": diverged, "realisations_nm": realisations or [rms, rms],
+            "error_budget": {"fitting_nm": fitting}, "raw_contrast_3": contrast}
+
+
+def write_points(root: Path, points: list[dict]) -> None:
+    (root / "where" / "sh").mkdir(parents=True)
+    (root / "where" / "sh" / "summary.json").write_text(json.dumps({"points": points}))
+
+
+def point(wind, magnitude, contenders, deployed="composite"):
+    return {"point": f"v{wind}_m{magnitude}", "contenders": contenders,
+            "values": {"scenario.atmosphere.layers": [{"wind_speed_mps": wind}, {"wind_speed_mps": wind / 2}],
+                       "scenario.sensor.detector.magnitude": magnitude},
+            "fallback": {"ol_eof_nb_guarded": {"deployed": deployed}}}
+
+
+def test_gains_are_variance_after_fitting_and_contrast_of_the_best_of_each_kind(where):
+    report, root = where
+    write_points(root, [point(10.0, 8.0, {
+        "integrator": contender(130.0, contrast=4e-4), "lqg": contender(125.0, contrast=3e-4),
+        "pfc": contender(90.0, diverged=True),  # diverged: never the best, however low its number
+        "ol_eof": contender(120.0, contrast=1.5e-4), "ol_eof_nb": contender(140.0),
+        "ol_eof_nb_guarded": contender(129.0)})])
+    [row] = report.rows()
+    assert (row["best_classical"], row["best_predictor"]) == ("lqg", "ol_eof")
+    assert row["variance_gain"] == pytest.approx((125.0**2 - 100.0**2) / (120.0**2 - 100.0**2))
+    assert row["contrast_gain"] == pytest.approx(2.0)
+    section = " ".join(report.where_section().split())
+    assert "| 10 | 8 |" in section and "1.28x" in section and "2.00x" in section
+    assert "at or below the best-gain integrator at 1 of 1 points" in section
+
+
+def test_never_worse_fails_beyond_the_scatter(where):
+    report, root = where
+    integrator = contender(130.0, realisations=[125.0, 135.0])
+    write_points(root, [point(20.0, 10.0, {  # worse on both realisations, by less than their spread: worse
+        "integrator": integrator, "ol_eof_nb_guarded": contender(131.0, realisations=[126.0, 136.0])}),
+                        point(30.0, 10.0, {  # worse in the median, better on one realisation: within the scatter
+        "integrator": integrator, "ol_eof_nb_guarded": contender(131.0, realisations=[124.0, 138.0])})])
+    section = " ".join(report.where_section().split())
+    assert "at 1 of 2 points" in section
+
+
+def test_the_map_figure_is_drawn(where, tmp_path):
+    report, root = where
+    write_points(root, [point(w, m, {"integrator": contender(130.0), "ol_eof": contender(125.0)})
+                        for w in (5.0, 10.0) for m in (8.0, 10.0)])
+    report.plot(report.rows(), tmp_path / "gain_map.png")
+    assert (tmp_path / "gain_map.png").stat().st_size > 10_000
