@@ -94,3 +94,55 @@ its temporal term is an upper bound (the integrator's is not); the predictors le
 prediction); the analytic margins assume the measurement of the DM is the command itself, which holds on the
 reconstructor's modes and, by construction of the computer's fill, on the modes it cuts.
 """
+
+
+#: Section 2b's second table (experiments/fair/structure_sh.yaml): (name, structure, target, model).
+STRUCTURE = (("ol_eof", "own history", "measured", "linear"), ("ol_eof_nb", "3 x 3", "measured", "linear"),
+             ("ol_eof_nb_fit", "3 x 3", "DM fit", "linear"), ("ol_eof_aa", "5 x 5", "DM fit", "linear"),
+             ("mlp", "own history", "measured", "MLP"), ("mlp_nb", "3 x 3", "measured", "MLP"),
+             ("mlp_nb_fit", "3 x 3", "DM fit", "MLP"))
+
+
+def _less_fitting(m: dict) -> float:
+    """Residual variance over the pupil after the fitting error is removed (nm²)."""
+    return m["median_rms_nm"] ** 2 - ((m.get("error_budget") or {}).get("fitting_nm") or 0.0) ** 2
+
+
+def structure_rows(result: dict) -> list[dict]:
+    """Per predictor of the structure table: its numbers and its gain over the best-gain integrator (variance after
+    fitting, per realisation paired, and raw contrast at 3 lambda/D)."""
+    nominal = result["scenarios"]["nominal"]
+    per = result.get("realisation_median_rms_nm", {}).get("nominal", {})
+    integrator = nominal["integrator"]
+    c_int = (result.get("raw_contrast", {}).get("nominal", {}).get("integrator") or {}).get("3")
+    out = []
+    for name, structure, target, model in STRUCTURE:
+        m = nominal.get(name)
+        if m is None:
+            continue
+        row = {"name": name, "structure": structure, "target": target, "model": model, "m": m,
+               "realisations": per.get(name) or []}
+        if not m["diverged"]:
+            row["variance_gain"] = _less_fitting(integrator) / max(_less_fitting(m), 1e-30)
+            contrast = (result.get("raw_contrast", {}).get("nominal", {}).get(name) or {}).get("3")
+            row["contrast_gain"] = c_int / contrast if c_int and contrast else None
+            row["paired_nm"] = [p - i for i, p in zip(per.get("integrator") or [], row["realisations"], strict=False)]
+        out.append(row)
+    return out
+
+
+def structure_table(result: dict) -> str:
+    nominal = result["scenarios"]["nominal"]
+    lines = ["| model | inputs | target | median RMS over the pupil (nm) | minus the integrator, per realisation (nm) | "
+             "budget: fit / alias / noise / temporal (nm) | variance gain over the integrator, fitting removed | "
+             "contrast at 3 λ/D (gain) |", "|---|---|---|---|---|---|---|---|",
+             f"| best-gain integrator | | | {cell(nominal['integrator'])} | | {_budget_cell(nominal['integrator'])} | "
+             f"1 | {_contrast(result, 'nominal', 'integrator')} |"]
+    for row in structure_rows(result):
+        paired = ", ".join(f"{d:+.1f}" for d in row.get("paired_nm", []))
+        gain = row.get("contrast_gain")
+        lines.append(f"| {row['model']} | {row['structure']} | {row['target']} | {cell(row['m'])} | {paired} | "
+                     f"{_budget_cell(row['m'])} | {row.get('variance_gain', float('nan')):.3f} | "
+                     f"{_contrast(result, 'nominal', row['name'])}"
+                     f"{'' if gain is None else f' ({gain:.2f}x)'} |")
+    return "\n".join(lines)

@@ -162,3 +162,18 @@ def test_the_replay_figure_uses_a_log_axis_for_the_per_frame_error(figures, tmp_
     assert per_frame.get_yscale() == "log" and "(nm" in per_frame.get_ylabel() and per_frame.get_title()
     assert psd.get_title() and "(Hz)" in psd.get_xlabel() and "(nm²/Hz)" in psd.get_ylabel()
     assert any(t.startswith("predictor (median 2 nm)") for t in _legend_texts(per_frame))
+
+
+@pytest.mark.parametrize("figure", ["psds", "contrast"])
+def test_a_single_panel_figure_keeps_its_whole_title(figures, tmp_path, figure):
+    """One scenario makes a narrow figure: its long title is wrapped, never clipped at the sides."""
+    from eofnn.evaluation.results import ExperimentResult
+    from eofnn.reporting import report
+
+    result = ExperimentResult({"nominal": {"integrator": _metrics(20.0), "ol_eof": _metrics(2.0)}})
+    {"psds": lambda p: report.plot_psds(result, p),
+     "contrast": lambda p: report.plot_contrast(result, p, 1.65e-6)}[figure](tmp_path / "figure.png")
+    fig = figures[-1]
+    fig.canvas.draw()
+    box = fig._suptitle.get_window_extent()
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (box, fig.bbox.width)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -79,7 +80,7 @@ def _figure(result: ExperimentResult, path: Path, title: str, xlabel: str, ylabe
     cols = min(n, 3)
     rows = -(-n // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 4.8 * rows), squeeze=False, sharey=True)
-    fig.suptitle(title)
+    fig.suptitle(textwrap.fill(title, width=int(12 * 5.5 * cols)))  # about 12 characters an inch: never clipped
     styles = _styles(result)
     flat = axes.ravel()
     for ax, (scenario, preds) in zip(flat, result.metrics.items(), strict=False):
