@@ -38,6 +38,19 @@ def _never_worse(integrator: dict, guarded: dict) -> bool:
     return guarded["median_rms_nm"] <= integrator["median_rms_nm"] or min(paired, default=1.0) <= 0.0
 
 
+def _terms(c: dict) -> str:
+    b = c.get("error_budget") or {}
+    return " / ".join("—" if b.get(k) is None else f"{b[k]:.0f}" for k in ("aliasing_nm", "noise_nm", "temporal_nm"))
+
+
+def temporal_bound(c: dict) -> float:
+    """The largest variance gain (fitting removed) over ``c`` that removing its temporal term alone would give: what
+    a perfect predictor fed with ``c``'s aliased, noisy measurements could at best reach."""
+    b = c.get("error_budget") or {}
+    rest = (b.get("aliasing_nm") or 0.0) ** 2 + (b.get("noise_nm") or 0.0) ** 2
+    return _corrected_variance(c) / rest if rest > 0 else math.inf
+
+
 def rows() -> list[dict]:
     """One entry per point: wind, magnitude, the best of each kind and the gains of predictor over classical."""
     out = []
@@ -131,8 +144,9 @@ def where_section() -> str:
     if not entries:
         return "## 2d. Where prediction pays through a real sensor\n\n(experiments/where/sh not run)\n"
     table = ["| wind (m/s) | R mag | best classical (nm) | best predictor (nm) | variance gain, fitting removed | "
-             "contrast gain at 3 λ/D | integrator / guarded EOF (nm) | guarded EOF deployed |",
-             "|---|---|---|---|---|---|---|---|"]
+             "bound: no temporal term | contrast gain at 3 λ/D | alias / noise / temporal (nm): classical; predictor | "
+             "integrator / guarded EOF (nm) | guarded EOF deployed |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     never_worse = []
     for e in sorted(entries, key=lambda e: (e["wind"], e["magnitude"])):
         c = e["contenders"]
@@ -146,9 +160,12 @@ def where_section() -> str:
             pair = f"{fmt(integ['median_rms_nm'])} / {fmt(guarded['median_rms_nm'])}"
             never_worse.append(_never_worse(integ, guarded))
         deployed = (e["fallback"].get("ol_eof_nb_guarded") or {}).get("deployed") or ""
+        bound = temporal_bound(c[e["best_classical"]]) if e["best_classical"] else math.nan
+        terms = (f"{_terms(c[e['best_classical']])}; {_terms(c[e['best_predictor']])}"
+                 if e["best_classical"] and e["best_predictor"] else "")
         table.append(f"| {e['wind']:g} | {e['magnitude']:g} | {classical} | {predictor} | "
-                     f"{e.get('variance_gain', math.nan):.2f}x | {e.get('contrast_gain', math.nan):.2f}x | {pair} | "
-                     f"{deployed} |")
+                     f"{e.get('variance_gain', math.nan):.2f}x | {bound:.2f}x | {e.get('contrast_gain', math.nan):.2f}x | "
+                     f"{terms} | {pair} | {deployed} |")
     held = sum(never_worse)
     return f"""## 2d. Where prediction pays through a real sensor
 
