@@ -9,8 +9,8 @@ from pathlib import Path
 from report_common import NAMES, fmt, load
 
 CLASSICAL = ("integrator", "lqg", "pfc")
-PREDICTORS = ("ol_eof", "ol_eof_nb", "ol_eof_aa", "ol_eof_nb_guarded")
-LABELS = {**NAMES, "ol_eof_nb_guarded": "open-loop EOF, neighbourhood, guarded",
+PREDICTORS = ("ol_eof", "ol_eof_nb", "ol_eof_aa", "ol_eof_aa_guarded")
+LABELS = {**NAMES, "ol_eof_aa_guarded": "anti-aliasing EOF, guarded",
           "ol_eof_aa": "anti-aliasing EOF (5 x 5, trained on the DM fit)"}
 
 
@@ -154,12 +154,12 @@ def where_section() -> str:
                      f"{fmt(c[e['best_classical']]['median_rms_nm'])}" if e["best_classical"] else "none held")
         predictor = (f"{LABELS.get(e['best_predictor'], e['best_predictor'])} "
                      f"{fmt(c[e['best_predictor']]['median_rms_nm'])}" if e["best_predictor"] else "none held")
-        integ, guarded = c.get("integrator"), c.get("ol_eof_nb_guarded")
+        integ, guarded = c.get("integrator"), c.get("ol_eof_aa_guarded")
         pair = ""
         if integ and guarded and _held(integ) and _held(guarded):
             pair = f"{fmt(integ['median_rms_nm'])} / {fmt(guarded['median_rms_nm'])}"
             never_worse.append(_never_worse(integ, guarded))
-        deployed = (e["fallback"].get("ol_eof_nb_guarded") or {}).get("deployed") or ""
+        deployed = (e["fallback"].get("ol_eof_aa_guarded") or {}).get("deployed") or ""
         bound = temporal_bound(c[e["best_classical"]]) if e["best_classical"] else math.nan
         terms = (f"{_terms(c[e['best_classical']])}; {_terms(c[e['best_predictor']])}"
                  if e["best_classical"] and e["best_predictor"] else "")

@@ -38,6 +38,8 @@ $eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact
 # 2b. The main job through a Shack-Hartmann (photon noise, R = 8), beside the same job through the zonal sensor.
 $eofnn compare --config configs/realistic_small.yaml --out $r/realistic_small --overwrite true
 $eofnn compare --config configs/realistic_sh.yaml --out $r/realistic_sh --overwrite true
+#    Structure before nonlinearity through the Shack-Hartmann, the anti-aliasing predictors among the rows.
+$eofnn compare --config $x/fair/structure_sh.yaml --out $r/fair/structure_sh --overwrite true
 # 2c. Robust by design: the best predictor stable over DM gain [0.8, 1.25] against the best tuned classical
 #     controller; plant-range and loop-trained filters on a small loop; the coupled analysis against bisection.
 $eofnn compare --config $x/fair/moonshot.yaml --out $r/fair/moonshot --overwrite true --pareto noise_1

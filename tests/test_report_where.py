@@ -38,7 +38,7 @@ def point(wind, magnitude, contenders, deployed="composite"):
     return {"point": f"v{wind}_m{magnitude}", "contenders": contenders,
             "values": {"scenario.atmosphere.layers": [{"wind_speed_mps": wind}, {"wind_speed_mps": wind / 2}],
                        "scenario.sensor.detector.magnitude": magnitude},
-            "fallback": {"ol_eof_nb_guarded": {"deployed": deployed}}}
+            "fallback": {"ol_eof_aa_guarded": {"deployed": deployed}}}
 
 
 def test_gains_are_variance_after_fitting_and_contrast_of_the_best_of_each_kind(where):
@@ -47,7 +47,7 @@ def test_gains_are_variance_after_fitting_and_contrast_of_the_best_of_each_kind(
         "integrator": contender(130.0, contrast=4e-4), "lqg": contender(125.0, contrast=3e-4),
         "pfc": contender(90.0, diverged=True),  # diverged: never the best, however low its number
         "ol_eof": contender(120.0, contrast=1.5e-4), "ol_eof_nb": contender(140.0),
-        "ol_eof_nb_guarded": contender(129.0)})])
+        "ol_eof_aa_guarded": contender(129.0)})])
     [row] = report.rows()
     assert (row["best_classical"], row["best_predictor"]) == ("lqg", "ol_eof")
     assert row["variance_gain"] == pytest.approx((125.0**2 - 100.0**2) / (120.0**2 - 100.0**2))
@@ -61,9 +61,9 @@ def test_never_worse_fails_beyond_the_scatter(where):
     report, root = where
     integrator = contender(130.0, realisations=[125.0, 135.0])
     write_points(root, [point(20.0, 10.0, {  # worse on both realisations, by less than their spread: worse
-        "integrator": integrator, "ol_eof_nb_guarded": contender(131.0, realisations=[126.0, 136.0])}),
+        "integrator": integrator, "ol_eof_aa_guarded": contender(131.0, realisations=[126.0, 136.0])}),
                         point(30.0, 10.0, {  # worse in the median, better on one realisation: within the scatter
-        "integrator": integrator, "ol_eof_nb_guarded": contender(131.0, realisations=[124.0, 138.0])})])
+        "integrator": integrator, "ol_eof_aa_guarded": contender(131.0, realisations=[124.0, 138.0])})])
     section = " ".join(report.where_section().split())
     assert "at 1 of 2 points" in section
 
