@@ -148,8 +148,9 @@ def oopao_map_text() -> str:
                      f"{_nm(replay.get('predictor_median_rms_nm'))} / {_nm(replay.get('integrator_median_rms_nm'))} |")
     if len(lines) == 2:
         return "(the OOPAO map, `bash experiments/interop/run.sh oopao_map`, not run)"
+    verdict = ": no win" if max(gains) < 1.1 else ""
     summary = (f"\n\neofnn's best in OOPAO's loop is {min(gains):.2f}x to {max(gains):.2f}x OOPAO's best-gain integrator "
-               f"in variance after fitting error: no win. The closed-loop EOF alone loses to the integrator at "
+               f"in variance after fitting error{verdict}. The closed-loop EOF alone loses to the integrator at "
                f"{eof_loses} of {len(gains)} points although its replay on held-out telemetry beats the integrator's: "
                "what replay scores is the measurement, aliasing included, not the loop's residual.")
     return "\n".join(lines) + summary + _telemetry_bound()
