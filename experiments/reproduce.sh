@@ -50,6 +50,9 @@ $eofnn compare --config configs/through_loop_small.yaml --scenario.plant.wfs_noi
 # 2d. Where prediction pays through a real sensor: wind speed x guide-star magnitude on eofnn's Shack-Hartmann loop.
 $eofnn sweep --config $x/where/base_sh.yaml --grid $x/where/grid.yaml --out $r/where/sh --workers 2 --overwrite true
 $eofnn compare --config $x/where/check_v5.yaml --out $r/where/check_v5 --overwrite true
+$eofnn compare --config $x/where/check_v20.yaml --out $r/where/check_v20_m8 --overwrite true
+$eofnn compare --config $x/where/check_v20.yaml --scenario.sensor.detector.magnitude 10 --out $r/where/check_v20_m10 \
+  --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \

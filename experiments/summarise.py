@@ -28,7 +28,7 @@ COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/pa
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
             "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
             "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
-            "where/check_v5")
+            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh
            *(f"oopao_map/v{wind}_m{mag}" for wind in (10, 20) for mag in (8, 10)))
