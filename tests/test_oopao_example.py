@@ -11,6 +11,7 @@ import pytest
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
 
 
+@pytest.mark.cli
 def test_photon_noise_and_aliasing_together_are_refused_in_one_line(capsys):
     spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)
     example = importlib.util.module_from_spec(spec)
