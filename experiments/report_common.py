@@ -37,6 +37,13 @@ def cell(m: dict | None, digits: int = 3) -> str:
     return f"{value:.0f}" if value >= 1000 else f"{value:.{digits}g}"
 
 
+def variance_less_fitting(m: dict) -> float:
+    """A contender's residual variance over the pupil after its error budget's fitting error is removed (nm², at
+    least 0): what a controller can act on."""
+    fitting = (m.get("error_budget") or {}).get("fitting_nm") or 0.0
+    return max(m["median_rms_nm"] ** 2 - fitting ** 2, 0.0)
+
+
 def rms(m: dict | None) -> float:
     return math.nan if m is None or m["diverged"] else m["median_rms_nm"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from report_common import NAMES, cell, load, margin, rms
+from report_common import NAMES, cell, load, margin, rms, variance_less_fitting
 
 CONTENDERS = ("uncorrected", "integrator", "ol_eof", "cl_eof")
 HEADER = ("| scenario | contender | zonal (nm, actuators) | Shack-Hartmann (nm, pupil) | SH, actuators (nm) "
@@ -106,11 +106,6 @@ STRUCTURE = (("ol_eof", "own history", "measured", "linear"), ("ol_eof_nb", "3 x
              ("mlp_nb_fit", "3 x 3", "DM fit", "MLP"))
 
 
-def _less_fitting(m: dict) -> float:
-    """Residual variance over the pupil after the fitting error is removed (nm²)."""
-    return m["median_rms_nm"] ** 2 - ((m.get("error_budget") or {}).get("fitting_nm") or 0.0) ** 2
-
-
 def _less_fitting_nm(m: dict) -> str:
     """The noise-free Shack-Hartmann run's residual less the fitting error, in quadrature (nm): aliasing + temporal."""
     budget = m.get("error_budget") or {}
@@ -135,7 +130,7 @@ def structure_rows(result: dict) -> list[dict]:
         row = {"name": name, "structure": structure, "target": target, "model": model, "m": m,
                "realisations": per.get(name) or []}
         if not m["diverged"]:
-            row["variance_gain"] = _less_fitting(integrator) / max(_less_fitting(m), 1e-30)
+            row["variance_gain"] = variance_less_fitting(integrator) / max(variance_less_fitting(m), 1e-30)
             contrast = (result.get("raw_contrast", {}).get("nominal", {}).get(name) or {}).get("3")
             row["contrast_gain"] = c_int / contrast if c_int and contrast else None
             row["paired_nm"] = [p - i for i, p in zip(per.get("integrator") or [], row["realisations"], strict=False)]

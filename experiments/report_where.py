@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from report_common import NAMES, fmt, load
+from report_common import NAMES, fmt, load, variance_less_fitting
 
 CLASSICAL = ("integrator", "lqg", "pfc")
 PREDICTORS = ("ol_eof", "ol_eof_nb", "ol_eof_aa", "ol_eof_aa_guarded")
@@ -21,12 +21,6 @@ def _held(c: dict) -> bool:
 def _best(contenders: dict, names: tuple[str, ...]) -> str | None:
     held = [n for n in names if n in contenders and _held(contenders[n])]
     return min(held, key=lambda n: contenders[n]["median_rms_nm"]) if held else None
-
-
-def _corrected_variance(c: dict) -> float:
-    """Residual variance over the pupil after the fitting error is removed (nm²)."""
-    fitting = (c.get("error_budget") or {}).get("fitting_nm") or 0.0
-    return max(c["median_rms_nm"] ** 2 - fitting ** 2, 0.0)
 
 
 def _never_worse(integrator: dict, guarded: dict) -> bool:
@@ -48,7 +42,7 @@ def temporal_bound(c: dict) -> float:
     a perfect predictor fed with ``c``'s aliased, noisy measurements could at best reach."""
     b = c.get("error_budget") or {}
     rest = (b.get("aliasing_nm") or 0.0) ** 2 + (b.get("noise_nm") or 0.0) ** 2
-    return _corrected_variance(c) / rest if rest > 0 else math.inf
+    return variance_less_fitting(c) / rest if rest > 0 else math.inf
 
 
 def rows() -> list[dict]:
@@ -63,7 +57,7 @@ def rows() -> list[dict]:
                  "best_predictor": best_p, "contenders": contenders, "fallback": p.get("fallback", {})}
         if best_c and best_p:
             c, q = contenders[best_c], contenders[best_p]
-            entry["variance_gain"] = _corrected_variance(c) / max(_corrected_variance(q), 1e-30)
+            entry["variance_gain"] = variance_less_fitting(c) / max(variance_less_fitting(q), 1e-30)
             cc, qc = c.get("raw_contrast_3"), q.get("raw_contrast_3")
             entry["contrast_gain"] = cc / qc if cc and qc else math.nan
         out.append(entry)
@@ -280,8 +274,7 @@ def _check_v20_text() -> str:
         if not classical or "ol_eof_aa" not in held:
             continue
         best = min(classical, key=lambda n: held[n]["median_rms_nm"])
-        best_m = {**held[best], "error_budget": held[best].get("error_budget")}
-        variance = _corrected_variance(best_m) / max(_corrected_variance(held["ol_eof_aa"]), 1e-30)
+        variance = variance_less_fitting(held[best]) / max(variance_less_fitting(held["ol_eof_aa"]), 1e-30)
         contrast = check.get("raw_contrast", {}).get("nominal", {})
         c_best, c_aa = (contrast.get(best) or {}).get("3"), (contrast.get("ol_eof_aa") or {}).get("3")
         per = check.get("realisation_median_rms_nm", {}).get("nominal", {})

@@ -19,6 +19,8 @@ import json
 import shutil
 from pathlib import Path
 
+from report_where import OOPAO_POINTS, plot, rows
+
 HERE = Path(__file__).parent
 RUNS = HERE / "runs"
 
@@ -31,7 +33,7 @@ COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/pa
             "where/check_v5", "where/check_v20_m8", "where/check_v20_m10")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh
-           *(f"oopao_map/v{wind}_m{mag}" for wind in (10, 20) for mag in (8, 10)))
+           *(f"oopao_map/v{wind}_m{mag}" for wind, mag in OOPAO_POINTS))
 PAGES = ("results.md", "pareto.md")
 
 # What is kept of each result file: a set keeps those keys whole, a dict descends ("*": every key), True keeps all.
@@ -173,9 +175,7 @@ def map_summary(name: str) -> bool:
         points.append({"point": point, "values": values, "contenders": contenders, "fallback": fallback})
     _write(name, "points/*/run/metrics.json", {"points": points})
     _copy_figures_and_pages(name)
-    from report_where import plot, rows  # the map's figure, drawn from the summary just written
-
-    plot(rows(), HERE / name / "gain_map.png")
+    plot(rows(), HERE / name / "gain_map.png")  # the map's figure, drawn from the summary just written
     return True
 
 
