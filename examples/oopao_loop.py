@@ -21,6 +21,13 @@ what it cannot (fitting error, aliasing, noise).
     python examples/oopao_loop.py --small --aliasing --out DIR     # plus the decomposition; DIR/metrics.json
     python examples/oopao_loop.py --small --photon-noise --magnitude 10 --wind 10   # photon noise only
     python examples/oopao_loop.py --n-subapertures 40 --diameter 8 --out experiments/runs/interop/oopao
+
+With ``--anti-aliasing`` it runs instead the study of :mod:`eofnn.interop.antialias`: the open-loop EOF (5 x 5
+neighbourhood) fitted on telemetry alone and the anti-aliasing EOF fitted on the same telemetry with OOPAO's truth
+(the DM's fit of the true phase) as its target, each run in OOPAO's loop against the best-gain integrator, scored in
+residual variance after fitting and raw contrast:
+
+    python examples/oopao_loop.py --small --anti-aliasing --photon-noise --out DIR
 """
 
 from __future__ import annotations
@@ -30,14 +37,18 @@ import sys
 import time
 from dataclasses import replace
 
+from eofnn.errors import ConfigError
+from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_antialias
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
 from eofnn.interop.report import aliasing_budget, example_parser, parse_example, split_text, write_results
 from eofnn.interop.study import StudyConfig, run_study
+from eofnn.outputs import write_text_atomic
 
 
 def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
     sim = OopaoLoop(args.n_subapertures, args.diameter, sensor=sensor, photon_noise=photon_noise,
-                    magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind, rcond=args.rcond)
+                    magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
+                    wind_direction_deg=args.wind_direction, rcond=args.rcond)
     started = time.time()
     result = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
     gain = measure_sensor_gain(sim, config.record_gain, min(config.record_frames, 1500), config.seed,
@@ -65,17 +76,29 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--aliasing", action="store_true", help="also the perfect-sensor and photon-noise runs")
     parser.add_argument("--photon-noise", action="store_true",
                         help="only the Shack-Hartmann run with photon noise (a point of a wind x magnitude map)")
+    parser.add_argument("--wind-direction", type=float, default=0.0,
+                        help="degrees from the x axis (0: along a row of actuators)")
+    parser.add_argument("--anti-aliasing", action="store_true",
+                        help="only the anti-aliasing study (eofnn.interop.antialias), with or without --photon-noise")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
                              "it down for larger systems (0.075 at 40 x 40 keeps what 0.15 keeps at 20 x 20)")
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_example(parser, argv)
-    config = replace(StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4)),
-                     scored_realisations=args.realisations)
-    if args.photon_noise and args.aliasing:
+    if args.photon_noise and args.aliasing and not args.anti_aliasing:
         parser.error("--photon-noise runs only the photon-noise study; --aliasing runs it beside the others: "
                      "give one of them")
+    if args.anti_aliasing and args.aliasing:
+        parser.error("--anti-aliasing runs only the anti-aliasing study; --aliasing runs the decomposition: give "
+                     "one of them")
+    try:
+        if args.anti_aliasing:
+            return antialias(args, argv)
+        config = replace(StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4)),
+                         scored_realisations=args.realisations)
+    except ConfigError as err:
+        parser.error(str(err))
     if args.photon_noise:
         runs = {"shack_hartmann_photon_noise": study("shack_hartmann", True, args, config)}
     else:
@@ -90,6 +113,27 @@ def main(argv: list[str] | None = None) -> dict:
         print(json.dumps(metrics["budget"], indent=1))
     if args.out:
         write_results(args.out, "OOPAO", metrics, " ".join(["python examples/oopao_loop.py", *argv]))
+    return metrics
+
+
+def antialias(args, argv: list[str]) -> dict:
+    """The anti-aliasing study at one point (``--frames`` per training sequence, 3 sequences)."""
+    sim = OopaoLoop(args.n_subapertures, args.diameter, photon_noise=args.photon_noise, magnitude=args.magnitude,
+                    dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
+                    rcond=args.rcond)
+    f = args.frames
+    config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
+                             warmup_frames=f // 20, scored_realisations=args.realisations)
+    started = time.time()
+    metrics = run_antialias(sim, config)
+    metrics["seconds"] = round(time.time() - started, 1)
+    metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])
+    text = antialias_markdown(metrics)
+    print(text)
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(args.out / "metrics.json", json.dumps(metrics, indent=1))
+        write_text_atomic(args.out / "results.md", text)
     return metrics
 
 

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from report_common import NAMES, fmt, load, variance_less_fitting
+from report_oopao import oopao_reading, antialias_text, oopao_map_text
 
 CLASSICAL = ("integrator", "lqg", "pfc")
 PREDICTORS = ("ol_eof", "ol_eof_nb", "ol_eof_aa", "ol_eof_aa_guarded")
@@ -98,76 +99,6 @@ def plot(entries: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-OOPAO_POINTS = tuple((wind, mag) for wind in (10, 20) for mag in (8, 10))  # experiments/interop/run.sh oopao_map
-
-
-def _nm(value: float | None) -> str:
-    return "—" if value is None else fmt(value)
-
-
-def _spread(c: dict) -> str:
-    values = c.get("realisations_median_rms_nm") or []
-    return f" ({min(values):.1f}-{max(values):.1f})" if len(values) > 1 else ""
-
-
-def _mean(c: dict) -> float | None:
-    """The mean of a contender's per-realisation medians (the interop study's ``median_rms_nm`` is the first's)."""
-    if c.get("diverged"):
-        return None
-    return c.get("mean_of_realisations_nm", c.get("median_rms_nm"))
-
-
-def oopao_map_text() -> str:
-    """The smaller map in OOPAO's loop: per point the best-gain integrator, the closed-loop EOF fitted from that
-    loop's telemetry alone and the split controller, with the variance gain after the fitting error is removed."""
-    lines = ["| wind (m/s) | I mag | fitting error (nm) | best-gain integrator (nm) | closed-loop EOF (nm) | split (nm) | "
-             "best eofnn / integrator, variance less fitting | replay: EOF / integrator (nm) |",
-             "|---|---|---|---|---|---|---|---|"]
-    gains, eof_loses = [], 0
-    for wind, mag in OOPAO_POINTS:
-        run = ((load(f"interop/oopao_map/v{wind}_m{mag}") or {}).get("runs") or {}).get("shack_hartmann_photon_noise")
-        if not run:
-            continue
-        fit = (run.get("fitting_error") or {}).get("median_rms_nm") or 0.0
-        integ, eof, split = run["integrator"], run["eof"], run.get("split") or {}
-        ours = [m for m in (_mean(eof), _mean(split)) if m is not None]
-        gain = ((_mean(integ) ** 2 - fit ** 2) / max(min(ours) ** 2 - fit ** 2, 1e-30)) if ours else math.nan
-        gains.append(gain)
-        eof_loses += _mean(eof) is None or _mean(eof) > _mean(integ)
-        eof_text = "diverged" if _mean(eof) is None else f"{fmt(_mean(eof))}{_spread(eof)}"
-        split_text = f"{fmt(_mean(split))}{_spread(split)}" if _mean(split) is not None else "—"
-        replay = run.get("replay") or {}
-        lines.append(f"| {wind} | {mag} | {fit:.1f} | {fmt(_mean(integ))}{_spread(integ)} "
-                     f"(gain {integ.get('best_gain')}) | {eof_text} | {split_text} | {gain:.2f}x | "
-                     f"{_nm(replay.get('predictor_median_rms_nm'))} / {_nm(replay.get('integrator_median_rms_nm'))} |")
-    if len(lines) == 2:
-        return "(the OOPAO map, `bash experiments/interop/run.sh oopao_map`, not run)"
-    verdict = ": no win" if max(gains) < 1.1 else ""
-    summary = (f"\n\neofnn's best in OOPAO's loop is {min(gains):.2f}x to {max(gains):.2f}x OOPAO's best-gain integrator "
-               f"in variance after fitting error{verdict}. The closed-loop EOF alone loses to the integrator at "
-               f"{eof_loses} of {len(gains)} points although its replay on held-out telemetry beats the integrator's: "
-               "what replay scores is the measurement, aliasing included, not the loop's residual.")
-    return "\n".join(lines) + summary + _telemetry_bound()
-
-
-def _telemetry_bound() -> str:
-    """What a predictor fitted on telemetry alone can reach at most in OOPAO's loop: section 6's budget (20 x 20,
-    20 m/s, I = 8) with the integrator's temporal term removed and its aliasing and noise left."""
-    budget = ((load("interop/oopao_aliasing") or {}).get("budget") or {}).get("controllers", {}).get("integrator")
-    if not budget:
-        return ""
-    alias, noise, temporal = budget["aliasing_nm"], budget["noise_nm"], budget["temporal_nm"]
-    bound = (alias ** 2 + noise ** 2 + temporal ** 2) / (alias ** 2 + noise ** 2)
-    return f"""
-
-Why a predictor fitted from telemetry alone cannot reach 1.5x in variance there: telemetry holds only the
-measurement, aliasing and noise included, so the best it can do is predict the measurement perfectly, which
-removes the temporal term and nothing else. Section 6's budget of OOPAO's integrator at 20 x 20, 20 m/s, I = 8
-(aliasing {alias:.0f}, noise {noise:.0f}, temporal {temporal:.0f} nm) caps that at {bound:.2f}x in variance after the
-fitting error is removed. Seeing through the aliasing needs the true phase, which only a simulation of that
-system gives (the map above): the anti-aliasing filter is the one route past the cap."""
-
-
 def where_section() -> str:
     entries = rows()
     if not entries:
@@ -225,12 +156,26 @@ R = 12 were cut for time.
 
 {_check_v20_text()}
 
+**The issue's goal conditions in OOPAO's loop** (`bash experiments/interop/run.sh oopao_aa`, `eofnn/interop/antialias.py`:
+OOPAO's 8 m, 40 x 40 Shack-Hartmann with photon noise, one frozen-flow layer at 20 m/s, a DM applying 2x the
+command). OOPAO's own loop, closed by a dithered integrator, is recorded on 3 realisations of 2000 frames with
+OOPAO's truth beside the telemetry: the DM's fit of the true phase. From those frames come every contender: the
+best-gain integrator (gain scanned in OOPAO's loop on a realisation of its own), the LQG (AR model per KL mode of
+the pseudo-open loop, AR order chosen on that realisation), the 5 x 5 open-loop EOF fitted on the telemetry alone
+(the measured pseudo-open-loop values, plant identified from the dither), and the anti-aliasing EOF: the same
+filter and histories, its targets OOPAO's truth. The guarded EOF is the anti-aliasing one where it beat the
+integrator on the scan realisation, else the integrator. Each is scored on the same 3 further realisations of
+1000 frames (900 settled): the mean of their median residual OPD over OOPAO's pupil, the fitting error, and the
+raw contrast behind a perfect coronagraph at 1.65 µm from OOPAO's residual OPD every 10th frame.
+
+{antialias_text()}
+
+{oopao_reading()}
+
 **The smaller map in OOPAO's loop** (`bash experiments/interop/run.sh oopao_map`: section 6's chain at 20 x 20 on
 4 m, one layer at 10 or 20 m/s, photon noise from an I = 8 or 10 guide star, a DM applying 2x the command; the
-closed-loop EOF fitted from that loop's own telemetry alone, the split controller, and OOPAO's best-gain integrator,
-each scored on 3 realisations: the mean of their median RMS, and their range). The classical side there is the
-integrator alone (the LQG and PFC are not yet built from another simulator's telemetry), and no anti-aliasing
-predictor runs in it (it is trained in eofnn's simulation, on eofnn's geometry):
+closed-loop EOF (per actuator) fitted from that loop's own telemetry alone, the split controller, and OOPAO's
+best-gain integrator, each scored on 3 realisations: the mean of their median RMS, and their range):
 
 {oopao_map_text()}
 """

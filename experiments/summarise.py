@@ -19,7 +19,8 @@ import json
 import shutil
 from pathlib import Path
 
-from report_where import OOPAO_POINTS, plot, rows
+from report_oopao import ANTIALIAS_RUNS, OOPAO_POINTS
+from report_where import plot, rows
 
 HERE = Path(__file__).parent
 RUNS = HERE / "runs"
@@ -179,6 +180,20 @@ def map_summary(name: str) -> bool:
     return True
 
 
+def antialias_summary(name: str) -> bool:
+    """The anti-aliasing study in another simulator's loop (experiments/runs/<name>/metrics.json of
+    ``examples/oopao_loop.py --anti-aliasing``): kept whole, with its results.md."""
+    metrics = _read(RUNS / name / "metrics.json")
+    if metrics is None:
+        return False
+    _write(name, "metrics.json", {"result": metrics})
+    _copy_figures_and_pages(name)
+    return True
+
+
+#: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa).
+ANTIALIAS = tuple(ANTIALIAS_RUNS)
+
 #: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
 MAPS = ("where/sh",)
 
@@ -194,4 +209,5 @@ def collect() -> list[str]:
     missing += [f"interop/{r}" for r in INTEROP if not interop_summary(r)]
     missing += [name for name, file in JSONS.items() if not json_summary(name, file)]
     missing += [name for name in MAPS if not map_summary(name)]
+    missing += [name for name in ANTIALIAS if not antialias_summary(name)]
     return missing

@@ -1,5 +1,6 @@
-"""examples/oopao_loop.py's options: a point of the OOPAO map (``--photon-noise``) and the full decomposition
-(``--aliasing``) are one or the other, refused in one line before anything is simulated."""
+"""examples/oopao_loop.py's options: a point of the OOPAO map (``--photon-noise``), the full decomposition
+(``--aliasing``) and the anti-aliasing study (``--anti-aliasing``) are one or another, and too few frames are refused;
+each in one line before anything is simulated."""
 
 from __future__ import annotations
 
@@ -12,12 +13,17 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
 
 
 @pytest.mark.cli
-def test_photon_noise_and_aliasing_together_are_refused_in_one_line(capsys):
+@pytest.mark.parametrize("argv, said", [
+    (["--photon-noise", "--aliasing"], ("--photon-noise", "--aliasing", "give one of them")),
+    (["--anti-aliasing", "--aliasing"], ("--anti-aliasing", "--aliasing", "give one of them")),
+    (["--small", "--frames", "500"], ("settle_frames=300 is invalid",)),
+])
+def test_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):
     spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
     with pytest.raises(SystemExit) as exit_:
-        example.main(["--photon-noise", "--aliasing"])
+        example.main(argv)
     assert exit_.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "--photon-noise" in error and "--aliasing" in error and "give one of them" in error
+    assert all(part in error for part in said), error

@@ -354,12 +354,23 @@ def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model:
     ``modes`` share one model fitted on their pooled statistics."""
     data = _fitted_to_screen(scenario, data)
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
-    dm_gain_model = info["dm_gain_model"]
-    stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
+    return lqg_from_pol(pol, scenario.plant.delay_frames, info["dm_gain_model"], ar_order, modes,
+                        torch.as_tensor(scenario.grid.indices), info)
+
+
+def lqg_from_pol(pol: torch.Tensor, delay_frames: int | float, dm_gain_model: float, ar_order: int = 2,
+                 modes: int | None = None, grid_indices: torch.Tensor | None = None, info: dict | None = None
+                 ) -> ModalLQG:
+    """The LQG of ``(realisations, frames, K)`` POL values (nm) reconstructed with ``dm_gain_model``: KL modes
+    (homogenised over ``grid_indices``, the actuators' lattice rows and columns, where given), an AR(``ar_order``)
+    per mode and its stationary Kalman filter, for a loop of ``delay_frames`` (:func:`build_lqg`, which records
+    the POL values in a scenario; another simulator's telemetry gives them as well)."""
+    info = dict(info or {})
+    stats = modal_statistics(pol, modes, grid_indices=grid_indices)
     ar, q = fit_ar(ar_order, stats.autocovariance, stats.noise_variance)
     r = stats.noise_variance
     gain, prior = kalman_gain(ar, q, r)
-    d, f = split_delay(scenario.plant.delay_frames)
+    d, f = split_delay(delay_frames)
     error = prediction_error_variance(ar, q, prior, gain, d)
     if f:
         error = (1 - f) * error + f * prediction_error_variance(ar, q, prior, gain, d + 1)
@@ -371,4 +382,4 @@ def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model:
                  "first_ar": [[round(float(v), 6) for v in row] for row in ar[:5]],
                  "innovation_rms_nm_median": float(q.median().sqrt()),
                  "predicted_residual_rms_nm": math.sqrt(float(error.sum()) / pol.shape[-1])})
-    return ModalLQG(stats.modes, ar, q, r, gain, scenario.plant.delay_frames, dm_gain_model, info)
+    return ModalLQG(stats.modes, ar, q, r, gain, delay_frames, dm_gain_model, info)

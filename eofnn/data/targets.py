@@ -36,6 +36,9 @@ from eofnn.telemetry.spaces import read_matrix
 #: One recording (in memory, or a file read in blocks of frames).
 AnyTelemetry = Telemetry | StreamedTelemetry
 
+#: What telemetry targets cancel: the measured POL values, or the telemetry's own ``s`` (a simulator's truth).
+TELEMETRY_TARGETS = ("measured", "s")
+
 #: ``y -> DM(y)`` in nm, on ``(..., K)`` tensors.
 DMResponse = Callable[[torch.Tensor], torch.Tensor]
 
@@ -125,12 +128,28 @@ class TelemetryBatches(IterableDataset):
         Frames per yielded batch (per sequence).
     first, stop : int
         Frame range used in each sequence.
+    target : {"measured", "s"}
+        ``"measured"``: the targets cancel the POL values (telemetry alone). ``"s"``: they cancel the telemetry's own
+        ``s`` array, ``-s / target_dm_gain``: a simulator's truth recorded beside ``y`` and ``wfs`` (e.g. the DM's
+        fit of the true phase, :mod:`eofnn.interop.antialias`), while the histories stay the measured POL values.
+    target_dm_gain : float, optional
+        The DM gain of ``"s"`` targets (the simulator's own DM; default ``dm_gain``).
     """
 
     def __init__(self, telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: HistorySpec, dm_response: DMResponse,
-                 dm_gain: float, batch_frames: int = 1024, first: int = 0, stop: int | None = None) -> None:
+                 dm_gain: float, batch_frames: int = 1024, first: int = 0, stop: int | None = None,
+                 target: str = "measured", target_dm_gain: float | None = None) -> None:
         super().__init__()
         self.sequences = check_sequences(telemetry, spec)
+        if target not in TELEMETRY_TARGETS:
+            raise TelemetryError(f"target={target!r} is invalid: it must be one of {TELEMETRY_TARGETS}")
+        if target == "s" and any(getattr(seq, "s", None) is None for seq in self.sequences):
+            raise TelemetryError("target='s' needs the telemetry's s array (a simulator's truth), which this "
+                                 "telemetry lacks: use target='measured'")
+        self.target = target
+        self.target_dm_gain = float(dm_gain if target_dm_gain is None else target_dm_gain)
+        if not (math.isfinite(self.target_dm_gain) and self.target_dm_gain != 0):
+            raise TelemetryError(f"target_dm_gain={target_dm_gain!r} is invalid: it must be finite and non-zero")
         if not (math.isfinite(dm_gain) and dm_gain != 0):
             raise TelemetryError(f"dm_gain={dm_gain!r} is invalid: it must be finite and non-zero")
         if isinstance(batch_frames, bool) or not isinstance(batch_frames, int) or batch_frames < 1:
@@ -154,6 +173,8 @@ class TelemetryBatches(IterableDataset):
         # Open loop: the POL values are the history too (computed once; telemetry_history would compute them again).
         history = open_loop_history(s_hat, self.spec) if self.spec.kind == "open_loop" else \
             build_history(self.spec, y=y, wfs=wfs)
+        if self.target == "s":
+            return history, -blended_target(seq.s[window], self.spec) / self.target_dm_gain
         return history, -blended_target(s_hat, self.spec) / self.dm_gain
 
 

@@ -74,9 +74,14 @@ class RawContrast:
             return
         if self._pupil:
             residual = torch.stack([arrays["pupil_residual"](first_frame + i) for i in frames], 1)
-            phase = residual.reshape(-1, residual.shape[-1]) * (2 * math.pi * 1e-9 / self.wavelength_m)
+            self.add(residual.reshape(-1, residual.shape[-1]))
         else:
-            phase = eps[:, frames].reshape(-1, eps.shape[-1]) * (2 * math.pi * 1e-9 / self.wavelength_m)
+            self.add(eps[:, frames].reshape(-1, eps.shape[-1]))
+
+    def add(self, residual_nm: torch.Tensor) -> None:
+        """Accumulate ``(frames, points)`` residuals (nm) on the grid's points (with ``pupil``: those in the pupil),
+        whatever frame they are (the caller picks them: :meth:`__call__` takes every ``every``-th settled one)."""
+        phase = torch.as_tensor(residual_nm, dtype=torch.float64) * (2 * math.pi * 1e-9 / self.wavelength_m)
         field = torch.exp(1j * phase)
         field = field - field.mean(-1, keepdim=True)  # the perfect coronagraph: no coherent part is left
         pupil = torch.zeros(field.shape[0], self._size * self._size, dtype=torch.complex128)

@@ -284,7 +284,7 @@ class LoopRecord:
 
 
 def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int, *,
-                    divergence_factor: float = DIVERGENCE_FACTOR) -> LoopRecord:
+                    divergence_factor: float = DIVERGENCE_FACTOR, observers=()) -> LoopRecord:
     """Close ``sim``'s loop with ``controller`` for ``n_frames`` frames on the turbulence realisation ``seed``.
 
     Per frame ``n``: the controller gets the measurement of frame ``n - d`` (zeros before the first) and returns
@@ -292,7 +292,9 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
     frame with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
     turbulence) stops the run as diverged. A controller that carries the conditions its predictor was trained in
     (``trained_conditions``) is compared with the loop's (:func:`eofnn.interop.shift.warn_loop_shift`): the record's
-    ``shift`` holds the lines, and the first run of that controller issues them as one warning each.
+    ``shift`` holds the lines, and the first run of that controller issues them as one warning each. Each of
+    ``observers`` is called as ``observer(n, sim)`` after frame ``n`` (to record what only the simulator knows:
+    its truth, its residual map).
     """
     check_value("n_frames", n_frames, COUNT)
     k, d = sim.n_actuators, sim.delay_frames
@@ -308,6 +310,8 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
         if hasattr(controller, "applied"):
             controller.applied(command)
         measurement, rms = sim.advance(command)
+        for observe in observers:
+            observe(n, sim)
         pending.append(measurement)
         y_all[n], wfs_all[n], rms_all[n] = command, measurement, rms
         limit = divergence_factor * max(rms, 1e-9) if limit is None else limit

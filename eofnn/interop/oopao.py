@@ -245,6 +245,7 @@ class OopaoLoop:
             else:
                 self.ngs * self.tel * self.dm * self.wfs
         opd_nm = np.asarray(self.tel.OPD)[self._pupil] * 1e9
+        self._residual_nm = opd_nm
         residual = float(np.std(opd_nm))
         if self.sensor == "perfect":
             return self._projection @ (opd_nm - opd_nm.mean()), residual
@@ -259,6 +260,22 @@ class OopaoLoop:
         if self._opd_source is not None:
             return self._opd_nm[self._pupil]
         return np.asarray(self.atm.OPD)[self._pupil] * 1e9
+
+    def turbulence_fit_nm(self) -> np.ndarray:
+        """The simulator's truth in command space: the least-squares fit of the current turbulence (piston removed)
+        by the seen DM modes, ``(K,)`` nm of command of a DM that applies what it is told (the target of an
+        anti-aliasing predictor, :mod:`eofnn.interop.antialias`)."""
+        opd = self.turbulence_opd_nm()
+        return self._fit_operator()[1] @ (opd - opd.mean())
+
+    def residual_opd_nm(self) -> np.ndarray:
+        """The residual OPD of the last frame over the pupil's pixels (nm, in the order of ``pupil_mask``)."""
+        return self._residual_nm
+
+    @property
+    def pupil_mask(self) -> np.ndarray:
+        """``(resolution, resolution)`` bool: the telescope's pupil pixels (pixel pitch ``diameter_m / resolution``)."""
+        return self._pupil
 
     def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray) -> float:
         """The Shack-Hartmann's optical gain on the current turbulence: the response ``R @ slopes`` to a small DM

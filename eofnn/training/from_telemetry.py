@@ -45,12 +45,19 @@ class TelemetryDataConfig:
         Train on frames before ``stop`` only (keep the rest for :func:`eofnn.evaluation.replay.replay`).
     seed : int
         Seed of network initialisation and SGD.
+    target : {"measured", "s"}
+        What the targets cancel: the measured POL values (telemetry alone), or the telemetry's ``s`` array, a
+        simulator's truth recorded beside it (:class:`~eofnn.data.targets.TelemetryBatches`).
+    target_dm_gain : float, optional
+        The DM gain of ``"s"`` targets (the simulator's DM); default the plant's.
     """
 
     batch_frames: int = 1024
     val_frames: int = 0
     stop: int | None = None
     seed: int = 0
+    target: str = "measured"
+    target_dm_gain: float | None = None
 
     @classmethod
     def of(cls, data: DataConfig, val_frames: int) -> TelemetryDataConfig:
@@ -128,7 +135,8 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
                              f"validation history (each needs more than {span} frames)")
     conditions = plant_conditions(plant if plant is not None else {}, f"plant {source} from the telemetry"
                                   if source == "identified" else f"{source} plant")
-    info = {"targets": "telemetry", "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
+    info = {"targets": "telemetry" if data.target == "measured" else "telemetry's s (simulator truth)",
+            "plant_source": source, "model_errors": errors, "dm_gain_model": dm_gain,
             "n_sequences": len(sequences), "conditions": conditions.to_dict(), **(info or {})}
     if first_item.modal_basis is not None:  # a modal predictor: actuator commands are modal_basis @ y
         info["modal_basis_shape"] = list(first_item.modal_basis.shape)
@@ -138,9 +146,10 @@ def fit_from_telemetry(telemetry: AnyTelemetry | Sequence[AnyTelemetry], spec: H
                     optimization, info, data.seed)
     require_memory(fit_working_bytes(task.network, spec, n_act, batch_frames),
                    f"fitting from telemetry ({n_act} actuators, {spec.n_taps} taps, batches of {batch_frames} frames)")
-    train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop)
+    targets = {"target": data.target, "target_dm_gain": data.target_dm_gain}
+    train = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, stop=train_stop, **targets)
     val = TelemetryBatches(sequences, spec, dm_response, dm_gain, batch_frames, first=train_stop,
-                           stop=train_stop + val_frames) if val_frames else None
+                           stop=train_stop + val_frames, **targets) if val_frames else None
     if val is None and optimization.fit_method == "closed_form" and optimization.alpha_for(False) == "auto":
         raise ConfigError("optimization.alpha: auto chooses alpha on held-out telemetry: give val_frames > 0 "
                           "(or a fixed optimization.alpha)")

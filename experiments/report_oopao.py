@@ -1,0 +1,201 @@
+"""Section 2d's part in OOPAO's loop: the smaller map (experiments/interop/oopao_map, `bash experiments/interop/run.sh
+oopao_map`) and the anti-aliasing EOF at the issue's conditions (experiments/interop/oopao_aa,
+`bash experiments/interop/run.sh oopao_aa`)."""
+
+from __future__ import annotations
+
+import math
+
+from report_common import fmt, load
+
+OOPAO_POINTS = tuple((wind, mag) for wind in (10, 20) for mag in (8, 10))  # experiments/interop/run.sh oopao_map
+
+
+def _nm(value: float | None) -> str:
+    return "—" if value is None else fmt(value)
+
+
+def _spread(c: dict) -> str:
+    values = c.get("realisations_median_rms_nm") or []
+    return f" ({min(values):.1f}-{max(values):.1f})" if len(values) > 1 else ""
+
+
+def _mean(c: dict) -> float | None:
+    """The mean of a contender's per-realisation medians (the interop study's ``median_rms_nm`` is the first's)."""
+    if c.get("diverged"):
+        return None
+    return c.get("mean_of_realisations_nm", c.get("median_rms_nm"))
+
+
+def oopao_map_text() -> str:
+    """The smaller map in OOPAO's loop: per point the best-gain integrator, the closed-loop EOF fitted from that
+    loop's telemetry alone and the split controller, with the variance gain after the fitting error is removed."""
+    lines = ["| wind (m/s) | I mag | fitting error (nm) | best-gain integrator (nm) | closed-loop EOF (nm) | split (nm) | "
+             "best eofnn / integrator, variance less fitting | replay: EOF / integrator (nm) |",
+             "|---|---|---|---|---|---|---|---|"]
+    gains, eof_loses = [], 0
+    for wind, mag in OOPAO_POINTS:
+        run = ((load(f"interop/oopao_map/v{wind}_m{mag}") or {}).get("runs") or {}).get("shack_hartmann_photon_noise")
+        if not run:
+            continue
+        fit = (run.get("fitting_error") or {}).get("median_rms_nm") or 0.0
+        integ, eof, split = run["integrator"], run["eof"], run.get("split") or {}
+        ours = [m for m in (_mean(eof), _mean(split)) if m is not None]
+        gain = ((_mean(integ) ** 2 - fit ** 2) / max(min(ours) ** 2 - fit ** 2, 1e-30)) if ours else math.nan
+        gains.append(gain)
+        eof_loses += _mean(eof) is None or _mean(eof) > _mean(integ)
+        eof_text = "diverged" if _mean(eof) is None else f"{fmt(_mean(eof))}{_spread(eof)}"
+        split_text = f"{fmt(_mean(split))}{_spread(split)}" if _mean(split) is not None else "—"
+        replay = run.get("replay") or {}
+        lines.append(f"| {wind} | {mag} | {fit:.1f} | {fmt(_mean(integ))}{_spread(integ)} "
+                     f"(gain {integ.get('best_gain')}) | {eof_text} | {split_text} | {gain:.2f}x | "
+                     f"{_nm(replay.get('predictor_median_rms_nm'))} / {_nm(replay.get('integrator_median_rms_nm'))} |")
+    if len(lines) == 2:
+        return "(the OOPAO map, `bash experiments/interop/run.sh oopao_map`, not run)"
+    verdict = ": no win" if max(gains) < 1.1 else ""
+    summary = (f"\n\neofnn's best in OOPAO's loop is {min(gains):.2f}x to {max(gains):.2f}x OOPAO's best-gain integrator "
+               f"in variance after fitting error{verdict}. The closed-loop EOF alone loses to the integrator at "
+               f"{eof_loses} of {len(gains)} points although its replay on held-out telemetry beats the integrator's: "
+               "what replay scores is the measurement, aliasing included, not the loop's residual.")
+    return "\n".join(lines) + summary + _telemetry_bound()
+
+
+def _telemetry_bound() -> str:
+    """A claim this page made, and the run that refutes it: that a predictor fitted on telemetry alone could at most
+    remove the integrator's temporal term (section 6's budget, 20 x 20, 20 m/s, I = 8), its aliasing and noise left."""
+    budget = ((load("interop/oopao_aliasing") or {}).get("budget") or {}).get("controllers", {}).get("integrator")
+    small = load("interop/oopao_aa/small_m8_dir0", "result")
+    if not budget or not small:
+        return ""
+    alias, noise, temporal = budget["aliasing_nm"], budget["noise_nm"], budget["temporal_nm"]
+    bound = (alias ** 2 + noise ** 2 + temporal ** 2) / (alias ** 2 + noise ** 2)
+    measured = small["gains"]["eof_measured"]["variance_after_fitting"]
+    return f"""
+
+**A correction.** This page said that a predictor fitted from telemetry alone could not pass {bound:.2f}x in variance
+after fitting here: telemetry holds only the measurement, so the best it could do was remove the integrator's
+temporal term ({temporal:.0f} nm in section 6's budget at 20 x 20, 20 m/s, I = 8) and leave its aliasing
+({alias:.0f} nm) and noise ({noise:.0f} nm). On the same system the 5 x 5 open-loop EOF fitted on telemetry alone
+gives {measured:.2f}x over that integrator (the table above, 20 x 20, 0°). The argument held the integrator's aliasing
+and noise terms fixed, but those are what the integrator's own gain propagates, and a predictor that does not
+need the integrator's bandwidth to follow the turbulence propagates less of them. It was a bound on a perfect
+predictor of the measurement run at the integrator's noise transfer, not on a predictor."""
+
+
+#: The anti-aliasing study's runs (experiments/interop/run.sh oopao_aa), all at 20 m/s: the issue's two points at
+#: 40 x 40 on 8 m (wind along the actuator rows), the I = 8 point with the wind at 30 degrees, and 20 x 20 on 4 m.
+ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_aa/m10": ("40 x 40, 8 m", 10, 0),
+                  "interop/oopao_aa/m8_dir30": ("40 x 40, 8 m", 8, 30),
+                  "interop/oopao_aa/small_m8_dir0": ("20 x 20, 4 m", 8, 0),
+                  "interop/oopao_aa/small_m8_dir30": ("20 x 20, 4 m", 8, 30)}
+AA_LABELS = {"integrator": "integrator", "lqg": "LQG", "eof_measured": "EOF from telemetry",
+             "eof_antialias": "anti-aliasing EOF"}
+
+
+def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
+    c, best = r["contenders"], r["best_classical"]
+    fit = r["fitting_error_nm"]
+
+    def mean(name: str) -> str:
+        v = c[name]["mean_of_realisations_nm"]
+        return "diverged" if v is None else f"{v:.1f}"
+
+    def contrast(name: str) -> str:
+        v = (c[name]["mean_contrast"] or {}).get("3")
+        return "—" if v is None else f"{v:.2e}"
+
+    g = r["gains_over_best_classical"]
+    tel, aa = g["eof_measured"] or {}, g["eof_antialias"] or {}
+    paired = ", ".join(f"{v:+.1f}" for v in aa.get("paired_difference_nm", []))
+    system, mag, direction = point
+    row = (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
+           f"{r['integrator_scan']['gain']}) | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) | {mean('eof_measured')} | "
+           f"{mean('eof_antialias')} | {AA_LABELS[best]} | {tel.get('variance_after_fitting', math.nan):.2f}x; "
+           f"{aa.get('variance_after_fitting', math.nan):.2f}x | {(tel.get('contrast') or {}).get('3', math.nan):.2f}x; "
+           f"{(aa.get('contrast') or {}).get('3', math.nan):.2f}x | {contrast(best)} / {contrast('eof_antialias')} | "
+           f"{paired} | {r['guard']['deployed']} |")
+    return row, {"tel": tel, "aa": aa}
+
+
+def antialias_results() -> list[tuple[tuple, dict]]:
+    """``(point, result)`` of every anti-aliasing run that was collected, in the order of :data:`ANTIALIAS_RUNS`."""
+    return [(point, r) for name, point in ANTIALIAS_RUNS.items() if (r := load(name, "result"))]
+
+
+def antialias_text() -> str:
+    """The EOFs against the best classical controller built from the same telemetry, in OOPAO's loop at the issue's
+    conditions (20 m/s, I = 8 and 10, 40 x 40) and the checks beside them."""
+    lines = ["| system | I mag | wind direction | fitting error (nm) | integrator (nm) | LQG (nm) | EOF from telemetry (nm) | "
+             "anti-aliasing EOF (nm) | best classical (chosen on the scan) | variance gain after fitting: telemetry "
+             "EOF; anti-aliasing EOF | contrast gain at 3 λ/D: telemetry EOF; anti-aliasing EOF | raw contrast at 3 λ/D: "
+             "best classical / anti-aliasing EOF | best classical minus anti-aliasing EOF, per realisation (nm) | "
+             "guard deployed |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    found, guarded_ok = antialias_results(), []
+    for point, r in found:
+        lines.append(_aa_row(point, r)[0])
+        integ = r["contenders"]["integrator"]["realisations_median_rms_nm"]
+        guarded = r["contenders"]["guarded"]["realisations_median_rms_nm"]
+        guarded_ok.append(None not in guarded and all(a <= b for a, b in zip(guarded, integ, strict=True)))
+    if not found:
+        return "(the anti-aliasing study in OOPAO's loop, `bash experiments/interop/run.sh oopao_aa`, not run)"
+    goal = [(point, _aa_row(point, r)[1]) for point, r in found if point[0].startswith("40") and point[2] == 0]
+
+    def met(key: str, what: str, target: float) -> str:
+        out = []
+        for (_, mag, _), g in goal:
+            v = g[key].get("variance_after_fitting", math.nan) if what == "variance" else \
+                (g[key].get("contrast") or {}).get("3", math.nan)
+            out.append(f"I = {mag}: {v:.2f}x{' (met)' if v >= target else ''}")
+        return ", ".join(out)
+
+    return "\n".join(lines) + f"""
+
+At the issue's points (40 x 40, 20 m/s), against the best classical controller built from the same telemetry: in
+variance after fitting error (goal 1.5x) the EOF fitted on telemetry alone gives {met("tel", "variance", 1.5)}, the
+anti-aliasing EOF {met("aa", "variance", 1.5)}; in raw contrast at 3 λ/D (goal 2x) the EOF from telemetry gives
+{met("tel", "contrast", 2.0)}, the anti-aliasing EOF {met("aa", "contrast", 2.0)}. The guarded EOF is at or below the
+best-gain integrator on every realisation at {sum(guarded_ok)} of {len(guarded_ok)} runs."""
+
+
+def oopao_reading() -> str:
+    """What the anti-aliasing runs say, from their numbers: where the gain comes from and what limits it."""
+    found = antialias_results()
+    if not found:
+        return ""
+    lines = []
+    for (system, mag, direction), r in found:
+        c = r["contenders"]
+        tel, aa = c["eof_measured"]["mean_of_realisations_nm"], c["eof_antialias"]["mean_of_realisations_nm"]
+        lines.append(f"{system}, I = {mag}, {direction}°: {tel:.1f} nm from telemetry, {aa:.1f} nm with the truth "
+                     f"(identified WFS noise {r['identified']['wfs_noise_nm']:.0f} nm per actuator and frame)")
+    loops = []
+    for (system, mag, direction), r in found:
+        k = float(r["integrator_scan"]["gain"]) * r["identified"]["dm_gain"]
+        loops.append(f"{k:.2f} at I = {mag} ({system}, {direction}°), returning {integrator_noise_gain(k):.0%}")
+    return ("**Reading.** The open-loop EOF fitted on telemetry alone already takes most of the gain; training the same "
+            "filter on OOPAO's truth changes the residual by about 1 nm or less: " + "; ".join(lines) + ". So in this "
+            "loop the win is not from seeing through the aliasing but from predicting the turbulence without the "
+            "integrator's noise transfer. At 20 m/s on 0.2 m subapertures the best-gain integrator trades lag against the "
+            "noise it returns, its loop gain (its gain times the identified DM x optical gain) against the stability "
+            "limit of a two-frame delay, 2 sin(π/10) = 0.618: " + "; ".join(loops) + " of the measurement's white noise power (photon noise and "
+            "aliasing alike) to the residual (the sum of the squared impulse response from measurement to command). "
+            "The closed-loop, per-actuator EOF of the map below lost in the "
+            "same loops; which of its differences (closed-loop histories, no neighbourhood, one recording) costs it "
+            "was not separated. The LQG (AR per KL mode of the pseudo-open loop) is behind the integrator in every run. "
+            "*Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames; the anti-aliasing EOF is trained on "
+            "OOPAO's own truth, not in eofnn's simulation (that transfer, eofnn's Shack-Hartmann matched to OOPAO's "
+            "geometry, reconstructor and influence functions, is not built); no PFC in OOPAO's loop (it needs eofnn's "
+            "Fourier grid).")
+
+
+def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
+    """The share of white measurement-noise power an integrator ``y(n) = y(n-1) - k m(n-d)`` of loop gain ``k``
+    returns to the residual: the sum of the squared impulse response of ``-k z^-d / (1 - z^-1 + k z^-d)``."""
+    from scipy.signal import lfilter
+
+    impulse = [1.0] + [0.0] * 20000
+    numerator = [0.0] * delay_frames + [-loop_gain]
+    denominator = [1.0, -1.0] + [0.0] * (delay_frames - 1)
+    denominator[delay_frames] += loop_gain
+    return float(sum(v * v for v in lfilter(numerator, denominator, impulse)))
