@@ -42,6 +42,7 @@ from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_ant
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
 from eofnn.interop.report import aliasing_budget, example_parser, parse_example, split_text, write_results
 from eofnn.interop.study import StudyConfig, run_study
+from eofnn.interop.transfer import eofnn_trained
 from eofnn.outputs import write_text_atomic
 
 
@@ -80,6 +81,12 @@ def main(argv: list[str] | None = None) -> dict:
                         help="degrees from the x axis (0: along a row of actuators)")
     parser.add_argument("--anti-aliasing", action="store_true",
                         help="only the anti-aliasing study (eofnn.interop.antialias), with or without --photon-noise")
+    parser.add_argument("--eofnn-trained", action="store_true",
+                        help="with --anti-aliasing: also the anti-aliasing EOF trained in eofnn's own Shack-Hartmann "
+                             "simulation of this system (eofnn.interop.transfer), on 3 x --frames frames")
+    parser.add_argument("--match-noise", action="store_true",
+                        help="with --eofnn-trained: eofnn's guide star set so that its WFS noise per actuator is the "
+                             "one identified from OOPAO's telemetry")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
@@ -89,6 +96,10 @@ def main(argv: list[str] | None = None) -> dict:
     if args.photon_noise and args.aliasing and not args.anti_aliasing:
         parser.error("--photon-noise runs only the photon-noise study; --aliasing runs it beside the others: "
                      "give one of them")
+    if (args.eofnn_trained or args.match_noise) and not args.anti_aliasing:
+        parser.error("--eofnn-trained and --match-noise add to the anti-aliasing study: give --anti-aliasing too")
+    if args.match_noise and not args.eofnn_trained:
+        parser.error("--match-noise sets the noise of the eofnn-trained predictor: give --eofnn-trained too")
     if args.anti_aliasing and args.aliasing:
         parser.error("--anti-aliasing runs only the anti-aliasing study; --aliasing runs the decomposition: give "
                      "one of them")
@@ -125,7 +136,9 @@ def antialias(args, argv: list[str]) -> dict:
     config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
                              warmup_frames=f // 20, scored_realisations=args.realisations)
     started = time.time()
-    metrics = run_antialias(sim, config)
+    external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=args.match_noise)} \
+        if args.eofnn_trained else None
+    metrics = run_antialias(sim, config, external)
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])
     text = antialias_markdown(metrics)

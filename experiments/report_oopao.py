@@ -89,7 +89,7 @@ ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_
                   "interop/oopao_aa/small_m8_dir0": ("20 x 20, 4 m", 8, 0),
                   "interop/oopao_aa/small_m8_dir30": ("20 x 20, 4 m", 8, 30)}
 AA_LABELS = {"integrator": "integrator", "lqg": "LQG", "eof_measured": "EOF from telemetry",
-             "eof_antialias": "anti-aliasing EOF"}
+             "eof_antialias": "anti-aliasing EOF", "eof_eofnn": "anti-aliasing EOF trained in eofnn"}
 
 
 def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
@@ -163,30 +163,29 @@ def oopao_reading() -> str:
     found = antialias_results()
     if not found:
         return ""
-    lines = []
+    lines, gaps, loops, lqg = [], [], [], []
     for (system, mag, direction), r in found:
         c = r["contenders"]
         tel, aa = c["eof_measured"]["mean_of_realisations_nm"], c["eof_antialias"]["mean_of_realisations_nm"]
+        gaps.append(tel - aa)
+        lqg.append(c["lqg"]["mean_of_realisations_nm"] - c["integrator"]["mean_of_realisations_nm"])
         lines.append(f"{system}, I = {mag}, {direction}°: {tel:.1f} nm from telemetry, {aa:.1f} nm with the truth "
                      f"(identified WFS noise {r['identified']['wfs_noise_nm']:.0f} nm per actuator and frame)")
-    loops = []
-    for (system, mag, direction), r in found:
         k = float(r["integrator_scan"]["gain"]) * r["identified"]["dm_gain"]
         loops.append(f"{k:.2f} at I = {mag} ({system}, {direction}°), returning {integrator_noise_gain(k):.0%}")
-    return ("**Reading.** The open-loop EOF fitted on telemetry alone already takes most of the gain; training the same "
-            "filter on OOPAO's truth changes the residual by about 1 nm or less: " + "; ".join(lines) + ". So in this "
-            "loop the win is not from seeing through the aliasing but from predicting the turbulence without the "
-            "integrator's noise transfer. At 20 m/s on 0.2 m subapertures the best-gain integrator trades lag against the "
-            "noise it returns, its loop gain (its gain times the identified DM x optical gain) against the stability "
-            "limit of a two-frame delay, 2 sin(π/10) = 0.618: " + "; ".join(loops) + " of the measurement's white noise power (photon noise and "
-            "aliasing alike) to the residual (the sum of the squared impulse response from measurement to command). "
-            "The closed-loop, per-actuator EOF of the map below lost in the "
-            "same loops; which of its differences (closed-loop histories, no neighbourhood, one recording) costs it "
-            "was not separated. The LQG (AR per KL mode of the pseudo-open loop) is behind the integrator in every run. "
-            "*Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames; the anti-aliasing EOF is trained on "
-            "OOPAO's own truth, not in eofnn's simulation (that transfer, eofnn's Shack-Hartmann matched to OOPAO's "
-            "geometry, reconstructor and influence functions, is not built); no PFC in OOPAO's loop (it needs eofnn's "
-            "Fourier grid).")
+    return (f"**Reading.** Most of the gain is already the open-loop EOF's fitted on telemetry alone; training the same "
+            f"filter on OOPAO's truth lowers the residual by a further {min(gaps):.1f} to {max(gaps):.1f} nm: "
+            + "; ".join(lines) + ". The telemetry EOF wins by predicting the turbulence without the integrator's "
+            "noise transfer. At 20 m/s on 0.2 m subapertures the best-gain integrator trades lag against the noise it "
+            "returns, its loop gain (its gain times the identified DM x optical gain) against the stability limit of "
+            "a two-frame delay, 2 sin(π/10) = 0.618: " + "; ".join(loops) + " of the measurement's white noise power "
+            "(photon noise and aliasing alike) to the residual (the sum of the squared impulse response from "
+            "measurement to command). The closed-loop, per-actuator EOF of the map below lost in the same loops; "
+            "which of its differences (closed-loop histories, no neighbourhood, one recording) costs it was not "
+            f"separated. The LQG (AR per KL mode of the pseudo-open loop) is {min(lqg):+.1f} to {max(lqg):+.1f} nm from "
+            "the integrator. *Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames; no PFC in OOPAO's "
+            "loop (it needs eofnn's Fourier grid); the error budget of each contender in OOPAO's loop (aliasing, "
+            "noise, temporal) was not run.")
 
 
 def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
@@ -199,3 +198,33 @@ def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
     denominator = [1.0, -1.0] + [0.0] * (delay_frames - 1)
     denominator[delay_frames] += loop_gain
     return float(sum(v * v for v in lfilter(numerator, denominator, impulse)))
+
+
+def transfer_text() -> str:
+    """The anti-aliasing EOF trained in eofnn's own simulation of OOPAO's system, in OOPAO's loop."""
+    rows = []
+    for (system, mag, direction), r in antialias_results():
+        own = r["contenders"].get("eof_eofnn")
+        if not own:
+            continue
+        best = r["best_classical"]
+        gain = r["gains_over_best_classical"].get("eof_eofnn") or {}
+        fit = r["fits"]["eof_eofnn"]
+        mean = own["mean_of_realisations_nm"]
+        rows.append(
+            f"{system}, I = {mag}, {direction}°: {'diverged' if mean is None else f'{mean:.1f} nm'} against the "
+            f"{AA_LABELS[best]}'s {r['contenders'][best]['mean_of_realisations_nm']:.1f} and "
+            f"{r['contenders']['eof_antialias']['mean_of_realisations_nm']:.1f} for the same filter trained on OOPAO's "
+            f"truth ({gain.get('variance_after_fitting', math.nan):.2f}x in variance after fitting, "
+            f"{(gain.get('contrast') or {}).get('3', math.nan):.2f}x in contrast at 3 λ/D; {fit['matched']} actuators "
+            f"matched, {fit['held']} holding; the loop said: " + (" / ".join(own.get("shift") or ["nothing"])) + ")")
+    if not rows:
+        return ""
+    return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`: the same 5 x 5 "
+            "anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system, 6000 frames, its wind turned to "
+            "move over the actuators as OOPAO's does, its coefficients moved onto OOPAO's actuators by position and "
+            "its commands scaled by the gain identified from OOPAO's telemetry): " + "; ".join(rows) + ". The "
+            "transfer loses most of what the filter trained on OOPAO's own truth gains: the two simulators' sensors "
+            "differ (OOPAO's diffractive four-pixel centroid and its reconstructor against eofnn's linear model and "
+            "its own), and which difference costs it was not separated. Matching eofnn's noise to the telemetry's "
+            "did not help at 10 x 10 (the closing note of issue 30).")

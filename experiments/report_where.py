@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 
 from report_common import NAMES, fmt, load, variance_less_fitting
-from report_oopao import oopao_reading, antialias_text, oopao_map_text
+from report_oopao import antialias_text, oopao_map_text, oopao_reading, transfer_text
 
 CLASSICAL = ("integrator", "lqg", "pfc")
 PREDICTORS = ("ol_eof", "ol_eof_nb", "ol_eof_aa", "ol_eof_aa_guarded")
@@ -171,6 +171,8 @@ raw contrast behind a perfect coronagraph at 1.65 µm from OOPAO's residual OPD 
 {antialias_text()}
 
 {oopao_reading()}
+
+{transfer_text()}
 
 **The smaller map in OOPAO's loop** (`bash experiments/interop/run.sh oopao_map`: section 6's chain at 20 x 20 on
 4 m, one layer at 10 or 20 m/s, photon noise from an I = 8 or 10 guide star, a DM applying 2x the command; the

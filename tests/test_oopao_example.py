@@ -17,6 +17,8 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
     (["--photon-noise", "--aliasing"], ("--photon-noise", "--aliasing", "give one of them")),
     (["--anti-aliasing", "--aliasing"], ("--anti-aliasing", "--aliasing", "give one of them")),
     (["--small", "--frames", "500"], ("settle_frames=300 is invalid",)),
+    (["--small", "--eofnn-trained"], ("--eofnn-trained", "give --anti-aliasing too")),
+    (["--small", "--anti-aliasing", "--match-noise"], ("--match-noise", "give --eofnn-trained too")),
 ])
 def test_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):
     spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)

@@ -57,6 +57,7 @@ from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value,
 #: What the adapter must offer beyond a SimulatorAdapter.
 NEEDED = ("turbulence_fit_nm", "residual_opd_nm", "pupil_mask", "dm_gain", "settings")
 CONTENDERS = ("integrator", "lqg", "eof_measured", "eof_antialias")
+CLASSICAL = ("integrator", "lqg")
 
 
 @dataclass
@@ -151,9 +152,11 @@ def record_with_truth(sim, config: AntiAliasConfig) -> list:
     return sequences
 
 
-def run_antialias(sim, config: AntiAliasConfig | None = None) -> dict:
+def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | None = None) -> dict:
     """Record with truth, fit the two EOFs, tune the integrator, guard, and score every contender in ``sim``'s loop
-    (module docstring); returns the JSON of ``metrics.json``."""
+    (module docstring); returns the JSON of ``metrics.json``. ``external``: more predictors trained elsewhere, by
+    name, each ``build(sim, plant) -> (PredictiveFilter, info)`` given the plant identified from the recording
+    (:mod:`eofnn.interop.transfer`: one trained in eofnn's own simulation), scored beside the others."""
     from eofnn.interop.oopao import fitting_error
 
     c = config or AntiAliasConfig()
@@ -175,6 +178,10 @@ def run_antialias(sim, config: AntiAliasConfig | None = None) -> dict:
         fitted = fit_from_telemetry(telemetry, spec, network, plant=plant, data=data, optimization=optimization)
         filters[name] = runtime_filter(fitted.network, spec, plant.dm_gain)
         fits[name] = {"alpha": fitted.info.get("alpha"), "target": target}
+    conditions = {}
+    for name, build in (external or {}).items():
+        filters[name], fits[name] = build(sim, plant)
+        conditions[name] = fits[name].pop("conditions", None)  # what it was trained in: the loop warns on a shift
     scan_seed = c.seed + 3
     scan = scan_integrator(sim, c.gains, c.loop_frames, scan_seed, c.settle_frames)
     lqg = scan_lqg(sim, telemetry, plant.dm_gain, c, scan_seed)
@@ -184,13 +191,13 @@ def run_antialias(sim, config: AntiAliasConfig | None = None) -> dict:
             return IntegratorControl(scan["gain"])
         if name == "lqg":
             return TorchControl(lqg["controller"], sim.delay_frames)
-        return FilterControl(filters[name], scan["gain"], c.warmup_frames)
+        return FilterControl(filters[name], scan["gain"], c.warmup_frames, conditions=conditions.get(name))
 
     guard = run_closed_loop(sim, control("eof_antialias"), c.loop_frames, scan_seed).metrics(c.settle_frames)
     deployed = "eof_antialias" if guard.median_rms_nm is not None and guard.median_rms_nm < scan["median_rms_nm"] \
         else "integrator"
     scored = [c.seed + 2, *(c.seed + 20 + i for i in range(c.scored_realisations - 1))]
-    results = {name: score(sim, control, name, scored, c) for name in CONTENDERS}
+    results = {name: score(sim, control, name, scored, c) for name in (*CONTENDERS, *(external or {}))}
     results["guarded"] = {**results[deployed], "deployed": deployed}
     fitting = [fitting_error(sim, c.loop_frames, seed, start=c.settle_frames)["median_rms_nm"] for seed in scored]
     # The best classical controller is chosen on the scan realisation, as each was tuned: not on the scored ones.
@@ -226,14 +233,15 @@ def scan_lqg(sim, telemetry: list, dm_gain: float, c: AntiAliasConfig, seed: int
 
 def score(sim, control, name: str, seeds: list[int], c: AntiAliasConfig) -> dict:
     """One contender on every scored realisation: median RMS (None if it diverged) and raw contrast."""
-    medians, contrasts = [], []
+    medians, contrasts, shift = [], [], []
     for seed in seeds:
         observer = PupilContrast(sim, c.wavelength_m, c.settle_frames, c.contrast_every)
         record = run_closed_loop(sim, control(name), c.loop_frames, seed, observers=[observer])
+        shift = shift or record.shift
         medians.append(record.metrics(c.settle_frames).median_rms_nm)
         contrasts.append(observer.contrast.at(c.separations_lod) if record.diverged_frame is None else None)
     finite = None not in medians
-    return {"realisations_median_rms_nm": medians,
+    return {"realisations_median_rms_nm": medians, "shift": shift,
             "mean_of_realisations_nm": float(np.mean(medians)) if finite else None,
             "realisations_contrast": contrasts,
             "mean_contrast": {s: None if contrasts[0][s] is None else float(np.mean([cs[s] for cs in contrasts]))
@@ -246,7 +254,7 @@ def gains(results: dict, fitting: list[float], separations: tuple[float, ...], a
     paired RMS differences."""
     base = results[against]
     out = {}
-    for name in ("eof_measured", "eof_antialias", "guarded"):
+    for name in (n for n in results if n not in CLASSICAL):
         mine = results[name]
         if mine["mean_of_realisations_nm"] is None or base["mean_of_realisations_nm"] is None:  # one diverged
             out[name] = None

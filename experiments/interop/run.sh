@@ -43,10 +43,10 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     done
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --wind-direction 30 \
         --out experiments/runs/interop/oopao_aa/m8_dir30
-    for direction in 0 30; do
-        aa --n-subapertures 20 --diameter 4 --magnitude 8 --wind-direction $direction \
-            --out experiments/runs/interop/oopao_aa/small_m8_dir${direction}
-    done
+    # At 0 degrees (the direction mapped onto eofnn's) also the anti-aliasing EOF trained in eofnn's own simulation.
+    aa --n-subapertures 20 --diameter 4 --magnitude 8 --eofnn-trained --out experiments/runs/interop/oopao_aa/small_m8_dir0
+    aa --n-subapertures 20 --diameter 4 --magnitude 8 --wind-direction 30 \
+        --out experiments/runs/interop/oopao_aa/small_m8_dir30
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
