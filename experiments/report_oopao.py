@@ -223,8 +223,9 @@ def transfer_text() -> str:
     return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`: the same 5 x 5 "
             "anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system, 6000 frames, its wind turned to "
             "move over the actuators as OOPAO's does, its coefficients moved onto OOPAO's actuators by position and "
-            "its commands scaled by the gain identified from OOPAO's telemetry): " + "; ".join(rows) + ". The "
-            "transfer loses most of what the filter trained on OOPAO's own truth gains: the two simulators' sensors "
-            "differ (OOPAO's diffractive four-pixel centroid and its reconstructor against eofnn's linear model and "
-            "its own), and which difference costs it was not separated. Matching eofnn's noise to the telemetry's "
-            "did not help at 10 x 10 (the closing note of issue 30).")
+            "its commands scaled by the gain identified from OOPAO's telemetry): " + "; ".join(rows) + ". Carried "
+            "over, the filter keeps part of the gain of the same filter trained on OOPAO's own truth. The two "
+            "simulators' sensors differ (OOPAO's diffractive four-pixel centroid, its optical gain and its "
+            "reconstructor against eofnn's linear model and its own; eofnn's rim subapertures see the whole phase), "
+            "and an open-loop filter commands the whole turbulence, so a few percent of response error on a mode "
+            "leaves a few percent of that mode's turbulence; which difference costs it was not separated.")

@@ -129,7 +129,10 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
         runtime, moved = transfer_filter(fitted.network, fitted.spec, scenario.grid.positions_m, sim.positions_m,
                                          plant.dm_gain)
         detector = scenario.sensor.detector
+        # Carried over, it commands through the identified gain: that is the DM gain it now believes.
+        conditions = {**(fitted.info.get("conditions") or {}), "dm_gain": float(plant.dm_gain),
+                      "source": "eofnn's simulation of the system, carried with the identified gain"}
         return runtime, {"alpha": fitted.info.get("alpha"), "target": "dm_fit in eofnn's simulation",
                          "trained_magnitude": None if detector is None else detector.magnitude,
-                         "val_loss": fitted.val_loss, **moved, "conditions": fitted.info.get("conditions")}
+                         "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build
