@@ -16,8 +16,8 @@ from eofnn.errors import ConfigError, TelemetryError
 from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_antialias
 from eofnn.telemetry.record import Telemetry
 
-CONFIG = AntiAliasConfig(train_sequences=2, train_frames=800, val_frames=160, loop_frames=500, settle_frames=80,
-                         warmup_frames=40, gains=(0.2, 0.25, 0.3, 0.35), scored_realisations=2)
+CONFIG = AntiAliasConfig(train_sequences=2, train_frames=700, val_frames=140, loop_frames=400, settle_frames=70,
+                         warmup_frames=35, gains=(0.25, 0.3, 0.35), scored_realisations=2)
 
 
 def _telemetry(with_s: bool) -> Telemetry:
