@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--match-noise", action="store_true",
                         help="with --eofnn-trained: eofnn's guide star set so that its WFS noise per actuator is the "
                              "one identified from OOPAO's telemetry")
+    parser.add_argument("--radius", type=float, default=2.5,
+                        help="with --anti-aliasing: the EOFs' neighbourhood in pitches (2.5: 5 x 5; 0.5: each "
+                             "actuator's own history alone)")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
@@ -134,7 +137,7 @@ def antialias(args, argv: list[str]) -> dict:
                     rcond=args.rcond)
     f = args.frames
     config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
-                             warmup_frames=f // 20, scored_realisations=args.realisations)
+                             warmup_frames=f // 20, scored_realisations=args.realisations, radius=args.radius)
     started = time.time()
     external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=args.match_noise)} \
         if args.eofnn_trained else None

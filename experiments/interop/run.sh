@@ -47,6 +47,8 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     aa --n-subapertures 20 --diameter 4 --magnitude 8 --eofnn-trained --out experiments/runs/interop/oopao_aa/small_m8_dir0
     aa --n-subapertures 20 --diameter 4 --magnitude 8 --wind-direction 30 \
         --out experiments/runs/interop/oopao_aa/small_m8_dir30
+    # The same open-loop EOFs on each actuator's own history alone (no neighbourhood).
+    aa --n-subapertures 20 --diameter 4 --magnitude 8 --radius 0.5 --out experiments/runs/interop/oopao_aa/small_m8_dir0_own
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
