@@ -42,7 +42,7 @@ from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_ant
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
 from eofnn.interop.report import aliasing_budget, example_parser, parse_example, split_text, write_results
 from eofnn.interop.study import StudyConfig, run_study
-from eofnn.interop.transfer import eofnn_trained
+from eofnn.interop.transfer import eofnn_direction, eofnn_trained
 from eofnn.outputs import write_text_atomic
 
 
@@ -132,12 +132,14 @@ def main(argv: list[str] | None = None) -> dict:
 
 def antialias(args, argv: list[str]) -> dict:
     """The anti-aliasing study at one point (``--frames`` per training sequence, 3 sequences)."""
-    sim = OopaoLoop(args.n_subapertures, args.diameter, photon_noise=args.photon_noise, magnitude=args.magnitude,
-                    dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
-                    rcond=args.rcond)
     f = args.frames
     config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
                              warmup_frames=f // 20, scored_realisations=args.realisations, radius=args.radius)
+    if args.eofnn_trained:
+        eofnn_direction(args.wind_direction)  # an unmapped wind is refused before anything is simulated
+    sim = OopaoLoop(args.n_subapertures, args.diameter, photon_noise=args.photon_noise, magnitude=args.magnitude,
+                    dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
+                    rcond=args.rcond)
     started = time.time()
     external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=args.match_noise)} \
         if args.eofnn_trained else None

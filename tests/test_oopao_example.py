@@ -19,6 +19,8 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
     (["--small", "--frames", "500"], ("settle_frames=300 is invalid",)),
     (["--small", "--eofnn-trained"], ("--eofnn-trained", "give --anti-aliasing too")),
     (["--small", "--anti-aliasing", "--match-noise"], ("--match-noise", "give --eofnn-trained too")),
+    (["--small", "--anti-aliasing", "--radius", "0.1"], ("radius=0.1 is invalid",)),
+    (["--small", "--anti-aliasing", "--eofnn-trained", "--wind-direction", "30"], ("30.0 deg is not mapped",)),
 ])
 def test_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):
     spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)
