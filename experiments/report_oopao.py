@@ -231,7 +231,9 @@ def transfer_text() -> str:
             "simulators' sensors differ (OOPAO's diffractive four-pixel centroid, its optical gain and its "
             "reconstructor against eofnn's linear model and its own; eofnn's rim subapertures see the whole phase), "
             "and an open-loop filter commands the whole turbulence, so a few percent of response error on a mode "
-            "leaves a few percent of that mode's turbulence; which difference costs it was not separated.")
+            "leaves a few percent of that mode's turbulence (`experiments/interop/transfer_diagnostic.py` prints the "
+            "two filters' responses to static patterns); which difference of the sensors causes it was not "
+            "separated.")
 
 
 def _own_history() -> str:

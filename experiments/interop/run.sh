@@ -49,6 +49,8 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
         --out experiments/runs/interop/oopao_aa/small_m8_dir30
     # The same open-loop EOFs on each actuator's own history alone (no neighbourhood).
     aa --n-subapertures 20 --diameter 4 --magnitude 8 --radius 0.5 --out experiments/runs/interop/oopao_aa/small_m8_dir0_own
+    # The eofnn-trained and the OOPAO-truth-trained filters side by side: their responses to static POL patterns.
+    $PY experiments/interop/transfer_diagnostic.py
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
