@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--match-noise", action="store_true",
                         help="with --eofnn-trained: eofnn's guide star set so that its WFS noise per actuator is the "
                              "one identified from OOPAO's telemetry")
+    parser.add_argument("--static-gain", action="store_true",
+                        help="with --eofnn-trained: each actuator's carried filter scaled to cancel a constant POL "
+                             "value exactly")
     parser.add_argument("--radius", type=float, default=2.5,
                         help="with --anti-aliasing: the EOFs' neighbourhood in pitches (2.5: 5 x 5; 0.5: each "
                              "actuator's own history alone)")
@@ -101,8 +104,8 @@ def main(argv: list[str] | None = None) -> dict:
                      "give one of them")
     if (args.eofnn_trained or args.match_noise) and not args.anti_aliasing:
         parser.error("--eofnn-trained and --match-noise add to the anti-aliasing study: give --anti-aliasing too")
-    if args.match_noise and not args.eofnn_trained:
-        parser.error("--match-noise sets the noise of the eofnn-trained predictor: give --eofnn-trained too")
+    if (args.match_noise or args.static_gain) and not args.eofnn_trained:
+        parser.error("--match-noise and --static-gain set the eofnn-trained predictor: give --eofnn-trained too")
     if args.anti_aliasing and args.aliasing:
         parser.error("--anti-aliasing runs only the anti-aliasing study; --aliasing runs the decomposition: give "
                      "one of them")
@@ -141,8 +144,8 @@ def antialias(args, argv: list[str]) -> dict:
                     dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
                     rcond=args.rcond)
     started = time.time()
-    external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=args.match_noise)} \
-        if args.eofnn_trained else None
+    external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=args.match_noise,
+                                           static_gain=args.static_gain)} if args.eofnn_trained else None
     metrics = run_antialias(sim, config, external)
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])

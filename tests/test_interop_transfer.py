@@ -80,3 +80,13 @@ def test_eofnns_mapped_wind_moves_the_turbulence_over_the_actuators_as_oopaos():
         return max(((1, 0), (-1, 0), (0, 1), (0, -1)), key=lambda d: corr(*d))
 
     assert best_shift(oopao, sim.positions_m) == best_shift(eofnn, np.asarray(scenario.grid.positions_m)) == (0, -1)
+
+
+def test_static_gain_scales_the_carried_filter_to_cancel_a_constant_pol_value():
+    network, ours = _network()
+    runtime, _ = transfer_filter(network, HistorySpec("open_loop", 2, 2), ours, ours, 2.0, static_gain=True)
+    assert np.median(runtime.coefficients.sum(axis=(1, 2))) == pytest.approx(-0.5)
+    plain, _ = transfer_filter(network, HistorySpec("open_loop", 2, 2), ours, ours, 2.0)
+    assert np.median(plain.coefficients.sum(axis=(1, 2))) != pytest.approx(-0.5)
+    ratio = runtime.coefficients / plain.coefficients  # one scale for the whole filter: its shape is kept
+    assert np.allclose(ratio, ratio.flat[0])

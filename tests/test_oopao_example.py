@@ -19,6 +19,7 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
     (["--small", "--frames", "500"], ("settle_frames=300 is invalid",)),
     (["--small", "--eofnn-trained"], ("--eofnn-trained", "give --anti-aliasing too")),
     (["--small", "--anti-aliasing", "--match-noise"], ("--match-noise", "give --eofnn-trained too")),
+    (["--small", "--anti-aliasing", "--static-gain"], ("--static-gain", "give --eofnn-trained too")),
     (["--small", "--anti-aliasing", "--radius", "0.1"], ("radius=0.1 is invalid",)),
     (["--small", "--anti-aliasing", "--eofnn-trained", "--wind-direction", "30"], ("30.0 deg is not mapped",)),
 ])

@@ -90,10 +90,12 @@ def train_in_eofnn(sim, *, frames: int = 6000, val_frames: int = 1200, history_l
 
 
 def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m, dm_gain: float,
-                    tolerance_m: float = 1e-6) -> tuple[PredictiveFilter, dict]:
+                    tolerance_m: float = 1e-6, static_gain: bool = False) -> tuple[PredictiveFilter, dict]:
     """eofnn's open-loop neighbourhood filter on another simulator's actuators (module docstring, step 2):
     ``(runtime filter, {"matched", "held"})``, the actuators matched by position within ``tolerance_m`` and those
-    that hold their last POL value."""
+    that hold their last POL value. ``static_gain``: the coefficients are scaled by one number so that the median
+    actuator cancels a constant POL value exactly (its sum is ``-1 / dm_gain``), as a predictor of frozen flow must
+    (scaled per actuator, the filters at the rim, whose sums are small, made the loop diverge)."""
     from scipy.spatial import cKDTree
 
     if spec.kind != "open_loop" or getattr(network, "structure", None) != "neighbourhood":
@@ -108,6 +110,8 @@ def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m,
     k, m, taps = len(theirs), neighbours.shape[1], coefficients.shape[-1]
     moved = np.zeros((k, m, taps))
     slots = np.full((k, m), -1, dtype=np.int64)
+    if static_gain:  # one scale for the whole filter (per actuator, a rim filter's small sum would blow it up)
+        coefficients = -coefficients / float(np.median(coefficients.sum(axis=(1, 2))))
     moved[index] = coefficients / dm_gain
     slots[index] = np.where(neighbours >= 0, index[np.clip(neighbours, 0, None)], -1)
     held = np.setdiff1d(np.arange(k), index)
@@ -117,17 +121,18 @@ def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m,
     return runtime, {"matched": int(len(index)), "held": int(len(held))}
 
 
-def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, match_noise: bool = False):
+def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, match_noise: bool = False,
+                  static_gain: bool = False):
     """An ``external`` predictor of :func:`eofnn.interop.antialias.run_antialias`: trained in eofnn's simulation of
     the loop's system (:func:`train_in_eofnn`), carried onto its actuators with the gain identified from its
     recording (:func:`transfer_filter`); ``match_noise``: the simulation's guide star set so that its noise is the
-    one identified from that recording. Its info keeps the conditions it was trained in, so that the loop warns in
-    one line where its own differ (:mod:`eofnn.interop.shift`)."""
+    one identified from that recording; ``static_gain``: see :func:`transfer_filter`. Its info keeps the conditions
+    it was trained in, so that the loop warns in one line where its own differ (:mod:`eofnn.interop.shift`)."""
     def build(sim, plant) -> tuple[PredictiveFilter, dict]:
         fitted, scenario = train_in_eofnn(sim, frames=frames, val_frames=val_frames, seed=seed,
                                           noise_nm=plant.wfs_noise_nm if match_noise else None)
         runtime, moved = transfer_filter(fitted.network, fitted.spec, scenario.grid.positions_m, sim.positions_m,
-                                         plant.dm_gain)
+                                         plant.dm_gain, static_gain=static_gain)
         detector = scenario.sensor.detector
         # Carried over, it commands through the identified gain: that is the DM gain it now believes.
         conditions = {**(fitted.info.get("conditions") or {}), "dm_gain": float(plant.dm_gain),
