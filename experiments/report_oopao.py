@@ -178,8 +178,8 @@ def oopao_reading() -> str:
         loops.append(f"{k:.2f} at I = {mag} ({system}, {direction}°), returning {integrator_noise_gain(k):.0%}")
     return (f"**Reading.** Most of the gain is already the open-loop EOF's fitted on telemetry alone; training the same "
             f"filter on OOPAO's truth lowers the residual by a further {min(gaps):.1f} to {max(gaps):.1f} nm: "
-            + "; ".join(lines) + ". The telemetry EOF wins by predicting the turbulence without the integrator's "
-            "noise transfer. At 20 m/s on 0.2 m subapertures the best-gain integrator trades lag against the noise it "
+            + "; ".join(lines) + ". Our reading, not a measured budget: the telemetry EOF wins by predicting the "
+            "turbulence without the integrator's noise transfer. At 20 m/s on 0.2 m subapertures the best-gain integrator trades lag against the noise it "
             "returns, its loop gain (its gain times the identified DM x optical gain) against the stability limit of "
             "a two-frame delay, 2 sin(π/10) = 0.618: " + "; ".join(loops) + " of the measurement's white noise power "
             "(photon noise and aliasing alike) to the residual (the sum of the squared impulse response from "
