@@ -183,8 +183,9 @@ def oopao_reading() -> str:
             "integrator trades lag against the noise it returns, its loop gain (its gain times the identified DM x "
             "optical gain) against the stability limit of a two-frame delay, 2 sin(π/10) = 0.618: "
             + "; ".join(loops) + " of the measurement's white noise power (photon noise and aliasing alike) to "
-            "the residual (the sum of the squared impulse response from measurement to command). The closed-loop, per-actuator EOF of the map below lost in the same loops"
-            + _own_history() + ". The LQG (AR per KL mode of the pseudo-open loop) is "
+            "the residual (the sum of the squared impulse response from measurement to command). The closed-loop, "
+            "per-actuator EOF of the map below lost in the same loops" + _own_history()
+            + ". The LQG (AR per KL mode of the pseudo-open loop) is "
             f"{min(lqg):+.1f} to {max(lqg):+.1f} nm from the integrator. *Limits*: one frozen-flow layer; 3 scored "
             "realisations of 1000 frames; no PFC in OOPAO's "
             "loop (it needs eofnn's Fourier grid); the error budget of each contender in OOPAO's loop (aliasing, "
