@@ -132,15 +132,17 @@ def antialias_text() -> str:
              "best classical / anti-aliasing EOF | best classical minus anti-aliasing EOF, per realisation (nm) | "
              "guard deployed |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    found, guarded_ok = antialias_results(), []
+    found, guarded_ok, goal = antialias_results(), [], []
     for point, r in found:
-        lines.append(_aa_row(point, r)[0])
+        row, point_gains = _aa_row(point, r)
+        lines.append(row)
+        if point[0].startswith("40") and point[2] == 0:  # the points
+            goal.append((point, point_gains))
         integ = r["contenders"]["integrator"]["realisations_median_rms_nm"]
         guarded = r["contenders"]["guarded"]["realisations_median_rms_nm"]
         guarded_ok.append(None not in guarded and all(a <= b for a, b in zip(guarded, integ, strict=True)))
     if not found:
         return "(the anti-aliasing study in OOPAO's loop, `bash experiments/interop/run.sh oopao_aa`, not run)"
-    goal = [(point, _aa_row(point, r)[1]) for point, r in found if point[0].startswith("40") and point[2] == 0]
 
     def met(key: str, what: str, target: float) -> str:
         out = []

@@ -110,3 +110,17 @@ def test_the_results_table_names_every_contender(study):
     for name in ("integrator", "lqg", "eof_measured", "eof_antialias", "guarded"):
         assert f"| {name} |" in text
     assert "raw contrast at 3 λ/D" in text and "variance gain after fitting" in text
+
+
+def test_a_diverged_recording_is_one_line_naming_the_gain_frame_and_simulator():
+    from types import SimpleNamespace
+
+    from eofnn.interop.loop import LoopRecord, require_recorded
+
+    empty = np.zeros((0, 3))
+    record = LoopRecord(empty, empty, np.zeros(0), np.zeros((3, 2)), 2, 1000.0, diverged_frame=17)
+    with pytest.raises(ConfigError, match=r"^the recording integrator \(gain 0.4\) diverged at frame 17 in oopao's "
+                                          r"loop: lower record_gain or dither_nm$"):
+        require_recorded(record, 0.4, SimpleNamespace(name="oopao"))
+    held = LoopRecord(empty, empty, np.zeros(0), np.zeros((3, 2)), 2, 1000.0)
+    assert require_recorded(held, 0.4, SimpleNamespace(name="oopao")) is held

@@ -36,13 +36,14 @@ import numpy as np
 import torch
 
 from eofnn.control.modal import lqg_from_pol
-from eofnn.data.history import HistorySpec
+from eofnn.data.history import HistorySpec, pseudo_open_loop
 from eofnn.errors import ConfigError
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.interop.loop import (
     FilterControl,
     IntegratorControl,
     TorchControl,
+    require_recorded,
     run_closed_loop,
     runtime_filter,
     scan_integrator,
@@ -142,11 +143,9 @@ def record_with_truth(sim, config: AntiAliasConfig) -> list:
         def observe(n: int, simulator, truth=truth) -> None:
             truth.append(np.asarray(simulator.turbulence_fit_nm()))
 
-        record = run_closed_loop(sim, IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 140 + i),
-                                 c.train_frames, c.seed + 40 + i, observers=[observe])
-        if record.diverged_frame is not None:
-            raise ConfigError(f"the recording integrator (gain {c.record_gain}) diverged at frame "
-                              f"{record.diverged_frame} in {sim.name}'s loop: lower record_gain or dither_nm")
+        record = require_recorded(run_closed_loop(
+            sim, IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 140 + i), c.train_frames,
+            c.seed + 40 + i, observers=[observe]), c.record_gain, sim)
         sequences.append(replace(record.telemetry(start=c.settle_frames),
                                  s=torch.from_numpy(np.stack(truth[c.settle_frames:]))))
     return sequences
@@ -217,9 +216,9 @@ def scan_lqg(sim, telemetry: list, dm_gain: float, c: AntiAliasConfig, seed: int
     """The LQG (:func:`eofnn.control.modal.lqg_from_pol`: AR model per KL mode, stationary Kalman filter) built
     from the recorded telemetry's POL values (the identified DM gain), its AR order (1 or 2) chosen in the loop on
     the scan realisation ``seed``: ``{"controller", "ar_order", "median_rms_nm", "scan"}``."""
-    pol = torch.stack([seq.wfs - dm_gain * seq.y for seq in telemetry])
+    pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, dm_gain) for seq in telemetry])
     layout = layout_from_positions(sim.positions_m)
-    indices = getattr(layout, "lattice_indices", None) if isinstance(layout, ActuatorLayout) else layout.indices
+    indices = layout.lattice_indices if isinstance(layout, ActuatorLayout) else layout.indices
     built, scan = {}, {}
     for order in (1, 2):
         built[order] = lqg_from_pol(pol, sim.delay_frames, dm_gain, order,

@@ -330,6 +330,14 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
     return record
 
 
+def require_recorded(record: LoopRecord, gain: float, sim: SimulatorAdapter) -> LoopRecord:
+    """``record`` of a dithered integrator recording telemetry, or one :class:`ConfigError` line if it diverged."""
+    if record.diverged_frame is not None:
+        raise ConfigError(f"the recording integrator (gain {gain}) diverged at frame {record.diverged_frame} "
+                          f"in {sim.name}'s loop: lower record_gain or dither_nm")
+    return record
+
+
 #: Gains a scan adds past the top of its grid while the best gain is still the highest one tried.
 MAX_EXTRA_GAINS = 6
 

@@ -37,6 +37,7 @@ from eofnn.interop.loop import (
     SplitControl,
     TorchControl,
     pol_modes,
+    require_recorded,
     run_closed_loop,
     runtime_filter,
     scan_integrator,
@@ -137,10 +138,7 @@ def run_study(sim, config: StudyConfig | None = None, *, dm_gain_true: float | N
     candidates = split_candidates(c.integrated_modes, sim.n_actuators)
     seeds = {"record": c.seed, "heldout": c.seed + 1, "loop": c.seed + 2, "scan": c.seed + 3}
     recorder = IntegratorControl(c.record_gain, c.dither_nm, seed=c.seed + 100)
-    recorded = run_closed_loop(sim, recorder, c.record_frames, seeds["record"])
-    if recorded.diverged_frame is not None:
-        raise ConfigError(f"the recording integrator (gain {c.record_gain}) diverged at frame {recorded.diverged_frame} "
-                          f"in {sim.name}'s loop: lower record_gain or dither_nm")
+    recorded = require_recorded(run_closed_loop(sim, recorder, c.record_frames, seeds["record"]), c.record_gain, sim)
     telemetry = recorded.telemetry(start=c.settle_frames)
     plant = identify_plant(telemetry)
     plant.require_identified()
