@@ -6,6 +6,7 @@ telemetry file that changes): tests/test_faults.py."""
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -105,19 +106,50 @@ def test_a_finished_overwrite_replaces_the_result_whole(tmp_path):
     assert (out / "checkpoints").is_dir() and not list(tmp_path.glob(".run.*"))
 
 
+#: The child of the test below: the console script, held inside its import of eofnn.cli.main (at the first module that
+#: import looks for, eofnn.cli.commands today) until the test has sent its signal. It says so on stdout, then waits on
+#: stdin, which the test closes only after signalling: the signal cannot come before console() answers signals (a
+#: traceback from Python's start) nor after the import is done (main() answering instead), and the run cannot go on
+#: to finish first (exit status 0).
+_HELD_IN_THE_IMPORT = """\
+import os, sys
+from importlib.abc import MetaPathFinder
+
+class Hold(MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if "eofnn.cli.main" in sys.modules and name != "eofnn.cli.main":
+            sys.meta_path.remove(self)
+            print(f"held importing {name} for eofnn.cli.main", flush=True)
+            os.read(0, 1)  # returns when the test closes stdin; the signal ends the wait first, with its exception
+        return None
+
+sys.argv = ["eofnn", "compare", "--config", sys.argv[1], "--out", sys.argv[2]]
+from eofnn.cli.console import console
+sys.meta_path.insert(0, Hold())
+console()
+"""
+
+
 @pytest.mark.parametrize(("sent", "status", "said"), [(signal.SIGINT, 130, "eofnn: interrupted"),
                                                       (signal.SIGTERM, 143, "eofnn: terminated (SIGTERM)")],
                          ids=["ctrl_c", "sigterm"])
 def test_ctrl_c_or_sigterm_while_eofnn_is_still_importing_is_one_line(tmp_path, sent, status, said):
     """The console script answers Ctrl-C and SIGTERM even during its imports (torch, Lightning: seconds), without a
-    traceback."""
-    code = ("import sys; sys.argv = ['eofnn', 'compare', '--config', sys.argv[1], '--out', sys.argv[2]];"
-            "from eofnn.cli.console import console; console()")
-    proc = subprocess.Popen([sys.executable, "-c", code, str(CONF / "tiny_compare.yaml"), str(tmp_path / "out")],
+    traceback. The signal is sent while the child is held inside the import (:data:`_HELD_IN_THE_IMPORT`), not after
+    a guessed delay."""
+    proc = subprocess.Popen([sys.executable, "-c", _HELD_IN_THE_IMPORT, str(CONF / "tiny_compare.yaml"),
+                             str(tmp_path / "out")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default)
-    time.sleep(1.0)
-    proc.send_signal(sent)
-    _, err = proc.communicate(timeout=120)
+    try:
+        assert select.select([proc.stdout], [], [], 300)[0], "the child never reached the import of eofnn.cli.main"
+        held = proc.stdout.readline()
+        assert held.startswith("held importing ") and held.rstrip().endswith(" for eofnn.cli.main"), held
+        proc.send_signal(sent)
+        out, err = proc.communicate(timeout=120)  # closes stdin: a child the signal did not end would run on
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
     assert proc.returncode == status, err
     assert "Traceback" not in err and err.strip().splitlines()[-1].startswith(said)
-    assert not (tmp_path / "out").exists()
+    assert not out and not (tmp_path / "out").exists()
