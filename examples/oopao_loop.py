@@ -84,9 +84,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--eofnn-trained", action="store_true",
                         help="with --anti-aliasing: also the anti-aliasing EOF trained in eofnn's own Shack-Hartmann "
                              "simulation of this system (eofnn.interop.transfer), on 3 x --frames frames")
-    parser.add_argument("--match-noise", action="store_true",
-                        help="with --eofnn-trained: eofnn's guide star set so that its WFS noise per actuator is the "
-                             "one identified from OOPAO's telemetry")
+    parser.add_argument("--own-noise", action="store_true",
+                        help="with --eofnn-trained: eofnn's simulation at its own photon noise for the guide star, "
+                             "not at the WFS noise identified from OOPAO's telemetry")
+    parser.add_argument("--all-modes", action="store_true",
+                        help="with --eofnn-trained: trained on every mode eofnn's sensor reconstructs, not only those "
+                             "OOPAO's reconstructor sees")
     parser.add_argument("--static-gain", action="store_true",
                         help="with --eofnn-trained: each actuator's carried filter scaled to cancel a constant POL "
                              "value exactly")
@@ -102,10 +105,12 @@ def main(argv: list[str] | None = None) -> dict:
     if args.photon_noise and args.aliasing and not args.anti_aliasing:
         parser.error("--photon-noise runs only the photon-noise study; --aliasing runs it beside the others: "
                      "give one of them")
-    if (args.eofnn_trained or args.match_noise) and not args.anti_aliasing:
-        parser.error("--eofnn-trained and --match-noise add to the anti-aliasing study: give --anti-aliasing too")
-    if (args.match_noise or args.static_gain) and not args.eofnn_trained:
-        parser.error("--match-noise and --static-gain set the eofnn-trained predictor: give --eofnn-trained too")
+    if args.eofnn_trained and not args.anti_aliasing:
+        parser.error("--eofnn-trained adds to the anti-aliasing study: give --anti-aliasing too")
+    tweaks = [flag for flag, on in (("--own-noise", args.own_noise), ("--all-modes", args.all_modes),
+                                    ("--static-gain", args.static_gain)) if on]
+    if tweaks and not args.eofnn_trained:
+        parser.error(f"{' and '.join(tweaks)} set the eofnn-trained predictor: give --eofnn-trained too")
     if args.anti_aliasing and args.aliasing:
         parser.error("--anti-aliasing runs only the anti-aliasing study; --aliasing runs the decomposition: give "
                      "one of them")
@@ -144,8 +149,10 @@ def antialias(args, argv: list[str]) -> dict:
                     dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
                     rcond=args.rcond)
     started = time.time()
-    external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=args.match_noise,
-                                           static_gain=args.static_gain)} if args.eofnn_trained else None
+    external = None
+    if args.eofnn_trained:
+        external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=not args.own_noise,
+                                               controlled=not args.all_modes, static_gain=args.static_gain)}
     metrics = run_antialias(sim, config, external)
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])

@@ -90,3 +90,67 @@ def test_static_gain_scales_the_carried_filter_to_cancel_a_constant_pol_value():
     assert np.median(plain.coefficients.sum(axis=(1, 2))) != pytest.approx(-0.5)
     ratio = runtime.coefficients / plain.coefficients  # one scale for the whole filter: its shape is kept
     assert np.allclose(ratio, ratio.flat[0])
+
+
+def test_the_controlled_projector_keeps_the_loops_modes_on_eofnns_actuators_and_drops_the_rest():
+    from types import SimpleNamespace
+
+    from eofnn.interop.transfer import controlled_projector
+
+    rng = np.random.default_rng(3)
+    theirs = np.array([(x, y) for x in range(5) for y in range(5)], dtype=np.float64) * 0.2
+    modes, _ = np.linalg.qr(rng.standard_normal((25, 8)))  # the loop's 8 seen modes, orthonormal
+    sim = SimpleNamespace(positions_m=theirs, controlled_modes=modes)
+    ours = theirs[::-1][:20]  # eofnn has 20 of the 25, in its own order
+    p = controlled_projector(sim, ours).numpy()
+    assert np.allclose(p, p.T) and np.allclose(p @ p, p)
+    index = [24 - i for i in range(20)]
+    restricted = modes[index]
+    _, singular, vt = np.linalg.svd(restricted, full_matrices=False)
+    kept = restricted @ vt[singular > 0.5].T  # the seen modes' directions on eofnn's actuators that survive
+    assert np.allclose(p @ kept, kept)
+    orthogonal = rng.standard_normal(20)
+    orthogonal -= restricted @ np.linalg.lstsq(restricted, orthogonal, rcond=None)[0]
+    assert np.allclose(p @ orthogonal, 0.0, atol=1e-10)
+
+
+def test_the_carried_filters_noise_is_matched_and_reported_in_the_loops_command_units(monkeypatch):
+    """OOPAO's commands are nm of influence-function peak, eofnn's nm of smooth surface (2.99 times more): the
+    telemetry's noise is converted before eofnn's guide star is set, and the noise the filter was trained at is
+    converted back before the loop compares it with its own."""
+    from types import SimpleNamespace
+
+    from eofnn.interop import transfer
+    from eofnn.training import conditions
+
+    seen = {}
+
+    def train(sim, **kwargs):
+        seen.update(kwargs)
+        return SimpleNamespace(network=None, spec=None, info={"alpha": 1e-3}, val_loss=1.0), \
+            SimpleNamespace(grid=SimpleNamespace(positions_m=None), sensor=SimpleNamespace(detector=None))
+
+    monkeypatch.setattr(transfer, "train_in_eofnn", train)
+    monkeypatch.setattr(transfer, "transfer_filter", lambda *a, **k: ("runtime", {"matched": 1, "held": 0}))
+    monkeypatch.setattr(conditions, "scenario_conditions",
+                        lambda scenario: conditions.Conditions(150.0, 1.0, (20.0,), "scenario"))
+    sim = SimpleNamespace(surface_per_command=3.0, positions_m=None)
+    plant = SimpleNamespace(wfs_noise_nm=40.0, dm_gain=1.8)
+    runtime, info = transfer.eofnn_trained()(sim, plant)
+    assert seen["noise_nm"] == pytest.approx(120.0) and seen["controlled"] is True
+    assert info["conditions"]["wfs_noise_nm"] == pytest.approx(50.0) and info["conditions"]["dm_gain"] == 1.8
+    transfer.eofnn_trained(match_noise=False, controlled=False)(sim, plant)
+    assert seen["noise_nm"] is None and seen["controlled"] is False
+
+
+@pytest.mark.slow
+def test_oopaos_command_is_surface_per_command_nm_of_smooth_surface():
+    pytest.importorskip("OOPAO")
+    from eofnn.interop.oopao import OopaoLoop
+
+    sim = OopaoLoop(8, 1.6)
+    surface = np.asarray(sim.dm.modes) @ np.ones(sim.n_actuators)  # a uniform 1 nm command, per pupil pixel
+    res = sim.pupil_mask.shape[0]
+    centre = surface.reshape(res, res)[res // 2 - 2:res // 2 + 2, res // 2 - 2:res // 2 + 2]
+    assert sim.surface_per_command == pytest.approx(2.99, abs=0.01)
+    assert centre.mean() == pytest.approx(sim.surface_per_command, rel=0.02)

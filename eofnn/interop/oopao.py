@@ -36,6 +36,7 @@ import numpy as np
 
 from eofnn.errors import ConfigError
 from eofnn.interop.loop import check_command
+from eofnn.sim.sensing.least_squares import MECHANICAL_COUPLING, surface_per_command
 from eofnn.validation import Interval, OneOf, check_value
 
 SENSORS = ("shack_hartmann", "geometric", "perfect")
@@ -139,7 +140,7 @@ class OopaoLoop:
                                   windSpeed=[s["wind_speed_mps"]], fractionalR0=[1.0],
                                   windDirection=[s["wind_direction_deg"]], altitude=[0.0])
             self.atm.initializeAtmosphere(self.tel)
-            self.dm = DeformableMirror(telescope=self.tel, nSubap=n, mechCoupling=0.35, print_dm_properties=False)
+            self.dm = DeformableMirror(telescope=self.tel, nSubap=n, mechCoupling=MECHANICAL_COUPLING, print_dm_properties=False)
             self.wfs = ShackHartmann(nSubap=n, telescope=self.tel, lightRatio=0.5,
                                      is_geometric=s["sensor"] == "geometric")
             self.ngs * self.tel * self.wfs
@@ -174,6 +175,17 @@ class OopaoLoop:
     @property
     def n_actuators(self) -> int:
         return int(self.dm.nValidAct)
+
+    @property
+    def surface_per_command(self) -> float:
+        """nm of smooth DM surface per nm of command: OOPAO's influence functions peak at 1 and overlap, eofnn's
+        commands are nm of smooth surface, so one of this loop's command units is this many of eofnn's (2.99)."""
+        return surface_per_command(MECHANICAL_COUPLING)
+
+    @property
+    def controlled_modes(self) -> np.ndarray:
+        """``(K, n_seen)``: the orthonormal command modes the reconstructor sees (what :meth:`project` keeps)."""
+        return self._seen
 
     @property
     def wfs_noise_nm(self) -> float | None:

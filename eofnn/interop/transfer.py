@@ -5,9 +5,14 @@ where eofnn's design says it should be trained, in eofnn's simulation, and carri
 
 1. :func:`train_in_eofnn`: the system of the OOPAO loop rebuilt in eofnn (:meth:`ShSystem.eofnn_scenario`: the
    actuators where OOPAO's are, at the same pitch; eofnn's Shack-Hartmann with OOPAO's detector, I band, photon
-   noise at the same magnitude), the wind turned so that the turbulence moves the same way over the actuators in
-   both (:data:`EOFNN_DIRECTION_OF_OOPAO`), and the 5 x 5 open-loop EOF fitted on eofnn's open-loop data with the
-   DM's fit of the true phase as target (``data.target: dm_fit``), ridge alpha on validation frames;
+   noise), the wind turned so that the turbulence moves the same way over the actuators in both
+   (:data:`EOFNN_DIRECTION_OF_OOPAO`), and the 5 x 5 open-loop EOF fitted on eofnn's open-loop data with the DM's
+   fit of the true phase as target (``data.target: dm_fit``), ridge alpha on validation frames. By default the twin
+   is made the loop's in two ways the loop's calibration and telemetry tell (never its truth): its guide star is
+   set so that its noise per actuator is the one identified from the loop's telemetry, in eofnn's command units
+   (OOPAO's command is ``sim.surface_per_command`` = 2.99 of eofnn's: its peak-1 influence functions overlap); and
+   its inputs and targets are projected onto the command modes the loop's reconstructor sees
+   (:func:`controlled_projector`);
 2. :func:`transfer_filter`: its coefficients moved onto the other simulator's actuators by position. What eofnn's
    filter reads as POL values is the turbulence as its own sensor reports it, and what it commands is for a DM that
    applies what it is told; in the other loop the POL values are formed with the gain identified from that loop's
@@ -15,22 +20,24 @@ where eofnn's design says it should be trained, in eofnn's simulation, and carri
    DM's gain, reading through the sensor's). Actuators the other simulator has and eofnn's grid lacks (OOPAO's
    Fried DM reaches half a pitch past eofnn's pupil) hold their last POL value, a zero-order predictor.
 
-Nothing of the other loop's telemetry enters the fit: only its identified gain scales the commands, as on a
-telescope that deploys a filter trained in simulation. What differs (the reconstructor, the sensor's noise, its
-optical gain, the turbulence's own generator) is what the transfer tests.
+Nothing of the other loop's telemetry enters the fit but two numbers: its identified gain scales the commands and
+its identified noise sets the twin's guide star, as on a telescope that deploys a filter trained in simulation.
+What differs (the reconstructor, the sensor's optical gain and aliasing, the turbulence's own generator) is what
+the transfer tests.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from eofnn.data.config import DataConfig
+from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.interop.sh_system import ShSystem
 from eofnn.models.linear import LinearFilter
 from eofnn.runtime import PredictiveFilter
 from eofnn.training.export import filter_coefficients, filter_taps
-from eofnn.training.fit import fit_predictor
 from eofnn.training.task import OptimizationConfig
 
 #: eofnn's wind direction (degrees) whose turbulence moves over the actuators as OOPAO's at 0 degrees does (OOPAO's
@@ -58,9 +65,10 @@ def eofnn_direction(oopao_direction_deg: float) -> float:
 
 
 def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None):
-    """eofnn's scenario of ``sim``'s system (module docstring, step 1); with ``noise_nm`` (the WFS noise per actuator
-    identified from ``sim``'s telemetry) its guide star is moved until its own noise per actuator
-    (:func:`eofnn.training.conditions.scenario_conditions`) is that: photon noise scales as ``10^(0.2 m)``."""
+    """eofnn's scenario of ``sim``'s system (module docstring, step 1); with ``noise_nm`` (a WFS noise per actuator in
+    eofnn's command units: the one identified from ``sim``'s telemetry times ``sim.surface_per_command``) its guide
+    star is moved until its own noise per actuator (:func:`eofnn.training.conditions.scenario_conditions`) is that:
+    photon noise scales as ``10^(0.2 m)``."""
     from eofnn.sim.scenario import Scenario
     from eofnn.training.conditions import scenario_conditions
 
@@ -75,18 +83,67 @@ def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None):
     return Scenario.from_dict(config)
 
 
+def controlled_projector(sim, eofnn_positions_m, keep: float = 0.5) -> torch.Tensor:
+    """``(K_e, K_e)``: the projector onto the command modes ``sim``'s reconstructor sees (``sim.controlled_modes``),
+    on eofnn's actuators (those of ``sim``'s at the same positions): the modes restricted to them, orthonormalised,
+    the directions they keep less than ``keep`` of dropped (the rim actuators eofnn lacks carry the rest)."""
+    index = match_positions(eofnn_positions_m, sim.positions_m)
+    u, singular, _ = np.linalg.svd(np.asarray(sim.controlled_modes, dtype=np.float64)[index], full_matrices=False)
+    q = u[:, singular > keep]
+    return torch.from_numpy(q @ q.T)
+
+
 def train_in_eofnn(sim, *, frames: int = 6000, val_frames: int = 1200, history_length: int = 4,
-                   radius: float = 2.5, seed: int = 0, noise_nm: float | None = None):
+                   radius: float = 2.5, seed: int = 0, noise_nm: float | None = None, controlled: bool = True):
     """The anti-aliasing EOF trained in eofnn's simulation of ``sim``'s system (module docstring, step 1; with
-    ``noise_nm``, its noise matched to the telemetry's, :func:`twin_scenario`): ``(fit result, scenario)``."""
-    scenario = twin_scenario(sim, max(frames, val_frames) + 200, noise_nm)
+    ``noise_nm``, in eofnn's command units, its noise matched, :func:`twin_scenario`): ``(fit result, scenario)``.
+
+    Three open-loop sequences of ``(frames + val_frames) / 3`` frames, the last third of ``val_frames`` of each held
+    out for the ridge alpha (the grid of :data:`eofnn.interop.study.ALPHA_PATH`, as the filters fitted in ``sim``'s
+    own loop); inputs are eofnn's measured POL values, targets the DM's fit of the true phase. ``controlled``: both
+    projected onto the command modes ``sim``'s reconstructor sees (:func:`controlled_projector`), the only ones its
+    POL values hold and its DM is sent."""
+    from eofnn.data.stream import SimulatedTelemetry
+    from eofnn.interop.study import ALPHA_PATH
+    from eofnn.telemetry.record import Telemetry
+    from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
+
+    sequence = -(-(frames + val_frames) // 3)
+    scenario = twin_scenario(sim, sequence + 200, noise_nm)
+    spec = HistorySpec("open_loop", history_length, sim.delay_frames)
+    stream = SimulatedTelemetry(scenario, spec, 3 * sequence, stream="twin",
+                                data=DataConfig(frames=3 * sequence, sequence_frames=sequence, target="dm_fit",
+                                                seed=seed))
+    positions = torch.as_tensor(np.asarray(scenario.grid.positions_m, dtype=np.float64))
+    projector = controlled_projector(sim, positions.numpy()) if controlled else None
+    sequences = []
+    for i in range(stream.n_sequences):
+        arrays = stream.telemetry(i)
+        s, pol = arrays["s"][0], arrays["s_hat"][0]
+        if projector is not None:
+            s, pol = s @ projector, pol @ projector
+        sequences.append(Telemetry(s=s, y=torch.zeros_like(pol), wfs=pol, delay_frames=sim.delay_frames,
+                                   positions_m=positions, frame_rate_hz=sim.frame_rate_hz))
     network = {"class_path": "eofnn.models.linear.LinearFilter",
                "init_args": {"structure": "neighbourhood", "radius": radius}}
-    data = DataConfig(frames=frames, val_frames=val_frames, sequence_frames=max(frames, val_frames) + 200,
-                      target="dm_fit", seed=seed)
-    fitted = fit_predictor(scenario, "open_loop", history_length, network, data=data,
-                           optimization=OptimizationConfig(alpha="auto"))
+    fitted = fit_from_telemetry(sequences, spec, network, plant={"dm_gain": 1.0},
+                                data=TelemetryDataConfig(val_frames=-(-val_frames // 3), target="s",
+                                                         target_dm_gain=1.0, seed=seed),
+                                optimization=OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH))
     return fitted, scenario
+
+
+def match_positions(eofnn_positions_m, positions_m, tolerance_m: float = 1e-6) -> np.ndarray:
+    """For each of eofnn's actuators, the index of the other simulator's at its position (within ``tolerance_m``),
+    or one line naming the farthest."""
+    from scipy.spatial import cKDTree
+
+    distance, index = cKDTree(np.asarray(positions_m, dtype=np.float64)).query(
+        np.asarray(eofnn_positions_m, dtype=np.float64))
+    if distance.max() > tolerance_m:
+        raise ConfigError(f"eofnn's actuators are not on the simulator's: the farthest is {distance.max():.3g} m "
+                          f"from any of them (tolerance {tolerance_m:g} m)")
+    return index
 
 
 def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m, dm_gain: float,
@@ -96,18 +153,12 @@ def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m,
     that hold their last POL value. ``static_gain``: the coefficients are scaled by one number so that the median
     actuator cancels a constant POL value exactly (its sum is ``-1 / dm_gain``), as a predictor of frozen flow must
     (scaled per actuator, the filters at the rim, whose sums are small, made the loop diverge)."""
-    from scipy.spatial import cKDTree
-
     if spec.kind != "open_loop" or getattr(network, "structure", None) != "neighbourhood":
         raise ConfigError("only open-loop neighbourhood filters are carried between simulators (their taps read "
                           "POL values of actuators found by position)")
     coefficients, neighbours = filter_coefficients(network)  # (Ke, M, taps), (Ke, M) with -1 beyond the pupil
-    ours, theirs = np.asarray(eofnn_positions_m, dtype=np.float64), np.asarray(positions_m, dtype=np.float64)
-    distance, index = cKDTree(theirs).query(ours)
-    if distance.max() > tolerance_m:
-        raise ConfigError(f"eofnn's actuators are not on the simulator's: the farthest is {distance.max():.3g} m "
-                          f"from any of them (tolerance {tolerance_m:g} m)")
-    k, m, taps = len(theirs), neighbours.shape[1], coefficients.shape[-1]
+    index = match_positions(eofnn_positions_m, positions_m, tolerance_m)
+    k, m, taps = len(positions_m), neighbours.shape[1], coefficients.shape[-1]
     moved = np.zeros((k, m, taps))
     slots = np.full((k, m), -1, dtype=np.int64)
     if static_gain:  # one scale for the whole filter (per actuator, a rim filter's small sum would blow it up)
@@ -121,23 +172,35 @@ def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m,
     return runtime, {"matched": int(len(index)), "held": int(len(held))}
 
 
-def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, match_noise: bool = False,
-                  static_gain: bool = False):
+def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, match_noise: bool = True,
+                  controlled: bool = True, static_gain: bool = False):
     """An ``external`` predictor of :func:`eofnn.interop.antialias.run_antialias`: trained in eofnn's simulation of
     the loop's system (:func:`train_in_eofnn`), carried onto its actuators with the gain identified from its
-    recording (:func:`transfer_filter`); ``match_noise``: the simulation's guide star set so that its noise is the
-    one identified from that recording; ``static_gain``: see :func:`transfer_filter`. Its info keeps the conditions
-    it was trained in, so that the loop warns in one line where its own differ (:mod:`eofnn.interop.shift`)."""
+    recording (:func:`transfer_filter`).
+
+    ``match_noise``: the simulation's guide star set so that its noise is the one identified from that recording,
+    converted to eofnn's command units (``sim.surface_per_command``: OOPAO's commands are nm of influence-function
+    peak, eofnn's nm of smooth surface, 2.99 times more); ``controlled``: trained in the command modes the loop's
+    reconstructor sees; ``static_gain``: see :func:`transfer_filter`. Its info keeps the conditions it was trained
+    in, in the loop's command units, so that the loop warns in one line where its own differ
+    (:mod:`eofnn.interop.shift`)."""
     def build(sim, plant) -> tuple[PredictiveFilter, dict]:
+        units = float(getattr(sim, "surface_per_command", 1.0))  # eofnn's command units per one of the loop's
         fitted, scenario = train_in_eofnn(sim, frames=frames, val_frames=val_frames, seed=seed,
-                                          noise_nm=plant.wfs_noise_nm if match_noise else None)
+                                          noise_nm=plant.wfs_noise_nm * units if match_noise else None,
+                                          controlled=controlled)
         runtime, moved = transfer_filter(fitted.network, fitted.spec, scenario.grid.positions_m, sim.positions_m,
                                          plant.dm_gain, static_gain=static_gain)
+        from eofnn.training.conditions import scenario_conditions
+
+        trained = scenario_conditions(scenario)
         detector = scenario.sensor.detector
         # Carried over, it commands through the identified gain: that is the DM gain it now believes.
-        conditions = {**(fitted.info.get("conditions") or {}), "dm_gain": float(plant.dm_gain),
-                      "source": "eofnn's simulation of the system, carried with the identified gain"}
+        conditions = {**trained.to_dict(), "wfs_noise_nm": trained.wfs_noise_nm / units, "dm_gain": float(plant.dm_gain),
+                      "source": "eofnn's simulation of the system (noise in the loop's command units), carried with "
+                                "the identified gain"}
         return runtime, {"alpha": fitted.info.get("alpha"), "target": "dm_fit in eofnn's simulation",
                          "trained_magnitude": None if detector is None else detector.magnitude,
+                         "trained_noise_nm": trained.wfs_noise_nm / units, "controlled_modes": controlled,
                          "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build

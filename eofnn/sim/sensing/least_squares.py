@@ -23,6 +23,14 @@ def default_relative_cut(subapertures_across: int) -> float:
     across; 0.1 up to 30)."""
     return min(0.1, 3.0 / subapertures_across)
 
+def surface_per_command(mechanical_coupling: float = MECHANICAL_COUPLING) -> float:
+    """nm of smooth DM surface per nm of command of peak-1 Gaussian influence functions on a square lattice: their
+    lattice sum ``(sum_j coupling^(j²))²`` (2.99 at OOPAO's 0.35). eofnn's commands are divided by it (nm of surface
+    for a smooth shape, :class:`eofnn.sim.sensing.pupil.PupilOperators`); OOPAO's are not (nm of peak)."""
+    j = np.arange(-12, 13)
+    return float((mechanical_coupling ** (j * j)).sum() ** 2)
+
+
 def influence_functions(grid: ActuatorGrid, points_m: np.ndarray,
                         mechanical_coupling: float = MECHANICAL_COUPLING) -> sp.csr_matrix:
     """Gaussian influence functions of ``grid``'s actuators at ``points_m``: a sparse ``(n_points, K)`` matrix.

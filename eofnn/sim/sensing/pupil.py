@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from eofnn.lazy import lazy_module
+from eofnn.sim.sensing.least_squares import surface_per_command
 from eofnn.sim.sensing.shack_hartmann import ShackHartmannSensor
 
 torch = lazy_module("torch")
@@ -42,8 +43,7 @@ class LoopOperators:
         geometry = sensor.geometry
         self.pupil = geometry.fine_in_pupil
         self.n_pupil = int(self.pupil.sum())
-        j = np.arange(-12, 13)
-        self.surface_per_command = float((sensor.config.mechanical_coupling ** (j * j)).sum() ** 2)
+        self.surface_per_command = surface_per_command(sensor.config.mechanical_coupling)
         influence = (sensor.influence / self.surface_per_command).tocsr()
         self.influence_pupil_t = influence[self.pupil].T.tocsr()  # IF_p^T (K, N_p)
         gram_sparse = (self.influence_pupil_t @ self.influence_pupil_t.T).tocsr()  # banded: 7 pitches across
