@@ -88,8 +88,9 @@ ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_
                   "interop/oopao_aa/m8_dir30": ("40 x 40, 8 m", 8, 30),
                   "interop/oopao_aa/small_m8_dir0": ("20 x 20, 4 m", 8, 0),
                   "interop/oopao_aa/small_m8_dir30": ("20 x 20, 4 m", 8, 30),
-                  "interop/oopao_aa/small_m8_dir0_own": ("20 x 20, 4 m, own history only", 8, 0)}
-AA_LABELS = {"integrator": "integrator", "lqg": "LQG", "eof_measured": "EOF from telemetry",
+                  "interop/oopao_aa/small_m8_dir0_own": ("20 x 20, 4 m, own history only", 8, 0),
+                  "interop/oopao_aa/small_m8_dir0_twin_own": ("20 x 20, 4 m, twin at own noise, all modes", 8, 0)}
+AA_LABELS = {"integrator": "integrator", "lqg": "LQG", "pfc": "PFC", "eof_measured": "EOF from telemetry",
              "eof_antialias": "anti-aliasing EOF", "eof_eofnn": "anti-aliasing EOF trained in eofnn"}
 
 
@@ -98,6 +99,8 @@ def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
     fit = r["fitting_error_nm"]
 
     def mean(name: str) -> str:
+        if name not in c:
+            return "not run"
         v = c[name]["mean_of_realisations_nm"]
         return "diverged" if v is None else f"{v:.1f}"
 
@@ -109,8 +112,10 @@ def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
     tel, aa = g["eof_measured"] or {}, g["eof_antialias"] or {}
     paired = ", ".join(f"{v:+.1f}" for v in aa.get("paired_difference_nm", []))
     system, mag, direction = point
+    pfc = f" ({r['pfc_scan']['aliases']} alias rings)" if "pfc_scan" in r else ""
     row = (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
-           f"{r['integrator_scan']['gain']}) | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) | {mean('eof_measured')} | "
+           f"{r['integrator_scan']['gain']}) | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) | {mean('pfc')}{pfc} | "
+           f"{mean('eof_measured')} | "
            f"{mean('eof_antialias')} | {AA_LABELS[best]} | {tel.get('variance_after_fitting', math.nan):.2f}x; "
            f"{aa.get('variance_after_fitting', math.nan):.2f}x | {(tel.get('contrast') or {}).get('3', math.nan):.2f}x; "
            f"{(aa.get('contrast') or {}).get('3', math.nan):.2f}x | {contrast(best)} / {contrast('eof_antialias')} | "
@@ -126,12 +131,13 @@ def antialias_results() -> list[tuple[tuple, dict]]:
 def antialias_text() -> str:
     """The EOFs against the best classical controller built from the same telemetry, in OOPAO's loop at the issue's
     conditions (20 m/s, I = 8 and 10, 40 x 40) and the checks beside them."""
-    lines = ["| system | I mag | wind direction | fitting error (nm) | integrator (nm) | LQG (nm) | EOF from telemetry (nm) | "
+    lines = ["| system | I mag | wind direction | fitting error (nm) | integrator (nm) | LQG (nm) | PFC (nm) | "
+             "EOF from telemetry (nm) | "
              "anti-aliasing EOF (nm) | best classical (chosen on the scan) | variance gain after fitting: telemetry "
              "EOF; anti-aliasing EOF | contrast gain at 3 λ/D: telemetry EOF; anti-aliasing EOF | raw contrast at 3 λ/D: "
              "best classical / anti-aliasing EOF | best classical minus anti-aliasing EOF, per realisation (nm) | "
              "guard deployed |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     found, guarded_ok, goal = antialias_results(), [], []
     for point, r in found:
         row, point_gains = _aa_row(point, r)
@@ -168,7 +174,7 @@ def oopao_reading() -> str:
         return ""
     lines, gaps, loops, lqg = [], [], [], []
     for (system, mag, direction), r in found:
-        if "own history" in system:  # the ablation: read in _own_history
+        if _is_ablation((system, mag, direction)):  # ablations: read in _own_history and transfer_text
             continue
         c = r["contenders"]
         tel, aa = c["eof_measured"]["mean_of_realisations_nm"], c["eof_antialias"]["mean_of_realisations_nm"]
@@ -188,10 +194,35 @@ def oopao_reading() -> str:
             "the residual (the sum of the squared impulse response from measurement to command). The closed-loop, "
             "per-actuator EOF of the map below lost in the same loops" + _own_history()
             + ". The LQG (AR per KL mode of the pseudo-open loop) is "
-            f"{min(lqg):+.1f} to {max(lqg):+.1f} nm from the integrator. *Limits*: one frozen-flow layer; 3 scored "
-            "realisations of 1000 frames; no PFC in OOPAO's "
-            "loop (it needs eofnn's Fourier grid); the error budget of each contender in OOPAO's loop (aliasing, "
-            "noise, temporal) was not run.")
+            f"{min(lqg):+.1f} to {max(lqg):+.1f} nm from the integrator. " + _pfc_reading(found) + " *Limits*: one "
+            "frozen-flow layer; 3 scored realisations of 1000 frames; the error budget of each contender in OOPAO's "
+            "loop (aliasing, noise, temporal) was not run.")
+
+
+def _pfc_reading(found: list) -> str:
+    """Predictive Fourier control in OOPAO's loop, where it was run: its identified wind and its distance from the
+    integrator."""
+    runs = [(point, r) for point, r in found if "pfc" in r["contenders"] and not _is_ablation(point)]
+    missing = [f"{system}, I = {mag}, {direction}°" for (system, mag, direction), r in found
+               if "pfc" not in r["contenders"] and not _is_ablation((system, mag, direction))]
+    if not runs:
+        return "Predictive Fourier control was not run in OOPAO's loop."
+    parts = []
+    worse = sum(r["contenders"]["pfc"]["mean_of_realisations_nm"] is None or r["contenders"]["pfc"]
+                ["mean_of_realisations_nm"] > r["contenders"]["integrator"]["mean_of_realisations_nm"] for _, r in runs)
+    not_best = sum(r["best_classical"] != "pfc" for _, r in runs)
+    for (system, mag, direction), r in runs:
+        c, layer = r["contenders"], (r["pfc_scan"]["identified"]["layers"] or [{}])[0]
+        pfc = c["pfc"]["mean_of_realisations_nm"]
+        parts.append(f"{system}, I = {mag}, {direction}°: " + ("diverged" if pfc is None else
+                     f"{pfc - c['integrator']['mean_of_realisations_nm']:+.1f} nm") + f" (strongest layer "
+                     f"identified at {layer.get('speed_mps', math.nan):.1f} m/s, {layer.get('weight', math.nan):.0%}; "
+                     f"{r['pfc_scan']['aliases']} alias rings chosen on the scan)")
+    return ("Predictive Fourier control (`eofnn/interop/pfc.py`: eofnn's Kalman filter per Fourier mode on OOPAO's "
+            "actuator lattice, its winds, weights, noise and per-mode variances identified from the same telemetry) "
+            "is, against the integrator, " + "; ".join(parts) + f". It is above the integrator at {worse} of "
+            f"{len(runs)} runs, and not the best classical controller (chosen on the scan) at {not_best} of {len(runs)}"
+            + ("" if not missing else f" (not run at {', '.join(missing)}: those runs predate it)") + ".")
 
 
 def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
@@ -208,35 +239,55 @@ def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
 
 def transfer_text() -> str:
     """The anti-aliasing EOF trained in eofnn's own simulation of OOPAO's system, in OOPAO's loop."""
-    rows = []
-    for (system, mag, direction), r in antialias_results():
+    rows, plain = [], None
+    for point, r in antialias_results():
         own = r["contenders"].get("eof_eofnn")
         if not own:
             continue
+        system, mag, direction = point
         best = r["best_classical"]
         gain = r["gains_over_best_classical"].get("eof_eofnn") or {}
         fit = r["fits"]["eof_eofnn"]
         mean = own["mean_of_realisations_nm"]
-        rows.append(
-            f"{system}, I = {mag}, {direction}°: {'diverged' if mean is None else f'{mean:.1f} nm'} against the "
-            f"{AA_LABELS[best]}'s {r['contenders'][best]['mean_of_realisations_nm']:.1f} and "
-            f"{r['contenders']['eof_antialias']['mean_of_realisations_nm']:.1f} for the same filter trained on OOPAO's "
-            f"truth ({gain.get('variance_after_fitting', math.nan):.2f}x in variance after fitting, "
-            f"{(gain.get('contrast') or {}).get('3', math.nan):.2f}x in contrast at 3 λ/D; {fit['matched']} actuators "
-            f"matched, {fit['held']} holding; the loop said: " + (" / ".join(own.get("shift") or ["nothing"])) + ")")
+        text = (f"{'diverged' if mean is None else f'{mean:.1f} nm'} against the {AA_LABELS[best]}'s "
+                f"{r['contenders'][best]['mean_of_realisations_nm']:.1f} and "
+                f"{r['contenders']['eof_antialias']['mean_of_realisations_nm']:.1f} for the same filter trained on "
+                f"OOPAO's truth ({gain.get('variance_after_fitting', math.nan):.2f}x in variance after fitting, "
+                f"{(gain.get('contrast') or {}).get('3', math.nan):.2f}x in contrast at 3 λ/D)")
+        if _is_ablation(point):
+            plain = (system, text)
+            continue
+        trained = fit.get("trained_noise_nm")
+        rows.append(f"{system}, I = {mag}, {direction}°: {text}; trained at "
+                    + ("its own photon noise" if trained is None else f"{trained:.0f} nm of noise per actuator")
+                    + f" against {r['identified']['wfs_noise_nm']:.0f} nm identified"
+                    + ("" if fit.get("controlled_modes") else " and on all of eofnn's modes") + f", {fit['matched']} actuators "
+                    f"matched, {fit['held']} holding; the loop said: " + (" / ".join(own.get("shift") or ["nothing"]))
+                    + "")
     if not rows:
         return ""
-    return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`: the same 5 x 5 "
-            "anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system, 6000 frames, its wind turned to "
+    ablation = "" if plain is None else (
+        f" The same at 20 x 20 with the twin at its own photon noise and on all its modes (`--own-noise --all-modes`, "
+        f"the row \"{plain[0]}\"): {plain[1]}.")
+    return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`): the same 5 x 5 "
+            "anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system, 7200 frames, its wind turned to "
             "move over the actuators as OOPAO's does, its coefficients moved onto OOPAO's actuators by position and "
-            "its commands scaled by the gain identified from OOPAO's telemetry): " + "; ".join(rows) + ". Carried "
-            "over, the filter keeps part of the gain of the same filter trained on OOPAO's own truth. The two "
-            "simulators' sensors differ (OOPAO's diffractive four-pixel centroid, its optical gain and its "
-            "reconstructor against eofnn's linear model and its own; eofnn's rim subapertures see the whole phase), "
-            "and an open-loop filter commands the whole turbulence, so a few percent of response error on a mode "
-            "leaves a few percent of that mode's turbulence (`experiments/interop/transfer_diagnostic.py` prints the "
-            "two filters' responses to static patterns); which difference of the sensors causes it was not "
-            "separated.")
+            "its commands scaled by the gain identified from OOPAO's telemetry. Two numbers of that telemetry and "
+            "OOPAO's reconstructor make the twin OOPAO's loop: its guide star is set so that its WFS noise is the one "
+            "identified (in eofnn's command units: OOPAO's command is nm of influence-function peak, its Gaussian "
+            "influence functions overlap, so it is 2.99 nm of eofnn's smooth surface), and its inputs and targets "
+            "are projected onto the command modes OOPAO's reconstructor sees (without it, eofnn's fit of the true "
+            "phase keeps 10% of its variance in modes OOPAO never sees, waffle most). " + "; ".join(rows) + "."
+            + ablation + " Carried over, the filter keeps part of the gain of the same filter trained on OOPAO's own "
+            "truth. What remains between the two is the sensors themselves (OOPAO's diffractive four-pixel centroid "
+            "and its optical gain per mode, its reconstructor, against eofnn's geometric model; eofnn's rim "
+            "subapertures see the whole phase; `experiments/interop/transfer_diagnostic.py` prints the two filters' "
+            "responses to static patterns); which of these costs most was not separated.")
+
+
+def _is_ablation(point: tuple) -> bool:
+    """A run that repeats a point with one choice undone (its system names it after the pupil)."""
+    return len(point[0].split(", ")) > 2
 
 
 def _own_history() -> str:
@@ -248,7 +299,7 @@ def _own_history() -> str:
                 "separated")
     o, w = own["contenders"]["eof_measured"], wide["contenders"]["eof_measured"]
     gain = (own["gains"]["eof_measured"] or {}).get("variance_after_fitting", math.nan)
-    return (f"; with each actuator's own history alone (no neighbourhood, the last row) the open-loop EOF from "
+    return (f"; with each actuator's own history alone (no neighbourhood, the row 'own history only') the open-loop EOF from "
             f"telemetry leaves {o['mean_of_realisations_nm']:.1f} nm against {w['mean_of_realisations_nm']:.1f} with "
             f"the 5 x 5 neighbourhood ({gain:.2f}x the integrator in variance after fitting), so "
             + ("the open-loop form, not the neighbourhood, is most of the difference" if gain >= 1.5 else

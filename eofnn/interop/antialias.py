@@ -57,8 +57,8 @@ from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value,
 
 #: What the adapter must offer beyond a SimulatorAdapter.
 NEEDED = ("turbulence_fit_nm", "residual_opd_nm", "pupil_mask", "dm_gain", "settings")
-CONTENDERS = ("integrator", "lqg", "eof_measured", "eof_antialias")
-CLASSICAL = ("integrator", "lqg")
+CONTENDERS = ("integrator", "lqg", "pfc", "eof_measured", "eof_antialias")
+CLASSICAL = ("integrator", "lqg", "pfc")
 
 
 @dataclass
@@ -184,12 +184,15 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     scan_seed = c.seed + 3
     scan = scan_integrator(sim, c.gains, c.loop_frames, scan_seed, c.settle_frames)
     lqg = scan_lqg(sim, telemetry, plant.dm_gain, c, scan_seed)
+    pfc = scan_pfc(sim, telemetry, plant, c, scan_seed)
 
     def control(name: str):
         if name == "integrator":
             return IntegratorControl(scan["gain"])
         if name == "lqg":
             return TorchControl(lqg["controller"], sim.delay_frames)
+        if name == "pfc":
+            return pfc["controller"]
         return FilterControl(filters[name], scan["gain"], c.warmup_frames, conditions=conditions.get(name))
 
     guard = run_closed_loop(sim, control("eof_antialias"), c.loop_frames, scan_seed).metrics(c.settle_frames)
@@ -200,11 +203,13 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     results["guarded"] = {**results[deployed], "deployed": deployed}
     fitting = [fitting_error(sim, c.loop_frames, seed, start=c.settle_frames)["median_rms_nm"] for seed in scored]
     # The best classical controller is chosen on the scan realisation, as each was tuned: not on the scored ones.
-    best = "lqg" if lqg["median_rms_nm"] is not None and lqg["median_rms_nm"] < scan["median_rms_nm"] else "integrator"
+    on_scan = {"integrator": scan["median_rms_nm"], "lqg": lqg["median_rms_nm"], "pfc": pfc["median_rms_nm"]}
+    best = min((name for name, v in on_scan.items() if v is not None), key=on_scan.get)
     return {"simulator": sim.describe(), "config": asdict(c), "scored_seeds": scored,
             "identified": {"dm_gain": plant.dm_gain, "wfs_noise_nm": plant.wfs_noise_nm, "dm_gain_true": sim.dm_gain},
             "fits": fits, "integrator_scan": {"gain": scan["gain"], "scan": {str(g): v for g, v in scan["scan"].items()}},
             "lqg_scan": {"ar_order": lqg["ar_order"], "scan": lqg["scan"]},
+            "pfc_scan": {"aliases": pfc["aliases"], "scan": pfc["scan"], "identified": pfc["info"]},
             "guard": {"scan_integrator_nm": scan["median_rms_nm"], "scan_eof_antialias_nm": guard.median_rms_nm,
                       "deployed": deployed},
             "fitting_error_nm": fitting, "contenders": results, "best_classical": best,
@@ -228,6 +233,27 @@ def scan_lqg(sim, telemetry: list, dm_gain: float, c: AntiAliasConfig, seed: int
     stable = {int(k): v for k, v in scan.items() if v is not None}
     order = min(stable, key=stable.get) if stable else 2
     return {"controller": built[order], "ar_order": order, "median_rms_nm": stable.get(order), "scan": scan}
+
+
+def scan_pfc(sim, telemetry: list, plant, c: AntiAliasConfig, seed: int) -> dict:
+    """Predictive Fourier control (:func:`eofnn.interop.pfc.pfc_in_loop`: a Kalman filter per Fourier mode, the
+    winds, noise and per-mode variances from the recorded telemetry's POL values) with 0 or 1 rings of aliases in
+    its state, chosen in the loop on the scan realisation ``seed`` as the LQG's AR order is:
+    ``{"controller", "aliases", "median_rms_nm", "scan", "info"}``."""
+    from eofnn.control.config import PfcConfig
+    from eofnn.interop.pfc import pfc_in_loop
+
+    pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, plant.dm_gain) for seq in telemetry])
+    built, scan = {}, {}
+    for aliases in (0, 1):
+        built[aliases] = pfc_in_loop(sim, pol, plant.dm_gain, plant.wfs_noise_nm, PfcConfig(aliases=aliases))
+        record = run_closed_loop(sim, built[aliases], c.loop_frames, seed)
+        scan[str(aliases)] = record.metrics(c.settle_frames).median_rms_nm
+    stable = {int(k): v for k, v in scan.items() if v is not None}
+    aliases = min(stable, key=stable.get) if stable else 1
+    info = built[aliases].controller.info or {}
+    return {"controller": built[aliases], "aliases": aliases, "median_rms_nm": stable.get(aliases), "scan": scan,
+            "info": {"layers": info.get("layers"), "noise_rms_nm": info.get("noise_rms_nm")}}
 
 
 def score(sim, control, name: str, seeds: list[int], c: AntiAliasConfig) -> dict:
@@ -286,9 +312,12 @@ def antialias_markdown(metrics: dict) -> str:
         lines.append(f"| {name} | {', '.join(nm(v) for v in run['realisations_median_rms_nm'])} | "
                      f"{nm(run['mean_of_realisations_nm'])} | "
                      + " | ".join("" if contrast.get(s) is None else f"{contrast[s]:.2e}" for s in seps) + " |")
-    lqg = metrics["lqg_scan"]
-    lines += ["", f"LQG: AR order {lqg['ar_order']} (scan: {lqg['scan']}). Best classical controller, chosen on the "
-                  f"scan realisation: {metrics['best_classical']}."]
+    lqg, pfc = metrics["lqg_scan"], metrics.get("pfc_scan")
+    winds = "" if not pfc else f" PFC: {pfc['aliases']} ring(s) of aliases (scan: {pfc['scan']}), layers " + ", ".join(
+        f"{lay['speed_mps']:.1f} m/s at {lay['direction_deg']:.0f}° ({lay['weight']:.0%})"
+        for lay in pfc["identified"]["layers"] or []) + " identified from the telemetry."
+    lines += ["", f"LQG: AR order {lqg['ar_order']} (scan: {lqg['scan']}).{winds} Best classical controller, chosen on "
+                  f"the scan realisation: {metrics['best_classical']}."]
     against_best = () if metrics["best_classical"] == "integrator" else \
         (("gains_over_best_classical", metrics["best_classical"]),)
     for key, against in (("gains", "integrator"), *against_best):

@@ -7,8 +7,9 @@
 #   - oopao_aliasing: the error budget (perfect sensor, SH noise-free, SH with photon noise) at 20 x 20 on 4 m
 #     (about 9 min);
 #   - oopao_map: 20 x 20 on 4 m with photon noise only, at 10 and 20 m/s x I = 8 and 10 (four points);
-#   - oopao_aa: the EOF from telemetry and the anti-aliasing EOF (trained on OOPAO's truth) against the integrator
-#     and the LQG at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the checks beside them (about 2 h on 2 cores);
+#   - oopao_aa: the EOF from telemetry and the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin)
+#     against the integrator, the LQG and predictive Fourier control at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
+#     checks beside them (about 2 h on 2 cores);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -35,7 +36,7 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # The issue's "win" conditions in OOPAO's loop: 8 m, 40 x 40 SH, photon noise, 20 m/s, I = 8 and 10 (wind along
     # the actuator rows), and I = 8 with the wind at 30 degrees; then 20 x 20 on 4 m (the OOPAO map's system) at both
     # directions. The 5 x 5 open-loop EOF fitted on telemetry alone and the anti-aliasing EOF fitted on OOPAO's truth,
-    # against the best-gain integrator and the LQG built from the same telemetry; 3 training sequences of 2000
+    # against the best-gain integrator, the LQG and PFC built from the same telemetry; 3 training sequences of 2000
     # frames, every contender scored on 3 realisations of 1000 frames. About 36 min of CPU per 40 x 40 run.
     aa() { $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 3 "$@"; }
     # I = 8 also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained).
@@ -49,6 +50,10 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
         --out experiments/runs/interop/oopao_aa/small_m8_dir30
     # The same open-loop EOFs on each actuator's own history alone (no neighbourhood).
     aa --n-subapertures 20 --diameter 4 --magnitude 8 --radius 0.5 --out experiments/runs/interop/oopao_aa/small_m8_dir0_own
+    # The eofnn-trained EOF with its twin at its own photon noise and on all its modes (what --eofnn-trained did
+    # before its noise was matched in OOPAO's command units and its modes to OOPAO's reconstructor's).
+    aa --n-subapertures 20 --diameter 4 --magnitude 8 --eofnn-trained --own-noise --all-modes \
+        --out experiments/runs/interop/oopao_aa/small_m8_dir0_twin_own
     # The eofnn-trained and the OOPAO-truth-trained filters side by side: their responses to static POL patterns.
     $PY experiments/interop/transfer_diagnostic.py
 fi
