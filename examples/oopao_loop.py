@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="only the anti-aliasing study (eofnn.interop.antialias), with or without --photon-noise")
     parser.add_argument("--eofnn-trained", action="store_true",
                         help="with --anti-aliasing: also the anti-aliasing EOF trained in eofnn's own Shack-Hartmann "
-                             "simulation of this system (eofnn.interop.transfer), on 3 x --frames frames")
+                             "simulation of this system (eofnn.interop.transfer), on 9 x --frames frames (and a fifth more "
+                             "to choose its ridge alpha)")
     parser.add_argument("--own-noise", action="store_true",
                         help="with --eofnn-trained: eofnn's simulation at its own photon noise for the guide star, "
                              "not at the WFS noise identified from OOPAO's telemetry")
@@ -151,7 +152,7 @@ def antialias(args, argv: list[str]) -> dict:
     started = time.time()
     external = None
     if args.eofnn_trained:
-        external = {"eof_eofnn": eofnn_trained(3 * f, 3 * f // 5, match_noise=not args.own_noise,
+        external = {"eof_eofnn": eofnn_trained(9 * f, 9 * f // 5, match_noise=not args.own_noise,
                                                controlled=not args.all_modes, static_gain=args.static_gain)}
     metrics = run_antialias(sim, config, external)
     metrics["seconds"] = round(time.time() - started, 1)

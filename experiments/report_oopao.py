@@ -239,7 +239,7 @@ def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
 
 def transfer_text() -> str:
     """The anti-aliasing EOF trained in eofnn's own simulation of OOPAO's system, in OOPAO's loop."""
-    rows, plain = [], None
+    rows, plain, twin_frames = [], None, set()
     for point, r in antialias_results():
         own = r["contenders"].get("eof_eofnn")
         if not own:
@@ -258,6 +258,7 @@ def transfer_text() -> str:
             plain = (system, text)
             continue
         trained = fit.get("trained_noise_nm")
+        twin_frames.add(fit.get("twin_frames", 7200))
         rows.append(f"{system}, I = {mag}, {direction}°: {text}; trained at "
                     + ("its own photon noise" if trained is None else f"{trained:.0f} nm of noise per actuator")
                     + f" against {r['identified']['wfs_noise_nm']:.0f} nm identified"
@@ -269,8 +270,10 @@ def transfer_text() -> str:
     ablation = "" if plain is None else (
         f" The same at 20 x 20 with the twin at its own photon noise and on all its modes (`--own-noise --all-modes`, "
         f"the row \"{plain[0]}\"): {plain[1]}.")
+    frames = " or ".join(f"{n}" for n in sorted(twin_frames)) if twin_frames else "7200"
     return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`): the same 5 x 5 "
-            "anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system, 7200 frames, its wind turned to "
+            f"anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system on {frames} frames (a sixth of "
+            "them held out for its ridge alpha), its wind turned to "
             "move over the actuators as OOPAO's does, its coefficients moved onto OOPAO's actuators by position and "
             "its commands scaled by the gain identified from OOPAO's telemetry. Two numbers of that telemetry and "
             "OOPAO's reconstructor make the twin OOPAO's loop: its guide star is set so that its WFS noise is the one "

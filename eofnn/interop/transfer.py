@@ -202,5 +202,6 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
         return runtime, {"alpha": fitted.info.get("alpha"), "target": "dm_fit in eofnn's simulation",
                          "trained_magnitude": None if detector is None else detector.magnitude,
                          "trained_noise_nm": trained.wfs_noise_nm / units, "controlled_modes": controlled,
+                         "twin_frames": frames + val_frames,
                          "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build
