@@ -39,9 +39,9 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # against the best-gain integrator, the LQG and PFC built from the same telemetry; 3 training sequences of 2000
     # frames, every contender scored on 3 realisations of 1000 frames. About 36 min of CPU per 40 x 40 run.
     aa() { $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 3 "$@"; }
-    # I = 8 also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained).
+    # Both magnitudes also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained).
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --eofnn-trained --out experiments/runs/interop/oopao_aa/m8
-    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --out experiments/runs/interop/oopao_aa/m10
+    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --eofnn-trained --out experiments/runs/interop/oopao_aa/m10
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --wind-direction 30 \
         --out experiments/runs/interop/oopao_aa/m8_dir30
     # At 0 degrees (the direction mapped onto eofnn's) also the anti-aliasing EOF trained in eofnn's own simulation.
