@@ -112,7 +112,7 @@ def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
     tel, aa = g["eof_measured"] or {}, g["eof_antialias"] or {}
     paired = ", ".join(f"{v:+.1f}" for v in aa.get("paired_difference_nm", []))
     system, mag, direction = point
-    pfc = f" ({r['pfc_scan']['aliases']} alias rings)" if "pfc_scan" in r else ""
+    pfc = f" (alias rings: {r['pfc_scan']['aliases']})" if "pfc_scan" in r else ""
     row = (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
            f"{r['integrator_scan']['gain']}) | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) | {mean('pfc')}{pfc} | "
            f"{mean('eof_measured')} | "
@@ -222,12 +222,13 @@ def _pfc_reading(found: list) -> str:
         parts.append(f"{system}, I = {mag}, {direction}°: " + ("diverged" if pfc is None else
                      f"{pfc - c['integrator']['mean_of_realisations_nm']:+.1f} nm") + f" (strongest layer "
                      f"identified at {layer.get('speed_mps', math.nan):.1f} m/s, {layer.get('weight', math.nan):.0%}; "
-                     f"{r['pfc_scan']['aliases']} alias rings chosen on the scan)")
+                     f"alias rings {r['pfc_scan']['aliases']}, chosen on the scan)")
     return ("Predictive Fourier control (`eofnn/interop/pfc.py`: eofnn's Kalman filter per Fourier mode on OOPAO's "
             "actuator lattice, its winds, weights, noise and per-mode variances identified from the same telemetry) "
             "is, against the integrator, " + "; ".join(parts) + f". It is above the integrator at {worse} of "
             f"{len(runs)} runs, and not the best classical controller (chosen on the scan) at {not_best} of {len(runs)}"
-            + ("" if not missing else f" (not run at {', '.join(missing)}: those runs predate it)") + ".")
+            + ("" if not missing else f" (not run at {', '.join(missing)}: "
+                                      f"{'that run predates' if len(missing) == 1 else 'those runs predate'} it)") + ".")
 
 
 def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
@@ -285,7 +286,7 @@ def transfer_text() -> str:
             "identified (in eofnn's command units: OOPAO's command is nm of influence-function peak, its Gaussian "
             "influence functions overlap, so it is 2.99 nm of eofnn's smooth surface), and its inputs and targets "
             "are projected onto the command modes OOPAO's reconstructor sees (without it, eofnn's fit of the true "
-            "phase keeps 10% of its variance in modes OOPAO never sees, waffle most). " + "; ".join(rows) + "."
+            "phase keeps variance in modes OOPAO never sees, waffle most). " + "; ".join(rows) + "."
             + ablation + " Carried over, the filter keeps part of the gain of the same filter trained on OOPAO's own "
             "truth. What remains between the two is the sensors themselves (OOPAO's diffractive four-pixel centroid "
             "and its optical gain per mode, its reconstructor, against eofnn's geometric model; eofnn's rim "
