@@ -56,6 +56,8 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
         --out experiments/runs/interop/oopao_aa/small_m8_dir0_twin_own
     # The eofnn-trained and the OOPAO-truth-trained filters side by side: their responses to static POL patterns.
     $PY experiments/interop/transfer_diagnostic.py
+    # The eofnn-trained EOF at I = 8 with its twin trained at seeds 1 and 2 (the page's run is seed 0).
+    $PY experiments/interop/twin_seeds.py 1 2
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
