@@ -183,8 +183,9 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
         conditions[name] = fits[name].pop("conditions", None)  # what it was trained in: the loop warns on a shift
     scan_seed = c.seed + 3
     scan = scan_integrator(sim, c.gains, c.loop_frames, scan_seed, c.settle_frames)
-    lqg = scan_lqg(sim, telemetry, plant.dm_gain, c, scan_seed)
-    pfc = scan_pfc(sim, telemetry, plant, c, scan_seed)
+    pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, plant.dm_gain) for seq in telemetry])
+    lqg = scan_lqg(sim, pol, plant.dm_gain, c, scan_seed)
+    pfc = scan_pfc(sim, pol, plant, c, scan_seed)
 
     def control(name: str):
         if name == "integrator":
@@ -217,43 +218,45 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
             "gains_over_best_classical": gains(results, fitting, c.separations_lod, best)}
 
 
-def scan_lqg(sim, telemetry: list, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:
+def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:
     """The LQG (:func:`eofnn.control.modal.lqg_from_pol`: AR model per KL mode, stationary Kalman filter) built
-    from the recorded telemetry's POL values (the identified DM gain), its AR order (1 or 2) chosen in the loop on
-    the scan realisation ``seed``: ``{"controller", "ar_order", "median_rms_nm", "scan"}``."""
-    pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, dm_gain) for seq in telemetry])
+    from the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain), its AR order (1 or
+    2) chosen in the loop on the scan realisation ``seed``: ``{"controller", "ar_order", "median_rms_nm", "scan"}``."""
     layout = layout_from_positions(sim.positions_m)
     indices = layout.lattice_indices if isinstance(layout, ActuatorLayout) else layout.indices
-    built, scan = {}, {}
-    for order in (1, 2):
-        built[order] = lqg_from_pol(pol, sim.delay_frames, dm_gain, order,
-                                    grid_indices=None if indices is None else torch.as_tensor(indices))
-        record = run_closed_loop(sim, TorchControl(built[order], sim.delay_frames), c.loop_frames, seed)
-        scan[str(order)] = record.metrics(c.settle_frames).median_rms_nm
-    stable = {int(k): v for k, v in scan.items() if v is not None}
-    order = min(stable, key=stable.get) if stable else 2
-    return {"controller": built[order], "ar_order": order, "median_rms_nm": stable.get(order), "scan": scan}
+    grid_indices = None if indices is None else torch.as_tensor(indices)
+    built = {order: lqg_from_pol(pol, sim.delay_frames, dm_gain, order, grid_indices=grid_indices)
+             for order in (1, 2)}
+    order, rms, scan = _best_in_loop(sim, {order: TorchControl(lqg, sim.delay_frames) for order, lqg in built.items()},
+                                     c, seed, fallback=2)
+    return {"controller": built[order], "ar_order": order, "median_rms_nm": rms, "scan": scan}
 
 
-def scan_pfc(sim, telemetry: list, plant, c: AntiAliasConfig, seed: int) -> dict:
+def scan_pfc(sim, pol: torch.Tensor, plant, c: AntiAliasConfig, seed: int) -> dict:
     """Predictive Fourier control (:func:`eofnn.interop.pfc.pfc_in_loop`: a Kalman filter per Fourier mode, the
-    winds, noise and per-mode variances from the recorded telemetry's POL values) with 0 or 1 rings of aliases in
-    its state, chosen in the loop on the scan realisation ``seed`` as the LQG's AR order is:
+    winds, noise and per-mode variances from the recorded telemetry's ``(R, T, K)`` POL values) with 0 or 1 rings of
+    aliases in its state, chosen in the loop on the scan realisation ``seed`` as the LQG's AR order is:
     ``{"controller", "aliases", "median_rms_nm", "scan", "info"}``."""
     from eofnn.control.config import PfcConfig
     from eofnn.interop.pfc import pfc_in_loop
 
-    pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, plant.dm_gain) for seq in telemetry])
-    built, scan = {}, {}
-    for aliases in (0, 1):
-        built[aliases] = pfc_in_loop(sim, pol, plant.dm_gain, plant.wfs_noise_nm, PfcConfig(aliases=aliases))
-        record = run_closed_loop(sim, built[aliases], c.loop_frames, seed)
-        scan[str(aliases)] = record.metrics(c.settle_frames).median_rms_nm
-    stable = {int(k): v for k, v in scan.items() if v is not None}
-    aliases = min(stable, key=stable.get) if stable else 1
+    built = {aliases: pfc_in_loop(sim, pol, plant.dm_gain, plant.wfs_noise_nm, PfcConfig(aliases=aliases))
+             for aliases in (0, 1)}
+    aliases, rms, scan = _best_in_loop(sim, built, c, seed, fallback=1)
     info = built[aliases].controller.info or {}
-    return {"controller": built[aliases], "aliases": aliases, "median_rms_nm": stable.get(aliases), "scan": scan,
+    return {"controller": built[aliases], "aliases": aliases, "median_rms_nm": rms, "scan": scan,
             "info": {"layers": info.get("layers"), "noise_rms_nm": info.get("noise_rms_nm")}}
+
+
+def _best_in_loop(sim, controls: dict, c: AntiAliasConfig, seed: int, fallback):
+    """Each of ``controls`` (by setting) closed in ``sim``'s loop on the realisation ``seed``: ``(the setting with the
+    lowest median RMS, that RMS, {str(setting): RMS or None if it diverged})``; ``fallback`` and ``None`` when every
+    one diverged."""
+    scan = {setting: run_closed_loop(sim, control, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
+            for setting, control in controls.items()}
+    stable = {setting: v for setting, v in scan.items() if v is not None}
+    best = min(stable, key=stable.get) if stable else fallback
+    return best, stable.get(best), {str(setting): v for setting, v in scan.items()}
 
 
 def score(sim, control, name: str, seeds: list[int], c: AntiAliasConfig) -> dict:

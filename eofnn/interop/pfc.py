@@ -9,7 +9,7 @@ runs the controller in that order inside the loop. The controller itself is buil
 gain), the white noise from the identification, the winds and their weights identified from the same telemetry
 (:mod:`eofnn.control.wind`), per-mode variances, and the stationary Kalman gain of each mode. What the loop's own
 calibration cannot tell it, the outer scale and that the sensor averages over subapertures (the aliases' share of
-each mode), comes from eofnn's twin of the system (:func:`eofnn.interop.transfer.twin_scenario`).
+each mode), comes from eofnn's twin of the system (:func:`eofnn.interop.transfer.eofnn_twin`).
 """
 
 from __future__ import annotations
@@ -53,9 +53,7 @@ class LatticeGrid:
 
     def ptt_basis(self) -> np.ndarray:
         """Orthonormal ``(K, 3)`` piston, tip and tilt over the actuators (lattice order)."""
-        x, y = self.positions_m.T
-        q, _ = np.linalg.qr(np.stack([np.ones_like(x), x, y], axis=1))
-        return q
+        return self._layout.ptt_basis()
 
 
 class LatticeControl(TorchControl):

@@ -194,14 +194,15 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
         from eofnn.training.conditions import scenario_conditions
 
         trained = scenario_conditions(scenario)
+        noise = trained.wfs_noise_nm / units  # in the loop's command units
         detector = scenario.sensor.detector
         # Carried over, it commands through the identified gain: that is the DM gain it now believes.
-        conditions = {**trained.to_dict(), "wfs_noise_nm": trained.wfs_noise_nm / units, "dm_gain": float(plant.dm_gain),
+        conditions = {**trained.to_dict(), "wfs_noise_nm": noise, "dm_gain": float(plant.dm_gain),
                       "source": "eofnn's simulation of the system (noise in the loop's command units), carried with "
                                 "the identified gain"}
         return runtime, {"alpha": fitted.info.get("alpha"), "target": "dm_fit in eofnn's simulation",
                          "trained_magnitude": None if detector is None else detector.magnitude,
-                         "trained_noise_nm": trained.wfs_noise_nm / units, "controlled_modes": controlled,
+                         "trained_noise_nm": noise, "controlled_modes": controlled,
                          "twin_frames": frames + val_frames,
                          "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build

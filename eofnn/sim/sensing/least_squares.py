@@ -23,6 +23,7 @@ def default_relative_cut(subapertures_across: int) -> float:
     across; 0.1 up to 30)."""
     return min(0.1, 3.0 / subapertures_across)
 
+
 def surface_per_command(mechanical_coupling: float = MECHANICAL_COUPLING) -> float:
     """nm of smooth DM surface per nm of command of peak-1 Gaussian influence functions on a square lattice: their
     lattice sum ``(sum_j coupling^(j²))²`` (2.99 at OOPAO's 0.35). eofnn's commands are divided by it (nm of surface
