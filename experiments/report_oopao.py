@@ -112,7 +112,8 @@ def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
     tel, aa = g["eof_measured"] or {}, g["eof_antialias"] or {}
     paired = ", ".join(f"{v:+.1f}" for v in aa.get("paired_difference_nm", []))
     system, mag, direction = point
-    pfc = f" (alias rings: {r['pfc_scan']['aliases']})" if "pfc_scan" in r else ""
+    pfc = "" if "pfc_scan" not in r else " (" + (f"alpha {r['pfc_scan']['alpha']:g}, " if "alpha" in r["pfc_scan"]
+                                                 else "") + f"alias rings: {r['pfc_scan']['aliases']})"
     row = (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
            f"{r['integrator_scan']['gain']}) | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) | {mean('pfc')}{pfc} | "
            f"{mean('eof_measured')} | "
@@ -222,7 +223,8 @@ def _pfc_reading(found: list) -> str:
         parts.append(f"{system}, I = {mag}, {direction}°: " + ("diverged" if pfc is None else
                      f"{pfc - c['integrator']['mean_of_realisations_nm']:+.1f} nm") + f" (strongest layer "
                      f"identified at {layer.get('speed_mps', math.nan):.1f} m/s, {layer.get('weight', math.nan):.0%}; "
-                     f"alias rings {r['pfc_scan']['aliases']}, chosen on the scan)")
+                     + (f"memory alpha {r['pfc_scan']['alpha']:g} and " if "alpha" in r["pfc_scan"] else "")
+                     + f"alias rings {r['pfc_scan']['aliases']}, chosen on the scan)")
     return ("Predictive Fourier control (`eofnn/interop/pfc.py`: eofnn's Kalman filter per Fourier mode on OOPAO's "
             "actuator lattice, its winds, weights, noise and per-mode variances identified from the same telemetry) "
             "is, against the integrator, " + "; ".join(parts) + f". It is above the integrator at {worse} of "
@@ -245,7 +247,7 @@ def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
 
 def transfer_text() -> str:
     """The anti-aliasing EOF trained in eofnn's own simulation of OOPAO's system, in OOPAO's loop."""
-    rows, plain, twin_frames = [], None, set()
+    rows, plain, twin_frames, sequences = [], None, set(), set()
     for point, r in antialias_results():
         own = r["contenders"].get("eof_eofnn")
         if not own:
@@ -265,6 +267,7 @@ def transfer_text() -> str:
             continue
         trained = fit.get("trained_noise_nm")
         twin_frames.add(fit.get("twin_frames", 7200))
+        sequences.add(fit.get("twin_sequences", 3))
         rows.append(f"{system}, I = {mag}, {direction}°: {text}; trained at "
                     + ("its own photon noise" if trained is None else f"{trained:.0f} nm of noise per actuator")
                     + f" against {r['identified']['wfs_noise_nm']:.0f} nm identified"
@@ -277,8 +280,9 @@ def transfer_text() -> str:
         f" The same at 20 x 20 with the twin at its own photon noise and on all its modes (`--own-noise --all-modes`, "
         f"the row \"{plain[0]}\"): {plain[1]}.")
     frames = " or ".join(f"{n}" for n in sorted(twin_frames)) if twin_frames else "7200"
+    frames += " frames in " + " or ".join(f"{n}" for n in sorted(sequences)) + " realisations"
     return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`): the same 5 x 5 "
-            f"anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system on {frames} frames (a sixth of "
+            f"anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system on {frames} (a sixth of "
             "them held out for its ridge alpha), its wind turned to "
             "move over the actuators as OOPAO's does, its coefficients moved onto OOPAO's actuators by position and "
             "its commands scaled by the gain identified from OOPAO's telemetry. Two numbers of that telemetry and "
@@ -287,14 +291,33 @@ def transfer_text() -> str:
             "influence functions overlap, so it is 2.99 nm of eofnn's smooth surface), and its inputs and targets "
             "are projected onto the command modes OOPAO's reconstructor sees (without it, eofnn's fit of the true "
             "phase keeps variance in modes OOPAO never sees, waffle most). " + "; ".join(rows) + "."
-            + ablation + " Each row is one training realisation of the twin (seed 0) and one ridge alpha chosen on "
-            "its validation frames; the margin over the goal at 40 x 40 is about what another realisation of the twin "
-            "moves, so the 1.5x is met at this seed, not shown for the method. Carried over, the filter keeps part "
+            + ablation + " Each row is one training set of the twin (seed 0) and one ridge alpha chosen on its "
+            "validation frames. " + _twin_seeds_text() + " Carried over, the filter keeps part "
             "of the gain of the same filter trained on OOPAO's own truth. What remains between the two is the "
             "sensors themselves (OOPAO's diffractive four-pixel centroid and its optical gain per mode, its "
             "reconstructor, against eofnn's geometric model; eofnn's rim subapertures see the whole phase; "
             "`experiments/interop/transfer_diagnostic.py` prints the two filters' responses to static patterns); "
             "which of these costs most was not separated.")
+
+
+def _twin_seeds_text() -> str:
+    """The eofnn-trained EOF at 40 x 40, I = 8 over the twin's training seeds (experiments/interop/twin_seeds.py, the
+    page's run as seed 0), each against that run's best classical controller on the same realisations."""
+    seeds, run = load("interop/twin_seeds", "result"), load("interop/oopao_aa/m8", "result")
+    if not seeds or not run or "eof_eofnn" not in run["contenders"]:
+        return "How much another training set of the twin moves it was not measured."
+    best, fit = run["best_classical"], run["fitting_error_nm"]
+
+    def variance(rms: list) -> float:
+        return sum(r * r - f * f for r, f in zip(rms, fit, strict=True))
+
+    base = variance(run["contenders"][best]["realisations_median_rms_nm"])
+    runs = {"0": run["contenders"]["eof_eofnn"]["realisations_median_rms_nm"],
+            **{k: v["realisations_median_rms_nm"] for k, v in seeds["seeds"].items()}}
+    parts = [f"seed {k}: " + ("diverged" if None in rms else f"{sum(rms) / len(rms):.1f} nm, {base / variance(rms):.2f}x")
+             for k, rms in runs.items()]
+    return (f"Over training sets of the twin (40 x 40, I = 8; `experiments/interop/twin_seeds.py`, each filter scored "
+            f"on the same {len(fit)} realisations, against the {AA_LABELS[best]}): " + "; ".join(parts) + ".")
 
 
 def _is_ablation(point: tuple) -> bool:

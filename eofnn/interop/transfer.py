@@ -94,40 +94,42 @@ def controlled_projector(sim, eofnn_positions_m, keep: float = 0.5) -> torch.Ten
 
 
 def train_in_eofnn(sim, *, frames: int = 6000, val_frames: int = 1200, history_length: int = 4,
-                   radius: float = 2.5, seed: int = 0, noise_nm: float | None = None, controlled: bool = True):
+                   radius: float = 2.5, seed: int = 0, noise_nm: float | None = None, controlled: bool = True,
+                   sequences: int = 3):
     """The anti-aliasing EOF trained in eofnn's simulation of ``sim``'s system (module docstring, step 1; with
     ``noise_nm``, in eofnn's command units, its noise matched, :func:`twin_scenario`): ``(fit result, scenario)``.
 
-    Three open-loop sequences of ``(frames + val_frames) / 3`` frames, the last third of ``val_frames`` of each held
-    out for the ridge alpha (the grid of :data:`eofnn.interop.study.ALPHA_PATH`, as the filters fitted in ``sim``'s
-    own loop); inputs are eofnn's measured POL values, targets the DM's fit of the true phase. ``controlled``: both
-    projected onto the command modes ``sim``'s reconstructor sees (:func:`controlled_projector`), the only ones its
-    POL values hold and its DM is sent."""
+    ``sequences`` open-loop sequences (independent realisations) of ``(frames + val_frames) / sequences`` frames, the
+    last ``val_frames / sequences`` of each held out for the ridge alpha (the grid of
+    :data:`eofnn.interop.study.ALPHA_PATH`, as the filters fitted in ``sim``'s own loop); inputs are eofnn's measured
+    POL values, targets the DM's fit of the true phase. ``controlled``: both projected onto the command modes
+    ``sim``'s reconstructor sees (:func:`controlled_projector`), the only ones its POL values hold and its DM is
+    sent."""
     from eofnn.data.stream import SimulatedTelemetry
     from eofnn.interop.study import ALPHA_PATH
     from eofnn.telemetry.record import Telemetry
     from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 
-    sequence = -(-(frames + val_frames) // 3)
+    sequence = -(-(frames + val_frames) // sequences)
     scenario = twin_scenario(sim, sequence + 200, noise_nm)
     spec = HistorySpec("open_loop", history_length, sim.delay_frames)
-    stream = SimulatedTelemetry(scenario, spec, 3 * sequence, stream="twin",
-                                data=DataConfig(frames=3 * sequence, sequence_frames=sequence, target="dm_fit",
+    stream = SimulatedTelemetry(scenario, spec, sequences * sequence, stream="twin",
+                                data=DataConfig(frames=sequences * sequence, sequence_frames=sequence, target="dm_fit",
                                                 seed=seed))
     positions = torch.as_tensor(np.asarray(scenario.grid.positions_m, dtype=np.float64))
     projector = controlled_projector(sim, positions.numpy()) if controlled else None
-    sequences = []
+    recorded = []
     for i in range(stream.n_sequences):
         arrays = stream.telemetry(i)
         s, pol = arrays["s"][0], arrays["s_hat"][0]
         if projector is not None:
             s, pol = s @ projector, pol @ projector
-        sequences.append(Telemetry(s=s, y=torch.zeros_like(pol), wfs=pol, delay_frames=sim.delay_frames,
+        recorded.append(Telemetry(s=s, y=torch.zeros_like(pol), wfs=pol, delay_frames=sim.delay_frames,
                                    positions_m=positions, frame_rate_hz=sim.frame_rate_hz))
     network = {"class_path": "eofnn.models.linear.LinearFilter",
                "init_args": {"structure": "neighbourhood", "radius": radius}}
-    fitted = fit_from_telemetry(sequences, spec, network, plant={"dm_gain": 1.0},
-                                data=TelemetryDataConfig(val_frames=-(-val_frames // 3), target="s",
+    fitted = fit_from_telemetry(recorded, spec, network, plant={"dm_gain": 1.0},
+                                data=TelemetryDataConfig(val_frames=-(-val_frames // sequences), target="s",
                                                          target_dm_gain=1.0, seed=seed),
                                 optimization=OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH))
     return fitted, scenario
@@ -173,7 +175,7 @@ def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m,
 
 
 def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, match_noise: bool = True,
-                  controlled: bool = True, static_gain: bool = False):
+                  controlled: bool = True, static_gain: bool = False, sequences: int = 3):
     """An ``external`` predictor of :func:`eofnn.interop.antialias.run_antialias`: trained in eofnn's simulation of
     the loop's system (:func:`train_in_eofnn`), carried onto its actuators with the gain identified from its
     recording (:func:`transfer_filter`).
@@ -188,7 +190,7 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
         units = float(getattr(sim, "surface_per_command", 1.0))  # eofnn's command units per one of the loop's
         fitted, scenario = train_in_eofnn(sim, frames=frames, val_frames=val_frames, seed=seed,
                                           noise_nm=plant.wfs_noise_nm * units if match_noise else None,
-                                          controlled=controlled)
+                                          controlled=controlled, sequences=sequences)
         runtime, moved = transfer_filter(fitted.network, fitted.spec, scenario.grid.positions_m, sim.positions_m,
                                          plant.dm_gain, static_gain=static_gain)
         from eofnn.training.conditions import scenario_conditions
@@ -203,6 +205,6 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
         return runtime, {"alpha": fitted.info.get("alpha"), "target": "dm_fit in eofnn's simulation",
                          "trained_magnitude": None if detector is None else detector.magnitude,
                          "trained_noise_nm": noise, "controlled_modes": controlled,
-                         "twin_frames": frames + val_frames,
+                         "twin_frames": frames + val_frames, "twin_sequences": sequences,
                          "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build

@@ -38,7 +38,8 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # directions. The 5 x 5 open-loop EOF fitted on telemetry alone and the anti-aliasing EOF fitted on OOPAO's truth,
     # against the best-gain integrator, the LQG and PFC built from the same telemetry; 3 training sequences of 2000
     # frames, every contender scored on 3 realisations of 1000 frames. About 36 min of CPU per 40 x 40 run.
-    aa() { $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 3 "$@"; }
+    # One thread: OOPAO's numbers are bit-for-bit only at a fixed thread count, and these were made with one.
+    aa() { OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 3 "$@"; }
     # Both magnitudes also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained).
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --eofnn-trained --out experiments/runs/interop/oopao_aa/m8
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --eofnn-trained --out experiments/runs/interop/oopao_aa/m10
@@ -55,9 +56,9 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     aa --n-subapertures 20 --diameter 4 --magnitude 8 --eofnn-trained --own-noise --all-modes \
         --out experiments/runs/interop/oopao_aa/small_m8_dir0_twin_own
     # The eofnn-trained and the OOPAO-truth-trained filters side by side: their responses to static POL patterns.
-    $PY experiments/interop/transfer_diagnostic.py
-    # The eofnn-trained EOF at I = 8 with its twin trained at seeds 1 and 2 (the page's run is seed 0).
-    $PY experiments/interop/twin_seeds.py 1 2
+    OMP_NUM_THREADS=1 $PY experiments/interop/transfer_diagnostic.py
+    # The eofnn-trained EOF at I = 8 with its twin trained at seeds 1 and 2 (the page's run is seed 0): reads m8's run.
+    OMP_NUM_THREADS=1 $PY experiments/interop/twin_seeds.py 1 2
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
