@@ -20,7 +20,7 @@ from eofnn.control.registry import FROM_TELEMETRY, build_controller
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_target, require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
-from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.config import EvaluationConfig, PredictorConfig, with_setting
 from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.resources import require_memory, require_time
 from eofnn.sim.loop.runner import Controller
@@ -100,7 +100,7 @@ def scan_settings(cfg: PredictorConfig, settings: list[dict], scenario: Scenario
     ``median_rms_nm`` (``None`` where the loop diverged), in the order given."""
     entries = []
     for setting in settings:
-        setting_cfg = replace(cfg, **setting)
+        setting_cfg = with_setting(cfg, setting)
         controller = build_controller(setting_cfg, None if model_of is None else model_of(setting_cfg))
         entries.append({**setting, "median_rms_nm": scan_median_residual(controller, cfg, scenario, settle_frames,
                                                                          divergence_factor)})
@@ -108,7 +108,7 @@ def scan_settings(cfg: PredictorConfig, settings: list[dict], scenario: Scenario
 
 
 #: The config fields that ask for a scan of a classical controller's settings (``setting_grid``).
-SCAN_FIELDS = ("orders", "smoothings", "ar_orders")
+SCAN_FIELDS = ("orders", "smoothings", "ar_orders", "pfc_alphas")
 
 
 def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_frames: int,

@@ -15,7 +15,7 @@ from eofnn.analysis.linear import summary as stability_summary
 from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, build_controller
 from eofnn.errors import require
 from eofnn.evaluation.budget import budget_line, budget_runs, fitting_nm
-from eofnn.evaluation.config import EvaluationConfig, PredictorConfig
+from eofnn.evaluation.config import EvaluationConfig, PredictorConfig, with_setting
 from eofnn.evaluation.contenders import (
     SCAN_FIELDS,
     build_scenarios,
@@ -146,7 +146,7 @@ class Experiment:
         if cfg.setting_grid is not None:
             chosen = {key: value for key, value in self._tuned(name, scenario_name).items()
                       if key not in ("median_rms_nm", "scanned")}
-            return replace(cfg, **dict.fromkeys(SCAN_FIELDS), **chosen)
+            return with_setting(replace(cfg, **dict.fromkeys(SCAN_FIELDS)), chosen)
         if cfg.gains is None:
             return cfg
         key = (name, scenario_name)

@@ -76,7 +76,7 @@ class ExperimentResult:
 
 
 #: How a setting of a classical controller reads in a line (``results.md``, progress).
-SETTING_LABELS = {"order": "order {}", "smoothing": "smoothing {}", "ar_order": "AR({})"}
+SETTING_LABELS = {"order": "order {}", "smoothing": "smoothing {}", "ar_order": "AR({})", "pfc.alpha": "alpha {}"}
 
 
 def describe_setting_scan(scan: dict) -> str:
