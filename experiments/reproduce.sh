@@ -53,6 +53,7 @@ $eofnn compare --config $x/where/check_v5.yaml --out $r/where/check_v5 --overwri
 $eofnn compare --config $x/where/check_v20.yaml --out $r/where/check_v20_m8 --overwrite true
 $eofnn compare --config $x/where/check_v20.yaml --scenario.sensor.detector.magnitude 10 --out $r/where/check_v20_m10 \
   --overwrite true
+$eofnn compare --config $x/where/check_pfc.yaml --out $r/where/check_pfc --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \

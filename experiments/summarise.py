@@ -31,7 +31,7 @@ COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/pa
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
             "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
             "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
-            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10")
+            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc")
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh
            *(f"oopao_map/v{wind}_m{mag}" for wind, mag in OOPAO_POINTS))
@@ -49,7 +49,7 @@ METRICS = {
     "ridge_alphas": _PER({"alpha": True, "val_loss": True, "unregularised_val_loss": True, "path": {"alpha"}}),
     "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
     "classical_models": _PER({"frames", "modes", "gain_margin"}),
-    "classical_settings": _PER({"order", "smoothing", "ar_order", "median_rms_nm"}),
+    "classical_settings": _PER({"order", "smoothing", "ar_order", "pfc.alpha", "median_rms_nm"}),
     "verdict": True,
     "realisation_median_rms_nm": True,
     "timings_s": True,
