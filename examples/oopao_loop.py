@@ -40,10 +40,11 @@ from dataclasses import replace
 from eofnn.errors import ConfigError
 from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_antialias
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
-from eofnn.interop.report import aliasing_budget, antialias_psd_figure, example_parser, parse_example, split_text, write_results
+from eofnn.interop.report import aliasing_budget, example_parser, parse_example, split_text, write_results
 from eofnn.interop.study import StudyConfig, run_study
 from eofnn.interop.transfer import eofnn_direction, eofnn_trained
 from eofnn.outputs import write_text_atomic
+from eofnn.reporting.interop import antialias_psd_figure
 
 
 def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:

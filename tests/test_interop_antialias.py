@@ -64,7 +64,8 @@ def _psd_metrics() -> dict:
 
 
 def test_the_psd_bands_split_the_measured_residual_at_the_frozen_flow_frequency(tmp_path):
-    from eofnn.interop.report import antialias_psd_figure, psd_bands, psd_bands_markdown
+    from eofnn.interop.report import psd_bands, psd_bands_markdown
+    from eofnn.reporting.interop import antialias_psd_figure
 
     metrics = _psd_metrics()
     assert psd_bands(metrics, "integrator") == (2.0 * 2 * 125, 2.0 * 3 * 125)  # 0, 125 Hz below; 250, 375, 500 above
