@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-from report_common import HERE, fmt, load
+from report_common import fmt, load
 
 OOPAO_POINTS = tuple((wind, mag) for wind in (10, 20) for mag in (8, 10))  # experiments/interop/run.sh oopao_map
 
@@ -162,7 +162,8 @@ def antialias_text() -> str:
             out.append(f"I = {mag}: {v:.2f}x{' (met)' if v >= target else ''}")
         return ", ".join(out)
 
-    figure = "" if not (HERE / "interop/oopao_aa/m8/psd.png").is_file() else (
+    m8 = load("interop/oopao_aa/m8", "result") or {}
+    figure = "" if "psd_frequency_hz" not in m8 else (
         "\n\n![temporal PSDs of the measured residual, 40 x 40, I = 8](interop/oopao_aa/m8/psd.png)")
     return "\n".join(lines) + figure + f"""
 
