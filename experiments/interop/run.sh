@@ -9,7 +9,7 @@
 #   - oopao_map: 20 x 20 on 4 m with photon noise only, at 10 and 20 m/s x I = 8 and 10 (four points);
 #   - oopao_aa: the EOF from telemetry and the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin)
 #     against the integrator, the LQG and predictive Fourier control at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
-#     checks beside them (about 2 h on 2 cores);
+#     checks beside them (about 4 h of CPU, one thread per run);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -37,7 +37,7 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # the actuator rows), and I = 8 with the wind at 30 degrees; then 20 x 20 on 4 m (the OOPAO map's system) at both
     # directions. The 5 x 5 open-loop EOF fitted on telemetry alone and the anti-aliasing EOF fitted on OOPAO's truth,
     # against the best-gain integrator, the LQG and PFC built from the same telemetry; 3 training sequences of 2000
-    # frames, every contender scored on 3 realisations of 1000 frames. About 36 min of CPU per 40 x 40 run.
+    # frames, every contender scored on 3 realisations of 1000 frames. About 50 min of CPU per 40 x 40 run.
     # One thread: OOPAO's numbers are bit-for-bit only at a fixed thread count, and these were made with one.
     aa() { OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 3 "$@"; }
     # Both magnitudes also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained).
