@@ -84,8 +84,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="only the anti-aliasing study (eofnn.interop.antialias), with or without --photon-noise")
     parser.add_argument("--eofnn-trained", action="store_true",
                         help="with --anti-aliasing: also the anti-aliasing EOF trained in eofnn's own Shack-Hartmann "
-                             "simulation of this system (eofnn.interop.transfer), on 9 x --frames frames (and a fifth more "
-                             "to choose its ridge alpha)")
+                             "simulation of this system (eofnn.interop.transfer), on 27 x --frames frames in 9 "
+                             "realisations (a fifth more to choose its ridge alpha)")
     parser.add_argument("--own-noise", action="store_true",
                         help="with --eofnn-trained: eofnn's simulation at its own photon noise for the guide star, "
                              "not at the WFS noise identified from OOPAO's telemetry")

@@ -211,20 +211,26 @@ V20_HEADER = ("| R mag | best classical (nm) | anti-aliasing EOF (nm) | best cla
               "variance gain, fitting removed | contrast gain at 3 λ/D |\n|---|---|---|---|---|---|")
 
 
+def _v20_gain(check: dict) -> tuple[dict, str, float] | None:
+    """A 20 m/s check's contenders that held, its best classical controller (integrator, LQG or PFC) and the
+    anti-aliasing EOF's variance gain over it after fitting error; None where either side has none."""
+    held = {n: m for n, m in check["scenarios"]["nominal"].items() if _held(m)}
+    classical = [n for n in ("integrator", "lqg", "pfc") if n in held]
+    if not classical or "ol_eof_aa" not in held:
+        return None
+    best = min(classical, key=lambda n: held[n]["median_rms_nm"])
+    return held, best, variance_less_fitting(held[best]) / max(variance_less_fitting(held["ol_eof_aa"]), 1e-30)
+
+
 def _check_v20_text() -> str:
     """The issue's goal conditions (20 m/s, R = 8 and 10) on 4 realisations the map did not use."""
     lines = []
     for mag in (8, 10):
         check = load(f"where/check_v20_m{mag}")
-        if check is None:
+        found = None if check is None else _v20_gain(check)
+        if found is None:
             continue
-        nominal = check["scenarios"]["nominal"]
-        held = {n: m for n, m in nominal.items() if _held(m)}
-        classical = [n for n in ("integrator", "lqg", "pfc") if n in held]
-        if not classical or "ol_eof_aa" not in held:
-            continue
-        best = min(classical, key=lambda n: held[n]["median_rms_nm"])
-        variance = variance_less_fitting(held[best]) / max(variance_less_fitting(held["ol_eof_aa"]), 1e-30)
+        held, best, variance = found
         contrast = check.get("raw_contrast", {}).get("nominal", {})
         c_best, c_aa = (contrast.get(best) or {}).get("3"), (contrast.get("ol_eof_aa") or {}).get("3")
         per = check.get("realisation_median_rms_nm", {}).get("nominal", {})
@@ -319,12 +325,10 @@ def _pfc_caveat(entries: list[dict]) -> str:
     cell = next((e for e in entries if (e["wind"], e["magnitude"]) == (20.0, 8.0)), None)
     if check is None or cell is None or "pfc" not in check["scenarios"]["nominal"]:
         return ""
-    nominal = {n: m for n, m in check["scenarios"]["nominal"].items() if _held(m)}
-    classical = [n for n in ("integrator", "lqg", "pfc") if n in nominal]
-    if not classical or "ol_eof_aa" not in nominal:
+    found = _v20_gain(check)
+    if found is None:
         return ""
-    best = min(classical, key=lambda n: nominal[n]["median_rms_nm"])
-    gain = variance_less_fitting(nominal[best]) / max(variance_less_fitting(nominal["ol_eof_aa"]), 1e-30)
+    _, best, gain = found
     where = ("it is the best classical controller" if best == "pfc" else
              f"the best classical controller is still the {LABELS.get(best, best)}")
     return (f" **But** the map ran predictive Fourier control at its default memory (alpha 0.9999), untuned. Tuned "

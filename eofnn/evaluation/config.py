@@ -260,9 +260,9 @@ class PredictorConfig:
         :func:`with_setting`); ``None`` when nothing is scanned (the integrator's ``gains`` have a scan of their
         own)."""
         if self.pfc_alphas is not None:
-            return [{"pfc.alpha": float(a)} for i, a in enumerate(self.pfc_alphas) if a not in self.pfc_alphas[:i]]
+            return [{"pfc.alpha": float(a)} for a in dict.fromkeys(self.pfc_alphas)]
         if self.ar_orders is not None:
-            return [{"ar_order": int(order)} for i, order in enumerate(self.ar_orders) if order not in self.ar_orders[:i]]
+            return [{"ar_order": int(order)} for order in dict.fromkeys(self.ar_orders)]
         return self.extrapolator_grid
 
     @property
@@ -367,7 +367,7 @@ class EvaluationConfig:
                 f"longer than the {self.frames - self.settle_frames} settled frames)")
 
 
-__all__ = ["DEFAULT_PSD_SEGMENT_FRAMES", "EvaluationConfig", "PredictorConfig"]
+__all__ = ["DEFAULT_PSD_SEGMENT_FRAMES", "EvaluationConfig", "PredictorConfig", "with_setting"]
 
 
 def with_setting(cfg: PredictorConfig, setting: dict) -> PredictorConfig:

@@ -379,4 +379,3 @@ def antialias_markdown(metrics: dict) -> str:
                          + ", ".join(f"{v:.2f}x at {s}" for s, v in gain["contrast"].items()) + " | "
                          + ", ".join(f"{v:+.1f}" for v in gain["paired_difference_nm"]) + " |")
     return "\n".join(lines) + "\n"
-
