@@ -199,7 +199,7 @@ MAPS = ("where/sh",)
 
 
 #: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).
-JSONS = {"coupled_margins": "realistic_10.json", "interop/twin_seeds": "twin_seeds.json"}
+JSONS = {"coupled_margins": "realistic_10.json", "interop/twin_seeds": "twin_seeds.json", "interop/rim": "rim.json"}
 
 
 def collect() -> list[str]:

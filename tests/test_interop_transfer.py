@@ -9,8 +9,15 @@ import torch
 
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
-from eofnn.interop.transfer import EOFNN_DIRECTION_OF_OOPAO, eofnn_direction, transfer_filter
+from eofnn.interop.transfer import (
+    EOFNN_DIRECTION_OF_OOPAO,
+    eofnn_direction,
+    rim_actuators,
+    splice_filters,
+    transfer_filter,
+)
 from eofnn.models.linear import LinearFilter
+from eofnn.runtime import PredictiveFilter
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.training.export import filter_coefficients
 
@@ -154,3 +161,40 @@ def test_oopaos_command_is_surface_per_command_nm_of_smooth_surface():
     centre = surface.reshape(res, res)[res // 2 - 2:res // 2 + 2, res // 2 - 2:res // 2 + 2]
     assert sim.surface_per_command == pytest.approx(2.99, abs=0.01)
     assert centre.mean() == pytest.approx(sim.surface_per_command, rel=0.02)
+
+
+def test_a_spliced_filter_commands_each_actuator_as_the_filter_it_was_taken_from():
+    network, ours = _network()
+    spec = HistorySpec("open_loop", 2, 2)
+    inner, _ = transfer_filter(network, spec, ours, ours, dm_gain=2.0)
+    k, taps = inner.n_actuators, inner.taps
+    rng = np.random.default_rng(3)
+    outer = PredictiveFilter(rng.standard_normal((k, 1, len(taps))), taps, 2, 2.0, np.arange(k)[:, None])  # own only
+    rim = rim_actuators(ours, 1.0)
+    assert 0 < rim.sum() < k
+    spliced = splice_filters(inner, outer, rim)
+    for f in (inner, outer, spliced):
+        f.reset()
+    y_last = None
+    for _ in range(8):
+        wfs = rng.standard_normal(k)
+        a, b, c = (f.step(wfs, y_last=y_last) for f in (inner, outer, spliced))
+        assert np.allclose(c, np.where(rim, b, a))
+        y_last = rng.standard_normal(k)  # the loop applies something else: all three read it
+    assert np.abs(a - b).min() > 1e-6  # past the first frames the two filters command differently everywhere
+    mismatched = PredictiveFilter(outer.coefficients, taps, 2, 1.0, np.arange(k)[:, None])
+    with pytest.raises(ConfigError, match="same loop"):
+        splice_filters(inner, mismatched, rim)
+    with pytest.raises(ConfigError, match="one flag per actuator"):
+        splice_filters(inner, outer, rim[:-1])
+
+
+def test_the_rim_is_the_actuators_within_so_many_pitches_of_the_outermost():
+    positions = np.asarray(ActuatorGrid(4.0, 20).positions_m)
+    radius = np.hypot(*positions.T)
+    for pitches in (1.0, 2.0):
+        rim = rim_actuators(positions, pitches)
+        assert np.array_equal(rim, radius > radius.max() - pitches * 0.2 - 1e-12)
+    assert not rim_actuators(positions, 0.0).any()
+    with pytest.raises(ConfigError, match="pitches"):
+        rim_actuators(positions, -1.0)

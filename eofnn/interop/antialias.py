@@ -174,17 +174,7 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     telemetry = record_with_truth(sim, c)
     plant = identify_plant(telemetry)
     plant.require_identified()
-    spec = HistorySpec("open_loop", c.history_length, sim.delay_frames)
-    network = {"class_path": "eofnn.models.linear.LinearFilter",
-               "init_args": {"structure": "neighbourhood", "radius": c.radius}}
-    optimization = OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH)
-    filters, fits = {}, {}
-    for name, target in (("eof_measured", "measured"), ("eof_antialias", "s")):
-        data = TelemetryDataConfig(val_frames=c.val_frames, seed=c.seed, target=target,
-                                   target_dm_gain=sim.dm_gain if target == "s" else None)
-        fitted = fit_from_telemetry(telemetry, spec, network, plant=plant, data=data, optimization=optimization)
-        filters[name] = runtime_filter(fitted.network, spec, plant.dm_gain)
-        fits[name] = {"alpha": fitted.info.get("alpha"), "target": target}
+    filters, fits = fit_eofs(sim, telemetry, plant, c)
     conditions = {}
     for name, build in (external or {}).items():
         filters[name], fits[name] = build(sim, plant)
@@ -227,6 +217,23 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
             "frozen_flow_hz": frozen_flow_hz(sim),
             "gains": gains(results, fitting, c.separations_lod, "integrator"),
             "gains_over_best_classical": gains(results, fitting, c.separations_lod, best)}
+
+
+def fit_eofs(sim, telemetry: list, plant, c: AntiAliasConfig) -> tuple[dict, dict]:
+    """The two open-loop EOFs of :func:`run_antialias` fitted on ``telemetry`` (:func:`record_with_truth`) through
+    ``plant`` (identified from it): ``({name: runtime filter}, {name: {"alpha", "target"}})``."""
+    spec = HistorySpec("open_loop", c.history_length, sim.delay_frames)
+    network = {"class_path": "eofnn.models.linear.LinearFilter",
+               "init_args": {"structure": "neighbourhood", "radius": c.radius}}
+    optimization = OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH)
+    filters, fits = {}, {}
+    for name, target in (("eof_measured", "measured"), ("eof_antialias", "s")):
+        data = TelemetryDataConfig(val_frames=c.val_frames, seed=c.seed, target=target,
+                                   target_dm_gain=sim.dm_gain if target == "s" else None)
+        fitted = fit_from_telemetry(telemetry, spec, network, plant=plant, data=data, optimization=optimization)
+        filters[name] = runtime_filter(fitted.network, spec, plant.dm_gain)
+        fits[name] = {"alpha": fitted.info.get("alpha"), "target": target}
+    return filters, fits
 
 
 def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:

@@ -39,6 +39,7 @@ from eofnn.models.linear import LinearFilter
 from eofnn.runtime import PredictiveFilter
 from eofnn.training.export import filter_coefficients, filter_taps
 from eofnn.training.task import OptimizationConfig
+from eofnn.validation import Interval, check_value
 
 #: eofnn's wind direction (degrees) whose turbulence moves over the actuators as OOPAO's at 0 degrees does (OOPAO's
 #: 0 degrees carries it along the second coordinate of its DM's positions, eofnn's 0 along the first;
@@ -208,3 +209,42 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
                          "twin_frames": frames + val_frames, "twin_sequences": sequences,
                          "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build
+
+
+def rim_actuators(positions_m, pitches: float) -> np.ndarray:
+    """Boolean ``(K,)``: the actuators less than ``pitches`` actuator pitches inside the outermost one's radius (from
+    the actuators' centroid), where a twin's pupil edge and the loop's differ most."""
+    check_value("pitches", pitches, Interval(0, 100, unit="actuator pitches"))
+    positions = np.asarray(positions_m, dtype=np.float64)
+    from scipy.spatial import cKDTree
+
+    pitch = float(cKDTree(positions).query(positions, k=2)[0][:, 1].min())
+    radius = np.hypot(*(positions - positions.mean(0)).T)
+    return radius > radius.max() - pitches * pitch
+
+
+def splice_filters(inner: PredictiveFilter, outer: PredictiveFilter, use_outer) -> PredictiveFilter:
+    """One runtime filter that commands the actuators of ``use_outer`` (boolean ``(K,)``) as ``outer`` does and the
+    others as ``inner``: both neighbourhood filters on the same actuators, with the same taps, delay and DM gain model
+    (their neighbourhoods may differ in size). Each actuator's command depends on the shared histories only, so the
+    spliced filter is exactly the two run side by side, and it exports like any other."""
+    mask = np.asarray(use_outer, dtype=bool)
+    for name, f in (("inner", inner), ("outer", outer)):
+        if f.neighbours is None:
+            raise ConfigError(f"{name} is not a neighbourhood filter: only neighbourhood filters are spliced")
+    if (inner.n_actuators, inner.taps, inner.delay_frames, inner.dm_gain_model) != \
+            (outer.n_actuators, outer.taps, outer.delay_frames, outer.dm_gain_model):
+        raise ConfigError("inner and outer filters differ in actuators, taps, delay or DM gain model: only filters of "
+                          "the same loop are spliced")
+    if mask.shape != (inner.n_actuators,):
+        raise ConfigError(f"use_outer has shape {mask.shape}: expected ({inner.n_actuators},), one flag per actuator")
+    k, m = inner.n_actuators, max(inner.neighbours.shape[1], outer.neighbours.shape[1])
+
+    def padded(f: PredictiveFilter) -> tuple[np.ndarray, np.ndarray]:
+        extra = m - f.neighbours.shape[1]
+        slots = np.pad(np.where(f.neighbours >= k, -1, f.neighbours), ((0, 0), (0, extra)), constant_values=-1)
+        return np.pad(f.coefficients, ((0, 0), (0, extra), (0, 0))), slots
+
+    (ci, ni), (co, no) = padded(inner), padded(outer)
+    return PredictiveFilter(np.where(mask[:, None, None], co, ci), inner.taps, inner.delay_frames,
+                            inner.dm_gain_model, np.where(mask[:, None], no, ni))

@@ -59,6 +59,9 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     OMP_NUM_THREADS=1 $PY experiments/interop/transfer_diagnostic.py
     # The eofnn-trained EOF at I = 8 with its twin trained at seeds 1 and 2 (the page's run is seed 0): reads m8's run.
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_seeds.py 1 2
+    # Where the eofnn-trained EOF loses at I = 8: the rim or the interior (offline, and in the loop spliced with the
+    # truth-trained filter): reads m8's run.
+    OMP_NUM_THREADS=1 $PY experiments/interop/rim_diagnostic.py
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
