@@ -339,8 +339,8 @@ def transfer_text() -> str:
             "of the gain of the same filter trained on OOPAO's own truth. What remains between the two is the "
             "sensors themselves (OOPAO's diffractive four-pixel centroid and its optical gain per mode, its "
             "reconstructor, against eofnn's geometric model; eofnn's rim subapertures see the whole phase; "
-            "`experiments/interop/transfer_diagnostic.py` prints the two filters' responses to static patterns); "
-            "which of these costs most was not separated." + _transfer_psd())
+            "`experiments/interop/transfer_diagnostic.py` prints the two filters' responses to static patterns)"
+            + (_rim_text() or "; which of these costs most was not separated.") + _transfer_psd())
 
 
 def _transfer_psd() -> str:
@@ -364,8 +364,58 @@ def _transfer_psd() -> str:
         return ""
     return (" In frequency (the measured residual's PSDs, `psd.png`), the carried filter leaves, against the one "
             "trained on OOPAO's truth: " + "; ".join(parts) + ". Its excess is largest at the lowest frequencies, "
-            "where what matters is how exactly the filter cancels a slowly varying POL value (its static gain per "
-            "mode), not noise or lag: the next thing to measure.")
+            "where what matters is how exactly the filter cancels a slowly varying POL value, not noise or lag"
+            + (": the rim diagnostic above says where in the pupil." if load("interop/rim", "result") else
+               ": where in the pupil was not measured."))
+
+
+def _rim_text() -> str:
+    """Where the carried filter loses to the truth-trained one (experiments/interop/rim_diagnostic.py): the rim or
+    the interior, offline on a held-out recording and in the loop with the two spliced; "" before it ran."""
+    rim, run = load("interop/rim", "result"), load("interop/oopao_aa/m8", "result")
+    if not rim or not run:
+        return ""
+    loop, fit = rim["loop_realisations_median_rms_nm"], run["fitting_error_nm"]
+    if any(None in rms for rms in loop.values()):
+        return ("; in the rim diagnostic's loop runs " + ", ".join(name for name, rms in loop.items() if None in rms)
+                + " diverged.")
+    mean = {name: sum(rms) / len(rms) for name, rms in loop.items()}
+    variance = {name: sum(r * r - f * f for r, f in zip(rms, fit, strict=True)) for name, rms in loop.items()}
+    gap = variance["eof_eofnn"] - variance["eof_antialias"]
+    n, off = rim["actuators"], rim["offline_held_out"]
+
+    def excess(region: str) -> float:  # the carried filter's offline excess error in a region, summed over actuators
+        return n[region] * (off["eof_eofnn"][region]["variance_per_actuator_nm2"]
+                            - off["eof_antialias"][region]["variance_per_actuator_nm2"])
+
+    total = sum(excess(region) for region in n)
+    ratio = {region: off["eof_eofnn"][region]["variance_per_actuator_nm2"]
+             / off["eof_antialias"][region]["variance_per_actuator_nm2"] for region in n}
+    rim_share = (variance["eof_eofnn"] - variance["eofnn_interior_truth_rim"]) / gap
+    reverse = mean["truth_interior_eofnn_rim"]
+    reverse_text = (f"the truth-trained filter with the carried filter's rim {reverse:.1f} nm, "
+                    + ("more than the carried filter alone: the two parts do not add (a likely reason, not measured: "
+                       "trained on the DM's fit of eofnn's pupil, half a pitch wider than OOPAO's, the filter commands "
+                       "its rim and the interior beside it as one fit, whose errors cancel in part)"
+                       if reverse > mean["eof_eofnn"] else
+                       f"so the interior holds {(variance['eof_eofnn'] - variance['truth_interior_eofnn_rim']) / gap:.0%} "
+                       "of the gap"))
+    return (f". Where it loses, measured (40 x 40, I = 8; `experiments/interop/rim_diagnostic.py`). Offline, on a "
+            f"fourth recording held out, its command error is {ratio['held']:.1f}x the truth-trained filter's on the "
+            f"{n['held']} actuators the twin lacks (they hold their last POL value), {ratio['rim']:.1f}x on the other "
+            f"{n['rim']} less than {rim['rim_pitches']:g} pitches inside the DM's edge and {ratio['interior']:.2f}x on "
+            f"the {n['interior']} inside: {(excess('held') + excess('rim')) / total:.0%} of its excess lies at the "
+            "rim, where OOPAO's subapertures are partly lit and eofnn's twin sees a wider, fully lit pupil. In the "
+            f"loop (the same {len(fit)} realisations as the run, bit for bit: the carried filter "
+            f"{mean['eof_eofnn']:.1f} nm, the truth-trained one {mean['eof_antialias']:.1f}), the carried filter "
+            f"with the truth-trained filter's rim leaves {mean['eofnn_interior_truth_rim']:.1f} nm, {rim_share:.0%} "
+            f"of the gap in variance after fitting, and with the rim of the EOF from telemetry alone "
+            f"{mean['eofnn_interior_telemetry_rim']:.1f} nm; " + reverse_text + ". The splices are diagnostics, "
+            "not contenders. The rim is where the carried filter errs most, but in the loop it is a third of the gap: "
+            "a twin with OOPAO's pupil (inside the DM's last actuators, partly lit subapertures; eofnn's "
+            "Shack-Hartmann does not model it yet) is the first step, and the rest (the two sensors' response "
+            "inside the pupil, the diffractive four-pixel centroid against eofnn's geometric one, or the two "
+            "turbulences) is not located.")
 
 
 def _twin_seeds_text() -> str:
