@@ -20,20 +20,17 @@ Writes experiments/runs/interop/rim/rim.json; the page reads it beside the m8 ru
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
+from m8_point import RUNS, m8_point
 
-from eofnn.interop.antialias import AntiAliasConfig, fit_eofs, record_with_truth
+from eofnn.interop.antialias import fit_eofs, record_with_truth
 from eofnn.interop.loop import FilterControl, run_closed_loop
-from eofnn.interop.oopao import OopaoLoop
 from eofnn.interop.transfer import eofnn_trained, rim_actuators, splice_filters
 from eofnn.outputs import write_text_atomic
 from eofnn.training.identify import identify_plant
 
-RUNS = Path(__file__).resolve().parents[1] / "runs" / "interop"
 RIM_PITCHES = 2.0
 
 
@@ -45,13 +42,7 @@ def commands(runtime, record) -> np.ndarray:
 
 
 def main() -> None:
-    page = RUNS / "oopao_aa" / "m8" / "metrics.json"
-    if not page.is_file():
-        sys.exit(f"{page} is missing: run the m8 point of `bash experiments/interop/run.sh oopao_aa` first")
-    run = json.loads(page.read_text())
-    gain, scored = float(run["integrator_scan"]["gain"]), run["scored_seeds"]
-    sim = OopaoLoop(40, 8.0, photon_noise=True, magnitude=8.0, dm_gain=2.0, wind_speed_mps=20.0, rcond=0.075)
-    config = AntiAliasConfig(train_frames=2000, val_frames=400, loop_frames=1000, settle_frames=200, warmup_frames=100)
+    gain, scored, sim, config = m8_point()
     recorded = record_with_truth(sim, replace(config, train_sequences=config.train_sequences + 1))
     telemetry, held_out = recorded[:-1], recorded[-1]
     plant = identify_plant(telemetry)

@@ -12,26 +12,18 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
-from eofnn.interop.antialias import AntiAliasConfig, record_with_truth
+from m8_point import RUNS, m8_point
+
+from eofnn.interop.antialias import record_with_truth
 from eofnn.interop.loop import FilterControl, run_closed_loop
-from eofnn.interop.oopao import OopaoLoop
 from eofnn.interop.transfer import eofnn_trained
 from eofnn.outputs import write_text_atomic
 from eofnn.training.identify import identify_plant
 
-RUNS = Path(__file__).resolve().parents[1] / "runs" / "interop"
-
 
 def main(seeds: list[int]) -> None:
-    page = RUNS / "oopao_aa" / "m8" / "metrics.json"
-    if not page.is_file():
-        sys.exit(f"{page} is missing: run the m8 point of `bash experiments/interop/run.sh oopao_aa` first")
-    run = json.loads(page.read_text())
-    gain, scored = float(run["integrator_scan"]["gain"]), run["scored_seeds"]
-    sim = OopaoLoop(40, 8.0, photon_noise=True, magnitude=8.0, dm_gain=2.0, wind_speed_mps=20.0, rcond=0.075)
-    config = AntiAliasConfig(train_frames=2000, val_frames=400, loop_frames=1000, settle_frames=200, warmup_frames=100)
+    gain, scored, sim, config = m8_point()
     plant = identify_plant(record_with_truth(sim, config))
     print(f"identified gain {plant.dm_gain:.4f}, noise {plant.wfs_noise_nm:.1f} nm", flush=True)
     out = {"command": "python experiments/interop/twin_seeds.py " + " ".join(map(str, seeds)), "scored_seeds": scored,
