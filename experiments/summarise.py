@@ -173,7 +173,10 @@ def map_summary(name: str) -> bool:
                 "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3")}
         fallback = {c: {"deployed": f.get("deployed"), "why": f.get("why")}
                     for c, f in metrics.get("fallback", {}).get(scenario, {}).items()}
-        points.append({"point": point, "values": values, "contenders": contenders, "fallback": fallback})
+        settings = {c: {k: v for k, v in chosen.items() if k != "scanned"}  # the classical settings scanned and chosen
+                    for c, chosen in metrics.get("classical_settings", {}).get(scenario, {}).items()}
+        points.append({"point": point, "values": values, "contenders": contenders, "fallback": fallback,
+                       "settings": settings})
     _write(name, "points/*/run/metrics.json", {"points": points})
     _copy_figures_and_pages(name)
     plot(rows(), HERE / name / "gain_map.png")  # the map's figure, drawn from the summary just written
