@@ -198,3 +198,5 @@ def test_the_rim_is_the_actuators_within_so_many_pitches_of_the_outermost():
     assert not rim_actuators(positions, 0.0).any()
     with pytest.raises(ConfigError, match="pitches"):
         rim_actuators(positions, -1.0)
+    with pytest.raises(ConfigError, match="K >= 2"):
+        rim_actuators(positions[:1], 1.0)

@@ -216,6 +216,8 @@ def rim_actuators(positions_m, pitches: float) -> np.ndarray:
     the actuators' centroid), where a twin's pupil edge and the loop's differ most."""
     check_value("pitches", pitches, Interval(0, 100, unit="actuator pitches"))
     positions = np.asarray(positions_m, dtype=np.float64)
+    if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 2:
+        raise ConfigError(f"positions_m has shape {positions.shape}: expected (K, 2) with K >= 2 actuators")
     from scipy.spatial import cKDTree
 
     pitch = float(cKDTree(positions).query(positions, k=2)[0][:, 1].min())
