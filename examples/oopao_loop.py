@@ -92,6 +92,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--all-modes", action="store_true",
                         help="with --eofnn-trained: trained on every mode eofnn's sensor reconstructs, not only those "
                              "OOPAO's reconstructor sees")
+    parser.add_argument("--twin-pupil", choices=("grid", "oopao", "both"), default="grid",
+                        help="with --eofnn-trained: the twin's pupil, its actuator grid's (half a pitch wider than "
+                             "OOPAO's, its rim subapertures fully lit, 40 of OOPAO's 1353 actuators missing at 40 x 40) "
+                             "or OOPAO's (the same actuators and subapertures, partly lit ones included); both: two "
+                             "contenders, eof_eofnn and eof_eofnn_pupil")
     parser.add_argument("--static-gain", action="store_true",
                         help="with --eofnn-trained: each actuator's carried filter scaled to cancel a constant POL "
                              "value exactly")
@@ -110,7 +115,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.eofnn_trained and not args.anti_aliasing:
         parser.error("--eofnn-trained adds to the anti-aliasing study: give --anti-aliasing too")
     tweaks = [flag for flag, on in (("--own-noise", args.own_noise), ("--all-modes", args.all_modes),
-                                    ("--static-gain", args.static_gain)) if on]
+                                    ("--static-gain", args.static_gain),
+                                    ("--twin-pupil", args.twin_pupil != "grid")) if on]
     if tweaks and not args.eofnn_trained:
         parser.error(f"{' and '.join(tweaks)} set the eofnn-trained predictor: give --eofnn-trained too")
     if args.anti_aliasing and args.aliasing:
@@ -155,9 +161,11 @@ def antialias(args, argv: list[str]) -> dict:
     if args.eofnn_trained:
         # 27 x --frames of the twin in 9 sequences (and a fifth as much held out for the ridge alpha): at 40 x 40, I = 8,
         # 9 x in 3 sequences left 72.8 and 74.1 nm at twin seeds 0 and 1, 27 x in 9 left 72.4 and 72.9.
-        external = {"eof_eofnn": eofnn_trained(27 * f, 27 * f // 5, match_noise=not args.own_noise,
-                                               controlled=not args.all_modes, static_gain=args.static_gain,
-                                               sequences=9)}
+        pupils = {"grid": {"eof_eofnn": "grid"}, "oopao": {"eof_eofnn": "oopao"},
+                  "both": {"eof_eofnn": "grid", "eof_eofnn_pupil": "oopao"}}[args.twin_pupil]
+        external = {name: eofnn_trained(27 * f, 27 * f // 5, match_noise=not args.own_noise,
+                                        controlled=not args.all_modes, static_gain=args.static_gain, sequences=9,
+                                        pupil=pupil) for name, pupil in pupils.items()}
     metrics = run_antialias(sim, config, external)
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])

@@ -37,6 +37,20 @@ def test_the_system_is_a_fried_shack_hartmann(sim):
     assert np.allclose(np.diff(pitch), 0.2) and np.isclose(pitch.max(), 1.0)  # corners of the 0.2 m subapertures
 
 
+def test_eofnns_twin_with_oopaos_pupil_has_its_actuators_and_subapertures(sim):
+    from eofnn.interop.transfer import eofnn_twin, match_positions
+    from eofnn.sim.loop.sensing import loop_operators
+
+    for pupil, missing in (("grid", 4), ("oopao", 0)):  # the grid's pupil lacks 4 of OOPAO's outermost actuators here
+        scenario = eofnn_twin(sim, pupil).eofnn_scenario(None, screen_frames=50)
+        assert sim.n_actuators - scenario.grid.n_actuators == missing
+        match_positions(scenario.grid.positions_m, sim.positions_m)  # each on one of OOPAO's, or one line
+    geometry = loop_operators(scenario.grid, scenario.sensor.shack_hartmann()).sensor.geometry
+    valid = np.asarray(sim.wfs.valid_subapertures, dtype=bool)
+    assert geometry.valid.shape == valid.shape and (geometry.valid == valid).all() and (geometry.valid == valid.T).all()
+    assert 0 < (geometry.illumination < 1).sum() < geometry.n_subapertures
+
+
 @pytest.mark.slow
 def test_dm_gain_is_identified_within_two_percent_of_what_telemetry_can_see(sim, study):
     # Telemetry sees the DM gain times the Shack-Hartmann's optical gain (below 1 on a turbulent residual).

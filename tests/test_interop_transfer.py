@@ -146,8 +146,10 @@ def test_the_carried_filters_noise_is_matched_and_reported_in_the_loops_command_
     runtime, info = transfer.eofnn_trained()(sim, plant)
     assert seen["noise_nm"] == pytest.approx(120.0) and seen["controlled"] is True
     assert info["conditions"]["wfs_noise_nm"] == pytest.approx(50.0) and info["conditions"]["dm_gain"] == 1.8
-    transfer.eofnn_trained(match_noise=False, controlled=False)(sim, plant)
+    assert seen["pupil"] == "grid" and info["twin_pupil"] == "grid"
+    _, info = transfer.eofnn_trained(match_noise=False, controlled=False, pupil="oopao")(sim, plant)
     assert seen["noise_nm"] is None and seen["controlled"] is False
+    assert seen["pupil"] == "oopao" and info["twin_pupil"] == "oopao"
 
 
 @pytest.mark.slow

@@ -208,3 +208,28 @@ def test_the_sensor_config_repeats_the_shack_hartmann_constants_it_keeps_light()
     assert sensor.MECHANICAL_COUPLING == least_squares.MECHANICAL_COUPLING
     for name, constraint in shack_hartmann.ShackHartmann._constraints.items():
         assert sensor.Sensor._constraints[name].describe() == constraint.describe()
+
+
+def test_a_pupil_inside_the_grid_with_partly_lit_subapertures_runs_and_weights_their_noise():
+    """OOPAO's geometry in eofnn's loop: the lit pupil 2 m inside 11 x 11 actuators at 0.2 m, the actuators within
+    D / 2 + 0.7533 pitch, subapertures at least half lit; the partly lit ones' noise is 1 / lit times larger."""
+    scenario = Scenario.from_dict({
+        "grid": {"diameter_m": 2.2, "n_across": 11, "active_diameter_m": 2.0 + 2 * 0.7533 * 0.2},
+        "atmosphere": ATMOSPHERE, "plant": {"delay_frames": 2},
+        "sensor": {"kind": "shack_hartmann", "pupil_diameter_m": 2.0, "lit_fraction": 0.5,
+                   "detector": {"magnitude": 6.0}}})
+    turbulence = scenario.turbulence(1, "test")
+    ops = turbulence.operators
+    scale = ops.sensor.slope_noise_scale
+    assert scenario.grid.n_actuators == 101 and (scale > 1).any()
+    s, noisy = turbulence.open_loop(0, 600, scenario.plant, torch.Generator().manual_seed(4))
+    _, clean = scenario.turbulence(1, "test", isolate="noise_free").open_loop(0, 600, scenario.plant, None)
+    sigma = turbulence.slope_noise_nm(0.0)
+    weighted = sigma ** 2 * float((ops.reconstructor.pow(2) * torch.as_tensor(scale) ** 2).sum()) / 101
+    unweighted = sigma ** 2 * float(ops.reconstructor.pow(2).sum()) / 101
+    measured = float((noisy - clean).pow(2).mean())
+    assert measured == pytest.approx(weighted, rel=0.05) and abs(measured / unweighted - 1) > 0.05
+    ev = EvaluationConfig(frames=600, settle_frames=200, seed=1)
+    fitting = fitting_nm(scenario, ev.seed, "test", ev.frames, ev.settle_frames, 1)
+    result = run_loop(turbulence, scenario.plant, Integrator(0.4), ev.frames, noise_seed=1, record=())
+    assert not result.diverged and fitting < float(result.pupil_residual_rms_nm[:, 200:].median()) < 200.0

@@ -16,12 +16,8 @@ from eofnn.sim import Atmosphere, Layer, Turbulence
 from eofnn.sim.atmosphere.exact import VON_KARMAN_COEFFICIENT
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.detector import PHOTOMETRY, Detector
-from eofnn.sim.sensing.shack_hartmann import (
-    ShackHartmann,
-    SubapertureGeometry,
-    _edge_weights,
-    default_relative_cut,
-)
+from eofnn.sim.sensing.shack_hartmann import ShackHartmann, SubapertureGeometry, default_relative_cut
+from eofnn.sim.sensing.subapertures import edge_weights
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +54,8 @@ def test_slopes_of_tilt_defocus_and_a_cubic_are_the_mean_gradient_times_the_side
 
 
 def test_simpson_weights_and_the_fine_grid_covers_every_edge():
-    np.testing.assert_allclose(_edge_weights(4), np.array([1, 4, 2, 4, 1]) / 12)
-    np.testing.assert_allclose(_edge_weights(1), [0.5, 0.5])
+    np.testing.assert_allclose(edge_weights(4), np.array([1, 4, 2, 4, 1]) / 12)
+    np.testing.assert_allclose(edge_weights(1), [0.5, 0.5])
     geo = SubapertureGeometry(ActuatorGrid(8.0, 12), "cell", 4)
     # Every column of S that is used holds a fine point in a subaperture; every x row sums to zero (a difference).
     used = np.asarray(abs(geo.slope_operator).sum(0)).ravel() > 0
@@ -136,7 +132,7 @@ def fourier_noise_propagation(n: int, relative_cut: float, geometry: str, m: int
     (``cell``) or between four (``fried``); frequencies with ``|G| <= cut max |G|`` and piston are dropped (a Fourier
     mode is a singular vector of the periodic ``D``).
     """
-    w, t = _edge_weights(m), np.linspace(-0.5, 0.5, m + 1)
+    w, t = edge_weights(m), np.linspace(-0.5, 0.5, m + 1)
     c = 0.5 if geometry == "fried" else 0.0
     a = np.fft.fftfreq(n) * 2 * np.pi
     kx, ky = np.meshgrid(a, a)
@@ -192,7 +188,7 @@ def fourier_aliasing(pitch_m: float, m: int, relative_cut: float, r0_m: float = 
     """
     d = pitch_m
     c = d / math.sqrt(2 * math.log(1 / coupling))
-    w, t = _edge_weights(m), np.linspace(-0.5, 0.5, m + 1)
+    w, t = edge_weights(m), np.linspace(-0.5, 0.5, m + 1)
     u = ((np.arange(n_k) + 0.5) / n_k - 0.5) / d
     fx, fy = np.meshgrid(u, u)
     lx, ly = (v.ravel() for v in np.meshgrid(np.arange(-n_aliases, n_aliases + 1), np.arange(-n_aliases, n_aliases + 1)))
@@ -301,6 +297,56 @@ def test_centroid_noise_matches_a_monte_carlo_of_the_detector():
     assert rousset / gauss == pytest.approx(math.log(2))
 
 
+# --- a pupil inside the actuator grid, partly lit subapertures ---------------------------------------------------
+
+def oopao_like(n_sub: int = 20, pitch: float = 0.2) -> tuple[ActuatorGrid, ShackHartmann]:
+    """OOPAO's Fried system of ``n_sub`` subapertures across: the pupil ``n_sub d`` inside ``n_sub + 1`` actuators,
+    the actuators within ``D / 2 + 0.7533 d``, subapertures at least half lit."""
+    grid = ActuatorGrid((n_sub + 1) * pitch, n_sub + 1, active_diameter_m=(n_sub + 2 * 0.7533) * pitch)
+    return grid, ShackHartmann(pupil_diameter_m=n_sub * pitch, lit_fraction=0.5)
+
+
+def test_partly_lit_subapertures_measure_their_lit_areas_mean_gradient():
+    grid, config = oopao_like()
+    sensor = config.build(grid)
+    geo = sensor.geometry
+    # OOPAO's counts at 20 across (tests/test_interop_oopao.py compares the sets themselves): 357 actuators, 316
+    # subapertures; the 40 partly lit ones are between 59% and 97% lit.
+    assert grid.n_actuators == 357 and geo.n_subapertures == 316
+    partial = geo.illumination < 1
+    assert partial.sum() == 40 and 0.5 <= geo.illumination.min() < 0.6
+    x, y = geo.fine_positions_m.T
+    n = geo.n_subapertures
+    for a, b in ((1.0, 0.0), (0.0, 1.0), (0.3, -0.7)):  # a tilt: every slope exact, lit or not
+        s = geo.slope_operator @ (a * x + b * y)
+        np.testing.assert_allclose(s[:n], a * geo.pitch_m, atol=1e-12)
+        np.testing.assert_allclose(s[n:], b * geo.pitch_m, atol=1e-12)
+    # x² and y²: a partly lit subaperture's slopes are d times 2 <x> and 2 <y> over its lit area (sampled finely
+    # here), not at its square's centre (what the fully lit rule gives).
+    u = (np.arange(200) + 0.5) / 200 - 0.5
+    errors, offsets = [], []
+    for i in np.flatnonzero(partial):
+        cx, cy = geo.centres_m[i]
+        px, py = (g.ravel() for g in np.meshgrid(cx + u * geo.pitch_m, cy + u * geo.pitch_m))
+        lit = np.hypot(px, py) <= geo.pupil_diameter_m / 2
+        sx, sy = (geo.slope_operator @ x ** 2)[i], (geo.slope_operator @ y ** 2)[n + i]
+        lit_x, lit_y = 2 * px[lit].mean() * geo.pitch_m, 2 * py[lit].mean() * geo.pitch_m
+        errors += [abs(sx - lit_x), abs(sy - lit_y)]
+        offsets += [abs(lit_x - 2 * cx * geo.pitch_m), abs(lit_y - 2 * cy * geo.pitch_m)]
+    assert max(errors) < 0.1 * max(offsets)
+    # The residual is scored over the lit pupil only, and a partly lit subaperture's slopes are 1 / lit noisier.
+    assert np.hypot(x, y)[geo.fine_in_pupil].max() <= geo.pupil_diameter_m / 2 + 1e-12
+    np.testing.assert_allclose(sensor.slope_noise_scale, np.tile(geo.illumination, 2) ** -0.5)
+    assert sensor.noise_propagation() > float((sensor.reconstructor ** 2).sum() / grid.n_actuators)
+
+
+def test_without_the_new_options_the_sensor_is_unchanged():
+    grid = ActuatorGrid(4.0, 10)
+    base, explicit = ShackHartmann().build(grid), ShackHartmann(pupil_diameter_m=4.0).build(grid)
+    assert (base.geometry.slope_operator != explicit.geometry.slope_operator).nnz == 0
+    assert (base.slope_noise_scale == 1).all() and ActuatorGrid(4.0, 10, active_diameter_m=4.0) .n_actuators == 80
+
+
 # --- bad input ----------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("build, match", [
@@ -320,6 +366,11 @@ def test_centroid_noise_matches_a_monte_carlo_of_the_detector():
      r"most 512"),
     (lambda: ShackHartmann(geometry="fried", subapertures_across=10).build(ActuatorGrid(4.0, 10)),
      r"^subapertures_across=10 is invalid for geometry 'fried' on 10 actuators across: it has 9"),
+    (lambda: ShackHartmann(pupil_diameter_m=4.5).build(ActuatorGrid(4.0, 10)),
+     r"^sensor.pupil_diameter_m=4.5 is invalid: it must be a finite number in \(0, 4\] \(m \(the actuator grid is 4 m "),
+    (lambda: ShackHartmann(lit_fraction=0.0), r"^lit_fraction=0.0 is invalid: it must be null or a finite number in \(0, 1\]"),
+    (lambda: ActuatorGrid(4.0, 10, active_diameter_m=6.0), r"^active_diameter_m=6.0 is invalid: it must be a finite "
+     r"number in \(0, 5.65"),
 ])
 def test_bad_input_is_one_line(build, match):
     with pytest.raises(ConfigError, match=match) as err:

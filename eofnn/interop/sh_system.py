@@ -15,9 +15,14 @@ frame rate, delay, guide-star magnitude in I band) and builds it in both simulat
   counts every photon), ``m`` pixels across at one pixel per ``lambda / d``, no read noise. Tip and tilt stay in
   the phase (``remove_ptt: false``), as in OOPAO's; the wind blows along a lattice axis in both.
 
-No choice lines up everything: a Fried grid of pitch ``d`` in eofnn has its pupil where its actuators end, so its
-outer half pitch lies beyond the subapertures (neither sensed nor well fitted) and its rim subapertures see the
-whole phase; OOPAO's pupil ends with its subapertures, whose rim ones are partly lit and whose DM reaches past it.
+No choice lines up everything with ``pupil="grid"`` (the default): a Fried grid of pitch ``d`` in eofnn has its
+pupil where its actuators end, so its outer half pitch lies beyond the subapertures (neither sensed nor well fitted)
+and its rim subapertures see the whole phase; OOPAO's pupil ends with its subapertures, whose rim ones are partly lit
+and whose DM reaches past it. ``pupil="oopao"`` builds OOPAO's in eofnn: the lit pupil ``D`` (``sensor.
+pupil_diameter_m``), the actuators within ``D / 2 + 0.7533 d`` (``grid.active_diameter_m``, OOPAO's
+``DeformableMirror`` rule), subapertures valid when at least half lit (``sensor.lit_fraction: 0.5``, OOPAO's
+``lightRatio``), a partly lit one measuring its lit area's mean gradient; the same actuators and subapertures as
+OOPAO's (357 and 316 at 20 across: ``tests/test_interop_sh_system.py``).
 
 The same residual is scored in both: the piston-removed RMS over each one's pupil (OOPAO's ``np.std(tel.OPD)``),
 median over the frames after ``settle_frames``. Both loops close with a plain integrator, ``y(n) = y(n-1) - g
@@ -50,6 +55,12 @@ BAND = "I"
 #: OOPAO's r0 is given at 500 nm.
 R0_WAVELENGTH_M = 500e-9
 TURBULENCES = ("oopao", "eofnn")
+#: eofnn's pupil for the system: its actuator grid's, or OOPAO's (module docstring).
+PUPILS = ("grid", "oopao")
+#: OOPAO's Fried DM keeps the actuators within ``D / 2 + OOPAO_ACTUATOR_REACH d`` of the centre
+#: (``OOPAO/DeformableMirror.py``), and its Shack-Hartmann the subapertures at least ``OOPAO_LIGHT_RATIO`` lit.
+OOPAO_ACTUATOR_REACH = 0.7533
+OOPAO_LIGHT_RATIO = 0.5
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,8 @@ class ShSystem:
     samples_per_subaperture : int
         ``m``: OOPAO's pupil pixels per subaperture (hence its SH's detector pixels across) and eofnn's fine-grid
         intervals per subaperture side.
+    pupil : {"grid", "oopao"}
+        eofnn's pupil: its actuator grid's (``(N + 1) d`` across), or OOPAO's (module docstring).
     """
 
     n_subapertures: int = 20
@@ -84,6 +97,7 @@ class ShSystem:
     frame_rate_hz: float = 1000.0
     delay_frames: int = 2
     samples_per_subaperture: int = 4
+    pupil: str = "grid"
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "n_subapertures": Interval(4, 100, integer=True, unit="subapertures across"),
@@ -94,6 +108,7 @@ class ShSystem:
         "frame_rate_hz": POSITIVE,
         "delay_frames": Interval(1, 10, integer=True, unit="frames"),
         "samples_per_subaperture": Interval(2, 16, integer=True, unit="pixels per subaperture"),
+        "pupil": OneOf(PUPILS),
     }
 
     @property
@@ -115,8 +130,12 @@ class ShSystem:
         n = self.n_subapertures + 1
         detector = {} if magnitude is None else {"detector": self.detector(magnitude, spot_fwhm_lambda_over_d)}
         sensor = {"kind": "shack_hartmann", "samples_per_subaperture": self.samples_per_subaperture, **detector}
+        grid = {"diameter_m": n * self.pitch_m, "n_across": n, "obstruction": 0.0}
+        if self.pupil == "oopao":
+            sensor.update(pupil_diameter_m=self.diameter_m, lit_fraction=OOPAO_LIGHT_RATIO)
+            grid["active_diameter_m"] = self.diameter_m + 2 * OOPAO_ACTUATOR_REACH * self.pitch_m
         return Scenario.from_dict({
-            "grid": {"diameter_m": n * self.pitch_m, "n_across": n, "obstruction": 0.0},
+            "grid": grid,
             "atmosphere": self._atmosphere(screen_frames),
             "frame_rate_hz": self.frame_rate_hz, "plant": {"delay_frames": self.delay_frames}, "sensor": sensor})
 

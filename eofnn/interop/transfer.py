@@ -47,13 +47,14 @@ from eofnn.validation import Interval, check_value
 EOFNN_DIRECTION_OF_OOPAO = {0.0: 90.0}
 
 
-def eofnn_twin(sim) -> ShSystem:
-    """The :class:`ShSystem` of an :class:`~eofnn.interop.oopao.OopaoLoop` (its size, sky, wind, rate and delay)."""
+def eofnn_twin(sim, pupil: str = "grid") -> ShSystem:
+    """The :class:`ShSystem` of an :class:`~eofnn.interop.oopao.OopaoLoop` (its size, sky, wind, rate and delay);
+    ``pupil``: eofnn's grid's or OOPAO's (:class:`ShSystem`)."""
     s = sim.settings
     return ShSystem(n_subapertures=s["n_subapertures"], diameter_m=s["diameter_m"], r0_m=s["r0_m"],
                     outer_scale_m=s["outer_scale_m"], wind_speed_mps=s["wind_speed_mps"],
                     frame_rate_hz=s["frame_rate_hz"], delay_frames=s["delay_frames"],
-                    samples_per_subaperture=s["pupil_pixels_per_subaperture"])
+                    samples_per_subaperture=s["pupil_pixels_per_subaperture"], pupil=pupil)
 
 
 def eofnn_direction(oopao_direction_deg: float) -> float:
@@ -65,7 +66,7 @@ def eofnn_direction(oopao_direction_deg: float) -> float:
     return direction
 
 
-def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None):
+def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None, pupil: str = "grid"):
     """eofnn's scenario of ``sim``'s system (module docstring, step 1); with ``noise_nm`` (a WFS noise per actuator in
     eofnn's command units: the one identified from ``sim``'s telemetry times ``sim.surface_per_command``) its guide
     star is moved until its own noise per actuator (:func:`eofnn.training.conditions.scenario_conditions`) is that:
@@ -74,7 +75,7 @@ def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None):
     from eofnn.training.conditions import scenario_conditions
 
     magnitude = sim.settings["magnitude"] if sim.settings["photon_noise"] else None
-    config = eofnn_twin(sim).eofnn_scenario(magnitude, screen_frames=screen_frames).to_dict()
+    config = eofnn_twin(sim, pupil).eofnn_scenario(magnitude, screen_frames=screen_frames).to_dict()
     config["atmosphere"]["layers"][0]["wind_direction_deg"] = eofnn_direction(sim.settings["wind_direction_deg"])
     scenario = Scenario.from_dict(config)
     if magnitude is None or not noise_nm:
@@ -96,9 +97,10 @@ def controlled_projector(sim, eofnn_positions_m, keep: float = 0.5) -> torch.Ten
 
 def train_in_eofnn(sim, *, frames: int = 6000, val_frames: int = 1200, history_length: int = 4,
                    radius: float = 2.5, seed: int = 0, noise_nm: float | None = None, controlled: bool = True,
-                   sequences: int = 3):
+                   sequences: int = 3, pupil: str = "grid"):
     """The anti-aliasing EOF trained in eofnn's simulation of ``sim``'s system (module docstring, step 1; with
-    ``noise_nm``, in eofnn's command units, its noise matched, :func:`twin_scenario`): ``(fit result, scenario)``.
+    ``noise_nm``, in eofnn's command units, its noise matched, :func:`twin_scenario`; ``pupil``: the twin's, its grid's
+    or OOPAO's, :class:`~eofnn.interop.sh_system.ShSystem`): ``(fit result, scenario)``.
 
     ``sequences`` open-loop sequences (independent realisations) of ``(frames + val_frames) / sequences`` frames, the
     last ``val_frames / sequences`` of each held out for the ridge alpha (the grid of
@@ -112,7 +114,7 @@ def train_in_eofnn(sim, *, frames: int = 6000, val_frames: int = 1200, history_l
     from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 
     sequence = -(-(frames + val_frames) // sequences)
-    scenario = twin_scenario(sim, sequence + 200, noise_nm)
+    scenario = twin_scenario(sim, sequence + 200, noise_nm, pupil)
     spec = HistorySpec("open_loop", history_length, sim.delay_frames)
     stream = SimulatedTelemetry(scenario, spec, sequences * sequence, stream="twin",
                                 data=DataConfig(frames=sequences * sequence, sequence_frames=sequence, target="dm_fit",
@@ -176,7 +178,7 @@ def transfer_filter(network: LinearFilter, spec, eofnn_positions_m, positions_m,
 
 
 def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, match_noise: bool = True,
-                  controlled: bool = True, static_gain: bool = False, sequences: int = 3):
+                  controlled: bool = True, static_gain: bool = False, sequences: int = 3, pupil: str = "grid"):
     """An ``external`` predictor of :func:`eofnn.interop.antialias.run_antialias`: trained in eofnn's simulation of
     the loop's system (:func:`train_in_eofnn`), carried onto its actuators with the gain identified from its
     recording (:func:`transfer_filter`).
@@ -184,14 +186,15 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
     ``match_noise``: the simulation's guide star set so that its noise is the one identified from that recording,
     converted to eofnn's command units (``sim.surface_per_command``: OOPAO's commands are nm of influence-function
     peak, eofnn's nm of smooth surface, 2.99 times more); ``controlled``: trained in the command modes the loop's
-    reconstructor sees; ``static_gain``: see :func:`transfer_filter`. Its info keeps the conditions it was trained
-    in, in the loop's command units, so that the loop warns in one line where its own differ
-    (:mod:`eofnn.interop.shift`)."""
+    reconstructor sees; ``static_gain``: see :func:`transfer_filter`; ``pupil``: the twin's (its grid's, or OOPAO's
+    with every one of its actuators and subapertures, :class:`~eofnn.interop.sh_system.ShSystem`). Its info keeps
+    the conditions it was trained in, in the loop's command units, so that the loop warns in one line where its own
+    differ (:mod:`eofnn.interop.shift`)."""
     def build(sim, plant) -> tuple[PredictiveFilter, dict]:
         units = float(getattr(sim, "surface_per_command", 1.0))  # eofnn's command units per one of the loop's
         fitted, scenario = train_in_eofnn(sim, frames=frames, val_frames=val_frames, seed=seed,
                                           noise_nm=plant.wfs_noise_nm * units if match_noise else None,
-                                          controlled=controlled, sequences=sequences)
+                                          controlled=controlled, sequences=sequences, pupil=pupil)
         runtime, moved = transfer_filter(fitted.network, fitted.spec, scenario.grid.positions_m, sim.positions_m,
                                          plant.dm_gain, static_gain=static_gain)
         from eofnn.training.conditions import scenario_conditions
@@ -206,7 +209,7 @@ def eofnn_trained(frames: int = 6000, val_frames: int = 1200, seed: int = 0, mat
         return runtime, {"alpha": fitted.info.get("alpha"), "target": "dm_fit in eofnn's simulation",
                          "trained_magnitude": None if detector is None else detector.magnitude,
                          "trained_noise_nm": noise, "controlled_modes": controlled,
-                         "twin_frames": frames + val_frames, "twin_sequences": sequences,
+                         "twin_frames": frames + val_frames, "twin_sequences": sequences, "twin_pupil": pupil,
                          "val_loss": fitted.val_loss, **moved, "conditions": conditions}
     return build
 

@@ -25,7 +25,10 @@ class ActuatorGrid:
     """Actuators on a square grid of ``n_across`` x ``n_across`` at pitch ``diameter_m / n_across``.
 
     Actuator centres lie at ``(i + 0.5) * pitch - diameter_m / 2``; those inside the pupil (radius
-    ``diameter_m / 2``, outside the central obstruction of fractional diameter ``obstruction``) are active.
+    ``diameter_m / 2``, outside the central obstruction of fractional diameter ``obstruction``) are active, or with
+    ``active_diameter_m`` those within ``active_diameter_m / 2`` of the centre (a DM whose actuators end elsewhere
+    than its lattice's pupil: OOPAO's Fried DM keeps those within ``D / 2 + 0.7533 pitch`` of a pupil ``D`` that ends
+    half a pitch inside its last row; a Shack-Hartmann's ``pupil_diameter_m`` sets the lit pupil).
 
     Parameters
     ----------
@@ -35,11 +38,15 @@ class ActuatorGrid:
         Actuators across the pupil diameter.
     obstruction : float
         Central obstruction as a fraction of the diameter, in [0, 0.9].
+    active_diameter_m : float or None
+        Actuators whose centres lie within half of it from the centre are active (m); ``None``: ``diameter_m``. At
+        most ``diameter_m * sqrt(2)`` (the lattice's corners).
     """
 
     diameter_m: float = 8.0
     n_across: int = 40
     obstruction: float = 0.0
+    active_diameter_m: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "diameter_m": Interval(0, 100, closed="right", unit="m"),
@@ -48,12 +55,16 @@ class ActuatorGrid:
     }
 
     def __post_init__(self) -> None:
+        if self.active_diameter_m is not None:
+            check_value("active_diameter_m", self.active_diameter_m,
+                        Interval(0, self.diameter_m * 2 ** 0.5, closed="right", unit=f"m (the lattice is "
+                                 f"{self.diameter_m:g} m across)"))
         # Counted without filling the cached properties: a config object's __dict__ stays its fields.
         active = int(_pupil_mask(_square_grid(self.diameter_m, self.n_across), self.diameter_m, self.n_across,
-                                 self.obstruction).sum())
+                                 self.obstruction, self.active_diameter_m).sum())
         if active < 4:  # piston, tip and tilt need three actuators, a predictor one more
-            raise ConfigError(f"obstruction={self.obstruction!r} with n_across={self.n_across} leaves {active} "
-                              "active actuators: at least 4 are needed")
+            raise ConfigError(f"obstruction={self.obstruction!r}, active_diameter_m={self.active_diameter_m!r} with "
+                              f"n_across={self.n_across} leave {active} active actuators: at least 4 are needed")
 
     @classmethod
     def from_positions(cls, positions_m, tolerance: float = 1e-3) -> ActuatorGrid:
@@ -102,7 +113,7 @@ class ActuatorGrid:
     @cached_property
     def mask(self) -> np.ndarray:
         """Boolean ``(n_across, n_across)`` map of active actuators (row = y, column = x)."""
-        return _pupil_mask(self._full_coords, self.diameter_m, self.n_across, self.obstruction)
+        return _pupil_mask(self._full_coords, self.diameter_m, self.n_across, self.obstruction, self.active_diameter_m)
 
     @property
     def n_actuators(self) -> int:
@@ -171,10 +182,13 @@ def _square_grid(diameter_m: float, n_across: int) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], axis=1)
 
 
-def _pupil_mask(coords: np.ndarray, diameter_m: float, n_across: int, obstruction: float) -> np.ndarray:
-    """Which grid centres lie in the (obstructed) pupil, as an ``(n_across, n_across)`` boolean map."""
+def _pupil_mask(coords: np.ndarray, diameter_m: float, n_across: int, obstruction: float,
+                active_diameter_m: float | None = None) -> np.ndarray:
+    """Which grid centres lie in the (obstructed) pupil, or within ``active_diameter_m / 2`` of the centre, as an
+    ``(n_across, n_across)`` boolean map."""
     r = np.hypot(coords[:, 0], coords[:, 1])
     # A small tolerance keeps actuators that sit exactly on the rim, whatever the rounding.
     tol = 1e-9 * diameter_m
-    inside = (r <= diameter_m / 2 + tol) & (r >= obstruction * diameter_m / 2 - tol)
+    outer = diameter_m if active_diameter_m is None else active_diameter_m
+    inside = (r <= outer / 2 + tol) & (r >= obstruction * diameter_m / 2 - tol)
     return inside.reshape(n_across, n_across)

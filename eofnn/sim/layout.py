@@ -199,7 +199,8 @@ class ActuatorLayout:
 
 
 def layout_from_dict(values: dict) -> ActuatorGrid | ActuatorLayout:
-    """eofnn's grid from ``{"diameter_m", "n_across", "obstruction"}``, a layout from ``{"positions_m": ...}``."""
+    """eofnn's grid from ``{"diameter_m", "n_across", "obstruction"[, "active_diameter_m"]}``, a layout from
+    ``{"positions_m": ...}``."""
     if "positions_m" in values:
         return ActuatorLayout.from_dict(values)
     return ActuatorGrid(**values)
@@ -208,7 +209,8 @@ def layout_from_dict(values: dict) -> ActuatorGrid | ActuatorLayout:
 def layout_to_dict(layout: ActuatorGrid | ActuatorLayout) -> dict:
     """The dict :func:`layout_from_dict` reads back."""
     if isinstance(layout, ActuatorGrid):
-        return {"diameter_m": layout.diameter_m, "n_across": layout.n_across, "obstruction": layout.obstruction}
+        out = {"diameter_m": layout.diameter_m, "n_across": layout.n_across, "obstruction": layout.obstruction}
+        return out if layout.active_diameter_m is None else {**out, "active_diameter_m": layout.active_diameter_m}
     return layout.to_dict()
 
 

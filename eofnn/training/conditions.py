@@ -64,12 +64,15 @@ def _number(value) -> float | None:
 def scenario_conditions(scenario, dm_gain: float | None = None) -> Conditions:
     """The conditions of a simulated ``scenario`` (its plant's WFS noise and DM gain, its layers' winds);
     ``dm_gain`` overrides the plant's (an open-loop filter believes 1). With a Shack-Hartmann the noise is what its
-    slope noise (photon, read and the plant's) leaves per actuator: ``sigma sqrt(trace(R R^T) / K)``."""
+    slope noise (photon, read and the plant's) leaves per actuator: ``sigma sqrt(trace(R W R^T) / K)`` (``W``: the
+    partly lit subapertures' larger noise, the identity without them)."""
     noise = float(scenario.plant.wfs_noise_nm)
     if scenario.sensor.is_shack_hartmann:
         sensed = scenario.turbulence(0, "conditions")
         reconstructor = sensed.operators.reconstructor
-        noise = sensed.slope_noise_nm(noise) * math.sqrt(float(reconstructor.pow(2).sum()) / reconstructor.shape[0])
+        scale = sensed.operators.sensor.slope_noise_scale
+        power = reconstructor.pow(2) if (scale == 1).all() else reconstructor.pow(2).numpy() * scale ** 2
+        noise = sensed.slope_noise_nm(noise) * math.sqrt(float(power.sum()) / reconstructor.shape[0])
     return Conditions(noise,
                       float(scenario.plant.dm_gain if dm_gain is None else dm_gain),
                       tuple(float(layer.wind_speed_mps) for layer in scenario.atmosphere.layers), "scenario")

@@ -196,11 +196,14 @@ class ShackHartmannTurbulence:
         return self._chunk(frame // step)["phase"][:, (frame % step) // PHASE_EVERY]
 
     def slope_noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
-        """``n``: ``(R, frames, 2 n_sub)`` white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
+        """``n``: ``(R, frames, 2 n_sub)`` white slope noise of RMS ``sigma_nm`` (``None`` when 0), times each slope's
+        :attr:`~eofnn.sim.sensing.shack_hartmann.ShackHartmannSensor.slope_noise_scale` (partly lit subapertures)."""
         if sigma_nm <= 0:
             return None
-        return sigma_nm * torch.randn((*shape, self.operators.sensor.n_slopes), generator=generator,
-                                      dtype=torch.float64)
+        sensor = self.operators.sensor
+        noise = sigma_nm * torch.randn((*shape, sensor.n_slopes), generator=generator, dtype=torch.float64)
+        scale = sensor.slope_noise_scale
+        return noise if (scale == 1).all() else noise * torch.as_tensor(scale)
 
     def noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
         """``R n`` for ``(R, frames)`` frames of white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""

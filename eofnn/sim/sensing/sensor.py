@@ -47,6 +47,10 @@ class Sensor:
         ``fried`` (default) or ``cell`` subapertures; fine-grid intervals per subaperture side (4); subapertures across
         (``cell`` only); the DM's mechanical coupling (0.35); the reconstructor's relative singular-value cut (``None``:
         ``min(0.1, 3 / subapertures across)``).
+    pupil_diameter_m, lit_fraction
+        The lit pupil (``None``: the grid's) and which subapertures are valid: ``None``, those whose centre it holds,
+        taken as fully lit; a fraction, those at least that much lit, a partly lit one measuring its lit area's mean
+        gradient with ``1 / lit`` times the photon noise variance (OOPAO's ``lightRatio``).
     detector : Detector or None
         Guide star and detector (band, magnitude, throughput, pixels, read noise): photon and read noise on every
         slope by Rousset's formulas (:class:`~eofnn.sim.sensing.detector.Detector`). ``None``: no photon noise.
@@ -58,6 +62,8 @@ class Sensor:
     subapertures_across: int | None = None
     mechanical_coupling: float = MECHANICAL_COUPLING
     relative_cut: float | None = None
+    pupil_diameter_m: float | None = None
+    lit_fraction: float | None = None
     detector: Detector | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
@@ -67,6 +73,8 @@ class Sensor:
         "subapertures_across": OrNone(Interval(2, 512, integer=True, unit="subapertures across")),
         "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
         "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
+        "pupil_diameter_m": OrNone(Interval(0, 100, closed="right", unit="m")),
+        "lit_fraction": OrNone(Interval(0, 1, closed="right", unit="of a subaperture's area")),
     }
 
     def __post_init__(self) -> None:
@@ -91,7 +99,7 @@ class Sensor:
         from eofnn.sim.sensing.shack_hartmann import ShackHartmann
 
         return ShackHartmann(self.geometry, self.samples_per_subaperture, self.subapertures_across,
-                             self.mechanical_coupling, self.relative_cut)
+                             self.mechanical_coupling, self.relative_cut, self.pupil_diameter_m, self.lit_fraction)
 
     def slope_noise_nm(self, subaperture_m: float, frame_period_s: float, extra_nm: float = 0.0) -> float:
         """RMS white noise per slope (nm): the detector's photon and read noise and ``extra_nm`` in quadrature."""
@@ -106,6 +114,9 @@ class Sensor:
         if self.subapertures_across is not None and self.subapertures_across > grid.n_across:
             raise ConfigError(f"sensor.subapertures_across={self.subapertures_across!r} is invalid: the grid has "
                               f"{grid.n_across} actuators across; allowed 2 to {grid.n_across}")
+        if self.pupil_diameter_m is not None and self.pupil_diameter_m > grid.diameter_m:
+            raise ConfigError(f"sensor.pupil_diameter_m={self.pupil_diameter_m!r} is invalid: the actuator grid is "
+                              f"{grid.diameter_m:g} m across; allowed up to that")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -1,7 +1,7 @@
 """A geometric Shack-Hartmann sensor: subapertures, slopes, DM influence functions, reconstructor and noise.
 
-The core of a real sensor, not yet in eofnn's loop (which senses the subaperture-averaged phase at each actuator,
-:mod:`eofnn.sim.sensing.kernels`). Everything here is linear algebra on a *fine grid* of phase samples:
+The core of ``sensor.kind: shack_hartmann`` (the loop runs it through :mod:`eofnn.sim.sensing.pupil` and
+:mod:`eofnn.sim.loop.sensing`). Everything here is linear algebra on a *fine grid* of phase samples:
 
 - **Geometry** (:class:`SubapertureGeometry`). ``fried`` (the default): ``n_across - 1`` subapertures of pitch
   ``d`` (the actuator pitch) between four actuators, their corners on actuator centres; ``cell``: one ``d x d``
@@ -56,11 +56,10 @@ Measured (``tests/test_shack_hartmann.py``; Fried, ``m = 4``, coupling 0.35, def
   sinc² spot has no finite second moment: its centroid variance grows with the window (1.4 to 3.5 times Rousset's
   with ``N_T = N_D`` for 6 to 16 pixels).
 
-How the loop will use it (not wired yet): the sensor's view of the residual is ``R S phi_fine(n)`` (commands, nm),
-the pupil's residual is ``phi_fine(n) + IF DM(y(n))`` on the fine points, and white slope noise of variance
-``sigma²`` reaches the commands as ``R n`` (covariance ``sigma² R R^T``, :meth:`ShackHartmannSensor.noise_propagation`);
-:meth:`ShackHartmannSensor.measure` is ``R (S phi + n)``. ``R S`` is kept as two factors: as one dense matrix it
-would be ``K x n_fine`` (216 MB at 40 across).
+In the loop: the sensor's view is ``R (S phi + n)`` (:meth:`ShackHartmannSensor.measure`), white slope noise reaching
+the commands with covariance ``sigma² R R^T``; ``R S`` stays two factors (one dense ``K x n_fine`` matrix: 216 MB at 40
+across). ``pupil_diameter_m`` and ``lit_fraction`` give a pupil inside the actuator grid and partly lit rim
+subapertures (:mod:`eofnn.sim.sensing.subapertures`), as OOPAO builds them.
 """
 
 from __future__ import annotations
@@ -82,22 +81,11 @@ from eofnn.sim.sensing.least_squares import (
     influence_functions,
     least_squares_reconstructor,
 )
+from eofnn.sim.sensing.subapertures import check_pupil, edge_weights, lattice, lit_fractions, partly_lit_rows
 from eofnn.validation import Constraint, Interval, OneOf, OrNone, check_value, validated
 
 #: Subaperture geometries: ``fried`` (between four actuators), ``cell`` (one subaperture per actuator cell).
 GEOMETRIES = ("fried", "cell")
-def _edge_weights(m: int) -> np.ndarray:
-    """Weights of the mean over ``m + 1`` equally spaced points of an edge (summing to 1): Simpson's rule for even
-    ``m``, the trapezoid rule for odd ``m``."""
-    if m % 2 == 0:
-        w = np.ones(m + 1)
-        w[1:-1:2], w[2:-1:2] = 4.0, 2.0
-    else:
-        w = np.full(m + 1, 2.0)
-        w[0] = w[-1] = 1.0
-    return w / w.sum()
-
-
 class SubapertureGeometry:
     """Where the subapertures lie, the fine grid of phase samples that covers their edges, and the slope operator.
 
@@ -131,9 +119,13 @@ class SubapertureGeometry:
     }
 
     def __init__(self, grid: ActuatorGrid, geometry: str = "fried", samples_per_subaperture: int = 4,
-                 subapertures_across: int | None = None) -> None:
+                 subapertures_across: int | None = None, pupil_diameter_m: float | None = None,
+                 lit_fraction: float | None = None) -> None:
         check_value("geometry", geometry, self._constraints["geometry"])
         check_value("samples_per_subaperture", samples_per_subaperture, self._constraints["samples_per_subaperture"])
+        check_pupil(grid, pupil_diameter_m, lit_fraction)
+        self.pupil_diameter_m = grid.diameter_m if pupil_diameter_m is None else float(pupil_diameter_m)
+        self.lit_fraction = lit_fraction
         n = grid.n_across
         if geometry == "fried":
             require(subapertures_across in (None, n - 1),
@@ -157,13 +149,19 @@ class SubapertureGeometry:
         yy, xx = np.meshgrid(centres_1d, centres_1d, indexing="ij")
         r = np.hypot(xx, yy)
         tol = 1e-9 * grid.diameter_m
-        valid = (r <= grid.diameter_m / 2 + tol) & (r >= grid.obstruction * grid.diameter_m / 2 - tol)
+        pupil = self.pupil_diameter_m
+        if lit_fraction is None:
+            valid = (r <= pupil / 2 + tol) & (r >= grid.obstruction * pupil / 2 - tol)
+        else:  # at least lit_fraction of its area lit (OOPAO's lightRatio), on 64 x 64 samples
+            lit = lit_fractions(np.stack([xx.ravel(), yy.ravel()], 1), self.pitch_m, pupil, grid.obstruction * pupil,
+                                 64).reshape(xx.shape)
+            valid = lit >= lit_fraction - 1e-9
         # ... and the DM spans it: every lattice actuator less than a pitch from its square is active (Fried: its four
         # corners; cell: the 3 x 3 around it). Otherwise the DM's roll-off beyond its last actuator reverses the
         # slopes of a tilt there and the least-squares fit of every mode bends to follow them.
         from scipy.spatial import cKDTree
 
-        near = cKDTree(_lattice(grid)).query_ball_point(np.stack([xx.ravel(), yy.ravel()], 1),
+        near = cKDTree(lattice(grid)).query_ball_point(np.stack([xx.ravel(), yy.ravel()], 1),
                                                          self.pitch_m / 2 + grid.pitch_m * (1 - 1e-6), p=np.inf)
         active = grid.mask.ravel()
         valid &= np.array([active[i].all() for i in near]).reshape(valid.shape)
@@ -171,6 +169,8 @@ class SubapertureGeometry:
         self.valid = valid
         rows, cols = np.nonzero(valid)
         self.centres_m = np.stack([xx[valid], yy[valid]], axis=1)
+        # Fraction of each valid subaperture's area inside the pupil: 1 where the rule takes it as fully lit.
+        self.illumination = lit[valid] if lit_fraction is not None else np.ones(len(rows))
 
         # The fine grid: points at -sensor/2 + i h (i = -p .. n_sub m + p), an ActuatorGrid of n_sub m + 1 + 2p
         # points across whose circular mask holds every valid subaperture's corners.
@@ -187,7 +187,7 @@ class SubapertureGeometry:
 
         # S: x slope = sum_k w_k (phi[row0 + k, col0 + m] - phi[row0 + k, col0]), y likewise with rows and columns
         # exchanged; (row0, col0) the subaperture's lower-left fine point.
-        w = _edge_weights(m)
+        w = edge_weights(m)
         k = np.arange(m + 1)
         row0, col0 = pad + rows * m, pad + cols * m
         n_valid = len(rows)
@@ -204,6 +204,11 @@ class SubapertureGeometry:
                     raise AssertionError("a subaperture edge point lies outside the fine grid")
                 entries.append((axis * n_valid + sub * ones, idx, sign * w * ones))
         r_idx, c_idx, vals = (np.concatenate([e[j].ravel() for e in entries]) for j in range(3))
+        partial = np.flatnonzero(self.illumination < 1 - 1e-9)
+        if len(partial):  # partly lit: the lit area's mean gradient (the centroid of its spot), not the edges'
+            keep = ~np.isin(r_idx % n_valid, partial)
+            extra = partly_lit_rows(partial, row0, col0, m, h, n_valid, lookup, pupil, grid.obstruction * pupil)
+            r_idx, c_idx, vals = (np.concatenate([a[keep], b]) for a, b in zip((r_idx, c_idx, vals), extra, strict=True))
         self.slope_operator = sp.csr_matrix((vals, (r_idx.astype(np.int64), c_idx)),
                                             shape=(2 * n_valid, self.fine_grid.n_actuators))
         self.slope_operator.sum_duplicates()
@@ -227,8 +232,8 @@ class SubapertureGeometry:
     def fine_in_pupil(self) -> np.ndarray:
         """Boolean ``(n_fine,)``: fine points inside the (obstructed) pupil, where the residual is scored."""
         r = np.hypot(*self.fine_positions_m.T)
-        g, tol = self.grid, 1e-9 * self.grid.diameter_m
-        return (r <= g.diameter_m / 2 + tol) & (r >= g.obstruction * g.diameter_m / 2 - tol)
+        g, tol, pupil = self.grid, 1e-9 * self.grid.diameter_m, self.pupil_diameter_m
+        return (r <= pupil / 2 + tol) & (r >= g.obstruction * pupil / 2 - tol)
 
 
     @cached_property
@@ -239,13 +244,6 @@ class SubapertureGeometry:
         counts = cKDTree(self.centres_m).query_ball_point(self.fine_positions_m, self.pitch_m / 2 * (1 + 1e-9),
                                                            p=np.inf, return_length=True)
         return np.asarray(counts) > 0
-
-
-def _lattice(grid: ActuatorGrid) -> np.ndarray:
-    """``(n_across², 2)`` (x, y) of every site of ``grid``'s square lattice, active or not (m), row-major."""
-    centres = (np.arange(grid.n_across) + 0.5) * grid.pitch_m - grid.diameter_m / 2
-    yy, xx = np.meshgrid(centres, centres, indexing="ij")
-    return np.stack([xx.ravel(), yy.ravel()], axis=1)
 
 
 @dataclass(frozen=True)
@@ -269,6 +267,15 @@ class ShackHartmann:
         Singular values of ``D`` at or below this fraction of the largest are dropped from ``R``, in [0.001, 1]
         (1 drops every mode and is refused when ``R`` is built); ``None``: ``3 / subapertures_across``
         (:func:`default_relative_cut`).
+    pupil_diameter_m : float or None
+        The lit pupil (m), at most the grid's diameter; ``None``: the grid's. Where the residual is scored and the
+        DM's fit of the phase is made. OOPAO's pupil ends with its subapertures, half a pitch inside its Fried DM's
+        last actuators: an actuator grid of ``N + 1`` across at pitch ``d`` with ``pupil_diameter_m = N d``.
+    lit_fraction : float or None
+        ``None``: a subaperture is valid when its centre lies in the pupil, and taken as fully lit. A number in
+        (0, 1]: valid when at least that fraction of its area is lit (OOPAO's ``lightRatio``, 0.5 there); a partly lit
+        one measures its lit area's mean gradient (its spot's centroid) and has photon noise ``1 / lit`` times the
+        variance of a fully lit one's.
     """
 
     geometry: str = "fried"
@@ -276,6 +283,8 @@ class ShackHartmann:
     subapertures_across: int | None = None
     mechanical_coupling: float = MECHANICAL_COUPLING
     relative_cut: float | None = None
+    pupil_diameter_m: float | None = None
+    lit_fraction: float | None = None
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "geometry": OneOf(GEOMETRIES),
@@ -283,6 +292,8 @@ class ShackHartmann:
         "subapertures_across": OrNone(Interval(2, MAX_N_ACROSS, integer=True, unit="subapertures across")),
         "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
         "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
+        "pupil_diameter_m": OrNone(Interval(0, 100, closed="right", unit="m")),
+        "lit_fraction": OrNone(Interval(0, 1, closed="right", unit="of a subaperture's area")),
     }
 
     def build(self, grid: ActuatorGrid) -> ShackHartmannSensor:
@@ -312,7 +323,7 @@ class ShackHartmannSensor:
     def __init__(self, grid: ActuatorGrid, config: ShackHartmann = ShackHartmann()) -> None:
         self.grid, self.config = grid, config
         self.geometry = SubapertureGeometry(grid, config.geometry, config.samples_per_subaperture,
-                                            config.subapertures_across)
+                                            config.subapertures_across, config.pupil_diameter_m, config.lit_fraction)
         self.influence = influence_functions(grid, self.geometry.fine_positions_m, config.mechanical_coupling)
         self.interaction_matrix = np.asarray((self.geometry.slope_operator @ self.influence).todense())
         self.relative_cut = (config.relative_cut if config.relative_cut is not None
@@ -324,6 +335,12 @@ class ShackHartmannSensor:
     def n_slopes(self) -> int:
         """``2 n_sub``: x slopes then y slopes."""
         return 2 * self.geometry.n_subapertures
+
+    @cached_property
+    def slope_noise_scale(self) -> np.ndarray:
+        """``(2 n_sub,)``: each slope's noise RMS relative to a fully lit subaperture's, ``1 / sqrt(lit fraction)``
+        (photon noise; all ones unless ``lit_fraction`` is set)."""
+        return np.tile(1.0 / np.sqrt(self.geometry.illumination), 2)
 
     def slopes(self, phase_fine: torch.Tensor) -> torch.Tensor:
         """``S phi``: ``(..., n_fine)`` fine-point OPD (nm) to ``(..., 2 n_sub)`` slopes (nm of OPD difference across
@@ -357,7 +374,8 @@ class ShackHartmannSensor:
         check_value("slope_noise_nm", slope_noise_nm, Interval(0, None, unit="nm RMS per slope"))
         slopes = self.slopes(phase_fine)
         if slope_noise_nm > 0:
-            slopes = slopes + slope_noise_nm * torch.randn(slopes.shape, generator=generator, dtype=slopes.dtype)
+            slopes = slopes + slope_noise_nm * torch.as_tensor(self.slope_noise_scale) * torch.randn(
+                slopes.shape, generator=generator, dtype=slopes.dtype)
         return self.reconstruct(slopes)
 
     def dm_surface(self, commands: torch.Tensor) -> torch.Tensor:
@@ -367,8 +385,10 @@ class ShackHartmannSensor:
         return torch.as_tensor(np.asarray((self.influence @ flat.T).T)).reshape(*y.shape[:-1], self.geometry.n_fine)
 
     def noise_propagation(self) -> float:
-        """``p = trace(R R^T) / K``: the mean per-actuator command variance per unit variance of white slope noise."""
-        return float((self.reconstructor ** 2).sum() / self.grid.n_actuators)
+        """``p = trace(R W R^T) / K``: the mean per-actuator command variance per unit variance of a fully lit
+        subaperture's white slope noise (``W``: :attr:`slope_noise_scale` squared, the identity unless partly lit
+        subapertures are modelled)."""
+        return float((self.reconstructor ** 2 * self.slope_noise_scale ** 2).sum() / self.grid.n_actuators)
 
 
 def _last_dim(values: torch.Tensor, size: int, name: str, what: str) -> torch.Tensor:
