@@ -146,8 +146,8 @@ of its own): the one to deploy. Gains are the best classical controller's over t
 predictor wins) in residual variance after the fitting error is removed, and in raw contrast at 3 λ/D behind a
 perfect coronagraph at 1.65 µm. "Bound" is the largest variance gain that removing the best classical
 controller's whole temporal term would give with its aliasing and noise left: what a perfect predictor of the
-measurement could reach. The 8-point map took 67 min on 2 cores shared with other runs (110 min of CPU); R = 6 and
-R = 12 were cut for time.
+measurement could reach. The 8-point map took 72 min on 2 cores shared with two OOPAO runs (its first run, PFC
+untuned: 67 min); R = 6 and R = 12 were cut for time.
 
 ![where prediction pays](where/sh/gain_map.png)
 
