@@ -202,7 +202,8 @@ MAPS = ("where/sh",)
 
 
 #: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).
-JSONS = {"coupled_margins": "realistic_10.json", "interop/twin_seeds": "twin_seeds.json", "interop/rim": "rim.json"}
+JSONS = {"coupled_margins": "realistic_10.json", "interop/twin_seeds": "twin_seeds.json", "interop/rim": "rim.json",
+         "interop/twin_pupil/m8": "twin_pupil.json", "interop/twin_pupil/m10": "twin_pupil.json"}
 
 
 def collect() -> list[str]:

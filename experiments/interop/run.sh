@@ -45,8 +45,10 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --eofnn-trained --out experiments/runs/interop/oopao_aa/m10
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --wind-direction 30 \
         --out experiments/runs/interop/oopao_aa/m8_dir30
-    # At 0 degrees (the direction mapped onto eofnn's) also the anti-aliasing EOF trained in eofnn's own simulation.
-    aa --n-subapertures 20 --diameter 4 --magnitude 8 --eofnn-trained --out experiments/runs/interop/oopao_aa/small_m8_dir0
+    # At 0 degrees (the direction mapped onto eofnn's) also the anti-aliasing EOF trained in eofnn's own simulation,
+    # with the twin's pupil its grid's (eof_eofnn) and OOPAO's (eof_eofnn_pupil).
+    aa --n-subapertures 20 --diameter 4 --magnitude 8 --eofnn-trained --twin-pupil both \
+        --out experiments/runs/interop/oopao_aa/small_m8_dir0
     aa --n-subapertures 20 --diameter 4 --magnitude 8 --wind-direction 30 \
         --out experiments/runs/interop/oopao_aa/small_m8_dir30
     # The same open-loop EOFs on each actuator's own history alone (no neighbourhood).
@@ -62,6 +64,10 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # Where the eofnn-trained EOF loses at I = 8: the rim or the interior (offline, and in the loop spliced with the
     # truth-trained filter): reads m8's run.
     OMP_NUM_THREADS=1 $PY experiments/interop/rim_diagnostic.py
+    # The eofnn-trained EOF with OOPAO's pupil in its twin (all of OOPAO's actuators and its partly lit subapertures),
+    # at I = 8 over three training sets of the twin and at I = 10: reads m8's and m10's runs.
+    OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 8 0 1 2
+    OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 10 0
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \

@@ -53,5 +53,8 @@ def main(magnitude: int, seeds: list[int]) -> None:
 
 
 if __name__ == "__main__":
+    bad = [a for a in sys.argv[1:] if not a.isdigit()]
+    if bad:
+        sys.exit(f"{bad[0]!r} is not a whole number: give the magnitude (8 or 10), then twin seeds (0, 1, ...)")
     args = [int(a) for a in sys.argv[1:]]
     main(args[0] if args else 8, args[1:] or [0])
