@@ -91,7 +91,8 @@ ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_
                   "interop/oopao_aa/small_m8_dir0_own": ("20 x 20, 4 m, own history only", 8, 0),
                   "interop/oopao_aa/small_m8_dir0_twin_own": ("20 x 20, 4 m, twin at own noise, all modes", 8, 0)}
 AA_LABELS = {"integrator": "integrator", "lqg": "LQG", "pfc": "PFC", "eof_measured": "EOF from telemetry",
-             "eof_antialias": "anti-aliasing EOF", "eof_eofnn": "anti-aliasing EOF trained in eofnn"}
+             "eof_antialias": "anti-aliasing EOF", "eof_eofnn": "anti-aliasing EOF trained in eofnn",
+             "eof_eofnn_pupil": "anti-aliasing EOF trained in eofnn with OOPAO's pupil"}
 
 
 def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
@@ -170,9 +171,10 @@ def antialias_text() -> str:
 At the issue's points (40 x 40, 20 m/s), against the best classical controller built from the same telemetry: in
 variance after fitting error (goal 1.5x) the EOF fitted on telemetry alone gives {met("tel", "variance", 1.5)}, the
 anti-aliasing EOF {met("aa", "variance", 1.5)}, the anti-aliasing EOF trained in eofnn's simulation
-{met("eofnn", "variance", 1.5)}; in raw contrast at 3 λ/D (goal 2x) the EOF from telemetry gives
-{met("tel", "contrast", 2.0)}, the anti-aliasing EOF {met("aa", "contrast", 2.0)}, the one trained in eofnn's
-simulation {met("eofnn", "contrast", 2.0)}. The guarded EOF is at or below the
+{met("eofnn", "variance", 1.5)} with its twin's pupil the grid's and {_pupil_met("variance", 1.5)} with OOPAO's; in
+raw contrast at 3 λ/D (goal 2x) the EOF from telemetry gives {met("tel", "contrast", 2.0)}, the anti-aliasing EOF
+{met("aa", "contrast", 2.0)}, the one trained in eofnn's simulation {met("eofnn", "contrast", 2.0)} with the grid's
+pupil and {_pupil_met("contrast", 2.0)} with OOPAO's. The guarded EOF is at or below the
 best-gain integrator on every realisation at {sum(guarded_ok)} of {len(guarded_ok)} runs."""
 
 
@@ -340,7 +342,7 @@ def transfer_text() -> str:
             "sensors themselves (OOPAO's diffractive four-pixel centroid and its optical gain per mode, its "
             "reconstructor, against eofnn's geometric model; eofnn's rim subapertures see the whole phase; "
             "`experiments/interop/transfer_diagnostic.py` prints the two filters' responses to static patterns)"
-            + (_rim_text() or "; which of these costs most was not separated.") + _transfer_psd())
+            + (_rim_text() or "; which of these costs most was not separated.") + _transfer_psd() + _twin_pupil_text())
 
 
 def _transfer_psd() -> str:
@@ -411,11 +413,14 @@ def _rim_text() -> str:
             f"with the truth-trained filter's rim leaves {mean['eofnn_interior_truth_rim']:.1f} nm, {rim_share:.0%} "
             f"of the gap in variance after fitting, and with the rim of the EOF from telemetry alone "
             f"{mean['eofnn_interior_telemetry_rim']:.1f} nm; " + reverse_text + ". The splices are diagnostics, "
-            "not contenders. The rim is where the carried filter errs most, but in the loop it is a third of the gap: "
-            "a twin with OOPAO's pupil (inside the DM's last actuators, partly lit subapertures; eofnn's "
-            "Shack-Hartmann does not model it yet) is the first step, and the rest (the two sensors' response "
-            "inside the pupil, the diffractive four-pixel centroid against eofnn's geometric one, or the two "
-            "turbulences) is not located.")
+            "not contenders. The rim is where the carried filter errs most, but spliced into the loop it is "
+            f"{rim_share:.0%} of the gap: "
+            + ("a twin with OOPAO's pupil (below) says the splice understates it, since the whole filter, its interior "
+               "included, was fitted on the wrong pupil"
+               if twin_pupil_gains(8) else
+               "a twin with OOPAO's pupil (inside the DM's last actuators, partly lit subapertures) is the first step, "
+               "and the rest (the two sensors' response inside the pupil, the diffractive four-pixel centroid against "
+               "eofnn's geometric one, or the two turbulences) is not located") + ".")
 
 
 def _twin_seeds_text() -> str:
@@ -436,6 +441,99 @@ def _twin_seeds_text() -> str:
              for k, rms in runs.items()]
     return (f"Over training sets of the twin (40 x 40, I = 8; `experiments/interop/twin_seeds.py`, each filter scored "
             f"on the same {len(fit)} realisations, against the {AA_LABELS[best]}): " + "; ".join(parts) + ".")
+
+
+def twin_pupil_gains(magnitude: int) -> dict[str, tuple[float, float, float]] | None:
+    """The eofnn-trained EOF with OOPAO's pupil in its twin at the 40 x 40 point of ``magnitude``
+    (experiments/interop/twin_pupil.py), per twin seed: ``(mean residual nm, variance gain after fitting, contrast
+    gain at 3 λ/D)`` over the run's best classical controller on the same realisations; None if not run."""
+    run, pupil = load(f"interop/oopao_aa/m{magnitude}", "result"), load(f"interop/twin_pupil/m{magnitude}", "result")
+    if not run or not pupil:
+        return None
+    fit, base = run["fitting_error_nm"], run["contenders"][run["best_classical"]]
+
+    def variance(rms: list) -> float:
+        return sum(r * r - f * f for r, f in zip(rms, fit, strict=True))
+
+    out = {}
+    for seed, entry in sorted(pupil["seeds"].items(), key=lambda kv: int(kv[0])):
+        c = entry["contender"]
+        rms = c["realisations_median_rms_nm"]
+        out[seed] = (math.nan, math.nan, math.nan) if None in rms else (
+            sum(rms) / len(rms), variance(base["realisations_median_rms_nm"]) / variance(rms),
+            base["mean_contrast"]["3"] / c["mean_contrast"]["3"])
+    return out
+
+
+def _pupil_met(what: str, target: float) -> str:
+    """The goal line of the eofnn-trained EOF with OOPAO's pupil: seed 0's gain and the range over twin seeds."""
+    out = []
+    for mag in (8, 10):
+        gains = twin_pupil_gains(mag)
+        if not gains:
+            out.append(f"I = {mag}: not run")
+            continue
+        k = 1 if what == "variance" else 2
+        values = [g[k] for g in gains.values()]
+        spread = "" if len(values) < 2 else f", {min(values):.2f}x-{max(values):.2f}x over {len(values)} twin seeds"
+        out.append(f"I = {mag}: {values[0]:.2f}x{' (met' + spread + ')' if min(values) >= target else spread}")
+    return ", ".join(out)
+
+
+def _twin_pupil_text() -> str:
+    """The eofnn-trained EOF with OOPAO's pupil in its twin: at 40 x 40 (experiments/interop/twin_pupil.py, on the
+    m8 and m10 runs' realisations) and at 20 x 20 (the small_m8_dir0 run's eof_eofnn_pupil), each beside the
+    grid-pupil twin's filter and against the run's best classical controller."""
+    parts = []
+    for mag in (8, 10):
+        gains, run = twin_pupil_gains(mag), load(f"interop/oopao_aa/m{mag}", "result")
+        if not gains or not run:
+            continue
+        pupil = load(f"interop/twin_pupil/m{mag}", "result")
+        fit0 = pupil["seeds"][min(pupil["seeds"], key=int)]["fit"]
+        grid = run["gains_over_best_classical"].get("eof_eofnn") or {}
+        seeds = "; ".join(f"seed {k}: {g[0]:.1f} nm, {g[1]:.2f}x / {g[2]:.2f}x" for k, g in gains.items())
+        fit = run["fitting_error_nm"]
+
+        def variance(rms: list, fit: list = fit) -> float:
+            return sum(r * r - f * f for r, f in zip(rms, fit, strict=True))
+
+        truth = variance(run["contenders"]["eof_antialias"]["realisations_median_rms_nm"])
+        carried = variance(run["contenders"]["eof_eofnn"]["realisations_median_rms_nm"])
+        closed = [(carried - variance(e["contender"]["realisations_median_rms_nm"])) / (carried - truth)
+                  for e in pupil["seeds"].values() if None not in e["contender"]["realisations_median_rms_nm"]]
+        parts.append(f"40 x 40, I = {mag} ({fit0['matched']} actuators matched, {fit0['held']} holding, ridge alpha "
+                     f"{fit0['alpha']:.2g} at seed {min(pupil['seeds'], key=int)}): {seeds}; the grid-pupil twin's "
+                     f"{run['contenders']['eof_eofnn']['mean_of_realisations_nm']:.1f} nm, "
+                     f"{grid.get('variance_after_fitting', math.nan):.2f}x / "
+                     f"{(grid.get('contrast') or {}).get('3', math.nan):.2f}x; the filter trained on OOPAO's truth "
+                     f"{run['contenders']['eof_antialias']['mean_of_realisations_nm']:.1f} nm, so OOPAO's pupil "
+                     f"closes {min(closed):.0%}" + (f"-{max(closed):.0%}" if len(closed) > 1 else "")
+                     + " of the grid-pupil twin's gap to it in variance after fitting")
+    small = load("interop/oopao_aa/small_m8_dir0", "result")
+    if small and "eof_eofnn_pupil" in small["contenders"]:
+        g = small["gains_over_best_classical"] if small["best_classical"] != "integrator" else small["gains"]
+
+        def row(name: str) -> str:
+            c, gain = small["contenders"][name], g.get(name)
+            if gain is None:
+                return "diverged"
+            return (f"{c['mean_of_realisations_nm']:.1f} nm, {gain['variance_after_fitting']:.2f}x / "
+                    f"{gain['contrast']['3']:.2f}x")
+
+        parts.append(f"20 x 20, I = 8, 0° ({small['fits']['eof_eofnn_pupil']['matched']} actuators matched, "
+                     f"{small['fits']['eof_eofnn_pupil']['held']} holding): {row('eof_eofnn_pupil')} against the "
+                     f"grid-pupil twin's {row('eof_eofnn')} and the filter trained on OOPAO's truth's "
+                     f"{small['contenders']['eof_antialias']['mean_of_realisations_nm']:.1f} nm")
+    if not parts:
+        return ""
+    return (" **With OOPAO's pupil in the twin** (`--twin-pupil oopao`, `experiments/interop/twin_pupil.py`: the lit "
+            "pupil inside the DM's last actuators, `sensor.pupil_diameter_m`; OOPAO's actuators, "
+            "`grid.active_diameter_m`; its subapertures, valid when at least half lit, the partly lit ones measuring "
+            "their lit area's mean gradient with 1 / lit the photon noise variance, `sensor.lit_fraction`), the "
+            "training otherwise the same and nothing of OOPAO's truth in it; residual, then variance after fitting "
+            "and contrast at 3 λ/D over the run's best classical controller on the same realisations: "
+            + "; ".join(parts) + ".")
 
 
 def _is_ablation(point: tuple) -> bool:
