@@ -150,7 +150,8 @@ def json_summary(name: str, file: str) -> bool:
 
 def map_summary(name: str) -> bool:
     """A sweep drawn as a map (experiments/runs/<name>/): per point its swept values and, per contender, the median
-    RMS, its realisations, the error budget and the raw contrast at 3 lambda/D; the fallbacks' decisions."""
+    RMS, its realisations, the error budget and the raw contrast (at 3 lambda/D, and at every separation
+    computed); the fallbacks' decisions."""
     table = RUNS / name / "sweep.csv"
     if not table.is_file():
         return False
@@ -170,7 +171,8 @@ def map_summary(name: str) -> bool:
                 "median_rms_nm": m["median_rms_nm"], "diverged": m["diverged"],
                 "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario, {}).get(contender),
                 "error_budget": m.get("error_budget"),
-                "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3")}
+                "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3"),
+                "raw_contrast": metrics.get("raw_contrast", {}).get(scenario, {}).get(contender)}
         fallback = {c: {"deployed": f.get("deployed"), "why": f.get("why")}
                     for c, f in metrics.get("fallback", {}).get(scenario, {}).items()}
         settings = {c: {k: v for k, v in chosen.items() if k != "scanned"}  # the classical settings scanned and chosen

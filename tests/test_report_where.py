@@ -1,6 +1,6 @@
 """Section 2d's arithmetic (experiments/report_where.py): the map's gains are the best classical controller's over
 the best predictor's, in residual variance after the fitting error is removed and in raw contrast; a diverged
-contender is never the best; the never-worse check: worse on every realisation is worse."""
+contender is never the best; the never-worse check: worse on every realisation is worse; contrast by separation."""
 
 from __future__ import annotations
 
@@ -74,3 +74,29 @@ def test_the_map_figure_is_drawn(where, tmp_path):
                         for w in (5.0, 10.0) for m in (8.0, 10.0)])
     report.plot(report.rows(), tmp_path / "gain_map.png")
     assert (tmp_path / "gain_map.png").stat().st_size > 10_000
+
+
+def test_contrast_by_separation_and_its_match_to_the_temporal_term(where):
+    """The verdict counts the points where the best predictor wins in contrast at each separation, says whether its
+    wins at 3 lambda/D are the points where its budgeted temporal term is below the classical's, and reads a falling
+    advantage as a gain further out; without contrast at several separations it says nothing."""
+    report, root = where
+
+    def c(rms, temporal, contrast):
+        out = contender(rms, contrast=contrast["3"])
+        out["error_budget"]["temporal_nm"] = temporal
+        out["raw_contrast"] = contrast
+        return out
+
+    write_points(root, [
+        point(30.0, 8.0, {"integrator": c(130.0, 80.0, {"2": 4e-4, "3": 3e-4, "5": 2e-4}),
+                          "ol_eof": c(120.0, 60.0, {"2": 2e-4, "3": 2e-4, "5": 3e-4})}),
+        point(5.0, 8.0, {"integrator": c(130.0, 20.0, {"2": 4e-4, "3": 2e-4, "5": 2e-4}),
+                         "ol_eof": c(120.0, 60.0, {"2": 3e-4, "3": 3e-4, "5": 3e-4})})])
+    section = " ".join(report.where_section().split())
+    assert "at 2 λ/D at 2, at 3 λ/D at 1, at 5 λ/D at 0 of 2 points, against 2 in variance" in section
+    assert "exactly the points where its budgeted temporal term is below" in section
+    assert "falls from 2 to 5 λ/D" in section
+    (root / "where" / "sh" / "summary.json").write_text(json.dumps({"points": [  # a summary with 3 lambda/D only
+        point(30.0, 8.0, {"integrator": contender(130.0), "ol_eof": contender(120.0)})]}))
+    assert "In raw contrast it beats" not in report.where_section()
