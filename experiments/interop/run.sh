@@ -65,9 +65,9 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # truth-trained filter): reads m8's run.
     OMP_NUM_THREADS=1 $PY experiments/interop/rim_diagnostic.py
     # The eofnn-trained EOF with OOPAO's pupil in its twin (all of OOPAO's actuators and its partly lit subapertures),
-    # at I = 8 over three training sets of the twin and at I = 10: reads m8's and m10's runs.
+    # at I = 8 and 10 over three training sets of the twin each: reads m8's and m10's runs.
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 8 0 1 2
-    OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 10 0
+    OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 10 0 1 2
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
