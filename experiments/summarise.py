@@ -19,6 +19,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 from report_oopao import ANTIALIAS_RUNS, OOPAO_POINTS
 from report_where import plot, rows
 
@@ -80,6 +81,23 @@ def prune(value, keep):
     if isinstance(keep, set):
         keep = dict.fromkeys(keep, True)
     return {k: prune(v, keep[k] if k in keep else keep["*"]) for k, v in value.items() if k in keep or "*" in keep}
+
+
+def _contrast_profiles(path: Path, scenario: str) -> dict[str, dict]:
+    """Each contender's azimuthally averaged raw contrast against separation (lambda/D, out to the control radius's
+    inscribed circle) from a run's ``timeseries.npz``, to 4 significant digits; empty if the run kept none. Plain
+    arrays only: ``np.load`` refuses pickled objects."""
+    if not path.is_file():
+        return {}
+    out = {}
+    with np.load(path) as data:
+        for key in data.files:
+            parts = key.split("/")
+            if len(parts) == 3 and parts[0] == scenario and parts[2] == "raw_contrast":
+                sep = data[f"{scenario}/{parts[1]}/contrast_separation_lod"]
+                out[parts[1]] = {"separation_lod": [float(f"{v:.4g}") for v in sep],
+                                 "raw_contrast": [float(f"{v:.4g}") for v in data[key]]}
+    return out
 
 
 def _read(path: Path) -> dict | None:
@@ -150,8 +168,8 @@ def json_summary(name: str, file: str) -> bool:
 
 def map_summary(name: str) -> bool:
     """A sweep drawn as a map (experiments/runs/<name>/): per point its swept values and, per contender, the median
-    RMS, its realisations, the error budget and the raw contrast (at 3 lambda/D, and at every separation
-    computed); the fallbacks' decisions."""
+    RMS, its realisations, the error budget and the raw contrast (at 3 lambda/D, at every separation reported, and
+    its radial profile); the fallbacks' decisions."""
     table = RUNS / name / "sweep.csv"
     if not table.is_file():
         return False
@@ -165,6 +183,7 @@ def map_summary(name: str) -> bool:
         if metrics is None:
             continue
         scenario = next(iter(metrics["scenarios"]))
+        profiles = _contrast_profiles(RUNS / name / "points" / point / "run" / "timeseries.npz", scenario)
         contenders = {}
         for contender, m in metrics["scenarios"][scenario].items():
             contenders[contender] = {
@@ -172,7 +191,8 @@ def map_summary(name: str) -> bool:
                 "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario, {}).get(contender),
                 "error_budget": m.get("error_budget"),
                 "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3"),
-                "raw_contrast": metrics.get("raw_contrast", {}).get(scenario, {}).get(contender)}
+                "raw_contrast": metrics.get("raw_contrast", {}).get(scenario, {}).get(contender),
+                "contrast_profile": profiles.get(contender)}
         fallback = {c: {"deployed": f.get("deployed"), "why": f.get("why")}
                     for c, f in metrics.get("fallback", {}).get(scenario, {}).items()}
         settings = {c: {k: v for k, v in chosen.items() if k != "scanned"}  # the classical settings scanned and chosen

@@ -77,9 +77,9 @@ def test_the_map_figure_is_drawn(where, tmp_path):
 
 
 def test_contrast_by_separation_and_its_match_to_the_temporal_term(where):
-    """The verdict counts the points where the best predictor wins in contrast at each separation, says whether its
-    wins at 3 lambda/D are the points where its budgeted temporal term is below the classical's, and reads a falling
-    advantage as a gain further out; without contrast at several separations it says nothing."""
+    """The verdict counts the points where the best predictor wins in contrast at each separation and says whether
+    its wins at 3 lambda/D are the points where its budgeted temporal term is below the classical's; without contrast
+    at several separations it says nothing."""
     report, root = where
 
     def c(rms, temporal, contrast):
@@ -96,7 +96,30 @@ def test_contrast_by_separation_and_its_match_to_the_temporal_term(where):
     section = " ".join(report.where_section().split())
     assert "at 2 λ/D at 2, at 3 λ/D at 1, at 5 λ/D at 0 of 2 points, against 2 in variance" in section
     assert "exactly the points where its budgeted temporal term is below" in section
-    assert "falls from 2 to 5 λ/D" in section
+    assert "its halo is" not in section  # no radial profile, no halo
     (root / "where" / "sh" / "summary.json").write_text(json.dumps({"points": [  # a summary with 3 lambda/D only
         point(30.0, 8.0, {"integrator": contender(130.0), "ol_eof": contender(120.0)})]}))
     assert "In raw contrast it beats" not in report.where_section()
+
+
+def test_the_halo_is_the_area_weighted_contrast_inside_the_profile(where):
+    """The halo integrates raw contrast over rings from 0.5 lambda/D, each weighted by its separation (its ring's
+    area); its gain below the variance gain at every point says the gain lies outside the profile's circle."""
+    report, root = where
+    sep = [0.0, 0.25, 0.5, 1.0, 2.0, 4.0]
+
+    def c(rms, profile):
+        out = contender(rms, contrast=profile[4])
+        out["raw_contrast"] = {"2": profile[4], "3": profile[4], "5": profile[5]}
+        out["contrast_profile"] = {"separation_lod": sep, "raw_contrast": profile}
+        return out
+
+    classical = c(130.0, [1.0, 9.0, 1e-3, 1e-3, 2e-4, 1e-4])
+    predictor = c(120.0, [1.0, 1.0, 1e-3, 1e-3, 2e-4, 2e-4])  # worse at 4 lambda/D; the core (< 0.5) is left out
+    assert report.halo(classical) == pytest.approx((0.5e-3 + 1e-3 + 4e-4 + 4e-4, 4.0))
+    write_points(root, [point(20.0, 8.0, {"integrator": classical, "ol_eof": predictor})])
+    [row] = report.rows()
+    assert row["halo_gain"] == pytest.approx(2.3e-3 / 2.7e-3)
+    section = " ".join(report.where_section().split())
+    assert "from 0.5 to 4 λ/D" in section and "its halo is 0.85x-0.85x" in section
+    assert "below its gain in variance after fitting at 1 of 1 points: much of its gain lies outside" in section
