@@ -106,3 +106,22 @@ def test_analytic_stability_is_reported_by_default_and_can_be_skipped(small_scen
     assert EvaluationConfig().analytic_stability is True
     with pytest.raises(ConfigError, match="evaluation.analytic_stability='no' is invalid"):
         EvaluationConfig(analytic_stability="no")
+
+
+def test_a_shack_hartmann_run_splits_its_residual_by_spatial_frequency(tmp_path):
+    """metrics.json's spatial_split_nm: the residual over the pupil inside the control circle, in the control
+    square's corners and beyond it (the fitting error lies there), adding in quadrature to about the run's RMS;
+    results.md tabulates it."""
+    from eofnn.reporting.report import write_report
+
+    evaluation = EvaluationConfig(frames=300, settle_frames=100, analytic_stability=False, error_budget=False)
+    result = Experiment(_scenario(), {"nominal": {}}, {"integrator": PredictorConfig(controller="integrator", gain=0.4)},
+                        evaluation, log=lambda _: None).run()
+    metrics = result.metrics["nominal"]["integrator"]
+    split = metrics.spatial_split_nm
+    assert set(split) == {"inside_control_circle", "control_square_corners", "beyond_control"}
+    assert split["beyond_control"] > 0.3 * metrics.median_rms_nm  # 8 across on 3.2 m: the fitting error is large
+    assert sum(v * v for v in split.values()) ** 0.5 == pytest.approx(metrics.median_rms_nm, rel=0.25)
+    assert result.to_json()["scenarios"]["nominal"]["integrator"]["spatial_split_nm"] == split
+    write_report(result, tmp_path, 1000.0)
+    assert "| integrator | " in (tmp_path / "results.md").read_text().split("Where the residual lies in nominal")[1]

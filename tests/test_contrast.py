@@ -45,3 +45,36 @@ def test_a_ripple_of_k_cycles_puts_a_speckle_at_k_lambda_over_d():
     peak = separations[max(range(2, len(profile)), key=profile.__getitem__)]
     assert peak == pytest.approx(k, abs=0.5)
     assert contrast.at((2.0, 50.0))["50"] is None  # beyond the control radius of 20 lambda/D
+
+
+def test_the_spatial_split_sums_to_the_pupil_variance_and_puts_each_ripple_in_its_region():
+    """Parseval: the three regions' variances sum to the piston-removed variance over the pupil. A ripple of 6
+    cycles per pupil lies inside the control circle (20 lambda/D here); a diagonal one of 17 + 17 cycles (24 lambda/D
+    from the axis, inside the square) in its corners; on a finer grid whose control radius is 10 lambda/D, one of 30
+    cycles beyond the square."""
+    gen = torch.Generator().manual_seed(1)
+    eps = 20.0 * torch.randn(1, 5, GRID.n_actuators, dtype=torch.float64, generator=gen)
+    contrast = RawContrast(GRID, WAVELENGTH_M, every=1)
+    contrast(0, {"eps": eps})
+    split = contrast.spatial_split()
+    variance = (eps[0] - eps[0].mean(-1, keepdim=True)).pow(2).mean(-1).mean()
+    assert sum(v * v for v in split.values()) == pytest.approx(float(variance), rel=1e-9)
+    assert split["beyond_control"] == pytest.approx(0.0, abs=1e-9)  # the actuator grid reaches the square only
+
+    def shares(grid, ripple, **kw):
+        c = RawContrast(grid, WAVELENGTH_M, every=1, **kw)
+        if "pupil" in kw:
+            c.add(ripple[kw["pupil"]].view(1, -1).to(torch.float64))
+        else:
+            c(0, {"eps": ripple.view(1, 1, -1).to(torch.float64)})
+        parts = {k: v * v for k, v in c.spatial_split().items()}
+        return {k: v / sum(parts.values()) for k, v in parts.items()}
+
+    x, y = (torch.as_tensor(GRID.positions_m[:, i]) for i in (0, 1))
+    assert shares(GRID, torch.cos(2 * math.pi * 6 * x / 8.0))["inside_control_circle"] > 0.9
+    assert shares(GRID, torch.cos(2 * math.pi * 17 * (x + y) / 8.0))["control_square_corners"] > 0.8
+    fine = ActuatorGrid(8.0, 80)
+    fx = torch.as_tensor(fine.positions_m[:, 0])
+    pupil = torch.as_tensor(fine.positions_m).norm(dim=1).numpy() <= 4.0
+    assert shares(fine, torch.cos(2 * math.pi * 30 * fx / 8.0), pupil=pupil, pupil_diameter_m=8.0,
+                  control_radius_lod=10.0)["beyond_control"] > 0.9

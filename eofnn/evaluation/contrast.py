@@ -65,6 +65,7 @@ class RawContrast:
         amplitude[self._index] = 1.0
         self._peak = float(torch.fft.fft2(amplitude.view(self._size, self._size)).abs().max() ** 2)
         self._sum: torch.Tensor | None = None
+        self._phase_power: torch.Tensor | None = None  # sum over frames of |FFT(pupil x piston-free residual)|^2, nm^2
         self._count = 0
 
     def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
@@ -88,6 +89,11 @@ class RawContrast:
         pupil[:, self._index] = field
         intensity = torch.fft.fft2(pupil.view(-1, self._size, self._size)).abs().pow(2).sum(0)
         self._sum = intensity if self._sum is None else self._sum + intensity
+        flat = torch.as_tensor(residual_nm, dtype=torch.float64)
+        flat = torch.zeros(flat.shape[0], self._size * self._size, dtype=torch.float64).index_copy_(
+            1, self._index, flat - flat.mean(-1, keepdim=True))
+        power = torch.fft.fft2(flat.view(-1, self._size, self._size)).abs().pow(2).sum(0)
+        self._phase_power = power if self._phase_power is None else self._phase_power + power
         self._count += field.shape[0]
 
     def profile(self) -> tuple[list[float], list[float]]:
@@ -110,6 +116,26 @@ class RawContrast:
                                                                          torch.ones(image.numel(), dtype=torch.float64))
         separations = (torch.arange(limit) / self.padding).tolist()
         return separations, (sums[:limit] / counts[:limit]).tolist()
+
+    def spatial_split(self) -> dict[str, float] | None:
+        """Where in spatial frequency the residual lies: its piston-removed variance over the pupil, split exactly
+        (Parseval on the pupil-masked residual, zero padded) between the circle inside the control radius
+        (``inside_control_circle``, what a round dark hole sees), the corners of the DM's square control region
+        outside that circle (``control_square_corners``, out to ``sqrt(2)`` times the radius: waffle-like patterns)
+        and beyond the square (``beyond_control``: the fitting error and the DM surface's own high frequencies; only
+        a Shack-Hartmann's fine grid reaches there). Each as an RMS in nm, their squares summing to the mean variance
+        of the propagated frames; ``None`` with no frames."""
+        if self._phase_power is None:
+            return None
+        power = torch.fft.fftshift(self._phase_power) / (self._count * len(self._index) * self._size ** 2)
+        c = self._size // 2
+        yy, xx = torch.meshgrid(torch.arange(self._size) - c, torch.arange(self._size) - c, indexing="ij")
+        y, x = yy.double().abs() / self._pixels_per_lod, xx.double().abs() / self._pixels_per_lod
+        circle = torch.hypot(y, x) < self._limit_lod
+        square = torch.maximum(y, x) <= self._limit_lod + 1e-9  # the Nyquist row of a zonal grid is its edge
+        parts = {"inside_control_circle": circle, "control_square_corners": square & ~circle,
+                 "beyond_control": ~square}
+        return {k: math.sqrt(float(power[mask].sum())) for k, mask in parts.items()}
 
     def at(self, separations: tuple[float, ...] = REPORTED_SEPARATIONS) -> dict[str, float | None]:
         """Raw contrast at the given separations (lambda/D); ``None`` beyond the control radius or with no frames."""

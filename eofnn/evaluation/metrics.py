@@ -142,6 +142,9 @@ class LoopMetrics:
     contrast_separation_lod: list[float] = field(default_factory=list, repr=False)
     contrast: list[float] = field(default_factory=list, repr=False)
     contrast_at: dict[str, float | None] = field(default_factory=dict)
+    #: The residual's RMS (nm) inside the control radius's circle, in the control square's corners and beyond the
+    #: square, on the frames the contrast propagates (:meth:`RawContrast.spatial_split`); None when diverged.
+    spatial_split_nm: dict[str, float] | None = None
     #: Non-stationary scenarios: per change, the re-convergence after it (:mod:`eofnn.evaluation.nonstationary`).
     reconvergence: list[dict] | None = None
     #: Slow divergence (:class:`GrowthMonitor`): whether the residual keeps growing, and how fast (amplitude, 1/s).
@@ -176,6 +179,8 @@ class LoopMetrics:
             out["actuator_median_rms_nm"] = self.actuator_median_rms_nm
         if self.error_budget is not None:
             out["error_budget"] = self.error_budget
+        if self.spatial_split_nm is not None:
+            out["spatial_split_nm"] = self.spatial_split_nm
         return out
 
 

@@ -344,6 +344,23 @@ def _budget(result: ExperimentResult) -> str:
     return "\n".join(lines) + "\n" if lines else ""
 
 
+def _spatial(result: ExperimentResult) -> str:
+    """Where in spatial frequency each contender's residual lies (:meth:`RawContrast.spatial_split`), per scenario:
+    only where some residual lies beyond the control square (a Shack-Hartmann scenario's fine grid)."""
+    lines = []
+    for scenario, contenders in result.metrics.items():
+        rows = [(name, m.spatial_split_nm) for name, m in contenders.items() if getattr(m, "spatial_split_nm", None)]
+        if not rows or not any(split["beyond_control"] > 0 for _, split in rows):
+            continue
+        lines += ["", f"Where the residual lies in {scenario} (RMS over the pupil, nm, on the frames the contrast "
+                      "propagates; the three add in quadrature): inside the control radius's circle, in the corners "
+                      "of the DM's square control region, beyond the square:", "",
+                  "| contender | inside the circle | square's corners | beyond the square |", "|---|---|---|---|"]
+        lines += [f"| {name} | {split['inside_control_circle']:.1f} | {split['control_square_corners']:.1f} | "
+                  f"{split['beyond_control']:.1f} |" for name, split in rows]
+    return "\n".join(lines) + "\n" if lines else ""
+
+
 def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                  reference: dict[str, dict[str, float]] | None = None,
                  strehl_wavelength_m: float | None = None) -> list[Path]:
@@ -355,7 +372,7 @@ def write_report(result: ExperimentResult, out: Path, frame_rate_hz: float,
                      + markdown_table(result, reference, strehl_wavelength_m)
                      + _gains(result) + _fixed_gains(result) + _classical_settings(result) + _fallbacks(result)
                      + _alphas(result)
-                     + _margins(result) + _budget(result) + _caveat(result))
+                     + _margins(result) + _budget(result) + _spatial(result) + _caveat(result))
     figures = [out / "rms_vs_time.png", out / "rms_histogram.png", out / "residual_psd.png", out / "contrast.png"]
     plot_rms_vs_time(result, frame_rate_hz, figures[0])
     plot_rms_histograms(result, figures[1])
