@@ -54,6 +54,10 @@ $eofnn compare --config $x/where/check_v20.yaml --out $r/where/check_v20_m8 --ov
 $eofnn compare --config $x/where/check_v20.yaml --scenario.sensor.detector.magnitude 10 --out $r/where/check_v20_m10 \
   --overwrite true
 $eofnn compare --config $x/where/check_pfc.yaml --out $r/where/check_pfc --overwrite true
+# Where in spatial frequency the anti-aliasing EOF gains (the map's 20 m/s, R = 8 point), and its halo at 10 µm.
+$eofnn compare --config $x/where/check_space.yaml --out $r/where/check_space --overwrite true
+$eofnn compare --config $x/where/check_space.yaml --evaluation.strehl_wavelength_m 1.0e-5 \
+  --out $r/where/check_space_10um --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \

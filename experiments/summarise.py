@@ -32,7 +32,9 @@ COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/pa
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
             "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
             "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
-            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc")
+            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc",
+            "where/check_space", "where/check_space_10um")
+PROFILED = ("where/check_space", "where/check_space_10um")  # compare runs whose contrast profiles the page integrates
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh
            *(f"oopao_map/v{wind}_m{mag}" for wind, mag in OOPAO_POINTS))
@@ -42,7 +44,8 @@ PAGES = ("results.md", "pareto.md")
 _PER = lambda keep: {"*": {"*": keep}}  # noqa: E731  (scenario -> predictor -> keep)
 METRICS = {
     "scenarios": _PER({"median_rms_nm", "diverged", "diverged_frame", "settle_frames", "n_frames", "reconvergence",
-                       "fallback_frame", "residual_over", "actuator_median_rms_nm", "error_budget"}),
+                       "fallback_frame", "residual_over", "actuator_median_rms_nm", "error_budget",
+                       "spatial_split_nm"}),
     "raw_contrast": {"*": {"*": True}},
     "stability": _PER({"stable", "dm_gain_interval"}),
     "simulated_stability": _PER({"dm_gain_interval", "tolerance"}),
@@ -122,6 +125,9 @@ def compare_summary(name: str) -> bool:
     if metrics is None:
         return False
     parts = {"metrics": prune(metrics, METRICS)}
+    if name in PROFILED:
+        parts["contrast_profiles"] = {scenario: _contrast_profiles(RUNS / name / "timeseries.npz", scenario)
+                                      for scenario in metrics["scenarios"]}
     robustness = _read(RUNS / name / "robustness.json")
     if robustness is not None:
         parts["robustness"] = prune(robustness, ROBUSTNESS)

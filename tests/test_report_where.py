@@ -121,5 +121,30 @@ def test_the_halo_is_the_area_weighted_contrast_inside_the_profile(where):
     [row] = report.rows()
     assert row["halo_gain"] == pytest.approx(2.3e-3 / 2.7e-3)
     section = " ".join(report.where_section().split())
-    assert "from 0.5 to 4 λ/D" in section and "its halo is 0.85x-0.85x" in section
-    assert "below its gain in variance after fitting at 1 of 1 points: much of its gain lies outside" in section
+    assert "from 0.5 to 4 λ/D" in section and "coronagraphic halo is 0.85x-0.85x" in section
+    assert "(the spatial split, `experiments/where/check_space.yaml`, not run)" in section
+
+
+def test_the_spatial_split_check_gives_each_regions_share_and_the_halo_at_two_wavelengths(where):
+    """Section 2d's spatial split: the variance gain region by region over PFC and the integrator, and the halo
+    ratios at 1.65 and 10 µm beside the split's inside the control circle."""
+    report, root = where
+    split = {"integrator": (100.0, 40.0, 121.0), "pfc": (90.0, 40.0, 121.0), "ol_eof_aa": (80.0, 40.0, 118.0)}
+    scenarios = {k: {"median_rms_nm": 150.0, "spatial_split_nm": dict(zip(
+        ("inside_control_circle", "control_square_corners", "beyond_control"), v, strict=True))}
+                 for k, v in split.items()}
+
+    def profiles(scale):  # a flat halo per contender, proportional to its variance inside the circle (times scale)
+        return {"nominal": {k: {"separation_lod": [0.5, 1.0], "raw_contrast": [scale(v[0] ** 2)] * 2}
+                            for k, v in split.items()}}
+
+    for name, scale in (("check_space", lambda v: 100.0 + v * 1e-4), ("check_space_10um", lambda v: v * 1e-4)):
+        (root / "where" / name).mkdir(parents=True)
+        (root / "where" / name / "summary.json").write_text(json.dumps(
+            {"metrics": {"scenarios": {"nominal": scenarios}}, "contrast_profiles": profiles(scale)}))
+    text = " ".join(report._check_space_text().split())
+    pfc_gain = 90.0**2 + 121.0**2 - 80.0**2 - 118.0**2
+    assert f"{pfc_gain:.0f} nm² over the predictive Fourier control: +1700 (" in text
+    assert "+0 (0%) in the corners" in text
+    assert "against the split's 1.27x" in text and "1.27x at 10 µm" in text  # linear at 10 µm: the split's ratio
+    assert "1.00x at 1.65 µm" in text  # the flat offset (the nonlinear light) swamps it
