@@ -314,7 +314,58 @@ The anti-aliasing EOF's variance gain, region by region: {gain("pfc")}; {gain("i
 lies the fitting error, the same for every contender, and what the DM's own surface puts there: a filter trained on
 the DM's least-squares fit of the phase commands that fit, which the Shack-Hartmann's reconstructor, behind the
 classical controllers, does not (our reading). Inside the circle it gains more in variance than its coronagraphic
-halo at 1.65 µm shows: {_halo_check(runs, long)}"""
+halo at 1.65 µm shows: {_halo_check(runs, long)}
+
+{_space_map_text()}"""
+
+
+def _space_map_text() -> str:
+    """The spatial split over the whole map (check_space.yaml swept over experiments/where/grid.yaml): per point, the
+    share of the anti-aliasing EOF's variance gain over the better of the integrator and PFC that lies inside the
+    control circle, in the square's corners and beyond it, and whether the residuals are the map's."""
+    points = load("where/space", "points")
+    if not points:
+        return ("Over the whole map (`eofnn sweep --config experiments/where/check_space.yaml --grid "
+                "experiments/where/grid.yaml --out experiments/runs/where/space`): not run.")
+    regions = ("inside_control_circle", "control_square_corners", "beyond_control")
+    same = {(p["point"], k): c["median_rms_nm"] for p in load("where/sh", "points") or []
+            for k, c in p["contenders"].items()}
+    cells, worst, inside, beyond, winds = [], 0.0, [], [], []
+    for p in sorted(points, key=lambda p: (p["values"]["scenario.atmosphere.layers"][0]["wind_speed_mps"],
+                                           p["values"]["scenario.sensor.detector.magnitude"])):
+        runs = p["contenders"]
+        if not all(runs.get(k, {}).get("spatial_split_nm") for k in SPACE_LABELS):
+            continue
+        base = min(("integrator", "pfc"), key=lambda k: runs[k]["median_rms_nm"])
+        diff = {r: runs[base]["spatial_split_nm"][r] ** 2 - runs["ol_eof_aa"]["spatial_split_nm"][r] ** 2
+                for r in regions}
+        total = sum(diff.values())
+        wind = p["values"]["scenario.atmosphere.layers"][0]["wind_speed_mps"]
+        mag = p["values"]["scenario.sensor.detector.magnitude"]
+        inside.append(diff["inside_control_circle"] / total)
+        beyond.append(diff["beyond_control"] / total)
+        winds.append(wind)
+        cells.append(f"| {wind:g} | {mag:g} | {SPACE_LABELS[base]} | {total:.0f} | "
+                     + " | ".join(f"{diff[r] / total:.0%}" for r in regions) + " |")
+        worst = max([worst] + [abs(c["median_rms_nm"] - same[(p["point"], k)]) for k, c in runs.items()
+                               if (p["point"], k) in same])
+    if not cells:
+        return "Over the whole map: no point has all three contenders' splits."
+
+    def wind_of(pick) -> str:  # the wind speed of the point with the smallest or largest share inside the circle
+        return f"{winds[inside.index(pick(inside))]:g}"
+
+    return (f"""Over the whole map (`eofnn sweep --config experiments/where/check_space.yaml --grid
+experiments/where/grid.yaml --out experiments/runs/where/space`: the same three contenders at every point, on the
+map's seed; {"their medians are the map's to the last digit" if worst < 1e-9 else
+f"their medians differ from the map's by at most {worst:.2g} nm"}), the anti-aliasing EOF's variance gain over the
+better of the integrator and PFC, and its share in each region (inside the circle: {min(inside):.0%} to
+{max(inside):.0%}, at {wind_of(min)} and {wind_of(max)} m/s; beyond the square: {min(beyond):.0%} to
+{max(beyond):.0%}):
+
+| wind (m/s) | R mag | better classical | gain (nm²) | inside the circle | square's corners | beyond the square |
+|---|---|---|---|---|---|---|
+""" + "\n".join(cells))
 
 
 def _halo_check(runs: dict, long: dict | None) -> str:

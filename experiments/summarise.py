@@ -198,7 +198,8 @@ def map_summary(name: str) -> bool:
                 "error_budget": m.get("error_budget"),
                 "raw_contrast_3": (metrics.get("raw_contrast", {}).get(scenario, {}).get(contender) or {}).get("3"),
                 "raw_contrast": metrics.get("raw_contrast", {}).get(scenario, {}).get(contender),
-                "contrast_profile": profiles.get(contender)}
+                "contrast_profile": profiles.get(contender),
+                "spatial_split_nm": m.get("spatial_split_nm")}
         fallback = {c: {"deployed": f.get("deployed"), "why": f.get("why")}
                     for c, f in metrics.get("fallback", {}).get(scenario, {}).items()}
         settings = {c: {k: v for k, v in chosen.items() if k != "scanned"}  # the classical settings scanned and chosen
@@ -207,7 +208,8 @@ def map_summary(name: str) -> bool:
                        "settings": settings})
     _write(name, "points/*/run/metrics.json", {"points": points})
     _copy_figures_and_pages(name)
-    plot(rows(), HERE / name / "gain_map.png")  # the map's figure, drawn from the summary just written
+    if name == "where/sh":
+        plot(rows(), HERE / name / "gain_map.png")  # the map's figure, drawn from the summary just written
     return True
 
 
@@ -226,7 +228,7 @@ def antialias_summary(name: str) -> bool:
 ANTIALIAS = tuple(ANTIALIAS_RUNS)
 
 #: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
-MAPS = ("where/sh",)
+MAPS = ("where/sh", "where/space")  # where/space: check_space.yaml over the map's grid (the spatial split)
 
 
 #: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).

@@ -148,3 +148,22 @@ def test_the_spatial_split_check_gives_each_regions_share_and_the_halo_at_two_wa
     assert "+0 (0%) in the corners" in text
     assert "against the split's 1.27x" in text and "1.27x at 10 µm" in text  # linear at 10 µm: the split's ratio
     assert "1.00x at 1.65 µm" in text  # the flat offset (the nonlinear light) swamps it
+
+
+def test_the_spatial_split_over_the_map_takes_the_better_classical_and_checks_the_maps_medians(where):
+    report, root = where
+
+    def run(rms, inside, corners, beyond):
+        return {"median_rms_nm": rms, "spatial_split_nm": {"inside_control_circle": inside,
+                                                           "control_square_corners": corners,
+                                                           "beyond_control": beyond}}
+
+    space = point(20.0, 8.0, {"integrator": run(160.0, 100.0, 40.0, 121.0), "pfc": run(155.0, 90.0, 40.0, 121.0),
+                              "ol_eof_aa": run(149.0, 80.0, 40.0, 118.0)})
+    (root / "where" / "space").mkdir(parents=True)
+    (root / "where" / "space" / "summary.json").write_text(json.dumps({"points": [space]}))
+    write_points(root, [point(20.0, 8.0, {"pfc": contender(155.5), "integrator": contender(160.0)})])
+    text = " ".join(report._space_map_text().split())
+    gain = 90.0**2 + 121.0**2 - 80.0**2 - 118.0**2
+    assert f"| 20 | 8 | predictive Fourier control | {gain:.0f} | {1700 / gain:.0%} | 0% |" in text
+    assert "differ from the map's by at most 0.5 nm" in text and f"inside the circle: {1700 / gain:.0%} to" in text
