@@ -304,9 +304,10 @@ def main(argv: list[str] | None = None) -> None:
 Regenerate everything on this page with one command (well over two hours on 2 cores: sections 1, 3 and 4 took
 about 40 minutes; the fair contest of section 2 took 1 h 40 min (its classical settings scanned, on a heavily loaded
 machine), its alpha check 31, its MLP budget check 36 and the paper-gap runs about 10 each, on a shared machine;
-section 2c's moonshot 1 h 8 min; section 2b's structure table 37 min and section 2d's map 72 min (its spatial split 35 more) plus 33 for its
-OOPAO map, beside each other, and its anti-aliasing runs in OOPAO's loop 22-36 min each at 40 x 40 and 5 at
-20 x 20, two at a time; section 5 about 5 minutes and section 6 about 46 plus an hour of noise-aware fits):
+section 2c's moonshot 1 h 8 min; section 2b's structure table 37 min and section 2d's map 72 min (its spatial
+split 35 more) plus 33 for its OOPAO map, beside each other, and its anti-aliasing runs in OOPAO's loop 22-36 min
+each at 40 x 40 and 5 at 20 x 20, two at a time; section 5 about 5 minutes and section 6 about 46 plus an hour of
+noise-aware fits):
 
     bash scripts/setup.sh && bash experiments/reproduce.sh
 
