@@ -1,7 +1,7 @@
 """eofnn's closed-loop EOF inside an HCIPy loop: infinite frozen-flow layer, Gaussian-influence Fried DM applying 2x
 its command, a phase-projection sensor with white noise, 1 kHz, two-frame delay.
 
-The chain of ``examples/oopao_loop.py`` (:func:`eofnn.interop.study.run_study`): record telemetry in the HCIPy
+The chain of ``examples/oopao_loop.py`` (:func:`eofnn.studies.study.run_study`): record telemetry in the HCIPy
 loop with an integrator and 10 nm of dither, identify the plant, fit a closed-loop EOF from the telemetry alone
 (refit once on its own telemetry), replay it on a held-out realisation, and run the exported runtime filter in
 the HCIPy loop against the best-gain integrator (residual OPD, median RMS over the pupil).
@@ -17,8 +17,8 @@ import time
 from dataclasses import replace
 
 from eofnn.interop.hcipy import HcipyLoop
-from eofnn.interop.report import example_parser, parse_example, split_text, write_results
-from eofnn.interop.study import StudyConfig, run_study
+from eofnn.studies.report import example_parser, parse_example, split_text, write_results
+from eofnn.studies.study import StudyConfig, run_study
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -22,7 +22,7 @@ what it cannot (fitting error, aliasing, noise).
     python examples/oopao_loop.py --small --photon-noise --magnitude 10 --wind 10   # photon noise only
     python examples/oopao_loop.py --n-subapertures 40 --diameter 8 --out experiments/runs/interop/oopao
 
-With ``--anti-aliasing`` it runs instead the study of :mod:`eofnn.interop.antialias`: the open-loop EOF (5 x 5
+With ``--anti-aliasing`` it runs instead the study of :mod:`eofnn.studies.antialias`: the open-loop EOF (5 x 5
 neighbourhood) fitted on telemetry alone and the anti-aliasing EOF fitted on the same telemetry with OOPAO's truth
 (the DM's fit of the true phase) as its target, each run in OOPAO's loop against the best-gain integrator, scored in
 residual variance after fitting and raw contrast:
@@ -38,13 +38,13 @@ import time
 from dataclasses import replace
 
 from eofnn.errors import ConfigError
-from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_antialias
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
-from eofnn.interop.report import aliasing_budget, example_parser, parse_example, split_text, write_results
-from eofnn.interop.study import StudyConfig, run_study
-from eofnn.interop.transfer import eofnn_direction, eofnn_trained
 from eofnn.outputs import write_text_atomic
 from eofnn.reporting.interop import antialias_psd_figure
+from eofnn.studies.antialias import AntiAliasConfig, antialias_markdown, run_antialias
+from eofnn.studies.report import aliasing_budget, example_parser, parse_example, split_text, write_results
+from eofnn.studies.study import StudyConfig, run_study
+from eofnn.studies.transfer import eofnn_direction, eofnn_trained
 
 
 def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
@@ -81,10 +81,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--wind-direction", type=float, default=0.0,
                         help="degrees from the x axis (0: along a row of actuators)")
     parser.add_argument("--anti-aliasing", action="store_true",
-                        help="only the anti-aliasing study (eofnn.interop.antialias), with or without --photon-noise")
+                        help="only the anti-aliasing study (eofnn.studies.antialias), with or without --photon-noise")
     parser.add_argument("--eofnn-trained", action="store_true",
                         help="with --anti-aliasing: also the anti-aliasing EOF trained in eofnn's own Shack-Hartmann "
-                             "simulation of this system (eofnn.interop.transfer), on 27 x --frames frames in 9 "
+                             "simulation of this system (eofnn.studies.transfer), on 27 x --frames frames in 9 "
                              "realisations (a fifth more to choose its ridge alpha)")
     parser.add_argument("--own-noise", action="store_true",
                         help="with --eofnn-trained: eofnn's simulation at its own photon noise for the guide star, "

@@ -3,7 +3,7 @@
     .venv/bin/python experiments/sh_vs_oopao.py --out experiments/runs/sh_vs_oopao      # 20 x 20 on 8 m
     .venv/bin/python experiments/sh_vs_oopao.py --n-subapertures 10 --diameter 4 --out experiments/runs/sh_vs_oopao_10
 
-What is built and measured: eofnn/interop/sh_compare.py (and sh_system.py, sh_diagnostics.py). Each number is the
+What is built and measured: eofnn/studies/sh_compare.py (and sh_system.py, sh_diagnostics.py). Each number is the
 mean over the scored realisations, with their standard deviation; "agree" is |OOPAO / eofnn - 1| <= 20%.
 """
 
@@ -113,8 +113,8 @@ def table(out: dict) -> str:
 
 
 def main(argv=None) -> None:
-    from eofnn.interop.sh_compare import CompareConfig, compare
-    from eofnn.interop.sh_system import ShSystem
+    from eofnn.studies.sh_compare import CompareConfig, compare
+    from eofnn.studies.sh_system import ShSystem
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n-subapertures", type=int, default=20)

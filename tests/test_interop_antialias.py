@@ -1,4 +1,4 @@
-"""Anti-aliasing prediction learned from a simulator's truth, run in OOPAO's loop (eofnn/interop/antialias.py).
+"""Anti-aliasing prediction learned from a simulator's truth, run in OOPAO's loop (eofnn/studies/antialias.py).
 
 One small study (10 x 10 Shack-Hartmann on 2 m, photon noise at I = 8, 20 m/s, DM applying 2x) is run once for the
 module; the telemetry targets it rests on are checked on their own, without OOPAO.
@@ -13,7 +13,7 @@ import torch
 from eofnn.data.history import HistorySpec, blended_target
 from eofnn.data.targets import TelemetryBatches
 from eofnn.errors import ConfigError, TelemetryError
-from eofnn.interop.antialias import AntiAliasConfig, antialias_markdown, run_antialias
+from eofnn.studies.antialias import AntiAliasConfig, antialias_markdown, run_antialias
 from eofnn.telemetry.record import Telemetry
 
 CONFIG = AntiAliasConfig(train_sequences=2, train_frames=700, val_frames=140, loop_frames=400, settle_frames=70,
@@ -64,8 +64,8 @@ def _psd_metrics() -> dict:
 
 
 def test_the_psd_bands_split_the_measured_residual_at_the_frozen_flow_frequency(tmp_path):
-    from eofnn.interop.report import psd_bands, psd_bands_markdown
     from eofnn.reporting.interop import antialias_psd_figure
+    from eofnn.studies.report import psd_bands, psd_bands_markdown
 
     metrics = _psd_metrics()
     assert psd_bands(metrics, "integrator") == (2.0 * 2 * 125, 2.0 * 3 * 125)  # 0, 125 Hz below; 250, 375, 500 above
@@ -143,7 +143,7 @@ def test_predictive_fourier_control_is_built_from_the_same_telemetry_with_its_wi
     11-across lattice; 24.1 from 3 x 900); its aliases are chosen on the scan, and it is scored on the same
     realisations as the others. Its memory alpha is scanned without aliases, then one ring is tried at the best alpha,
     and the lowest of the six wins."""
-    from eofnn.interop.antialias import PFC_ALPHAS
+    from eofnn.studies.antialias import PFC_ALPHAS
 
     pfc = study["pfc_scan"]
     scan = pfc["scan"]

@@ -11,10 +11,10 @@ from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
 from eofnn.interop.hcipy import HcipyLoop
 from eofnn.interop.loop import FilterControl, IntegratorControl, TorchControl, run_closed_loop, runtime_filter
-from eofnn.interop.study import StudyConfig, run_study
 from eofnn.models.linear import LinearFilter
 from eofnn.runtime import PredictiveFilter
 from eofnn.sim.layout import ActuatorLayout
+from eofnn.studies.study import StudyConfig, run_study
 
 CONFIG = StudyConfig(record_frames=3000, val_frames=600, heldout_frames=1200, loop_frames=1200, settle_frames=200,
                      warmup_frames=100, gains=(0.3, 0.35, 0.4, 0.45),
@@ -98,7 +98,7 @@ def test_importing_eofnn_and_the_shared_interop_part_needs_no_oopao():
     import subprocess
     import sys
 
-    code = ("import sys, eofnn, eofnn.interop.loop, eofnn.interop.study, eofnn.interop.hcipy; "
+    code = ("import sys, eofnn, eofnn.interop.loop, eofnn.studies.study, eofnn.interop.hcipy; "
             "print(any(m.split('.')[0] == 'OOPAO' for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"

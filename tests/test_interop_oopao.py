@@ -12,8 +12,8 @@ import pytest
 from eofnn.errors import ConfigError
 from eofnn.interop.loop import FilterControl, IntegratorControl, run_closed_loop
 from eofnn.interop.oopao import OopaoLoop, measure_sensor_gain
-from eofnn.interop.study import StudyConfig, run_study
 from eofnn.runtime import PredictiveFilter
+from eofnn.studies.study import StudyConfig, run_study
 
 CONFIG = StudyConfig(record_frames=2500, val_frames=500, heldout_frames=1000, loop_frames=1000, settle_frames=200,
                      warmup_frames=100, gains=(0.25, 0.3, 0.35), integrated_modes=(0, 6), mixes=(0.5, 1.0))
@@ -38,8 +38,8 @@ def test_the_system_is_a_fried_shack_hartmann(sim):
 
 
 def test_eofnns_twin_with_oopaos_pupil_has_its_actuators_and_subapertures(sim):
-    from eofnn.interop.transfer import eofnn_twin, match_positions
     from eofnn.sim.loop.sensing import loop_operators
+    from eofnn.studies.transfer import eofnn_twin, match_positions
 
     for pupil, missing in (("grid", 4), ("oopao", 0)):  # the grid's pupil lacks 4 of OOPAO's outermost actuators here
         scenario = eofnn_twin(sim, pupil).eofnn_scenario(None, screen_frames=50)

@@ -9,8 +9,8 @@ import torch
 
 from eofnn.errors import ConfigError
 from eofnn.interop.loop import SplitControl, pol_modes
-from eofnn.interop.study import StudyConfig, split_candidates
 from eofnn.runtime import PredictiveFilter
+from eofnn.studies.study import StudyConfig, split_candidates
 from eofnn.telemetry.record import Telemetry
 
 K = 6

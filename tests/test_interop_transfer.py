@@ -1,4 +1,4 @@
-"""A predictor trained in eofnn's simulation carried into another simulator's loop (eofnn/interop/transfer.py): its
+"""A predictor trained in eofnn's simulation carried into another simulator's loop (eofnn/studies/transfer.py): its
 coefficients move by position, its commands through the loop's identified gain, and its wind is OOPAO's."""
 
 from __future__ import annotations
@@ -9,16 +9,16 @@ import torch
 
 from eofnn.data.history import HistorySpec
 from eofnn.errors import ConfigError
-from eofnn.interop.transfer import (
+from eofnn.models.linear import LinearFilter
+from eofnn.runtime import PredictiveFilter
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.studies.transfer import (
     EOFNN_DIRECTION_OF_OOPAO,
     eofnn_direction,
     rim_actuators,
     splice_filters,
     transfer_filter,
 )
-from eofnn.models.linear import LinearFilter
-from eofnn.runtime import PredictiveFilter
-from eofnn.sim.grid import ActuatorGrid
 from eofnn.training.export import filter_coefficients
 
 
@@ -64,7 +64,7 @@ def test_eofnns_mapped_wind_moves_the_turbulence_over_the_actuators_as_oopaos():
     same axis and sense in OOPAO (its DM's fit of the true phase) and in eofnn (its turbulence at the actuators)."""
     pytest.importorskip("OOPAO")
     from eofnn.interop.oopao import OopaoLoop
-    from eofnn.interop.transfer import twin_scenario
+    from eofnn.studies.transfer import twin_scenario
 
     sim = OopaoLoop(8, 1.6, wind_speed_mps=20.0, wind_direction_deg=0.0)
     sim.reset(0)
@@ -102,7 +102,7 @@ def test_static_gain_scales_the_carried_filter_to_cancel_a_constant_pol_value():
 def test_the_controlled_projector_keeps_the_loops_modes_on_eofnns_actuators_and_drops_the_rest():
     from types import SimpleNamespace
 
-    from eofnn.interop.transfer import controlled_projector
+    from eofnn.studies.transfer import controlled_projector
 
     rng = np.random.default_rng(3)
     theirs = np.array([(x, y) for x in range(5) for y in range(5)], dtype=np.float64) * 0.2
@@ -127,7 +127,7 @@ def test_the_carried_filters_noise_is_matched_and_reported_in_the_loops_command_
     converted back before the loop compares it with its own."""
     from types import SimpleNamespace
 
-    from eofnn.interop import transfer
+    from eofnn.studies import transfer
     from eofnn.training import conditions
 
     seen = {}

@@ -1,4 +1,4 @@
-"""eofnn's Shack-Hartmann against OOPAO's on one system (eofnn/interop/sh_compare.py, experiments/sh_vs_oopao.py).
+"""eofnn's Shack-Hartmann against OOPAO's on one system (eofnn/studies/sh_compare.py, experiments/sh_vs_oopao.py).
 
 A tiny system with the 0.4 m subapertures of the 20 x 20 on 8 m comparison: 8 x 8 on 3.2 m, r0 = 0.15 m at 500 nm,
 one 10 m/s layer, I = 8. The fast tests check that the two systems line up (lattice, pupils, photons) and OOPAO's
@@ -13,9 +13,9 @@ import pytest
 
 from eofnn.errors import ConfigError
 from eofnn.interop.oopao import OopaoLoop
-from eofnn.interop.sh_compare import CompareConfig, mapping
-from eofnn.interop.sh_diagnostics import eofnn_fit_over_disc, oopao_slope_noise
-from eofnn.interop.sh_system import ShSystem, eofnn_runs, oopao_fitting, oopao_medians
+from eofnn.studies.sh_compare import CompareConfig, mapping
+from eofnn.studies.sh_diagnostics import eofnn_fit_over_disc, oopao_slope_noise
+from eofnn.studies.sh_system import ShSystem, eofnn_runs, oopao_fitting, oopao_medians
 
 SYSTEM = ShSystem(8, 3.2)
 FRAMES, SETTLE = 500, 150

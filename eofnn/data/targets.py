@@ -131,7 +131,7 @@ class TelemetryBatches(IterableDataset):
     target : {"measured", "s"}
         ``"measured"``: the targets cancel the POL values (telemetry alone). ``"s"``: they cancel the telemetry's own
         ``s`` array, ``-s / target_dm_gain``: a simulator's truth recorded beside ``y`` and ``wfs`` (e.g. the DM's
-        fit of the true phase, :mod:`eofnn.interop.antialias`), while the histories stay the measured POL values.
+        fit of the true phase, :mod:`eofnn.studies.antialias`), while the histories stay the measured POL values.
     target_dm_gain : float, optional
         The DM gain of ``"s"`` targets (the simulator's own DM; default ``dm_gain``).
     """

@@ -1,25 +1,20 @@
-"""Predictive Fourier control in another simulator's loop, built from that loop's telemetry (issue 30's third
-classical contender beside the integrator and the LQG).
+"""Predictive Fourier control on another simulator's actuators: its lattice as eofnn's square grid.
 
 eofnn's :class:`~eofnn.control.fourier.FourierPredictor` reads its actuators as the pixels of a square grid in
 row-major order. Another simulator's actuators on a square lattice (OOPAO's Fried DM: ``N + 1`` across, those
 within reach of the pupil) are such a grid once ordered: :class:`LatticeGrid` orders them and :class:`LatticeControl`
-runs the controller in that order inside the loop. The controller itself is built exactly as in eofnn's loop
-(:func:`eofnn.control.frozen_flow.pfc_from_pol`): the POL values recorded in the loop (formed with the identified
-gain), the white noise from the identification, the winds and their weights identified from the same telemetry
-(:mod:`eofnn.control.wind`), per-mode variances, and the stationary Kalman gain of each mode. What the loop's own
-calibration cannot tell it, the outer scale and that the sensor averages over subapertures (the aliases' share of
-each mode), comes from eofnn's twin of the system (:func:`eofnn.interop.transfer.eofnn_twin`).
+runs the controller in that order inside the loop (:func:`~eofnn.interop.loop.run_closed_loop`). Building the
+controller from a loop's telemetry and eofnn's twin of the system is a study's work:
+:func:`eofnn.studies.pfc.pfc_in_loop` (``pfc_in_loop`` is still reachable here, with a deprecation warning, for one
+release).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import warnings
 
 import numpy as np
 
-from eofnn.control.config import PfcConfig
-from eofnn.control.frozen_flow import pfc_from_pol
 from eofnn.errors import ConfigError
 from eofnn.interop.loop import TorchControl
 from eofnn.sim.layout import ActuatorLayout
@@ -70,24 +65,12 @@ class LatticeControl(TorchControl):
         return command
 
 
-@dataclass(frozen=True)
-class _LoopScenario:
-    """What :func:`~eofnn.control.frozen_flow.pfc_from_pol` reads of a scenario, for another simulator's loop."""
+def __getattr__(name: str):
+    """``pfc_in_loop`` moved to :mod:`eofnn.studies.pfc`: reached here with a DeprecationWarning, for one release."""
+    if name == "pfc_in_loop":
+        warnings.warn("eofnn.interop.pfc.pfc_in_loop moved to eofnn.studies.pfc.pfc_in_loop; the old path goes in the "
+                      "next release", DeprecationWarning, stacklevel=2)
+        from eofnn.studies.pfc import pfc_in_loop
 
-    grid: LatticeGrid
-    frame_rate_hz: float
-    atmosphere: object
-    plant: object
-
-
-def pfc_in_loop(sim, pol, dm_gain: float, noise_nm: float | None, config: PfcConfig | None = None) -> LatticeControl:
-    """Predictive Fourier control of ``sim``'s loop from its ``(R, T, K)`` POL values (formed with the identified
-    ``dm_gain``; ``noise_nm``: the identified white noise per actuator, else estimated), as a loop controller."""
-    from eofnn.interop.transfer import eofnn_twin
-
-    grid = LatticeGrid(sim.positions_m)
-    twin = eofnn_twin(sim).eofnn_scenario(None, screen_frames=50)
-    scenario = _LoopScenario(grid, float(sim.frame_rate_hz), twin.atmosphere, twin.plant)
-    controller = pfc_from_pol(pol[..., grid.order], scenario, config or PfcConfig(), dm_gain,
-                              noise_variance=None if noise_nm is None else float(noise_nm) ** 2)
-    return LatticeControl(controller, sim.delay_frames, grid.order)
+        return pfc_in_loop
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,4 +1,4 @@
-"""``psd.png`` of the anti-aliasing study in another simulator's loop (:func:`eofnn.interop.antialias.run_antialias`)."""
+"""``psd.png`` of the anti-aliasing study in another simulator's loop (:func:`eofnn.studies.antialias.run_antialias`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from eofnn.outputs import staged_file
 
 
 def antialias_psd_figure(metrics: dict, path: str | Path) -> Path | None:
-    """``psd.png`` of the anti-aliasing study (:func:`eofnn.interop.antialias.run_antialias`'s metrics): each
+    """``psd.png`` of the anti-aliasing study (:func:`eofnn.studies.antialias.run_antialias`'s metrics): each
     contender's temporal PSD of the measured residual, the frozen-flow frequency marked; None (nothing drawn) where
     no contender has one. Written through a temporary file."""
     curves = {name: run.get("measured_psd_nm2_per_hz") for name, run in metrics["contenders"].items()

@@ -8,8 +8,8 @@ import json
 import sys
 from pathlib import Path
 
-from eofnn.interop.antialias import AntiAliasConfig
 from eofnn.interop.oopao import OopaoLoop
+from eofnn.studies.antialias import AntiAliasConfig
 
 RUNS = Path(__file__).resolve().parents[1] / "runs" / "interop"
 

@@ -8,7 +8,7 @@ and the one trained on telemetry alone fitted as there (`fit_eofs`), the twin's 
   twin lacks (held), the rest of the rim (less than two pitches inside the outermost actuator's radius) and the
   interior.
 - **In the loop**, on the page's three scored realisations, warmed up with the integrator gain that run scanned:
-  the twin's filter, the truth-trained one, and spliced filters (`eofnn.interop.transfer.splice_filters`) that take
+  the twin's filter, the truth-trained one, and spliced filters (`eofnn.studies.transfer.splice_filters`) that take
   the rim from one and the interior from the other. The splices are diagnostics, not contenders: the twin's filter
   with the truth-trained rim tells how much of its loss is at the rim.
 
@@ -25,10 +25,10 @@ from dataclasses import replace
 import numpy as np
 from m8_point import RUNS, m8_point
 
-from eofnn.interop.antialias import fit_eofs, record_with_truth
 from eofnn.interop.loop import FilterControl, run_closed_loop
-from eofnn.interop.transfer import eofnn_trained, rim_actuators, splice_filters
 from eofnn.outputs import write_text_atomic
+from eofnn.studies.antialias import fit_eofs, record_with_truth
+from eofnn.studies.transfer import eofnn_trained, rim_actuators, splice_filters
 from eofnn.training.identify import identify_plant
 
 RIM_PITCHES = 2.0

@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 from eofnn.data.history import HistorySpec
-from eofnn.interop.antialias import AntiAliasConfig, record_with_truth
 from eofnn.interop.loop import runtime_filter
 from eofnn.interop.oopao import OopaoLoop
-from eofnn.interop.study import ALPHA_PATH
-from eofnn.interop.transfer import train_in_eofnn, transfer_filter
+from eofnn.studies.antialias import AntiAliasConfig, record_with_truth
+from eofnn.studies.study import ALPHA_PATH
+from eofnn.studies.transfer import train_in_eofnn, transfer_filter
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig

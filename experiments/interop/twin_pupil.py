@@ -19,10 +19,10 @@ import time
 
 from m8_point import RUNS, aa_point
 
-from eofnn.interop.antialias import record_with_truth, score
 from eofnn.interop.loop import FilterControl
-from eofnn.interop.transfer import eofnn_trained
 from eofnn.outputs import write_text_atomic
+from eofnn.studies.antialias import record_with_truth, score
+from eofnn.studies.transfer import eofnn_trained
 from eofnn.training.identify import identify_plant
 
 

@@ -15,10 +15,10 @@ import sys
 
 from m8_point import RUNS, m8_point
 
-from eofnn.interop.antialias import record_with_truth
 from eofnn.interop.loop import FilterControl, run_closed_loop
-from eofnn.interop.transfer import eofnn_trained
 from eofnn.outputs import write_text_atomic
+from eofnn.studies.antialias import record_with_truth
+from eofnn.studies.transfer import eofnn_trained
 from eofnn.training.identify import identify_plant
 
 
