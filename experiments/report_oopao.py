@@ -8,6 +8,8 @@ import math
 
 from report_common import fmt, load
 
+from eofnn.analysis.noise import integrator_noise_gain
+
 OOPAO_POINTS = tuple((wind, mag) for wind in (10, 20) for mag in (8, 10))  # experiments/interop/run.sh oopao_map
 
 
@@ -215,7 +217,7 @@ def _psd_reading(found: list) -> str:
     """Where in frequency each 40 x 40 run's contenders differ: the measured residual's power below and above the
     frozen-flow frequency, from each run's temporal PSDs (``psd.png``), and whether the measured power ranks the
     contenders as their residual over the pupil does."""
-    from eofnn.interop.report import psd_bands
+    from eofnn.studies.report import psd_bands
 
     parts, misranked = [], []
     for (system, mag, direction), r in found:
@@ -270,24 +272,12 @@ def _pfc_reading(found: list) -> str:
                      f"identified at {layer.get('speed_mps', math.nan):.1f} m/s, {layer.get('weight', math.nan):.0%}; "
                      + (f"memory alpha {r['pfc_scan']['alpha']:g} and " if "alpha" in r["pfc_scan"] else "")
                      + f"alias rings {r['pfc_scan']['aliases']}, chosen on the scan)")
-    return ("Predictive Fourier control (`eofnn/interop/pfc.py`: eofnn's Kalman filter per Fourier mode on OOPAO's "
+    return ("Predictive Fourier control (`eofnn/studies/pfc.py`: eofnn's Kalman filter per Fourier mode on OOPAO's "
             "actuator lattice, its winds, weights, noise and per-mode variances identified from the same telemetry) "
             "is, against the integrator, " + "; ".join(parts) + f". It is above the integrator at {worse} of "
             f"{len(runs)} runs, and not the best classical controller (chosen on the scan) at {not_best} of {len(runs)}"
             + ("" if not missing else f" (not run at {', '.join(missing)}: "
                                       f"{'that run predates' if len(missing) == 1 else 'those runs predate'} it)") + ".")
-
-
-def integrator_noise_gain(loop_gain: float, delay_frames: int = 2) -> float:
-    """The share of white measurement-noise power an integrator ``y(n) = y(n-1) - k m(n-d)`` of loop gain ``k``
-    returns to the residual: the sum of the squared impulse response of ``-k z^-d / (1 - z^-1 + k z^-d)``."""
-    from scipy.signal import lfilter
-
-    impulse = [1.0] + [0.0] * 20000
-    numerator = [0.0] * delay_frames + [-loop_gain]
-    denominator = [1.0, -1.0] + [0.0] * (delay_frames - 1)
-    denominator[delay_frames] += loop_gain
-    return float(sum(v * v for v in lfilter(numerator, denominator, impulse)))
 
 
 def transfer_text() -> str:
@@ -326,7 +316,7 @@ def transfer_text() -> str:
         f"the row \"{plain[0]}\"): {plain[1]}.")
     frames = " or ".join(f"{n}" for n in sorted(twin_frames)) if twin_frames else "7200"
     frames += " frames in " + " or ".join(f"{n}" for n in sorted(sequences)) + " realisations"
-    return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/interop/transfer.py`): the same 5 x 5 "
+    return ("**Trained in eofnn's own simulation** (`--eofnn-trained`, `eofnn/studies/transfer.py`): the same 5 x 5 "
             f"anti-aliasing EOF fitted in eofnn's Shack-Hartmann twin of the system on {frames} (a sixth of "
             "them held out for its ridge alpha), its wind turned to "
             "move over the actuators as OOPAO's does, its coefficients moved onto OOPAO's actuators by position and "
@@ -348,7 +338,7 @@ def transfer_text() -> str:
 def _transfer_psd() -> str:
     """Where in frequency the carried filter loses to the truth-trained one: their measured residual's power below
     and above the frozen-flow frequency and in the PSD's lowest bin, at the 40 x 40 runs."""
-    from eofnn.interop.report import psd_bands
+    from eofnn.studies.report import psd_bands
 
     parts = []
     for (system, mag, _direction), r in antialias_results():

@@ -9,6 +9,10 @@ from pathlib import Path
 from report_common import NAMES, fmt, load, variance_less_fitting
 from report_oopao import antialias_text, oopao_map_text, oopao_reading, transfer_text
 
+from eofnn.evaluation.budget import temporal_bound as library_temporal_bound
+from eofnn.evaluation.contrast import HALO_FROM_LOD
+from eofnn.evaluation.contrast import halo as library_halo
+
 CLASSICAL = ("integrator", "lqg", "pfc")
 PREDICTORS = ("ol_eof", "ol_eof_nb", "ol_eof_aa", "ol_eof_aa_guarded")
 LABELS = {**NAMES, "ol_eof_aa_guarded": "anti-aliasing EOF, guarded",
@@ -39,27 +43,21 @@ def _terms(c: dict) -> str:
 
 
 def temporal_bound(c: dict) -> float:
-    """The largest variance gain (fitting removed) over ``c`` that removing its temporal term alone would give: what
-    a perfect predictor fed with ``c``'s aliased, noisy measurements could at best reach."""
-    b = c.get("error_budget") or {}
-    rest = (b.get("aliasing_nm") or 0.0) ** 2 + (b.get("noise_nm") or 0.0) ** 2
-    return variance_less_fitting(c) / rest if rest > 0 else math.inf
+    """The largest variance gain (fitting removed) over the contender ``c`` that removing its temporal term alone
+    would give (:func:`eofnn.evaluation.budget.temporal_bound`)."""
+    return library_temporal_bound(c["median_rms_nm"], c.get("error_budget"))
 
 
-HALO_FROM = 0.5  # lambda/D: the halo is integrated from here, leaving out the PSF's core
+HALO_FROM = HALO_FROM_LOD  # lambda/D: the halo is integrated from here, leaving out the PSF's core
 
 
 def halo(c: dict) -> tuple[float, float] | None:
-    """``(halo, reach)``: the contender's raw contrast integrated over the focal plane from HALO_FROM to the end of
-    its radial profile (``reach``, lambda/D: the control radius's inscribed circle), each separation weighted by its
-    ring's area; to first order in the residual phase the halo is its spatial PSD, so the ratio of two contenders'
-    halos is their ratio of residual variance at those spatial frequencies. None without a profile."""
+    """``(halo, reach)`` of the contender's radial contrast profile (:func:`eofnn.evaluation.contrast.halo`, from
+    HALO_FROM); None without a profile."""
     profile = c.get("contrast_profile")
     if not profile:
         return None
-    pairs = [(r, v) for r, v in zip(profile["separation_lod"], profile["raw_contrast"], strict=True)
-             if r >= HALO_FROM and v is not None]
-    return (sum(r * v for r, v in pairs), max(r for r, _ in pairs)) if pairs else None
+    return library_halo(profile["separation_lod"], profile["raw_contrast"], HALO_FROM)
 
 
 def rows() -> list[dict]:
@@ -182,7 +180,7 @@ untuned: 67 min); R = 6 and R = 12 were cut for time.
 
 {_check_space_text()}
 
-**The issue's goal conditions in OOPAO's loop** (`bash experiments/interop/run.sh oopao_aa`, `eofnn/interop/antialias.py`:
+**The issue's goal conditions in OOPAO's loop** (`bash experiments/interop/run.sh oopao_aa`, `eofnn/studies/antialias.py`:
 OOPAO's 8 m, 40 x 40 Shack-Hartmann with photon noise, one frozen-flow layer at 20 m/s, a DM applying 2x the
 command). OOPAO's own loop, closed by a dithered integrator, is recorded on 3 realisations of 2000 frames with
 OOPAO's truth beside the telemetry: the DM's fit of the true phase. From those frames come every contender: the

@@ -78,3 +78,29 @@ def test_the_spatial_split_sums_to_the_pupil_variance_and_puts_each_ripple_in_it
     pupil = torch.as_tensor(fine.positions_m).norm(dim=1).numpy() <= 4.0
     assert shares(fine, torch.cos(2 * math.pi * 30 * fx / 8.0), pupil=pupil, pupil_diameter_m=8.0,
                   control_radius_lod=10.0)["beyond_control"] > 0.9
+
+
+def test_the_halo_is_the_residual_variance_at_its_separations():
+    """To first order in the phase, white residuals give a flat contrast ``sigma_phi² / N`` per focal-plane pixel
+    (``1 / padding`` lambda/D on a side), so the halo times ``2 pi dr`` (rings ``dr`` apart) is the variance
+    ``sigma_phi² pi (R² - r0²) / N`` of the spatial frequencies between ``r0`` and the reach ``R`` (the pupil's
+    ``N`` points fill ``N`` (lambda/D)² of frequencies); twice the residual gives four times the halo."""
+    from eofnn.evaluation.contrast import HALO_FROM_LOD, halo
+
+    grid = ActuatorGrid(4.0, 16)
+    gen = torch.Generator().manual_seed(2)
+    eps = torch.randn(1, 300, grid.n_actuators, dtype=torch.float64, generator=gen)
+    found = {}
+    for sigma_nm in (5.0, 10.0):
+        contrast = RawContrast(grid, WAVELENGTH_M, every=1)
+        contrast(0, {"eps": sigma_nm * eps})
+        found[sigma_nm] = halo(*contrast.profile())
+    value, reach = found[5.0]
+    dr = 1 / 4  # RawContrast's default padding: 4 pixels per lambda/D
+    assert reach == pytest.approx(grid.n_across / 2 - dr)  # the last bin inside the control radius
+    phase_var = (2 * math.pi * 5.0e-9 / WAVELENGTH_M) ** 2
+    expected = phase_var * math.pi * ((reach + dr / 2) ** 2 - (HALO_FROM_LOD - dr / 2) ** 2) / grid.n_actuators
+    assert 2 * math.pi * dr * value == pytest.approx(expected, rel=0.1)
+    assert found[10.0][0] / value == pytest.approx(4.0, rel=1e-3)
+    assert halo([0.0, 0.25], [1.0, 1.0]) is None  # nothing from 0.5 lambda/D on
+    assert halo([0.5, 1.0, 1.5], [1e-3, None, 2e-3]) == pytest.approx((0.5e-3 + 3e-3, 1.5))

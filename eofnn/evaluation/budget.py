@@ -56,6 +56,29 @@ def error_budget(total: float | None, noise_free: float | None, perfect: float |
             "runs_nm": {"total": total, "noise_free": noise_free, "perfect": perfect}}
 
 
+def temporal_bound(median_rms_nm: float, budget: dict | None) -> float:
+    """The largest gain in residual variance, fitting error removed, that removing a controller's temporal term alone
+    would give: what a perfect predictor fed with the same aliased, noisy measurements could at best reach.
+
+    Parameters
+    ----------
+    median_rms_nm : float
+        The controller's median residual RMS over the pupil (nm).
+    budget : dict or None
+        Its :func:`error_budget` (``fitting_nm``, ``aliasing_nm``, ``noise_nm``; a missing term counts as 0).
+
+    Returns
+    -------
+    float
+        ``(median_rms² - fitting²) / (aliasing² + noise²)`` (the numerator at least 0; dimensionless): with the terms in
+        quadrature, ``1 + temporal² / (aliasing² + noise²)``. ``inf`` when neither aliasing nor noise is left.
+    """
+    b = budget or {}
+    fitting = b.get("fitting_nm") or 0.0
+    rest = (b.get("aliasing_nm") or 0.0) ** 2 + (b.get("noise_nm") or 0.0) ** 2
+    return max(median_rms_nm ** 2 - fitting ** 2, 0.0) / rest if rest > 0 else math.inf
+
+
 def budget_runs(scenario, build_controller, evaluation, total: float | None, fitting: float | None) -> dict:
     """Run the isolating runs of one contender (``build_controller()`` makes it afresh) in ``scenario`` on
     ``evaluation``'s test stream, and return its :func:`error_budget`."""

@@ -19,6 +19,8 @@ from eofnn.validation import Interval, check_value
 
 #: Separations (lambda/D) reported in metrics.json.
 REPORTED_SEPARATIONS = (2.0, 3.0, 5.0, 10.0)
+#: Where :func:`halo` starts (lambda/D): the PSF's core is left out.
+HALO_FROM_LOD = 0.5
 
 
 class RawContrast:
@@ -145,6 +147,34 @@ class RawContrast:
             index = round(s * self.padding)
             out[f"{s:g}"] = values[index] if values and index < len(values) else None
         return out
+
+
+def halo(separation_lod, raw_contrast, start_lod: float = HALO_FROM_LOD) -> tuple[float, float] | None:
+    """The raw contrast integrated over the focal plane from ``start_lod`` to the end of a radial profile.
+
+    Each separation is weighted by its ring's area (``2 pi r dr``, up to the constant ``2 pi dr`` of a profile
+    sampled every ``dr``). To first order in the residual phase the coronagraphic image is the residual's spatial
+    power spectrum, so the halo is the residual variance at the spatial frequencies of those separations, and the
+    ratio of two controllers' halos (profiles sampled alike) is their ratio of residual variance there.
+
+    Parameters
+    ----------
+    separation_lod : sequence of float
+        Separations (lambda/D), as :meth:`RawContrast.profile` gives them.
+    raw_contrast : sequence of float or None
+        The azimuthally averaged raw contrast at each (``None``: not measured, left out).
+    start_lod : float
+        The smallest separation counted (lambda/D).
+
+    Returns
+    -------
+    tuple of float, or None
+        ``(sum of r * contrast(r), reach)``: the halo (lambda/D, contrast times separation summed) and the largest
+        separation counted (lambda/D: the control radius's inscribed circle for a profile of :class:`RawContrast`);
+        ``None`` when no separation is counted.
+    """
+    pairs = [(r, v) for r, v in zip(separation_lod, raw_contrast, strict=True) if r >= start_lod and v is not None]
+    return (sum(r * v for r, v in pairs), max(r for r, _ in pairs)) if pairs else None
 
 
 def scenario_contrast(scenario, wavelength_m: float, settle_frames: int) -> RawContrast:
