@@ -12,13 +12,9 @@ bracketing its spectral radius ``rho`` (a pocket of instability between two brac
   bracketed, where bisection takes thirty, and those near the edge, where the critical pole stands apart, converge
   fastest. At 40 across (1264 actuators) the poles of a 10-tap open-loop neighbourhood filter well inside the stable
   range form a ring of thousands of nearly equal moduli, on which ARPACK's defaults (6 eigenvalues, a Krylov space
-  of 20) took up to a minute per radius, or did not converge.
+  of 20) were slow per radius, or did not converge.
 
-Measured (one core of a shared 2-core machine, CPU time; ``experiments/coupled_margins.py``): a fitted open-loop
-neighbourhood EOF at 40 across, 10 taps (13904 rows), pole, DM-gain interval and delay margins in 29 radii and 36 s,
-where the former bisection took 103 radii (its DM-gain interval alone: 160 s against 39 s, the benchmark's
-``coupled/1264x10`` row); 12 taps (16432 rows) in 54 s; at ELT
-size (80 across, 5024 actuators, 10 taps: 55264 rows) in 29 radii and 6 minutes, beyond :data:`COMPANION_LIMIT`.
+How long it takes (``experiments/coupled_margins.py``, the benchmark's ``coupled/1264x10`` row): ``docs/findings.md``.
 """
 
 from __future__ import annotations
@@ -41,9 +37,7 @@ DENSE_LIMIT = 2500
 #: Transfer functions (a K x K solve per frequency) up to this many actuators.
 TRANSFER_LIMIT = 400
 #: ARPACK's eigenvalues of largest modulus asked for, its Krylov space, its relative tolerance and the seed of the
-#: first start vector. Measured on the ring of poles above (1264 x 11 rows): 4 of 20 did not converge in 1000
-#: restarts, 6 of 20 took 1400-19000 products (once not converged in 2000), 10 of 60 took 2000-6000 (1-2.5 s of
-#: one core).
+#: first start vector, chosen on the ring of poles above (the alternatives tried: ``docs/findings.md``).
 ARPACK_EIGENVALUES, ARPACK_KRYLOV, ARPACK_TOL, ARPACK_SEED = 10, 60, 1e-10, 0
 #: Brent's method stops when an edge is known to this fraction of its bracket (bisection: 30 halvings, 5e-10).
 EDGE_TOLERANCE = 1e-10

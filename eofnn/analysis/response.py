@@ -4,8 +4,8 @@ characteristic equation ``P = D - g Q N`` evaluated on the unit circle.
 
 For predictive Fourier control (:class:`~eofnn.control.fourier.FourierPredictor`): each spatial Fourier mode's
 filter has up to 18 states whose poles cluster near the unit circle at nearly one angle, and the coefficients of its
-polynomials then hold the loop only to rounding near that angle (measured on 40 actuators across: 73 of the 76 sign
-changes per mode of ``Im(D conj(N))`` were rounding, and their roots put stable modes outside the circle). Its
+polynomials then hold the loop only to rounding near that angle (most sign changes of ``Im(D conj(N))`` per mode are
+rounding, and their roots put stable modes outside the circle: ``docs/findings.md``). Its
 response by partial fractions (``response(omega, rows)``: ``D / Delta`` and ``N / Delta`` with a common factor
 ``Delta`` that has no zero on the circle, so no ratio changes) and its poles from its state space (``moduli(setup)``)
 are exact to rounding. The modes' coefficients are complex, so crossings are searched on the whole circle (no

@@ -45,8 +45,8 @@ class PfcConfig:
         actuator grid samples a field that is not band-limited, and its aliases move at their own temporal
         frequency (0: one state per layer, the scalar filter).
     padding : float
-        Size of the FFT grid over the actuator grid's (at least 1; odd sizes: no Nyquist bin). Measured on
-        configs/realistic.yaml with known winds: 1.5 gives 6.26 nm against 6.13 at 2, in 58% of the time.
+        Size of the FFT grid over the actuator grid's (at least 1; odd sizes: no Nyquist bin): a larger grid costs
+        time for little residual (``docs/findings.md``).
     max_speed_mps : float
         Fastest wind the identification searches for, m/s.
     """

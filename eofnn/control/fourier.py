@@ -5,8 +5,8 @@ Choices (each a place where the actuator grid in a circular pupil departs from t
 
 1. *Modes* (:class:`FourierBasis`): the pseudo-open-loop (POL) map on the active actuators is extended over an
    ``N x N`` periodic grid (``N`` the odd integer at or above ``padding`` times the actuators across: no Nyquist bin,
-   so every mode's conjugate is another mode) by its biharmonic continuation (the smoothest fill: measured on
-   16 across, a sub-pixel Fourier shift of the extended map errs by 16.5 nm where zero-padding errs by 24.7), and
+   so every mode's conjugate is another mode) by its biharmonic continuation (the smoothest fill: a sub-pixel
+   Fourier shift of the extended map errs less than of the zero-padded one, ``docs/findings.md``), and
    ``rfft2`` gives ``M = N (N + 1) / 2`` complex modes (one of each conjugate pair). Back on the actuators:
    ``irfft2`` read at the active actuators. Forward then back is the identity on the actuators; back then forward
    is not: the modes are only approximately decoupled (the analysis treats them as decoupled, and the tests measure
@@ -24,20 +24,16 @@ Choices (each a place where the actuator grid in a circular pupil departs from t
    g_model`` with ``L = C A^d ((1 - f) I + f A)``: the turbulence predicted over the frames ``y(n)`` acts on (a
    fractional delay ``d + f`` as the LQG of :mod:`eofnn.control.classical` does).
 4. *Piston, tip and tilt*: when the telemetry holds none (a simulation that removes them), they are projected out
-   of the command; a frozen-flow shift of a PTT-free map is not PTT-free (measured: 11.5 -> 7.1 nm of prediction
-   error on 16 across).
+   of the command; a frozen-flow shift of a PTT-free map is not PTT-free (projecting it out lowers the prediction
+   error: ``docs/findings.md``).
 
 What it reaches. With one state per mode (``aliases: 0``), a known wind and no noise, the Kalman gain is 1 and the
 filter is the perfect sub-pixel shift of the extended map: its residual is the discretisation floor of frozen flow
-on this grid (``tests/test_pfc.py``: 10.73 nm on the tiny 2 m scenario, the integrator's 12.3), set by the sampled
-subaperture means that are not band-limited, by the fill outside the pupil that does not move with the wind and by
-the piston, tip and tilt removed from each frame. The aliases in the state take it below (6.3 nm there). On
-configs/realistic.yaml (``configs/pfc_small.yaml``) it leaves 6.50 nm against the LQG's 5.11 and the best-gain
-integrator's 18.59, with a far wider stable DM-gain interval (0.20 to 1.94 against 0.705 to 1.29), and 8.32 nm
-against the LQG's 8.59 with a DM applying twice the command. Its margins (:mod:`eofnn.analysis.response`) take the
-modes as decoupled: measured against closing the loop, the DM-gain upper limit agrees within 1.3% there (1.938
-analytic, between 1.938 and 1.962 simulated) and within 3.1% on the tiny scenario with 5 nm of noise (2.43 analytic,
-2.49 to 2.51 simulated); the lower limit is conservative (0.20 analytic there; stable over 3000 frames at 0.10).
+on this grid, set by the sampled subaperture means that are not band-limited, by the fill outside the pupil that
+does not move with the wind and by the piston, tip and tilt removed from each frame; the aliases in the state take
+it below (``tests/test_pfc.py``: the floor below the integrator on the tiny 2 m scenario, the aliases below 0.65 of
+it). Its margins (:mod:`eofnn.analysis.response`) take the modes as decoupled; how they compare with closing the
+loop, and what it leaves on configs/realistic.yaml against the LQG and the integrator: ``docs/findings.md``.
 """
 
 from __future__ import annotations
@@ -85,7 +81,7 @@ def biharmonic_extension(mask: np.ndarray) -> np.ndarray:
 
 
 #: Largest size of the dense transforms (bytes) a basis keeps: below it, a frame's modes are two matrix products
-#: (steady cost; small FFTs on a loaded machine measured from 0.1 to 20 ms each); above, extension and FFT.
+#: (steady cost; small FFTs on a loaded machine vary widely: ``docs/findings.md``); above, extension and FFT.
 DENSE_LIMIT_BYTES = 256 * 2**20
 
 
@@ -329,8 +325,7 @@ class FourierPredictor:
         (1 - a_s z^-1) / g_model``, ``D / Delta = 1 + z^-1 sum_s a_s K_s / (1 - a_s z^-1) + g_model z^-d H N /
         Delta``. Dividing by ``Delta = prod_s (1 - a_s z^-1)`` changes no ratio of the loop (crossings, transfer
         functions), and spares the products of 18 factors that vanish near the states' cluster of turning rates,
-        where the coefficients of the polynomials leave nothing but rounding (measured on 40 across: 73 of the 76
-        sign changes per mode of ``Im(D conj(N))`` were rounding)."""
+        where the coefficients of the polynomials leave nothing but rounding (``docs/findings.md``)."""
         a, residues = self._residues
         if rows is not None:
             a, residues = a[rows], residues[rows]

@@ -57,8 +57,8 @@ def smooth_variance(variance: torch.Tensor, model: torch.Tensor, frequencies: to
     """``(M,)`` mode variances smoothed over rings: ``model`` (the expected shape) times the ring average of
     ``variance / model``, rings ``spacing`` (cycles/m, the FFT's) wide. Turbulence is isotropic, and a few seconds of
     frozen flow span only a few independent pupils: each mode's own sample variance scatters, and the mode whose
-    variance is highest by chance has the largest Kalman gain and sets the analytic DM-gain limit (measured on an 8 m
-    pupil, 10 actuators across, 30 nm of noise: 2.37 from the raw variances, 2.47 smoothed, 2.56 in simulation)."""
+    variance is highest by chance has the largest Kalman gain and sets the analytic DM-gain limit (smoothing brings
+    it nearer the simulated one: ``docs/findings.md``)."""
     ring = torch.round(frequencies.norm(dim=1) / spacing).long()
     ratio = variance / model
     total = torch.zeros(int(ring.max()) + 1, dtype=DTYPE).index_add_(0, ring, ratio)

@@ -13,8 +13,8 @@ What is estimated, and how (a telescope's telemetry: commands ``y`` and WFS read
    eigenvalue, so the eigenvectors are the turbulence's). Turbulence is statistically homogeneous, so the sample
    covariance is first averaged over all actuator pairs with the same separation on the grid: a few seconds of
    frozen flow span only a few independent pupils, and the eigenvectors of the raw sample covariance are then
-   specific to the record (measured on configs/realistic.yaml at 20 across, 4000 frames: the trailing raw modes
-   carried 10-1e4 times more variance on the test stream than in the telemetry, and an LQG built on them 53 nm).
+   specific to the record (their trailing modes carry far more variance on another stream than in the telemetry:
+   ``docs/findings.md``).
 3. *Per mode*: the variance ``C(0)``, the structure function ``D(l) = <(x(n) - x(n - l))²>`` at lags 1 and 2 (on
    a common range: differences of slow, large modes are far better estimated this way than as differences of
    autocovariances) giving ``C(l) = C(0) - D(l) / 2``, a Welch PSD of the first difference ``x(n) - x(n-1)``
@@ -278,9 +278,8 @@ def optimal_gains(stats: ModalStatistics, delay_frames: float, dm_gain_model: fl
 
     ``residual(k) = sum_f w_f (|E_k(f)|² PSD_s(f) + |N_k(f)|² sigma²)`` with ``PSD_s = PSD_pol - sigma²``, over
     ``n_grid`` gains in ``(0, k_crit / min_gain_margin]``: the DM gain may grow by ``min_gain_margin`` before a
-    mode goes unstable (measured on configs/realistic.yaml at 1 nm: without it the slowest modes chose gains of
-    0.99-0.995 x critical, promised by the PSD model but not delivered on the test stream, 19.1 nm against the
-    best global gain's 18.6; 1.05 is the margin of that best global gain, 0.95). Computed as
+    mode goes unstable (without it the slowest modes chose gains near critical, promised by the PSD model but not
+    delivered on the test stream: ``docs/findings.md``). Computed as
     ``|E|² PSD_s = PSD_ds / |P|²`` from the difference PSD less its noise ``|1 - e^{-iw}|² sigma²`` (clipped at
     0), interpolated onto a frequency grid 8x finer than the PSD's so that the resonance of a gain near critical
     is resolved. Returns ``(gains, residual, k_crit)``.

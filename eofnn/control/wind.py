@@ -10,20 +10,19 @@ sum over the actuators of the late frame, so the model is that of a cross-correl
 whatever the pupil. Both maps are first whitened by the discrete Laplacian (the early one on the periodic grid, the
 late one at the actuators whose four neighbours are active): it sharpens the peak, and it removes piston, tip and
 tilt, which a simulation takes out of every frame and which break the shift. Modes up to 0.3 cycles per pitch
-are fitted (whitening raises the aliases: measured with 0.4, winds 1-2% slow; with 0.3, within 1% on 2 m and 8 m
-pupils, 10 and 40 actuators across).
+are fitted (whitening raises the aliases, which a higher limit lets in: ``docs/findings.md``).
 
 The fit: at four lags (the longest the time the fastest wind takes to move 4 pitches or a quarter of the pupil, so
 that two layers' peaks part by more than their width), layers are found one at a time, each the best single layer
 over a grid of winds (``|v| <= max_speed``, a quarter of a pitch of displacement per step at the longest lag, a
 quarter of the peak's width) against what the layers found so far leave unexplained, then every wind and weight is
-refined together by least squares. A layer under 10% of the weight is dropped; weights are normalised. Measured:
-one layer at 10 m/s within 0.2% (2 m and 8 m pupils); the two layers of configs/realistic.yaml (5.1 m/s along x,
-10 m/s along y) at 5.13 and 9.97 m/s, 0.2 degrees off, weights 0.54 and 0.46, from compare's telemetry.
+refined together by least squares. A layer under 10% of the weight is dropped; weights are normalised.
+``tests/test_pfc.py`` checks one layer's speed within 2% and direction within 2 degrees, and two layers' speeds within 10%
+with their weights within 0.1 (what was measured: ``docs/findings.md``).
 
 What did not work: the phases of each Fourier mode's own lag covariance (``k.v T`` per frame, Poyneer et al.'s
-approach) come out slow by 9-13% on a 2 m pupil (2-4% on 8 m): the pupil mixes each mode with its neighbours, and
-the phase is that of a frequency below ``k``. Lagged covariances or structure functions of the maps over pairs of
+approach) come out slow (``docs/findings.md``): the pupil mixes each mode with its neighbours, and the phase is that
+of a frequency below ``k``. Lagged covariances or structure functions of the maps over pairs of
 actuators: dominated by the large scales of a few pupils' worth of screen, and broken by the removal of piston,
 tip and tilt from every frame.
 """

@@ -65,7 +65,7 @@ class DataConfig:
         The turbulence a simulator-truth predictor's target cancels (``-s / g``, :func:`eofnn.data.history.targets`).
         ``measured``: the loop's ``s``, as the sensor sees it (with a Shack-Hartmann its noise-free reconstruction
         ``R S phi``, aliasing included). ``dm_fit`` (a Shack-Hartmann scenario only): the DM's least-squares fit of
-        the true phase over the pupil, ``P F phi``, with no aliasing (issue 30's anti-aliasing prediction). Either
+        the true phase over the pupil, ``P F phi``, with no aliasing (anti-aliasing prediction). Either
         way the inputs are the measured histories, and the delay and fractional delay are handled alike. Needs
         ``truth`` and a closed-form or SGD fit (training through the loop closes it on the measured ``s``).
     """

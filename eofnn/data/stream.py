@@ -1,7 +1,7 @@
 """Telemetry simulated on the fly, cut into history tensors: the training data of every predictor.
 
-Anti-aliasing targets (``data.target: dm_fit``, issue 30)
---------------------------------------------------------
+Anti-aliasing targets (``data.target: dm_fit``)
+----------------------------------------------
 With a Shack-Hartmann the loop's ``s`` is the sensor's noise-free reconstruction ``R S phi``: a predictor trained on
 it learns to predict the aliasing too, and sends it back into the loop. In simulation the DM's least-squares fit of
 the true phase, ``P F phi`` (:mod:`eofnn.sim.sensing.pupil`), is known: with ``dm_fit`` the targets cancel it (same
@@ -9,13 +9,9 @@ sign, DM gain and fractional-delay average as ``-s / g``), while the histories s
 A filter wide enough in space and time can then learn to see through the aliasing (Correia & Teixeira 2014 do it
 with a Wiener reconstructor).
 
-Measured (``configs/antialias_sh_small.yaml``: 4 m, 16 across, two frozen-flow layers, 3 realisations): the
-fit-trained radius-2.5 EOF has the lowest residual over the pupil, by little (noise-free 158.4 nm against 159.2 for the
-same filter trained on the measurement and 160.9 for the best-gain integrator; R = 8: 159.6, 160.3, 161.7): the
-aliasing term falls from 74 to 54 nm, but the filter, fitted in command space, also spends itself on command modes
-the DM barely renders (P F phi has a quarter of its command energy in the quarter of modes the pupil weighs least) and
-its raw contrast at 2-3 lambda/D is worse than the measured-target EOF's. A loss weighted by the pupil's Gram matrix
-is the next step.
+The filter is fitted in command space, so it also spends itself on command modes the DM barely renders (what that
+costs on ``configs/antialias_sh_small.yaml``: ``docs/findings.md``); a loss weighted by the pupil's Gram matrix is the
+next step.
 """
 
 from __future__ import annotations

@@ -112,8 +112,7 @@ class PredictorConfig:
         ``controller: pfc``: frozen-flow memories (``pfc.alpha``, each in [0.5, 1)) to choose from, like the LQG's
         ``ar_orders``: one controller is built with each from the same telemetry, closes the loop on the scan stream
         and the lowest median residual wins (``classical_settings``). A Fourier mode of a finite pupil forgets its
-        past within about a pupil crossing, so the default 0.9999 can cost much (in OOPAO's 8 m loop at 20 m/s:
-        96.7 nm against 76.5 at 0.99).
+        past within about a pupil crossing, so the default 0.9999 can cost much (``docs/findings.md``).
     fallback : FallbackConfig
         Never worse than the integrator: ``per: whole`` or ``per: mode`` deploys this controller only where it beats
         the best-gain integrator on a validation stream of its own by more than the scatter, the integrator's command

@@ -176,7 +176,7 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: AnyTelemetry | Sequ
     predicted, own = _ErrorAccumulator(WelchPSD(segment, rate)), _ErrorAccumulator(WelchPSD(segment, rate))
     # In blocks of frames, each read with the history before it: a file is never held whole, and a neighbourhood
     # filter gathers (frames, K, M x taps) at once (2000 frames of 5024 actuators, 9 neighbours, 10 taps in one
-    # call peaked at 15.8 GB).
+    # call: 7.2 GB of float64 before any temporary; the peak measured: docs/findings.md).
     block = max(1, REPLAY_BLOCK_ELEMENTS // max(1, sequences[0].y.shape[-1] * spec.n_taps))
     for seq in sequences:
         for begin in range(first, seq.y.shape[0], block):

@@ -10,8 +10,7 @@ is compared, after :func:`~eofnn.interop.loop.run_closed_loop`, with the loop it
   :func:`eofnn.training.identify.identify_plant` does: the pseudo-open-loop reconstruction ``s_hat = wfs - g y``
   (``g`` the simulator's DM gain) has the structure function ``D(l) = D_s(l) + 2 sigma²`` at lags 1 and 2, and
   smooth turbulence an even ``D_s(l) = c l² + ...``, so ``sigma² = (4 D(1) - D(2)) / 6``. Turbulence that is not
-  smooth over three frames biases it up: measured in HCIPy's loop on 2 m with 4 subapertures, 4.3 nm at 20 m/s and
-  1.9 nm at 5 m/s without noise, 7.4 and 6.2 nm with 6 nm (its layer moves by interpolation between pixels);
+  smooth over three frames biases it up (HCIPy's layer moves by interpolation between pixels: ``docs/findings.md``);
   hence the simulator's own number where it has one;
 - the DM gain the simulator applies (``sim.dm_gain``), when it says;
 - the layer's wind speed (``sim.settings["wind_speed_mps"]``), when it says.

@@ -1,4 +1,4 @@
-"""Anti-aliasing prediction inside another simulator's loop, learned from that simulator's truth (issue 30).
+"""Anti-aliasing prediction inside another simulator's loop, learned from that simulator's truth.
 
 Telemetry holds only the measurement, aliasing and noise included: a predictor fitted on it alone can at best
 remove the loop's temporal term (``docs/interop.md``). A simulator also knows its turbulence. The DM's
@@ -252,9 +252,8 @@ def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: i
 
 #: The frozen-flow memories (:attr:`eofnn.control.config.PfcConfig.alpha`) predictive Fourier control's scan tries:
 #: new turbulence enters a finite pupil, so a Fourier mode forgets its past within about a pupil crossing (``D / v``:
-#: 100 frames for 2 m at 20 m/s and 1 kHz, 400 for 8 m), and the default 0.9999 trusts it far longer. On the scan
-#: realisation of OOPAO's 8 m, 40 x 40 loop at I = 8 (no aliases): 110.8, 88.4, 80.2, 76.5, 77.8, 82.6, 86.1 and
-#: 96.7 nm for alpha 0.95, 0.97, 0.98, 0.99, 0.995, 0.998, 0.999 and 0.9999 (the integrator's best: 80.9 nm).
+#: 100 frames for 2 m at 20 m/s and 1 kHz, 400 for 8 m), and the default 0.9999 trusts it far longer (the scan that
+#: chose this grid: ``docs/findings.md``).
 PFC_ALPHAS = (0.98, 0.99, 0.995, 0.998)
 
 

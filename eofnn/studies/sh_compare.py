@@ -1,4 +1,4 @@
-"""eofnn's Shack-Hartmann loop against OOPAO's, on one system (issue 29: "against an independent simulator").
+"""eofnn's Shack-Hartmann loop against OOPAO's, on one system: eofnn's sensor against an independent simulator's.
 
 :func:`compare` builds the system of an :class:`~eofnn.studies.sh_system.ShSystem` in both simulators (how they
 line up: :mod:`eofnn.studies.sh_system`) and measures, per guide-star magnitude, in each: the best-gain integrator's

@@ -11,7 +11,7 @@ computer records
   the null space of a given ``R``): more is a singular matrix and a one-line error. The unseen modes are removed
   from ``y`` too (``y <- P y``, ``P`` the projector on the range of ``R``), so that ``wfs = P s + DM(P y)`` stays the
   documented ``s + DM(y)`` in the seen space: otherwise identification reads the missing piston as coupling (a DM
-  gain 12% low on a 100-actuator Fried loop) and POL reconstruction adds the commands' unseen modes to ``s_hat``.
+  gain biased low: ``docs/findings.md``) and POL reconstruction adds the commands' unseen modes to ``s_hat``.
 - *modal* telemetry: ``y`` and ``wfs`` (or ``slopes`` with a modal ``IM`` ``(S, M)`` / ``R`` ``(M, S)``) in the
   coefficients of a **modal basis** ``B`` ``(K, M)`` whose column ``m`` is the actuator command (nm) of a unit
   coefficient of mode ``m``: predictors run in modes, actuator commands are ``B @ y``. ``B`` must have full column

@@ -2,8 +2,8 @@
 others.
 
 A predictor fitted to a measurement learns that measurement's noise: fitted on noise-free telemetry and replayed on
-noisy telemetry, it passes the noise back at unit gain (an EOF fitted on a noise-free OOPAO recording was 1.7x *worse*
-than the loop's integrator on a noisy one, and nothing said why). So a checkpoint keeps, in ``info["conditions"]``:
+noisy telemetry, it passes the noise back at unit gain (in OOPAO's loop such an EOF did worse than the loop's
+integrator, and nothing said why: ``docs/findings.md``). So a checkpoint keeps, in ``info["conditions"]``:
 
 - ``wfs_noise_nm``: the WFS noise per actuator and frame (nm RMS) of the training data: the scenario's, or the one
   identified from the telemetry;

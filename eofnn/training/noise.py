@@ -31,12 +31,7 @@ pupil carry none): exact for eofnn's zonal sensor; for a Shack-Hartmann the reco
 between actuators (``sigma² R R^T``) and the identified level is its mean per actuator. Closed-loop histories are
 refused: there the loop feeds the noise back into ``y``, so it is not independent of the history.
 
-Measured (``experiments/noise_aware/``: 16 across, two layers, delay 2, telemetry fits, closed loop over 3
-realisations, best-gain integrator 17.4 nm at 2 nm of noise and 20.2 at 5): ``none`` 6.50 and 10.21 nm;
-``per_mode_snr`` the same (its alpha: auto chose 1e-4 to 3e-2 noise powers); ``errors_in_variables`` 27.9 and 28.4,
-worse than the integrator (and unstable on noise-free telemetry, where identification reports a spurious 0.5 nm);
-fitted on noise-free telemetry, the plain EOF 22.6 and 56.4 nm, with ``noise_at_deployment_nm`` 6.50 and 10.21 (the
-noisy fit's numbers); one filter per KL mode (``structure: modal``) 5.77 and 9.40.
+How the noise models compare in a closed loop (``experiments/noise_aware/``): ``docs/findings.md``.
 """
 
 from __future__ import annotations

@@ -21,9 +21,8 @@ so the across-wind period only has to exceed the actuators' spread by ``_IMAGE_D
 below ``exp(-2 pi _IMAGE_DECAY)``, 7e-9, of the covariance): ``3 L0`` for the lowest frequencies, a few pitches for
 most. The across-wind band is ``max(_ACROSS_BAND / pitch, min(_RIDGE |f_u|, _ACROSS_CAP / pitch))``: the subaperture's
 transform ``sinc(d f_x) sinc(d f_y)`` keeps a ridge where one factor is ~1, at ``|f_w| = |f_u| cot`` or
-``tan`` of the wind angle, and the ridge sets the temporal PSD at high frequencies (with this band the screen's
-expected PSD is within 1% of theory from 1 to 300 Hz and 2% up to the Nyquist frequency at 10 m/s, 1 kHz and 0.2 m
-pitch, for directions from 5 to 80 degrees; tests/test_anywind.py checks 17, 30 and 120 degrees). Each
+``tan`` of the wind angle, and the ridge sets the temporal PSD at high frequencies (tests/test_anywind.py checks the
+screen's expected PSD against theory at 17, 30 and 120 degrees; the sweep over directions: ``docs/findings.md``). Each
 coefficient has the variance of its frequency cell, ``Phi |K|² / (P W_q)``; frequencies ``q > 0`` carry those of
 ``-q`` too (the field is ``sqrt(2) Re`` of a complex series).
 
@@ -66,10 +65,9 @@ _IMAGE_DECAY = 3.0
 #: that runs of consecutive ``q`` share one non-uniform FFT plan.
 _PERIOD_GROWTH = 1.25
 _MODE_STEP = 16
-#: FINUFFT's requested relative accuracy, in single precision (the screen is float32; measured: the frames move by
-#: 5e-6 of their RMS against a double-precision 1e-9 transform, for 1.4x less CPU time at 40 across), and its
-#: threads: one, as OpenMP threads contending with other processes for few cores were measured 10-100x slower (and
-#: one thread is bit-for-bit reproducible).
+#: FINUFFT's requested relative accuracy, in single precision (the screen is float32; against a double-precision
+#: transform: ``docs/findings.md``), and its threads: one, as OpenMP threads contending with other processes for few
+#: cores were far slower (and one thread is bit-for-bit reproducible).
 _NUFFT_EPS = 1e-6
 _NUFFT_THREADS = 1
 #: Elements (rows x modes or rows x actuators) processed together: bounds the set-up's working memory (~100 MB).

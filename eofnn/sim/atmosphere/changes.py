@@ -13,8 +13,8 @@ direction, or its strength, changes, at once or over ``ramp_s`` seconds.
   up to ``1.5 (pi / 2) / ramp_frames`` of the layer's RMS from the weights' change (mid-ramp), in quadrature with
   the flow's own step (a 0.1 s ramp at 1 kHz: 2.4% of the RMS per frame, against 4.3% for the flow itself at
   5 m/s and 20 cm pitch, point kernel). With a *linear* ``p`` the weights' slope jumps at both ends of the ramp,
-  which a predictor cannot extrapolate: measured in ``experiments/adaptive/wind_turn.yaml``, every EOF's residual
-  spiked from 3.9 to 15 nm for a few frames at 5.0 and 5.1 s; with the smoothstep the largest is 4.6 nm.
+  which a predictor cannot extrapolate: every EOF's residual spiked there (``experiments/adaptive/wind_turn.yaml``;
+  the numbers, with the smoothstep's: ``docs/findings.md``).
   ``ramp_s: 0`` switches from one frame to the next: a step of about sqrt(2) times the layer's RMS, which no
   predictor follows (a hard splice triggered the adaptive fallback in the earlier splice experiments). Frames
   after the ramp are the new screen alone, frozen flow with the new wind.

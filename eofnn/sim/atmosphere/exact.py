@@ -31,8 +31,8 @@ Memory per layer and realisation: the fine series, ``8 * N_f * n_lines`` bytes w
 ``N_f ~ 2 _OVERSAMPLING f_max (screen_frames v dt + D)`` samples and ``n_lines = n_across (|p| + |q|)``: at 1 kHz,
 5.1 m/s along x and 40 across about ``32 * (screen_frames + 1570) * 40`` bytes, 23 MB for 16384 frames and
 131 MB for 1e5 frames; the set-up needs about as much again for a moment, and streaming keeps one block of
-``_BLOCK_FRAMES`` frames (41 MB at 40 across). Set-up time grows with ``screen_frames`` (about 1-2 s per layer
-and realisation for 16384 frames at 40 across).
+``_BLOCK_FRAMES`` frames (41 MB at 40 across). Set-up time grows with ``screen_frames`` (measured:
+``docs/findings.md``).
 """
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ Each layer is an HCIPy :class:`~hcipy.InfiniteAtmosphericLayer` on ``make_pupil_
 pixel per actuator, pixel centres on the actuator centres), advanced by setting ``layer.t = n dt`` and read at the
 active actuators: what the study (Fowler et al. 2023) most likely did. HCIPy moves its screen by whole pixels,
 extruding a new row or column at the rim each time, and interpolates the sub-pixel remainder, so the error of a
-predictor comes in bursts where new columns enter (its open-loop EOF floor is about 1.5 nm in the reference
-scenario). Kept for faithful reproduction, not for speed: frames are generated one after another (about 2000 per
-second at 40 across). A frame range that does not start where the previous one ended restarts the layer from
-frame 0 with the same seed, so any range is reproducible, at the cost of regenerating the frames before it.
+predictor comes in bursts where new columns enter (its open-loop EOF floor in the reference scenario:
+``docs/findings.md``). Kept for faithful reproduction, not for speed: frames are generated one after another. A
+frame range that does not start where the previous one ended restarts the layer from frame 0 with the same seed,
+so any range is reproducible, at the cost of regenerating the frames before it.
 """
 
 from __future__ import annotations

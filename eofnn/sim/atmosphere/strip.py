@@ -10,8 +10,8 @@ seed and ``n``: any frame range can be generated, in any chunking, and gives the
 What it is good for: fast, any wind direction, and spatial statistics (structure function, variance) of the
 screen sampled at the pitch. Its artefact: every actuator's time series is a piecewise polynomial with knots
 every ``pitch / (v dt)`` frames, so temporal PSDs show comb peaks at multiples of ``v / pitch`` and collapse
-above them, and a short linear filter extrapolates such a series almost exactly (an open-loop EOF floor of
-0.01 nm in the reference scenario). Do not use it to judge prediction; use model ``exact``.
+above them, and a short linear filter extrapolates such a series almost exactly (the open-loop EOF floor in the
+reference scenario: ``docs/findings.md``). Do not use it to judge prediction; use model ``exact``.
 """
 
 from __future__ import annotations

@@ -13,12 +13,12 @@ The core of ``sensor.kind: shack_hartmann`` (the loop runs it through :mod:`eofn
   :class:`ActuatorGrid` (:attr:`SubapertureGeometry.fine_grid`), so that
   ``Turbulence(..., Atmosphere(kernel="point"), fine_grid, ...)`` synthesises the exact frozen-flow phase on it.
 
-  Why Fried by default (measured, ``tests/test_shack_hartmann.py``): with symmetric influence functions the
-  ``cell`` geometry cannot see a command alternating along x and smooth along y (its surface vanishes half-way
-  between actuators, on every subaperture edge), nor the same along y: about ``2 n`` near-invisible modes, beside
-  waffle, that edge effects excite. A tilt reconstructed through ``cell`` keeps 17-56% of its RMS as error (10 to 40
-  across, cuts 0.02 to 3 / n), through ``fried`` 2-5%. Subapertures the DM does not span (past its last actuator) see its
-  roll-off: there a tilt command's slopes change sign, and the least-squares fit of every mode bends to follow them.
+  Why Fried by default: with symmetric influence functions the ``cell`` geometry cannot see a command alternating
+  along x and smooth along y (its surface vanishes half-way between actuators, on every subaperture edge), nor the
+  same along y: about ``2 n`` near-invisible modes, beside waffle, that edge effects excite; through ``fried`` tilt,
+  defocus and a cubic come back within 12% (``tests/test_shack_hartmann.py``; the tilt errors measured in each
+  geometry: ``docs/findings.md``). Subapertures the DM does not span (past its last actuator) see its roll-off:
+  there a tilt command's slopes change sign, and the least-squares fit of every mode bends to follow them.
 - **Slopes** (:attr:`SubapertureGeometry.slope_operator`, ``S``, sparse ``(2 n_sub, n_fine)``): the x slope of a
   subaperture is the mean phase on its right edge minus the mean on its left edge,
   ``s_x = <phi>_right - <phi>_left = d_s <dphi/dx>_subaperture`` (Gauss: the mean gradient over the square times its
@@ -33,32 +33,28 @@ The core of ``sensor.kind: shack_hartmann`` (the loop runs it through :mod:`eofn
 - **Interaction matrix and reconstructor**: ``D = S IF`` ``(2 n_sub, K)`` (nm of slope per nm of command) and the
   least-squares ``R = V_k Σ_k^-1 U_k^T`` ``(K, 2 n_sub)`` by truncated SVD: singular values at or below
   ``relative_cut`` x the largest are dropped. Default cut ``min(0.1, 3 / n_sub_across)``
-  (:func:`default_relative_cut`): about 0.075 at 40 across, as the OOPAO study needed; there it found 0.15 at 20 across,
-  but in this zonal basis a cut above 0.1 starts removing the lowest orders (a tilt's reconstruction error, Fried:
-  3% at 0.1 and 6% at 0.15 on 20 across, 31% at 0.3 on 10, 19% at 0.1 on 40): the lowest spatial frequencies have
-  singular values ``~ 2 pi / n`` of the largest's order, the modes the subaperture grid barely sees (piston, waffle,
-  edge modes) fall below. The noise propagation grows as the cut falls (the kept modes nearest it dominate it).
+  (:func:`default_relative_cut`): in this zonal basis a cut above 0.1 starts removing the lowest orders (a tilt's
+  reconstruction error against the cut: ``docs/findings.md``): the lowest spatial frequencies have singular values
+  ``~ 2 pi / n`` of the largest's order, the modes the subaperture grid barely sees (piston, waffle, edge modes)
+  fall below. The noise propagation grows as the cut falls (the kept modes nearest it dominate it).
 - **Noise** (:class:`~eofnn.sim.sensing.detector.Detector`): photons per subaperture and frame from the guide star's
   magnitude (OOPAO's photometry table), centroid noise by Rousset's formulas (phase difference across the subaperture,
   rad², at the sensing wavelength; the photon term with the coefficient exact for a Gaussian spot by default), in the
   slope unit above.
 
-Measured (``tests/test_shack_hartmann.py``; Fried, ``m = 4``, coupling 0.35, default cut):
+What ``tests/test_shack_hartmann.py`` checks against theory (Fried, ``m = 4``, coupling 0.35, default cut; the
+measured values themselves: ``docs/findings.md``):
 
-- noise propagation ``p = trace(R R^T) / K`` (command variance per unit slope-noise variance): 1.51 at 20 across,
-  1.48 at 30, 1.83 at 40; the periodic Fourier-domain LS filter gives 1.26, 1.32, 1.62 (the pupil's rim adds
-  ``~4 / n``). The kept modes nearest the cut dominate it, not the ``0.2 ln n`` of the lowest orders;
-- aliasing of exact frozen flow, ``IF R S (phi - IF y_fit)``, is 0.19 of the fitting variance away from the rim (the
-  Fourier-domain aliasing spectrum: 0.189) and 0.27 over the whole sensed area (the rim amplifies it); with
-  ``m = 2`` the Fourier model gives 0.236, with the exact mean gradient 0.179;
-- centre-of-gravity centroids of a Gaussian spot (FWHM 2 pixels, Nyquist, 8 x 8 pixels, 0.5 e-): 1.07-1.15 times
-  the formula (pixelisation adds 1/12 pixel²); Rousset's pi² / 2 is 1.2-1.55 times low. A diffraction-limited
-  sinc² spot has no finite second moment: its centroid variance grows with the window (1.4 to 3.5 times Rousset's
-  with ``N_T = N_D`` for 6 to 16 pixels).
+- noise propagation ``p = trace(R R^T) / K`` (command variance per unit slope-noise variance) within 20% of the
+  periodic Fourier-domain least-squares filter's (the pupil's rim adds ``~4 / n``); the kept modes nearest the cut
+  dominate it, not the ``0.2 ln n`` of the lowest orders;
+- aliasing of exact frozen flow, ``IF R S (phi - IF y_fit)``, away from the rim, within 20% of the Fourier-domain
+  aliasing spectrum's share of the fitting variance (the rim amplifies it);
+- Rousset's centroid noise within 25% of a Monte Carlo of centre-of-gravity centroids on a pixelated detector.
 
 In the loop: the sensor's view is ``R (S phi + n)`` (:meth:`ShackHartmannSensor.measure`), white slope noise reaching
-the commands with covariance ``sigma² R R^T``; ``R S`` stays two factors (one dense ``K x n_fine`` matrix: 216 MB at 40
-across). ``pupil_diameter_m`` and ``lit_fraction`` give a pupil inside the actuator grid and partly lit rim
+the commands with covariance ``sigma² R R^T``; ``R S`` stays two factors (one dense ``K x n_fine`` matrix: 216 MB at
+40 across). ``pupil_diameter_m`` and ``lit_fraction`` give a pupil inside the actuator grid and partly lit rim
 subapertures (:mod:`eofnn.sim.sensing.subapertures`), as OOPAO builds them.
 """
 
