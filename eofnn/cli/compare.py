@@ -85,55 +85,25 @@ class EvaluateConfig(ExperimentCommand):
 def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None, *,
                    robustness: dict[str, list[float]] | None = None, simulated_margins: Sequence[str] = (),
                    pareto_scenario: bool | str = False) -> eofnn.evaluation.results.ExperimentResult:
-    """Validate everything and check the output folder, then run and write the results in one move (the analyses
-    ``robustness``, ``simulated_margins`` and ``pareto_scenario`` as :class:`CompareConfig` describes them)."""
+    """Check everything and the output folder, then run the stages (:mod:`eofnn.evaluation.stages`: the experiment,
+    then the analyses ``robustness``, ``simulated_margins`` and ``pareto_scenario`` as :class:`CompareConfig`
+    describes them) and write the results in one move."""
     from eofnn.evaluation.experiment import Experiment
-    from eofnn.evaluation.margins import simulated_dm_gain_interval
-    from eofnn.evaluation.pareto import pareto
-    from eofnn.evaluation.results import save_timeseries, write_metrics
-    from eofnn.evaluation.robustness import check_grid, robustness_map
-    from eofnn.reporting.pareto import plot_pareto
-    from eofnn.reporting.report import write_report
-    from eofnn.reporting.robustness import plot_robustness
+    from eofnn.evaluation.stages import analyse, plan_analyses
+    from eofnn.reporting.experiment import write_experiment
 
     out = check_output_folder(cfg.out, cfg.overwrite)
-    grid = check_grid(robustness)
-    simulated_margins = list(simulated_margins)
-    if pareto_scenario is True:
-        pareto_scenario = next(iter(cfg.scenarios))
-    for scenario_name in simulated_margins + ([pareto_scenario] if pareto_scenario else []):
-        if scenario_name not in cfg.scenarios:
-            raise ConfigError(f"simulated_margins or pareto: {scenario_name!r} is not a scenario: allowed are "
-                              f"{', '.join(cfg.scenarios)}")
-    pareto_scenario = pareto_scenario or None
+    plan = plan_analyses(list(cfg.scenarios), robustness=robustness, simulated_margins=simulated_margins,
+                         pareto=pareto_scenario)
     experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
                             trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
     with staged_folder(out, cfg.overwrite) as staging:
         experiment.checkpoint_dir = staging / "checkpoints"
         (staging / "config.yaml").write_text(config_yaml(cfg, config_dump))
         result = experiment.run()
-        for scenario_name in simulated_margins:
-            for name in experiment.predictors:
-                if name not in result.stability.get(scenario_name, {}) and name not in ("uncorrected",
-                                                                                       "pseudo_integrator"):
-                    log(f"{scenario_name:>12s} {name:>18s}: DM-gain interval by simulation ...")
-                    result.simulated_stability.setdefault(scenario_name, {})[name] = simulated_dm_gain_interval(
-                        experiment, name, scenario_name)
-        if simulated_margins:  # the verdict quotes the intervals found by simulation too
-            result.verdict = experiment.verdict(result)
-        write_report(result, staging, cfg.scenario.frame_rate_hz, cfg.reference,
-                     cfg.evaluation.strehl_wavelength_m)
-        if grid:
-            robustness = robustness_map(experiment, grid)
-            (staging / "robustness.json").write_text(robustness.to_json())
-            plot_robustness(robustness, staging / "robustness.png")
-        if pareto_scenario is not None:
-            points = pareto(experiment, pareto_scenario)
-            (staging / "pareto.json").write_text(points.to_json())
-            (staging / "pareto.md").write_text(points.markdown())
-            plot_pareto(points, staging / "pareto.png")
-        save_timeseries(result, staging / "timeseries.npz")
-        write_metrics(result, staging / "metrics.json")
+        analyses = analyse(experiment, result, plan, log)
+        write_experiment(staging, result, analyses, cfg.scenario.frame_rate_hz, cfg.reference,
+                         cfg.evaluation.strehl_wavelength_m)
     log(f"results in {Path(out)}/ (metrics.json, results.md, figures)")
     return result
 
