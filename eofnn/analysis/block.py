@@ -213,8 +213,7 @@ class SpectralRadius:
 def _largest_eigenvalues(matrix: sp.csr_matrix, start: np.ndarray, krylov: int) -> tuple[np.ndarray, np.ndarray]:
     """ARPACK's :data:`ARPACK_EIGENVALUES` of largest modulus and their eigenvectors (those that converged), on one
     BLAS thread: its thousands of small products (a Krylov basis of ``rows x krylov``) gain nothing from threads, and
-    on a busy machine threaded BLAS made the 1264-actuator interval 13 times slower (316 s against 24 s of wall
-    time, 228 s of CPU against 24, with 2 threads on 2 shared cores)."""
+    on a busy machine threaded BLAS was far slower (``docs/findings.md``)."""
     with threadpool_limits(1, user_api="blas"):
         try:
             return spla.eigs(matrix, k=ARPACK_EIGENVALUES, ncv=min(krylov, matrix.shape[0]), which="LM", v0=start,
