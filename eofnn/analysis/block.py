@@ -41,11 +41,10 @@ TRANSFER_LIMIT = 400
 ARPACK_EIGENVALUES, ARPACK_KRYLOV, ARPACK_TOL, ARPACK_SEED = 10, 60, 1e-10, 0
 #: Brent's method stops when an edge is known to this fraction of its bracket (bisection: 30 halvings, 5e-10).
 EDGE_TOLERANCE = 1e-10
-#: Largest block companion (rows: actuators x polynomial order) analysed: 40 across with up to 13 taps, in about a
-#: minute of CPU (module docstring); a radius costs about rows^1.7 (1.1 s at 13904 rows, 12.5 s at 55264), so
-#: beyond, the analysis is refused up front (:class:`CoupledAnalysisTooLarge`). An ELT's 10-tap filter (55264 rows)
-#: takes about 6 CPU minutes: raise this to analyse it (and rerun the ELT runs of experiments/README.md, which say
-#: their neighbourhood filters were refused).
+#: Largest block companion (rows: actuators x polynomial order) analysed: 40 across with up to 13 taps; a radius
+#: costs more than linearly in the rows (the timings: ``docs/findings.md``), so beyond, the analysis is refused up
+#: front (:class:`CoupledAnalysisTooLarge`). Raise this to analyse an ELT's filter (and rerun the ELT runs of
+#: experiments/README.md, which say their neighbourhood filters were refused).
 COMPANION_LIMIT = 20000
 GAIN_STEPS_UP = (1.02, 1.05, 1.1, 1.25, 1.5, 2.0, 3.0, 5.0, 10.0, 100.0)
 GAIN_STEPS_DOWN = (0.98, 0.95, 0.9, 0.75, 0.5, 0.25, 0.1, 0.0, -0.1, -1.0, -10.0)

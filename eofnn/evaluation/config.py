@@ -308,8 +308,8 @@ class EvaluationConfig:
         ``error_budget``, results.md). ``None`` (the default): only in scenarios with a Shack-Hartmann.
     analytic_stability : bool
         Analyse every linear controller's stability (DM-gain interval, delay margin) and report it (the default).
-        ``false`` skips it: a neighbourhood filter's coupled analysis takes minutes of CPU on a busy machine (16
-        across, radius 1.5: more than 10 minutes on a shared core), which a study of residuals alone does without.
+        ``false`` skips it: a neighbourhood filter's coupled analysis can take minutes of CPU on a busy machine
+        (``docs/findings.md``), which a study of residuals alone does without.
     """
 
     frames: int = 5000
