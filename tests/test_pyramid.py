@@ -20,6 +20,7 @@ from eofnn.sim.sensing.pyramid import (
     PyramidSignals,
     default_modulation_points,
     kl_modes,
+    modal_optical_gains,
     optical_gains,
 )
 
@@ -173,6 +174,10 @@ def test_optical_gains_fall_below_one_as_the_residual_grows(sensor):
     assert (gains < 1).all() and mean[0] > 0.9
     assert mean[0] > mean[1] > mean[2]
     assert optical_gains(sensor, modes, torch.zeros(sensor.n_pupil)).numpy() == pytest.approx(1.0, abs=1e-6)
+    # On a loop's residual frames: the mean over the frames, per Karhunen-Loève command mode.
+    mean_gains, basis = modal_optical_gains(sensor, torch.stack(residuals[:2]), 8)
+    assert basis.shape == (sensor.grid.n_actuators, 8)
+    assert mean_gains.numpy() == pytest.approx(gains[:2].mean(0).numpy(), rel=1e-12)
 
 
 def _phase_error(sensor, commands: torch.Tensor) -> torch.Tensor:
@@ -259,3 +264,15 @@ def test_against_oopaos_pyramid_on_the_same_system():
     gains = out["optical_gains"][0]
     assert gains["ratio_max_deviation"] < 0.15
     assert 0.2 < np.mean(gains["oopao"]) < 0.98
+
+
+def test_kl_modes_are_orthonormal_and_start_with_tip_and_tilt():
+    grid = ActuatorGrid(8.0, 12)
+    modes = kl_modes(grid, 6)
+    assert modes.T @ modes == pytest.approx(np.eye(6), abs=1e-10)
+    assert np.abs(modes.sum(0)).max() < 1e-10  # piston removed
+    x, y = grid.positions_m.T
+    tilts = np.stack([x, y], 1) / np.linalg.norm(x)
+    assert np.linalg.norm(tilts.T @ modes[:, :2]) ** 2 / 2 > 0.95  # the first two span tip and tilt
+    with pytest.raises(ConfigError, match="n_modes=0 is invalid"):
+        kl_modes(grid, 0)

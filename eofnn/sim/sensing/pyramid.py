@@ -480,6 +480,18 @@ def optical_gains(sensor: PyramidSensor, modes_nm: torch.Tensor, residual_nm: to
     return torch.stack(gains)
 
 
+def modal_optical_gains(sensor: PyramidSensor, residual_nm: torch.Tensor, n_modes: int,
+                        amplitude_nm: float | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    """Optical gains of the first ``n_modes`` Karhunen-Loève command modes (:func:`kl_modes`) measured on a loop's
+    residual: ``(gains, modes)``, ``gains`` ``(n_modes,)`` the mean of :func:`optical_gains` over the ``(R,
+    n_pupil)`` residual phases (nm; e.g. frames of a closed loop's residual over the pupil), ``modes`` the ``(K,
+    n_modes)`` orthonormal command modes they belong to (a controller compensates mode ``m`` by dividing its
+    reconstruction ``modes[:, m] . y`` by ``gains[m]``)."""
+    modes = kl_modes(sensor.grid, n_modes)
+    shapes = sensor.dm_surface(torch.as_tensor(modes.T))
+    return optical_gains(sensor, shapes, residual_nm, amplitude_nm).mean(0), modes
+
+
 def _as_phase(phase, n_pupil: int) -> torch.Tensor:
     phase = torch.as_tensor(phase)
     if not phase.is_floating_point():
