@@ -78,6 +78,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--residual-nm", type=float, nargs="+", default=[50.0, 100.0], help="residual RMS (nm)")
     parser.add_argument("--residuals", type=int, default=2, help="residual realisations per RMS")
     parser.add_argument("--shift-frames", type=int, default=400, help="atmosphere updates between residuals")
+    parser.add_argument("--exact-radius", action="store_true",
+                        help="eofnn modulates on the radius asked for (by default on OOPAO's, times n / (n - 1))")
     parser.add_argument("--own-valid", action="store_true",
                         help="eofnn chooses its own valid pixels (by default it takes OOPAO's validI4Q)")
     parser.add_argument("--out", type=Path, default=None, help="every number (JSON)")
@@ -90,8 +92,9 @@ def main(argv=None) -> dict:
     n = tel.resolution
     wavelength_nm = PHOTOMETRY["I"][0] * 1e9
     assert abs(ngs.wavelength * 1e9 - wavelength_nm) < 1e-6, (ngs.wavelength, wavelength_nm)
-    optics = PyramidOptics(tel.pupil, args.n_subapertures, args.samples_per_pixel, args.separation,
-                           args.modulation * n / (n - 1), wfs.nTheta, wavelength_nm)
+    radius = args.modulation if args.exact_radius else args.modulation * n / (n - 1)
+    optics = PyramidOptics(tel.pupil, args.n_subapertures, args.samples_per_pixel, args.separation, radius,
+                           wfs.nTheta, wavelength_nm)
     signals = PyramidSignals(optics, "slopes_maps", args.light_ratio, 50.0,
                              valid=None if args.own_valid else np.asarray(wfs.validI4Q, dtype=bool))
     pupil = tel.pupil.astype(bool)
@@ -154,6 +157,7 @@ def main(argv=None) -> dict:
     out = {"system": {"n_subapertures": args.n_subapertures, "pupil_points": n, "diameter_m": args.diameter,
                       "modulation_lambda_over_d": args.modulation, "modulation_points": int(wfs.nTheta),
                       "separation_pixels": args.separation, "light_ratio": args.light_ratio, "band": "I",
+                      "eofnn_modulation_lambda_over_d": radius,
                       "valid_pixels": {"eofnn": signals.n_valid, "oopao": int(wfs.validI4Q.sum()),
                                        "shared": not args.own_valid}},
            "modes": args.modes, "amplitude_nm": a,
