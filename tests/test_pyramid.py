@@ -294,3 +294,26 @@ def test_photon_noise_reaches_the_commands_as_r_sigma_r_transpose(sensor):
     noisy = torch.poisson(frames.expand(4000, -1, -1) * photons, generator=generator)  # as measure() draws it
     commands = sensor.reconstruct(sensor.signals.process(noisy))
     assert commands.var(0).sum().item() / expected.sum() == pytest.approx(1.0, rel=0.05)
+
+
+def test_loop_operators_read_the_residual_and_score_it_over_the_pupil(sensor):
+    from eofnn.sim.sensing.pyramid_pupil import PyramidLoopOperators
+
+    ops = PyramidLoopOperators(sensor)
+    commands = torch.as_tensor(kl_modes(sensor.grid, 6).T) * 15.0  # nm of surface
+    # A DM shape read back through the pyramid is the command, on the modes the reconstructor keeps.
+    zero = torch.zeros(len(commands), sensor.n_pupil, dtype=torch.float64)
+    read = ops.wfs(ops.surface(commands), torch.zeros_like(commands))
+    assert read.numpy() == pytest.approx((commands @ ops.projector.T).numpy(), abs=0.05 * 15.0)
+    # Perfect correction reads zero; the DM's term is read through the pyramid with the turbulence.
+    assert ops.wfs(ops.surface(commands), -commands).abs().max() < 1e-6
+    assert torch.allclose(ops.wfs(zero, commands), read, atol=1e-9)
+    # The residual's RMS over the pupil from the products equals the direct one.
+    phase = torch.stack([_screen(80.0, 7, sensor.pupil_grid), _screen(40.0, 8, sensor.pupil_grid)])
+    products = ops.products(phase.numpy())
+    u = commands[:2]
+    direct = phase + ops.surface(u)
+    direct = (direct - direct.mean(1, keepdim=True)).pow(2).mean(1).sqrt()
+    assert ops.pupil_rms(products["z"], products["sum"], products["sumsq"], u).numpy() == pytest.approx(
+        direct.numpy(), rel=1e-9)
+    assert ops.surface_per_command == pytest.approx(2.99, abs=0.01)
