@@ -246,6 +246,7 @@ def test_frames_on_the_gpu_match_the_cpu():
 
 
 @pytest.mark.slow
+@pytest.mark.cli
 def test_against_oopaos_pyramid_on_the_same_system():
     """experiments/pyramid/vs_oopao.py on 10 x 10 pixels, 3 lambda/D, 30 Zernike modes and one residual of 100 nm:
     the response per mode within 10% and the optical gains within 15% of OOPAO's (issue's thresholds; they agree to
