@@ -29,7 +29,9 @@ from eofnn.models.build import input_dtype
 from eofnn.resources import require_memory
 from eofnn.seeding import torch_generator
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop.kernel import Loop, LoopInput, ZonalMeasurement, is_one
 from eofnn.sim.loop.plant import Plant, PlantModel
+from eofnn.sim.loop.sensing import loop_measurement
 
 
 @dataclass
@@ -41,7 +43,9 @@ class LoopWindow:
     s : Tensor
         ``(batch, warmup + frames, K)`` turbulence in nm; the loop is reset at its first frame.
     noise : Tensor or None
-        ``(batch, warmup + frames, K)`` unit normal draws, scaled by the plant's ``wfs_noise_nm``; ``None``: no noise.
+        ``(batch, warmup + frames, noise_size)`` unit normal draws of the sensor's noise (the zonal sensor's: one per
+        actuator, scaled by the plant's ``wfs_noise_nm``; a Shack-Hartmann's: one per slope, scaled by its slope noise
+        and reconstructed, :class:`~eofnn.sim.loop.kernel.Measurement`); ``None``: no noise.
     plant : Plant
         The plant the windows close the loop in (delay, DM, WFS; its static DM gain: a drift is not followed).
     grid : ActuatorGrid
@@ -52,6 +56,10 @@ class LoopWindow:
         DM gain of the pseudo-open-loop reconstruction (open-loop histories).
     dm_gains, wfs_gains : Tensor, optional
         ``(batch, 1)``: each window's own DM and WFS gains, in place of the plant's.
+    sensor : object, optional
+        What measures the loop: anything with ``measurement(plant, dm_gain, wfs_gain)`` returning a
+        :class:`~eofnn.sim.loop.kernel.Measurement` (a Shack-Hartmann scenario's turbulence,
+        :class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`); ``None``: the zonal sensor.
     """
 
     s: torch.Tensor
@@ -62,6 +70,7 @@ class LoopWindow:
     dm_gain_model: float = 1.0
     dm_gains: torch.Tensor | None = None
     wfs_gains: torch.Tensor | None = None
+    sensor: object | None = None
 
     @property
     def samples(self) -> int:
@@ -83,70 +92,94 @@ class LoopBatch:
         return sum(window.samples for window in self.windows)
 
 
+class RolloutPredictor:
+    """A predictor as a :class:`~eofnn.sim.loop.kernel.Controller` that keeps its histories out of place (lists of
+    the frames' tensors), so that every command stays in the graph: what
+    :class:`~eofnn.control.predictive.PredictiveController` computes, differentiably.
+
+    Per frame ``n``: the measurement ``wfs(n - d)`` enters the history, as itself (closed loop) or as the
+    pseudo-open-loop value ``wfs(n - d) - g_model y_applied(n - d)`` (open loop, ``y_applied`` averaged like the DM
+    for a fractional delay); ``y(n)`` is the network's command on ``spec``'s history once it is full (zeros before
+    ``spec.first_frame``).
+    """
+
+    def __init__(self, network: nn.Module, spec: HistorySpec, dm_gain_model: float = 1.0) -> None:
+        self.network, self.spec, self.dm_gain_model = network, spec, dm_gain_model
+        self._dtype = input_dtype(network)
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
+        self._ys: list[torch.Tensor] = []  # y(0), y(1), ...: the commands computed so far
+        self._signal: list[torch.Tensor] = []  # what the history reads (POL values or measurements), its last p frames
+
+    def _command(self, lag: int, zero: torch.Tensor) -> torch.Tensor:
+        """``y(n - lag)`` for the frame ``n`` being computed (zeros before the reset)."""
+        return self._ys[len(self._ys) - lag] if lag <= len(self._ys) else zero
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        spec, wfs = self.spec, inp.wfs
+        p, d, f = spec.history_length, spec.whole_delay, spec.delay_fraction
+        zero = torch.zeros_like(wfs)
+        if spec.kind == "open_loop":
+            applied = (self._command(d, zero) if not f
+                       else (1 - f) * self._command(d, zero) + f * self._command(d + 1, zero))
+            self._signal.append(wfs - self.dm_gain_model * applied)
+        else:
+            self._signal.append(wfs)
+        if len(self._signal) > p:
+            self._signal.pop(0)
+        if inp.frame >= spec.first_frame:
+            history = torch.stack(self._signal[::-1], dim=-1)
+            if spec.kind == "closed_loop":
+                past = torch.stack([self._command(lag, zero) for lag in range(1, p + 1)], dim=-1)
+                history = torch.cat([past, history], -1)
+            y = self.network(history.to(self._dtype)).to(wfs.dtype)
+        else:
+            y = zero
+        self._ys.append(y)
+        return y
+
+
 def rollout(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.Tensor:
     """``(batch, frames, K)`` residuals ``eps`` of ``network`` closing the loop over ``window``, with gradients
     (when enabled) from the frame ``window.warmup`` on.
 
-    Per frame ``n`` (after the reset at the window's first frame), as :func:`~eofnn.sim.loop.runner.run_loop` and
-    :class:`~eofnn.control.predictive.PredictiveController` do it: the measurement ``wfs(n - d)`` (zeros before the
-    first) enters the history, as itself (closed loop) or as the pseudo-open-loop value ``wfs(n - d) - g_model
-    y_applied(n - d)`` (open loop); ``y(n)`` is the network's command on ``spec``'s history once it is full (zeros
-    before ``spec.first_frame``); the DM applies it (``(1 - f) DM(y(n)) + f DM(y(n - 1))`` for a fractional delay);
-    ``eps(n) = s(n) + DM``; the WFS reports ``wfs_gain eps(n)`` plus noise.
+    The loop is :class:`~eofnn.sim.loop.kernel.Loop`'s step, the one :func:`~eofnn.sim.loop.runner.run_loop` runs,
+    out of place, through the window's sensor (its measurement, noise colour and what it reports in the modes it
+    cannot see: the Shack-Hartmann's ``(I - P) y``), with the network as a :class:`RolloutPredictor` (what
+    :class:`~eofnn.control.predictive.PredictiveController` computes): per frame ``n`` (after the reset at the
+    window's first frame) the measurement ``wfs(n - d)`` enters the history, the network's ``y(n)`` goes through the
+    DM (``(1 - f) DM(y(n)) + f DM(y(n - 1))`` for a fractional delay), ``eps(n) = s(n) + DM`` and the sensor measures
+    it.
     """
     params = next(network.parameters(), None)
     device = params.device if params is not None else window.s.device
     s = window.s.to(device)
-    noise = None if window.noise is None else window.noise.to(device)
     batch, frames, n_act = s.shape
-    p, d, f = spec.history_length, spec.whole_delay, spec.delay_fraction
     plant = window.plant
     dm_gain = plant.dm_gain if window.dm_gains is None else window.dm_gains.to(device)
-    wfs_gain = plant.wfs_gain if window.wfs_gains is None else window.wfs_gains.to(device)
-    # The plant's DM up to its gain, which is applied here (a number, or one per window), as PlantModel applies it.
+    wfs_gain = None if window.wfs_gains is None else window.wfs_gains.to(device)
+    # The plant's DM up to its gain, which is applied after it (a number, or one per window), as PlantModel applies it.
     model = PlantModel(replace(plant, dm_gain=1.0, dm_gain_drift=None), window.grid, s.dtype).to(device)
-    dtype = input_dtype(network)
-    zero = s.new_zeros(batch, n_act)
-    ys: list[torch.Tensor] = []  # y(0), y(1), ...: the commands computed so far
-    measured: list[torch.Tensor] = []  # wfs(0), wfs(1), ...
-    signal: list[torch.Tensor] = []  # what the history reads (POL values or measurements), its last p frames
-    eps_out = []
-    dm_previous = zero
+    measurement = sensor_measurement(window, plant, dm_gain, wfs_gain).to(device)
+    noise = None
+    if window.noise is not None and measurement.noisy:
+        noise = measurement.noise(window.noise.to(device))  # the whole window's at once, as run_loop's chunk
+    controller = RolloutPredictor(network, spec, window.dm_gain_model)
+    loop = Loop(model, measurement, controller, dm_gain=None if is_one(dm_gain) else dm_gain, in_place=False)
+    loop.reset(batch, n_act, s.dtype, device)
     grad = torch.is_grad_enabled()
-
-    def command(lag: int) -> torch.Tensor:  # y(n - lag) for the frame n being computed (zeros before the reset)
-        return ys[len(ys) - lag] if lag <= len(ys) else zero
-
+    eps_out = []
     for n in range(frames):
         with torch.set_grad_enabled(grad and n >= window.warmup):
-            wfs = measured[n - d] if n >= d else zero
-            if spec.kind == "open_loop":
-                applied = command(d) if not f else (1 - f) * command(d) + f * command(d + 1)
-                signal.append(wfs - window.dm_gain_model * applied)
-            else:
-                signal.append(wfs)
-            if len(signal) > p:
-                signal.pop(0)
-            if n >= spec.first_frame:
-                history = torch.stack(signal[::-1], dim=-1)
-                if spec.kind == "closed_loop":
-                    history = torch.cat([torch.stack([command(lag) for lag in range(1, p + 1)], dim=-1), history], -1)
-                y = network(history.to(dtype)).to(s.dtype)
-            else:
-                y = zero
-            dm = model.apply_dm(y)
-            if not isinstance(dm_gain, float) or dm_gain != 1.0:
-                dm = dm_gain * dm
-            if f:
-                dm, dm_previous = (1 - f) * dm + f * dm_previous, dm
-            eps = s[:, n] + dm
-            wfs = wfs_gain * eps if not isinstance(wfs_gain, float) or wfs_gain != 1.0 else eps
-            if plant.wfs_noise_nm > 0 and noise is not None:
-                wfs = wfs + plant.wfs_noise_nm * noise[:, n]
-            ys.append(y)
-            measured.append(wfs)
-            eps_out.append(eps)
+            eps_out.append(loop.step(n, s[:, n], None if noise is None else noise[:, n]).eps)
     return torch.stack(eps_out, dim=1)
+
+
+def sensor_measurement(window: LoopWindow, plant: Plant, dm_gain, wfs_gain):
+    """The measurement of ``window``'s sensor (the zonal one when it has none) in ``plant`` with these gains."""
+    if window.sensor is None:
+        return ZonalMeasurement(window.s.shape[-1], plant.wfs_noise_nm, plant.wfs_gain if wfs_gain is None else wfs_gain)
+    return window.sensor.measurement(plant, dm_gain, wfs_gain)
 
 
 def loop_loss(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.Tensor:
@@ -251,7 +284,7 @@ def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
         for i in range(0, s.shape[0], max_rows):
             rows = slice(i, i + max_rows)
             out.append(LoopWindow(s[rows], None if noise is None else noise[rows], plant, first.grid, first.warmup,
-                                  first.dm_gain_model, dm_gains[rows], wfs_gains[rows]))
+                                  first.dm_gain_model, dm_gains[rows], wfs_gains[rows], first.sensor))
     return out
 
 
@@ -290,8 +323,10 @@ class LoopWindows(Dataset):
         # A rollout's graph keeps about 3 taps + 12 tensors of (rows, K) per frame; the windows (turbulence and noise)
         # are kept, twice while they are put side by side.
         self.max_rows = max(1, ROLLOUT_BYTES // (span * n_act * (3 * telemetry.spec.n_taps + 12) * 8))
-        noisy = telemetry.scenario.plant.wfs_noise_nm > 0
-        require_memory(2 * (2 if noisy else 1) * self.n_windows * span * n_act * 8 + ROLLOUT_BYTES,
+        sensor = telemetry.scenario.sensor
+        noisy = telemetry.scenario.plant.wfs_noise_nm > 0 or sensor.detector is not None
+        noise_values = 0 if not noisy else 2 * n_act if sensor.is_shack_hartmann else n_act  # per slope: about 2 K
+        require_memory(2 * self.n_windows * span * (n_act + noise_values) * 8 + ROLLOUT_BYTES,
                        f"training through the loop: {self.n_windows} {telemetry.stream} windows of {span} frames and "
                        f"{n_act} actuators")
         self._batches: list[LoopBatch] | None = None
@@ -309,11 +344,16 @@ class LoopWindows(Dataset):
         """The windows of sequence ``index`` side by side, ``(windows x realisations, warmup + window, K)``."""
         t, data = self.telemetry, self.telemetry.data
         name = f"{t.stream}:{index}"
-        s = t.scenario.turbulence(data.seed, name, data.realisations).frames(0, data.sequence_frames)
+        turbulence = t.scenario.turbulence(data.seed, name, data.realisations)
+        s = turbulence.frames(0, data.sequence_frames)
+        sensor = turbulence if hasattr(turbulence, "measurement") else None  # a Shack-Hartmann's, or the zonal one
+        if sensor is not None:
+            turbulence.release()
         plant = t.plant(index)
+        measurement = loop_measurement(turbulence, plant)
         # The unit draws of the closed-form fit's open-loop noise (SimulatedTelemetry.telemetry): the same data.
-        noise = (torch.randn(s.shape, generator=torch_generator(data.seed, name, 1), dtype=s.dtype)
-                 if plant.wfs_noise_nm > 0 else None)
+        noise = (torch.randn((*s.shape[:2], measurement.noise_size), generator=torch_generator(data.seed, name, 1),
+                             dtype=s.dtype) if measurement.noisy else None)
         span = min(self.window, data.sequence_frames - self.warmup) + self.warmup
 
         def cut(x: torch.Tensor) -> torch.Tensor:
@@ -326,7 +366,7 @@ class LoopWindows(Dataset):
                          for j in range(len(self.starts))]
                 gains[f"{field}s"] = torch.tensor(drawn, dtype=s.dtype).repeat_interleave(data.realisations)[:, None]
         return LoopWindow(cut(s), None if noise is None else cut(noise), plant, t.scenario.grid, self.warmup,
-                          t.dm_gain_model, **gains)
+                          t.dm_gain_model, **gains, sensor=sensor)
 
     def batches(self) -> list[LoopBatch]:
         """The stream's batches (simulated once, then kept): every sequence's windows in one, or one per sequence,

@@ -64,6 +64,7 @@ from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop.kernel import ZonalMeasurement, is_one
 from eofnn.sim.sensing.sensor import Sensor
 
 if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
@@ -200,10 +201,8 @@ class ShackHartmannTurbulence:
         :attr:`~eofnn.sim.sensing.shack_hartmann.ShackHartmannSensor.slope_noise_scale` (partly lit subapertures)."""
         if sigma_nm <= 0:
             return None
-        sensor = self.operators.sensor
-        noise = sigma_nm * torch.randn((*shape, sensor.n_slopes), generator=generator, dtype=torch.float64)
-        scale = sensor.slope_noise_scale
-        return noise if (scale == 1).all() else noise * torch.as_tensor(scale)
+        unit = torch.randn((*shape, self.operators.sensor.n_slopes), generator=generator, dtype=torch.float64)
+        return scaled_slope_noise(self.operators, unit, sigma_nm)
 
     def noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
         """``R n`` for ``(R, frames)`` frames of white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
@@ -228,26 +227,119 @@ class ShackHartmannTurbulence:
         noise = self.noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)
         return s, s_hat if noise is None else s_hat + noise / plant.wfs_gain
 
+    def measurement(self, plant, dm_gain=None, wfs_gain=None) -> ShackHartmannMeasurement:
+        """The sensor's measurement in ``plant`` (:class:`ShackHartmannMeasurement`); ``dm_gain``, ``wfs_gain``: gains
+        in place of the plant's (a number, or ``(batch, 1)``, one per row), as the differentiable rollout's windows
+        carry them."""
+        ops = self.operators
+        dm_gain = plant.dm_gain if dm_gain is None else dm_gain
+        wfs_gain = plant.wfs_gain if wfs_gain is None else wfs_gain
+        return ShackHartmannMeasurement(ops, ops.projector.T.contiguous(), self.slope_noise_nm(plant.wfs_noise_nm),
+                                        wfs_gain, plant.delay_fraction, nominal_dm(plant, dm_gain, wfs_gain))
+
+
+def scaled_slope_noise(operators: LoopOperators, unit: torch.Tensor, sigma_nm: float) -> torch.Tensor:
+    """``n``: unit normal slope draws ``(..., 2 n_sub)`` times ``sigma_nm`` and each slope's
+    :attr:`~eofnn.sim.sensing.shack_hartmann.ShackHartmannSensor.slope_noise_scale` (partly lit subapertures)."""
+    noise = sigma_nm * unit
+    scale = operators.sensor.slope_noise_scale
+    return noise if (scale == 1).all() else noise * torch.as_tensor(scale, device=unit.device)
+
+
+def nominal_dm(plant, dm_gain, wfs_gain) -> bool:
+    """Whether the DM applies the command as sent and the sensor has unit gain: ``P DM(y) + (I - P) y`` is then ``y``
+    itself (one ``K x K`` product a frame saved)."""
+    return (is_one(dm_gain) and not plant.misregistration_x and not plant.misregistration_y
+            and plant.nonlinearity == "none" and plant.dm_gain_drift is None and is_one(wfs_gain))
+
+
+class ShackHartmannMeasurement:
+    """The real-time computer's measurement through the Shack-Hartmann (module docstring), a
+    :class:`~eofnn.sim.loop.kernel.Measurement`: ``wfs = wfs_gain (R S phi + P DM) + (I - P) y_sent + R n``.
+
+    Parameters
+    ----------
+    operators : LoopOperators
+        The sensor's operators (``R``, the slopes' noise scale).
+    projector_t : Tensor
+        ``P^T`` ``(K, K)``, contiguous.
+    sigma_nm : float
+        RMS white noise per slope (nm).
+    wfs_gain : float or Tensor
+        The sensor's gain (``(batch, 1)``: one per row).
+    fraction : float
+        The delay's fraction: the commands sent over a frame are averaged as the DM averages them.
+    identity_dm : bool
+        The DM applies the command as sent and the gain is 1 (:func:`nominal_dm`): ``wfs = R S phi + DM + R n``.
+    """
+
+    def __init__(self, operators: LoopOperators, projector_t: torch.Tensor, sigma_nm: float, wfs_gain,
+                 fraction: float, identity_dm: bool) -> None:
+        self.operators, self.projector_t, self.sigma_nm = operators, projector_t, sigma_nm
+        self.reconstructor_t = operators.reconstructor.T
+        self.gain, self.fraction, self.identity_dm = wfs_gain, fraction, identity_dm
+        self.noise_size, self.noisy = operators.sensor.n_slopes, sigma_nm > 0
+        self._y_previous = None
+
+    def reset(self) -> None:
+        self._y_previous = None
+
+    def slope_noise(self, unit: torch.Tensor) -> torch.Tensor:
+        """``n`` ``(..., 2 n_sub)`` of unit draws (:func:`scaled_slope_noise`)."""
+        return scaled_slope_noise(self.operators, unit, self.sigma_nm)
+
+    def noise(self, unit: torch.Tensor) -> torch.Tensor:
+        """``R n`` ``(..., K)`` of unit slope draws ``(..., 2 n_sub)``."""
+        return self.slope_noise(unit) @ self.reconstructor_t
+
+    def measure(self, s, eps, dm, y, noise):
+        """``wfs`` of ``s = R S phi`` (the sensed turbulence) and the DM term ``dm``; ``y`` fills the cut modes."""
+        if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
+            wfs = s + dm
+            return wfs if noise is None else wfs + noise
+        wfs = s + dm @ self.projector_t
+        if not is_one(self.gain):
+            wfs = self.gain * wfs
+        sent = y
+        if self.fraction:  # the commands acting over the frame, as the DM averages them
+            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
+            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
+        wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
+        return wfs if noise is None else wfs + noise
+
+    def to(self, device) -> ShackHartmannMeasurement:
+        self.projector_t, self.reconstructor_t = self.projector_t.to(device), self.reconstructor_t.to(device)
+        if isinstance(self.gain, torch.Tensor):
+            self.gain = self.gain.to(device)
+        return self
+
 
 class ZonalLoopSensing:
-    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise`` frame by frame."""
+    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise``, the noise drawn frame by frame."""
 
     pupil = False
     n_slopes = 0
 
     def __init__(self, turbulence: Turbulence, model) -> None:
         self.turbulence, self.model = turbulence, model
+        plant = model.plant
+        self._measurement = ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm, plant.wfs_gain)
 
     def chunks(self, n_frames: int, chunk: int, generator):
         return self.turbulence.chunks(n_frames, chunk)
 
-    def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
-        return self.model.measure(eps, generator)
+    def measurement(self) -> ZonalMeasurement:
+        return self._measurement
+
+    def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
+        """The noise of frame ``i`` of the chunk (``s`` its turbulence), drawn now."""
+        m = self._measurement
+        return m.noise(torch.randn(s.shape, generator=generator, dtype=s.dtype)) if m.noisy else None
 
 
 class ShackHartmannLoopSensing:
     """The Shack-Hartmann in the loop (module docstring): a chunk's ``s``, sensed turbulence and noise at once, the
-    DM term and the pupil's residual per frame."""
+    measurement, the pupil's residual per frame."""
 
     pupil = True
 
@@ -255,19 +347,22 @@ class ShackHartmannLoopSensing:
         require(not slopes or turbulence.isolate != "perfect",
                 "record 'slopes' is invalid with isolate='perfect': that sensor reads the DM's fit, not slopes")
         self.turbulence, self.model, self.record_slopes = turbulence, model, slopes
-        self.gain = model.plant.wfs_gain
-        self.sigma_nm = turbulence.slope_noise_nm(model.plant.wfs_noise_nm)
+        plant = model.plant
+        self.gain = plant.wfs_gain
+        self.sigma_nm = turbulence.slope_noise_nm(plant.wfs_noise_nm)
         ops = turbulence.operators
         self.n_slopes = ops.sensor.n_slopes
         self.projector_t = ops.projector.T.contiguous()
         self.interaction_t = ops.interaction_matrix.T.contiguous() if slopes else None
-        self.fraction = model.plant.delay_fraction
-        plant = model.plant
+        self.fraction = plant.delay_fraction
         # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
-        self.identity_dm = (plant.dm_gain == 1.0 and not plant.misregistration_x and not plant.misregistration_y
-                            and plant.nonlinearity == "none" and plant.dm_gain_drift is None and self.gain == 1.0)
+        self.identity_dm = nominal_dm(plant, plant.dm_gain, self.gain)
         self._chunk: dict = {}
-        self._noise = self._slope_noise = self._y_previous = None
+        self._noise = self._slope_noise = None
+
+    def measurement(self) -> ShackHartmannMeasurement:
+        return ShackHartmannMeasurement(self.turbulence.operators, self.projector_t, self.sigma_nm, self.gain,
+                                        self.fraction, self.identity_dm)
 
     def chunks(self, n_frames: int, chunk: int, generator):
         for first in range(0, n_frames, chunk):
@@ -281,19 +376,9 @@ class ShackHartmannLoopSensing:
                 self.turbulence.release()
             yield first, out["s"]
 
-    def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
-        if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
-            wfs = self._chunk["sensed"][:, i] + dm
-            return wfs if self._noise is None else wfs + self._noise[:, i]
-        wfs = self._chunk["sensed"][:, i] + dm @ self.projector_t
-        if self.gain != 1.0:
-            wfs = self.gain * wfs
-        sent = y
-        if self.fraction:  # the commands acting over the frame, as the DM averages them
-            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
-            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
-        wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
-        return wfs if self._noise is None else wfs + self._noise[:, i]
+    def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
+        """``R n`` of frame ``i`` of the chunk (drawn with the chunk)."""
+        return None if self._noise is None else self._noise[:, i]
 
     def slopes(self, i: int, dm: torch.Tensor) -> torch.Tensor:
         """``(R, 2 n_sub)``: the sensor's slopes of frame ``i`` of the chunk, ``wfs_gain (S phi + D dm) + n`` (nm of OPD
@@ -327,6 +412,16 @@ class ShackHartmannLoopSensing:
         """``(R, n_pupil)``: ``phi + IF DM`` over the pupil at ``frame`` (a multiple of :data:`PHASE_EVERY`)."""
         ops = self.turbulence.operators
         return (self.turbulence.phase_at(frame) + ops.surface(dm))[:, ops.pupil]
+
+
+def loop_measurement(turbulence, plant, dm_gain=None, wfs_gain=None):
+    """The measurement (:class:`~eofnn.sim.loop.kernel.Measurement`) of ``turbulence``'s sensor in ``plant``: the
+    Shack-Hartmann's when it carries one, else the zonal sensor's; ``dm_gain``, ``wfs_gain``: in place of the plant's
+    (a number, or ``(batch, 1)``, one per row)."""
+    if isinstance(turbulence, ShackHartmannTurbulence):
+        return turbulence.measurement(plant, dm_gain, wfs_gain)
+    return ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm,
+                            plant.wfs_gain if wfs_gain is None else wfs_gain)
 
 
 def loop_sensing(turbulence, model, slopes: bool = False):

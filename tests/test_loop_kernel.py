@@ -1,0 +1,84 @@
+"""One loop step for every driver (:mod:`eofnn.sim.loop.kernel`): the differentiable rollout closes the same loop
+as ``run_loop``, through the Shack-Hartmann too (its photon noise, reconstructor and fill of the cut modes), and
+training through the loop trains the loop it is scored in."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from eofnn.control.predictive import PredictiveController
+from eofnn.data.history import HistorySpec
+from eofnn.models.linear import LinearFilter
+from eofnn.seeding import torch_generator
+from eofnn.sim.loop.runner import run_loop
+from eofnn.sim.scenario import Scenario
+from eofnn.training.rollout import LoopWindow, rollout
+
+GRID = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}
+ATMOSPHERE = {"r0_m": 0.15, "layers": [{"wind_speed_mps": 10.0, "wind_direction_deg": 30.0}], "screen_frames": 300}
+
+
+def sh_scenario(**plant) -> Scenario:
+    """A small Shack-Hartmann scenario with photon noise (a faint guide star) and ``plant``."""
+    return Scenario.from_dict({"grid": GRID, "atmosphere": ATMOSPHERE, "plant": {"delay_frames": 2, **plant},
+                               "sensor": {"kind": "shack_hartmann", "detector": {"magnitude": 10.0}}})
+
+
+def filter_for(spec: HistorySpec, n_act: int, seed: int = 0) -> LinearFilter:
+    """A stable-ish linear filter of ``spec``'s kind: a POL predictor or an integrator, plus small random taps."""
+    net = LinearFilter(n_act, spec.n_taps)
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        net.weight.copy_(0.05 * torch.randn(net.weight.shape, generator=generator, dtype=torch.float64))
+        if spec.kind == "open_loop":
+            net.weight[:, 0] -= 0.6
+        else:
+            net.weight[:, 0] += 0.5  # y(n - 1): an integrator
+            net.weight[:, spec.history_length] -= 0.3  # eps(n - d)
+    return net
+
+
+@pytest.mark.parametrize(("kind", "plant"), [
+    ("open_loop", {}),  # the nominal DM: the measurement skips the projector
+    ("closed_loop", {"dm_gain": 1.2}),  # P DM(y) + (I - P) y: the cut modes' fill
+    ("open_loop", {"delay_frames": 1.5, "wfs_gain": 0.9, "wfs_noise_nm": 2.0}),  # the fill averaged like the DM
+    ("closed_loop", {"delay_frames": 2.5, "misregistration_x": 0.2}),
+])
+def test_the_rollout_is_run_loop_through_a_noisy_shack_hartmann(kind, plant):
+    """The same network as a PredictiveController, the same turbulence and photon-noise draws: the rollout's
+    residuals are run_loop's, frame by frame."""
+    scenario = sh_scenario(**plant)
+    turbulence = scenario.turbulence(4, "kernel", 2)
+    n_frames, n_act = 160, scenario.grid.n_actuators
+    spec = HistorySpec.from_scenario(kind, 3, scenario)
+    net = filter_for(spec, n_act)
+    result = run_loop(turbulence, scenario.plant, PredictiveController(net, spec), n_frames, noise_seed=5,
+                      record=("eps", "wfs"), progress=False)
+    assert not result.diverged
+    measurement = turbulence.measurement(scenario.plant)
+    assert measurement.noisy and measurement.noise_size == turbulence.operators.sensor.n_slopes
+    # run_loop's draws: one block of unit slope noise for its one chunk.
+    unit = torch.randn((2, n_frames, measurement.noise_size), generator=torch_generator(5, "wfs-noise"),
+                       dtype=torch.float64)
+    window = LoopWindow(turbulence.frames(0, n_frames), unit, scenario.plant, scenario.grid, 0, sensor=turbulence)
+    with torch.no_grad():
+        eps = rollout(net, spec, window)
+    assert (eps - result.telemetry.eps).abs().max() <= 1e-9 * result.telemetry.eps.abs().max()
+    # The noise reached the loop: without it the residuals move.
+    with torch.no_grad():
+        quiet = rollout(net, spec, LoopWindow(window.s, None, scenario.plant, scenario.grid, 0, sensor=turbulence))
+    assert (quiet - eps).abs().max() > 1e-3 * eps.abs().max()
+
+
+def test_the_rollout_through_the_shack_hartmann_is_not_the_zonal_one():
+    """The same windows read by the zonal sensor close another loop: the sensor is in the rollout."""
+    scenario = sh_scenario(dm_gain=1.2)
+    turbulence = scenario.turbulence(4, "kernel", 1)
+    spec = HistorySpec.from_scenario("closed_loop", 3, scenario)
+    net = filter_for(spec, scenario.grid.n_actuators)
+    s = turbulence.frames(0, 100)
+    with torch.no_grad():
+        sh = rollout(net, spec, LoopWindow(s, None, scenario.plant, scenario.grid, 0, sensor=turbulence))
+        zonal = rollout(net, spec, LoopWindow(s, None, scenario.plant, scenario.grid, 0))
+    assert (sh - zonal).abs().max() > 1e-3 * sh.abs().max()
