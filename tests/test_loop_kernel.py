@@ -4,6 +4,8 @@ training through the loop trains the loop it is scored in."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -13,7 +15,7 @@ from eofnn.models.linear import LinearFilter
 from eofnn.seeding import torch_generator
 from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.training.rollout import LoopWindow, rollout
+from eofnn.training.rollout import LoopWindow, loop_loss, rollout
 
 GRID = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}
 ATMOSPHERE = {"r0_m": 0.15, "layers": [{"wind_speed_mps": 10.0, "wind_direction_deg": 30.0}], "screen_frames": 300}
@@ -82,3 +84,27 @@ def test_the_rollout_through_the_shack_hartmann_is_not_the_zonal_one():
         sh = rollout(net, spec, LoopWindow(s, None, scenario.plant, scenario.grid, 0, sensor=turbulence))
         zonal = rollout(net, spec, LoopWindow(s, None, scenario.plant, scenario.grid, 0))
     assert (sh - zonal).abs().max() > 1e-3 * sh.abs().max()
+
+
+def test_through_a_shack_hartmann_the_loss_is_the_residual_over_the_pupil_run_loop_scores():
+    """The loss of training through the loop is what the loop is scored on: the piston-removed residual over the
+    pupil, and its gradient reaches the filter."""
+    scenario = sh_scenario(dm_gain=1.2)
+    turbulence = scenario.turbulence(4, "kernel", 2)
+    n_frames = 120
+    spec = HistorySpec.from_scenario("open_loop", 3, scenario)
+    net = filter_for(spec, scenario.grid.n_actuators, seed=2)
+    result = run_loop(turbulence, scenario.plant, PredictiveController(net, spec), n_frames, noise_seed=5, record=(),
+                      progress=False)
+    unit = torch.randn((2, n_frames, turbulence.measurement(scenario.plant).noise_size),
+                       generator=torch_generator(5, "wfs-noise"), dtype=torch.float64)
+    products = turbulence.products(0, n_frames)
+    window = LoopWindow(turbulence.frames(0, n_frames), unit, scenario.plant, scenario.grid, 20, sensor=turbulence,
+                        pupil={k: products[k] for k in ("z", "sum", "sumsq")})
+    loss = loop_loss(net, spec, window)
+    expected = float(result.pupil_residual_rms_nm[:, 20:].pow(2).mean())
+    assert float(loss.detach()) == pytest.approx(expected, rel=1e-9)
+    # Not the actuators' residual: in command space the aliasing the DM cannot fit dominates.
+    assert abs(float(loop_loss(net, spec, replace(window, pupil=None))) - expected) > 0.05 * expected
+    (grad,) = torch.autograd.grad(loss, net.weight)
+    assert torch.isfinite(grad).all() and grad.abs().max() > 0

@@ -60,6 +60,11 @@ class LoopWindow:
         What measures the loop: anything with ``measurement(plant, dm_gain, wfs_gain)`` returning a
         :class:`~eofnn.sim.loop.kernel.Measurement` (a Shack-Hartmann scenario's turbulence,
         :class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`); ``None``: the zonal sensor.
+    pupil : dict of Tensor, optional
+        Where the residual is scored over the pupil (a Shack-Hartmann scenario): the phase's ``z`` ``(batch, warmup +
+        frames, K)``, ``sum`` and ``sumsq`` ``(batch, warmup + frames)``
+        (:meth:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence.products`); the loss is then the residual over the
+        pupil (``sensor.pupil_mean_square``), as ``run_loop`` scores it. ``None``: the residual at the actuators.
     """
 
     s: torch.Tensor
@@ -71,6 +76,7 @@ class LoopWindow:
     dm_gains: torch.Tensor | None = None
     wfs_gains: torch.Tensor | None = None
     sensor: object | None = None
+    pupil: dict[str, torch.Tensor] | None = None
 
     @property
     def samples(self) -> int:
@@ -151,6 +157,11 @@ def rollout(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.
     DM (``(1 - f) DM(y(n)) + f DM(y(n - 1))`` for a fractional delay), ``eps(n) = s(n) + DM`` and the sensor measures
     it.
     """
+    return closed_loop(network, spec, window)[0]
+
+
+def closed_loop(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(eps, dm)``: :func:`rollout`'s residuals and the DM terms acting over each frame, ``(batch, frames, K)``."""
     params = next(network.parameters(), None)
     device = params.device if params is not None else window.s.device
     s = window.s.to(device)
@@ -168,11 +179,13 @@ def rollout(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.
     loop = Loop(model, measurement, controller, dm_gain=None if is_one(dm_gain) else dm_gain, in_place=False)
     loop.reset(batch, n_act, s.dtype, device)
     grad = torch.is_grad_enabled()
-    eps_out = []
+    eps_out, dm_out = [], []
     for n in range(frames):
         with torch.set_grad_enabled(grad and n >= window.warmup):
-            eps_out.append(loop.step(n, s[:, n], None if noise is None else noise[:, n]).eps)
-    return torch.stack(eps_out, dim=1)
+            step = loop.step(n, s[:, n], None if noise is None else noise[:, n])
+            eps_out.append(step.eps)
+            dm_out.append(step.dm)
+    return torch.stack(eps_out, dim=1), torch.stack(dm_out, dim=1)
 
 
 def sensor_measurement(window: LoopWindow, plant: Plant, dm_gain, wfs_gain):
@@ -183,8 +196,15 @@ def sensor_measurement(window: LoopWindow, plant: Plant, dm_gain, wfs_gain):
 
 
 def loop_loss(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.Tensor:
-    """Mean squared residual (nm²) of ``network`` in the closed loop over ``window``'s frames after its warm-up."""
-    return rollout(network, spec, window)[:, window.warmup:].pow(2).mean()
+    """Mean squared residual (nm²) of ``network`` in the closed loop over ``window``'s frames after its warm-up: at
+    the actuators, or over the pupil (piston removed) when the window has one (a Shack-Hartmann's: what the loop is
+    scored on, fitting error and aliasing included)."""
+    eps, dm = closed_loop(network, spec, window)
+    if window.pupil is None:
+        return eps[:, window.warmup:].pow(2).mean()
+    device = dm.device
+    pupil = {k: v[:, window.warmup:].to(device) for k, v in window.pupil.items()}
+    return window.sensor.pupil_mean_square(pupil, dm[:, window.warmup:]).mean()
 
 
 def batch_loss(network: nn.Module, spec: HistorySpec, batch: LoopBatch, backward=None) -> torch.Tensor:
@@ -281,10 +301,12 @@ def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
 
         s, dm_gains, wfs_gains = torch.cat([w.s for w in group]), joined(group, "dm_gain"), joined(group, "wfs_gain")
         noise = None if first.noise is None else torch.cat([w.noise for w in group])
+        pupil = None if first.pupil is None else {k: torch.cat([w.pupil[k] for w in group]) for k in first.pupil}
         for i in range(0, s.shape[0], max_rows):
             rows = slice(i, i + max_rows)
             out.append(LoopWindow(s[rows], None if noise is None else noise[rows], plant, first.grid, first.warmup,
-                                  first.dm_gain_model, dm_gains[rows], wfs_gains[rows], first.sensor))
+                                  first.dm_gain_model, dm_gains[rows], wfs_gains[rows], first.sensor,
+                                  None if pupil is None else {k: v[rows] for k, v in pupil.items()}))
     return out
 
 
@@ -326,7 +348,8 @@ class LoopWindows(Dataset):
         sensor = telemetry.scenario.sensor
         noisy = telemetry.scenario.plant.wfs_noise_nm > 0 or sensor.detector is not None
         noise_values = 0 if not noisy else 2 * n_act if sensor.is_shack_hartmann else n_act  # per slope: about 2 K
-        require_memory(2 * self.n_windows * span * (n_act + noise_values) * 8 + ROLLOUT_BYTES,
+        pupil_values = n_act + 2 if sensor.is_shack_hartmann else 0  # z, sum, sumsq
+        require_memory(2 * self.n_windows * span * (n_act + noise_values + pupil_values) * 8 + ROLLOUT_BYTES,
                        f"training through the loop: {self.n_windows} {telemetry.stream} windows of {span} frames and "
                        f"{n_act} actuators")
         self._batches: list[LoopBatch] | None = None
@@ -347,7 +370,10 @@ class LoopWindows(Dataset):
         turbulence = t.scenario.turbulence(data.seed, name, data.realisations)
         s = turbulence.frames(0, data.sequence_frames)
         sensor = turbulence if hasattr(turbulence, "measurement") else None  # a Shack-Hartmann's, or the zonal one
-        if sensor is not None:
+        pupil = None
+        if sensor is not None:  # the residual over the pupil, as the loop is scored
+            products = turbulence.products(0, data.sequence_frames)
+            pupil = {k: products[k] for k in ("z", "sum", "sumsq")}
             turbulence.release()
         plant = t.plant(index)
         measurement = loop_measurement(turbulence, plant)
@@ -366,7 +392,8 @@ class LoopWindows(Dataset):
                          for j in range(len(self.starts))]
                 gains[f"{field}s"] = torch.tensor(drawn, dtype=s.dtype).repeat_interleave(data.realisations)[:, None]
         return LoopWindow(cut(s), None if noise is None else cut(noise), plant, t.scenario.grid, self.warmup,
-                          t.dm_gain_model, **gains, sensor=sensor)
+                          t.dm_gain_model, **gains, sensor=sensor,
+                          pupil=None if pupil is None else {k: cut(v) for k, v in pupil.items()})
 
     def batches(self) -> list[LoopBatch]:
         """The stream's batches (simulated once, then kept): every sequence's windows in one, or one per sequence,

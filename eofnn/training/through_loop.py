@@ -5,8 +5,11 @@ The closed-form fit learns to predict the turbulence from histories recorded in 
 pseudo-open-loop values that are exact only in the nominal plant; closed loop: an integrator plus dither). Once it
 holds the loop itself, what it sees and what its errors cost change. Here the loss is what the loop delivers: the
 mean squared residual ``eps(n) = s(n) + DM(y(n))`` of the predictor closing the loop
-(:func:`~eofnn.training.rollout.rollout`), backpropagated through windows of ``optimization.loop_window`` frames,
-each after ``optimization.loop_warmup`` frames of the loop run without gradients (truncated backpropagation).
+(:func:`~eofnn.training.rollout.rollout`, the step :func:`~eofnn.sim.loop.runner.run_loop` runs), backpropagated
+through windows of ``optimization.loop_window`` frames, each after ``optimization.loop_warmup`` frames of the loop run
+without gradients (truncated backpropagation). The loop is the scenario's, sensor included: in a Shack-Hartmann
+scenario the measurement is the sensor's (``R S phi``, its photon and read noise reconstructed, the fill of the modes
+the reconstructor cuts) and the loss is the residual over the pupil, piston removed, where the loop is scored.
 
 Data budget: the same as the closed-form fit's. The windows are cut from the same training sequences (the same
 turbulence frames, ``data.frames`` of them, the same WFS-noise draws and, under ``data.plant_range``, the same range;

@@ -227,6 +227,22 @@ class ShackHartmannTurbulence:
         noise = self.noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)
         return s, s_hat if noise is None else s_hat + noise / plant.wfs_gain
 
+    def pupil_mean_square(self, pupil: dict[str, torch.Tensor], u: torch.Tensor) -> torch.Tensor:
+        """``(..., frames)`` piston-removed mean square over the pupil (nm²) of ``phi + IF u``, from :meth:`products`'
+        ``z, sum, sumsq`` (``pupil``) and the applied commands ``u`` ``(..., frames, K)``: what ``run_loop`` scores
+        (:meth:`~eofnn.sim.sensing.pupil.LoopOperators.pupil_rms`, squared), in torch, so that it carries gradients
+        to ``u`` (the differentiable rollout's loss in a Shack-Hartmann scenario)."""
+        ops = self.operators
+        key = (id(ops), u.device, u.dtype)
+        if getattr(self, "_gram_key", None) != key:  # G and b dense, on the commands' device
+            self._gram = torch.as_tensor(ops.gram.toarray(), dtype=u.dtype, device=u.device)
+            self._pupil_sums = ops.pupil_sums.to(u.device, u.dtype)
+            self._gram_key = key
+        n = ops.n_pupil
+        mean_sq = (pupil["sumsq"] + 2 * (pupil["z"] * u).sum(-1) + (u * (u @ self._gram)).sum(-1)) / n
+        mean = (pupil["sum"] + u @ self._pupil_sums) / n
+        return (mean_sq - mean * mean).clamp(min=0)
+
     def measurement(self, plant, dm_gain=None, wfs_gain=None) -> ShackHartmannMeasurement:
         """The sensor's measurement in ``plant`` (:class:`ShackHartmannMeasurement`); ``dm_gain``, ``wfs_gain``: gains
         in place of the plant's (a number, or ``(batch, 1)``, one per row), as the differentiable rollout's windows
