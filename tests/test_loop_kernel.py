@@ -10,12 +10,18 @@ import pytest
 import torch
 
 from eofnn.control.predictive import PredictiveController
+from eofnn.data.config import DataConfig
 from eofnn.data.history import HistorySpec
+from eofnn.data.stream import LoopDataModule
 from eofnn.models.linear import LinearFilter
 from eofnn.seeding import torch_generator
 from eofnn.sim.loop.runner import run_loop
+from eofnn.sim.loop.sensing import ShackHartmannTurbulence
 from eofnn.sim.scenario import Scenario
+from eofnn.training.config import OptimizationConfig
+from eofnn.training.fit import fit_predictor, recording_controller
 from eofnn.training.rollout import LoopWindow, loop_loss, rollout
+from eofnn.training.through_loop import loop_data
 
 GRID = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}
 ATMOSPHERE = {"r0_m": 0.15, "layers": [{"wind_speed_mps": 10.0, "wind_direction_deg": 30.0}], "screen_frames": 300}
@@ -108,3 +114,26 @@ def test_through_a_shack_hartmann_the_loss_is_the_residual_over_the_pupil_run_lo
     assert abs(float(loop_loss(net, spec, replace(window, pupil=None))) - expected) > 0.05 * expected
     (grad,) = torch.autograd.grad(loss, net.weight)
     assert torch.isfinite(grad).all() and grad.abs().max() > 0
+
+
+@pytest.mark.slow
+def test_trained_through_the_shack_hartmann_loop_it_is_not_worse_than_the_closed_form_fit():
+    """fit_method: closed_loop in a Shack-Hartmann scenario trains through that sensor's loop (its windows carry it,
+    the loss is over the pupil) and, on a held-out stream, is not worse than the closed-form fit it starts from."""
+    scenario = replace(sh_scenario(), atmosphere=replace(sh_scenario().atmosphere, screen_frames=2000))
+    data = DataConfig(frames=1000, val_frames=500, sequence_frames=500, seed=3)
+    spec = HistorySpec.from_scenario("open_loop", 4, scenario)
+    windows = loop_data(LoopDataModule(scenario, spec, data, recording_controller(spec, data)), data,
+                        OptimizationConfig(fit_method="closed_loop")).train.sequence(0)
+    assert isinstance(windows.sensor, ShackHartmannTurbulence) and windows.pupil is not None
+    closed = fit_predictor(scenario, "open_loop", 4, data=data)
+    looped = fit_predictor(scenario, "open_loop", 4, data=data,
+                           optimization=OptimizationConfig(fit_method="closed_loop", epochs=1))
+    summary = looped.info["through_loop"]
+    assert summary["val_residual_nm2"] <= summary["start"]["val_residual_nm2"]
+
+    def held_out(fit) -> float:  # over the pupil, on a stream of its own
+        return scenario.median_residual_nm(fit.controller(), 1500, 11, "test", 200)
+
+    closed_rms, looped_rms = held_out(closed), held_out(looped)
+    assert looped_rms <= 1.02 * closed_rms, (closed_rms, looped_rms)
