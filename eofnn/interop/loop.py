@@ -15,14 +15,20 @@ actuator positions, delay and frame rate) are an eofnn :class:`~eofnn.telemetry.
 RMS per frame (nm, piston removed, over the pupil: the simulator's own number, not eofnn's) is summarised with
 eofnn's loop metrics (:func:`eofnn.evaluation.metrics.loop_metrics`: median RMS after the settling frames).
 
-Controllers are objects with ``reset(n_actuators)`` and ``step(measurement) -> command`` (numpy, nm):
-:class:`IntegratorControl` (plus white dither for recording), :class:`FilterControl` (an exported
-:class:`eofnn.runtime.PredictiveFilter`, the code a real-time computer runs) and :class:`TorchControl` (any eofnn
-:class:`~eofnn.control.predictive.PredictiveController`).
+The loop runs eofnn's controller protocol (:class:`~eofnn.sim.loop.kernel.Controller`: ``reset(batch, K, delay,
+dtype)``, ``step(LoopInput) -> command``, batch 1, float64), the one :func:`~eofnn.sim.loop.runner.run_loop` runs:
+any eofnn controller closes another simulator's loop as it is. Controllers written against numpy, with
+``reset(n_actuators)`` and ``step(measurement) -> command`` (nm; and ``applied(command)`` to be told what the loop
+really applied), reach it through a thin adapter (:func:`loop_controller`): :class:`IntegratorControl` (eofnn's
+:class:`~eofnn.control.baselines.Integrator` plus white dither for recording), :class:`FilterControl` (an exported
+:class:`eofnn.runtime.PredictiveFilter`, the code a real-time computer runs), :class:`SplitControl`, and
+:class:`TorchControl` (any eofnn :class:`~eofnn.control.predictive.PredictiveController`, handed to the loop as it
+is).
 """
 
 from __future__ import annotations
 
+import inspect
 import warnings
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -30,6 +36,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from eofnn.control.baselines import Integrator
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec, pseudo_open_loop
 from eofnn.errors import ConfigError, ShiftWarning, require
@@ -37,7 +44,7 @@ from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
 from eofnn.interop.shift import warn_loop_shift
 from eofnn.models.linear import LinearFilter
 from eofnn.runtime import PredictiveFilter
-from eofnn.sim.loop.runner import LoopInput, LoopResult
+from eofnn.sim.loop.runner import Controller, LoopInput, LoopResult
 from eofnn.telemetry.record import Telemetry
 from eofnn.training.export import filter_coefficients, filter_taps
 from eofnn.validation import COUNT, FRACTION, Interval, check_value
@@ -104,24 +111,79 @@ def _check_filter_size(runtime: PredictiveFilter, n_actuators: int) -> None:
 
 
 # -- controllers ----------------------------------------------------------------------------------------------
+class NumpyController:
+    """A controller of the numpy protocol (``reset(n_actuators)``, ``step(measurement) -> command``, optionally
+    ``applied(command)``) as an eofnn :class:`~eofnn.sim.loop.kernel.Controller` of batch 1: the measurement it gets
+    is ``inp.wfs[0]`` as a numpy array, its command goes back as a ``(1, K)`` tensor, as they are."""
+
+    def __init__(self, control) -> None:
+        self.control = control
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
+        require(batch == 1, f"batch={batch} is invalid for {type(self.control).__name__}: a numpy controller closes one "
+                            "loop at a time (batch 1)")
+        self.control.reset(n_actuators)
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        return torch.from_numpy(np.asarray(self.control.step(inp.wfs[0].numpy()), dtype=np.float64))[None]
+
+    def applied(self, command: np.ndarray) -> None:
+        """What the loop really applied (projected), for a controller that reads it back."""
+        if hasattr(self.control, "applied"):
+            self.control.applied(command)
+
+
+class _WithDelay:
+    """An eofnn controller reset with the delay it was made for (a :class:`TorchControl`'s)."""
+
+    def __init__(self, controller: Controller, delay_frames: int | float) -> None:
+        self.controller, self.delay_frames = controller, delay_frames
+
+    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
+        self.controller.reset(batch, n_actuators, self.delay_frames, dtype)
+
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        return self.controller.step(inp)
+
+
+def loop_controller(controller) -> Controller:
+    """``controller`` as the loop runs it: an eofnn :class:`~eofnn.sim.loop.kernel.Controller` as it is (its
+    ``reset`` takes the batch, actuators, delay and dtype), one that names its own (``loop_controller()``: a
+    :class:`TorchControl`'s predictive controller), or a numpy one through :class:`NumpyController`."""
+    own = getattr(controller, "loop_controller", None)
+    if callable(own):
+        return own()
+    try:
+        takes = len(inspect.signature(controller.reset).parameters)
+    except (AttributeError, TypeError, ValueError):
+        raise ConfigError(f"{type(controller).__name__} is not a controller: it needs reset() and step() (eofnn's "
+                          "reset(batch, n_actuators, delay_frames, dtype) / step(LoopInput), or numpy's "
+                          "reset(n_actuators) / step(measurement))") from None
+    return controller if takes >= 4 else NumpyController(controller)
+
+
 class IntegratorControl:
-    """``y(n) = y(n-1) - gain * m(n)`` on the delayed measurement ``m``, plus white dither of ``dither_nm`` RMS
-    that is not fed back into the integrator state (as :class:`eofnn.control.baselines.Dithered`)."""
+    """eofnn's :class:`~eofnn.control.baselines.Integrator`, ``y(n) = y(n-1) - gain * m(n)`` on the delayed
+    measurement ``m``, on numpy arrays, plus white dither of ``dither_nm`` RMS that is not fed back into the
+    integrator state (as :class:`eofnn.control.baselines.Dithered`, drawn by numpy from ``seed``)."""
 
     def __init__(self, gain: float, dither_nm: float = 0.0, seed: int = 0) -> None:
-        check_value("integrator gain", gain, Interval(0, 10))
         check_value("dither_nm", dither_nm, Interval(0, 1e5, unit="nm"))
+        self.integrator = Integrator(float(gain))
         self.gain, self.dither_nm, self.seed = float(gain), float(dither_nm), seed
 
     def reset(self, n_actuators: int) -> None:
-        self._state = np.zeros(n_actuators)
+        self.integrator.reset(1, n_actuators, 1, torch.float64)
         self._rng = np.random.default_rng(self.seed)
+        self._frame = 0
 
     def step(self, measurement: np.ndarray) -> np.ndarray:
-        self._state -= self.gain * measurement
+        m = torch.from_numpy(np.asarray(measurement, dtype=np.float64))[None]
+        state = self.integrator.step(LoopInput(self._frame, m, torch.zeros_like(m)))[0].numpy()
+        self._frame += 1
         if not self.dither_nm:
-            return self._state.copy()
-        return self._state + self.dither_nm * self._rng.standard_normal(len(self._state))
+            return state.copy()
+        return state + self.dither_nm * self._rng.standard_normal(len(state))
 
 
 class FilterControl:
@@ -178,6 +240,10 @@ class TorchControl:
         control = cls(predictor.controller(dm_gain_model), delay_frames, predictor.info.get("conditions"))
         control.name = name
         return control
+
+    def loop_controller(self) -> Controller:
+        """The predictive controller itself, as the loop runs it (reset with this delay)."""
+        return _WithDelay(self.controller, self.delay_frames)
 
     def reset(self, n_actuators: int) -> None:
         self.controller.reset(1, n_actuators, self.delay_frames, torch.float64)
@@ -287,9 +353,11 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
                     divergence_factor: float = DIVERGENCE_FACTOR, observers=()) -> LoopRecord:
     """Close ``sim``'s loop with ``controller`` for ``n_frames`` frames on the turbulence realisation ``seed``.
 
-    Per frame ``n``: the controller gets the measurement of frame ``n - d`` (zeros before the first) and returns
-    ``y(n)``; the loop applies ``sim.project(y(n))`` (the modes the sensor sees) and the simulator advances one
-    frame with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
+    Per frame ``n``: the controller (:func:`loop_controller`: eofnn's protocol, batch 1, float64) gets the
+    measurement of frame ``n - d`` (zeros before the first; its ``turbulence`` is zeros too: another simulator's
+    truth is not the controller's) and returns ``y(n)``; the loop applies ``sim.project(y(n))`` (the modes the
+    sensor sees), tells a numpy controller that reads it back (``applied``), and the simulator advances one frame
+    with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
     turbulence) stops the run as diverged. A controller that carries the conditions its predictor was trained in
     (``trained_conditions``) is compared with the loop's (:func:`eofnn.interop.shift.warn_loop_shift`): the record's
     ``shift`` holds the lines, and the first run of that controller issues them as one warning each. Each of
@@ -300,15 +368,20 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
     k, d = sim.n_actuators, sim.delay_frames
     require(float(d).is_integer() and d >= 1, f"delay_frames={d!r} is invalid: the adapters run integer delays >= 1")
     sim.reset(seed)
-    controller.reset(k)
+    control = loop_controller(controller)
+    control.reset(1, k, d, torch.float64)
+    zeros = torch.zeros(1, k, dtype=torch.float64)
     pending = [np.zeros(k) for _ in range(int(d))]  # measurements in flight, oldest first
     y_all, wfs_all, rms_all = np.zeros((n_frames, k)), np.zeros((n_frames, k)), np.zeros(n_frames)
     diverged, limit = None, None
     for n in range(n_frames):
-        command = check_command(controller.step(pending.pop(0)), k, f"{type(controller).__name__} command")
+        m = torch.from_numpy(np.asarray(pending.pop(0), dtype=np.float64))[None]
+        y = control.step(LoopInput(n, m, zeros))
+        y = y.detach().cpu().numpy() if isinstance(y, torch.Tensor) else np.asarray(y)
+        command = check_command(y[0] if y.ndim == 2 and len(y) == 1 else y, k, f"{type(controller).__name__} command")
         command = sim.project(command)
-        if hasattr(controller, "applied"):
-            controller.applied(command)
+        if isinstance(control, NumpyController):
+            control.applied(command)
         measurement, rms = sim.advance(command)
         for observe in observers:
             observe(n, sim)
