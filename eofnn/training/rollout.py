@@ -29,7 +29,7 @@ from eofnn.models.build import input_dtype
 from eofnn.resources import require_memory
 from eofnn.seeding import torch_generator
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.loop.kernel import Loop, LoopInput, ZonalMeasurement, is_one
+from eofnn.sim.loop.kernel import Loop, LoopInput, ZonalSensor, is_one, loop_sensor
 from eofnn.sim.loop.plant import Plant, PlantModel
 from eofnn.sim.loop.sensing import loop_measurement
 
@@ -56,10 +56,10 @@ class LoopWindow:
         DM gain of the pseudo-open-loop reconstruction (open-loop histories).
     dm_gains, wfs_gains : Tensor, optional
         ``(batch, 1)``: each window's own DM and WFS gains, in place of the plant's.
-    sensor : object, optional
-        What measures the loop: anything with ``measurement(plant, dm_gain, wfs_gain)`` returning a
-        :class:`~eofnn.sim.loop.kernel.Measurement` (a Shack-Hartmann scenario's turbulence,
-        :class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`); ``None``: the zonal sensor.
+    sensor : LoopSensor or str, optional
+        What measures the loop: a :class:`~eofnn.sim.loop.kernel.LoopSensor` (a Shack-Hartmann scenario's turbulence,
+        :class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`) or a registered sensor's name
+        (:func:`~eofnn.sim.loop.kernel.register_sensor`); ``None``: the zonal sensor.
     pupil : dict of Tensor, optional
         Where the residual is scored over the pupil (a Shack-Hartmann scenario): the phase's ``z`` ``(batch, warmup +
         frames, K)``, ``sum`` and ``sumsq`` ``(batch, warmup + frames)``
@@ -189,10 +189,10 @@ def closed_loop(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> tu
 
 
 def sensor_measurement(window: LoopWindow, plant: Plant, dm_gain, wfs_gain):
-    """The measurement of ``window``'s sensor (the zonal one when it has none) in ``plant`` with these gains."""
-    if window.sensor is None:
-        return ZonalMeasurement(window.s.shape[-1], plant.wfs_noise_nm, plant.wfs_gain if wfs_gain is None else wfs_gain)
-    return window.sensor.measurement(plant, dm_gain, wfs_gain)
+    """The measurement of ``window``'s sensor (the zonal one when it has none; a registered name is built on the
+    window's grid) in ``plant`` with these gains."""
+    sensor = loop_sensor(window.sensor, window.grid) or ZonalSensor(window.s.shape[-1])
+    return sensor.measurement(plant, dm_gain, wfs_gain)
 
 
 def loop_loss(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.Tensor:

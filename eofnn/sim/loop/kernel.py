@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from eofnn.errors import ConfigError
 from eofnn.lazy import lazy_module
 from eofnn.sim.loop.plant import Plant, PlantModel
 
@@ -125,6 +126,51 @@ class ZonalMeasurement:
         if isinstance(self.gain, torch.Tensor):
             self.gain = self.gain.to(device)
         return self
+
+
+class LoopSensor(Protocol):
+    """A sensor the drivers run: it gives its :class:`Measurement` in a plant (``dm_gain``, ``wfs_gain``: in place of
+    the plant's, a number or ``(batch, 1)``, as the rollout's windows carry them)."""
+
+    def measurement(self, plant: Plant, dm_gain=None, wfs_gain=None) -> Measurement:
+        """The sensor's measurement in ``plant``."""
+
+
+class ZonalSensor:
+    """The zonal sensor (``sensor.kind: subaperture``) on ``n_actuators`` actuators: :class:`ZonalMeasurement`."""
+
+    def __init__(self, n_actuators: int) -> None:
+        self.n_actuators = n_actuators
+
+    def measurement(self, plant: Plant, dm_gain=None, wfs_gain=None) -> ZonalMeasurement:
+        return ZonalMeasurement(self.n_actuators, plant.wfs_noise_nm, plant.wfs_gain if wfs_gain is None else wfs_gain)
+
+
+#: Sensors that read the turbulence on the actuator grid, by name: ``name -> factory(grid) -> LoopSensor``
+#: (:func:`register_sensor`). A sensor with a turbulence of its own (the Shack-Hartmann's fine grid) comes with its
+#: scenario's turbulence instead.
+SENSORS: dict = {"subaperture": lambda grid: ZonalSensor(grid.n_actuators)}
+
+
+def register_sensor(name: str):
+    """Register a class (or factory) building a :class:`LoopSensor` from an actuator grid under ``name``: every driver
+    then runs it by that name (``run_loop(..., sensor=name)``, a rollout window's ``sensor``, and another simulator's
+    loop through :class:`eofnn.interop.native.NativeLoop`)."""
+    def add(factory):
+        SENSORS[name] = factory
+        return factory
+
+    return add
+
+
+def loop_sensor(sensor, grid) -> LoopSensor | None:
+    """``sensor`` as the drivers run it: ``None`` stays ``None`` (the scenario's own), a registered name is built on
+    ``grid`` (one :class:`~eofnn.errors.ConfigError` line for another name), an object is itself."""
+    if sensor is None or not isinstance(sensor, str):
+        return sensor
+    if sensor not in SENSORS:
+        raise ConfigError(f"sensor={sensor!r} is invalid: registered sensors are {', '.join(sorted(SENSORS))}")
+    return SENSORS[sensor](grid)
 
 
 @dataclass

@@ -66,6 +66,7 @@ def run_loop(
     divergence_factor: float = 10.0,
     progress: bool | None = None,
     on_chunk: Callable[[int, dict[str, torch.Tensor]], None] | None = None,
+    sensor=None,
 ) -> LoopResult:
     """Close the loop for ``n_frames`` frames.
 
@@ -104,13 +105,17 @@ def run_loop(
         Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk; in a
         Shack-Hartmann scenario ``arrays["pupil_residual"](frame)`` also gives the residual over the pupil's fine
         points at a frame of the chunk that is a multiple of :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`.
+    sensor : LoopSensor or str, optional
+        A sensor of the actuator-grid turbulence in place of the zonal one: a
+        :class:`~eofnn.sim.loop.kernel.LoopSensor`, or the name it was registered under
+        (:func:`~eofnn.sim.loop.kernel.register_sensor`); ``None``: the scenario's.
     """
     check_value("n_frames", n_frames, COUNT)
     unknown = set(record) - {"s", "y", "eps", "wfs", "slopes"}
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs, slopes")
     grid = turbulence.grid
     model = PlantModel(plant, grid, frame_rate_hz=getattr(turbulence, "frame_rate_hz", None))
-    sensing = loop_sensing(turbulence, model, "slopes" in record)
+    sensing = loop_sensing(turbulence, model, "slopes" in record, sensor)
     batch, n_act = turbulence.n_realisations, grid.n_actuators
     dtype = torch.float64
     loop = Loop(model, sensing.measurement(), controller)

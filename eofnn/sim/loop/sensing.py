@@ -64,7 +64,7 @@ from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.loop.kernel import ZonalMeasurement, is_one
+from eofnn.sim.loop.kernel import ZonalMeasurement, is_one, loop_sensor
 from eofnn.sim.sensing.sensor import Sensor
 
 if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
@@ -331,15 +331,17 @@ class ShackHartmannMeasurement:
 
 
 class ZonalLoopSensing:
-    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise``, the noise drawn frame by frame."""
+    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise``, the noise drawn frame by frame;
+    or, through ``sensor`` (a :class:`~eofnn.sim.loop.kernel.LoopSensor`), by another sensor of that turbulence."""
 
     pupil = False
     n_slopes = 0
 
-    def __init__(self, turbulence: Turbulence, model) -> None:
+    def __init__(self, turbulence: Turbulence, model, sensor=None) -> None:
         self.turbulence, self.model = turbulence, model
         plant = model.plant
-        self._measurement = ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm, plant.wfs_gain)
+        self._measurement = (ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm, plant.wfs_gain)
+                             if sensor is None else sensor.measurement(plant))
 
     def chunks(self, n_frames: int, chunk: int, generator):
         return self.turbulence.chunks(n_frames, chunk)
@@ -350,7 +352,9 @@ class ZonalLoopSensing:
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
         """The noise of frame ``i`` of the chunk (``s`` its turbulence), drawn now."""
         m = self._measurement
-        return m.noise(torch.randn(s.shape, generator=generator, dtype=s.dtype)) if m.noisy else None
+        if not m.noisy:
+            return None
+        return m.noise(torch.randn((*s.shape[:-1], m.noise_size), generator=generator, dtype=s.dtype))
 
 
 class ShackHartmannLoopSensing:
@@ -440,11 +444,14 @@ def loop_measurement(turbulence, plant, dm_gain=None, wfs_gain=None):
                             plant.wfs_gain if wfs_gain is None else wfs_gain)
 
 
-def loop_sensing(turbulence, model, slopes: bool = False):
+def loop_sensing(turbulence, model, slopes: bool = False, sensor=None):
     """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one); ``slopes``: record
-    the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none)."""
+    the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none); ``sensor``: a
+    :class:`~eofnn.sim.loop.kernel.LoopSensor` (or a registered name, :func:`~eofnn.sim.loop.kernel.register_sensor`)
+    that measures a turbulence on the actuator grid in place of the zonal sensor."""
     if isinstance(turbulence, ShackHartmannTurbulence):
+        require(sensor is None, "sensor is invalid with a Shack-Hartmann scenario: its turbulence comes with its sensor")
         return ShackHartmannLoopSensing(turbulence, model, slopes)
     require(not slopes, "record 'slopes' is invalid in this scenario: the zonal sensor (sensor.kind: subaperture) "
             "measures no slopes; record them with sensor.kind: shack_hartmann")
-    return ZonalLoopSensing(turbulence, model)
+    return ZonalLoopSensing(turbulence, model, loop_sensor(sensor, turbulence.grid))
