@@ -130,6 +130,7 @@ def test_trained_through_the_shack_hartmann_loop_it_is_not_worse_than_the_closed
     looped = fit_predictor(scenario, "open_loop", 4, data=data,
                            optimization=OptimizationConfig(fit_method="closed_loop", epochs=1))
     summary = looped.info["through_loop"]
+    assert summary["residual_over"] == "pupil"
     assert summary["val_residual_nm2"] <= summary["start"]["val_residual_nm2"]
 
     def held_out(fit) -> float:  # over the pupil, on a stream of its own

@@ -63,7 +63,8 @@ def train_through_loop(task, loop: LoopData | None, start: ClosedFormFit,
     """Train ``task``'s network (fitted in closed form: ``start``) through the loop on ``loop``'s windows, for
     ``optimization.epochs`` epochs of Lightning's ``fit``, and keep the epoch of least validation residual (the start
     included). Returns the trainer (which holds ``task``, to save it) and the metrics (residuals in nm²); the
-    provenance (``task.hparams["info"]["through_loop"]``) gets the start's and the result's residuals."""
+    provenance (``task.hparams["info"]["through_loop"]``) gets the start's and the result's residuals, and where they
+    are taken (``residual_over``: ``pupil`` through a Shack-Hartmann, else ``actuators``)."""
     require(loop is not None, "optimization.fit_method: closed_loop trains through the simulated loop: it needs a "
                               "scenario and simulator truth (data.truth: true), not telemetry alone")
     network, spec, optimization = task.network, task.spec, task.optimization
@@ -83,6 +84,8 @@ def train_through_loop(task, loop: LoopData | None, start: ClosedFormFit,
         "epochs": keep.epochs, "optimizer": optimization.gradient_optimizer, "lr": optimization.learning_rate,
         "window_frames": loop.train.window, "warmup_frames": loop.train.warmup,
         "train_windows": loop.train.n_windows,
+        # Where the residuals are taken: over the pupil through a Shack-Hartmann, else at the actuators.
+        "residual_over": "pupil" if loop.train.telemetry.scenario.sensor.is_shack_hartmann else "actuators",
     }
     task.hparams["info"] = {**task.hparams["info"], "alpha": start.alpha, "through_loop": summary}
     return trainer, {"train_loss": train_loss, "val_loss": keep.best, "alpha": start.alpha,
