@@ -137,4 +137,4 @@ def test_trained_through_the_shack_hartmann_loop_it_is_not_worse_than_the_closed
         return scenario.median_residual_nm(fit.controller(), 1500, 11, "test", 200)
 
     closed_rms, looped_rms = held_out(closed), held_out(looped)
-    assert looped_rms <= 1.02 * closed_rms, (closed_rms, looped_rms)
+    assert looped_rms <= closed_rms, (closed_rms, looped_rms)  # measured 99.1 -> 96.3 nm over the pupil
