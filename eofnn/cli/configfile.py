@@ -182,6 +182,13 @@ def unwrap_optional(hint):
     return hint
 
 
+def _only_config_classes(hint) -> bool:
+    """Whether ``hint`` admits config dataclasses only (``X``, ``X | None``): no scalar but a file name is one."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return all(_is_config_class(a) for a in typing.get_args(hint) if a is not type(None))
+    return _is_config_class(hint)
+
+
 def _is_config_class(hint) -> bool:
     return isinstance(hint, type) and dataclasses.is_dataclass(hint)
 
@@ -250,12 +257,18 @@ class _KeyChecker:
                        top_level_key=key if depth == 0 and not where else None)
 
     def value(self, node: yaml.Node, hint, path: Path, where: str, depth: int, top_level_key: str | None) -> None:
+        only_mappings = _only_config_classes(hint)
         hint = unwrap_optional(hint)
         if _is_config_class(hint):
             if isinstance(node, yaml.MappingNode):
                 self.mapping(node, hint, path, where, depth)
             elif isinstance(node, yaml.ScalarNode) and _is_config_name(node.value) and depth < 3:
                 self.file(node.value, hint, path, where, depth, top_level_key)
+            elif only_mappings and not (isinstance(node, yaml.ScalarNode) and node.tag == "tag:yaml.org,2002:null"):
+                # ``sensor: 5``: a value that can only be a mapping of the dataclass's fields (or a file of one).
+                shown = node.value if isinstance(node, yaml.ScalarNode) else "a list"
+                raise ConfigError(f"config file {str(path)!r}, line {node.start_mark.line + 1}: {where}={shown} is "
+                                  f"invalid: it must be a mapping of {hint.__name__} fields (or a .yaml file of one)")
             return
         origin, args = typing.get_origin(hint), typing.get_args(hint)
         if origin in (list, tuple) and args and isinstance(node, yaml.SequenceNode):

@@ -15,10 +15,16 @@ actuator positions, delay and frame rate) are an eofnn :class:`~eofnn.telemetry.
 RMS per frame (nm, piston removed, over the pupil: the simulator's own number, not eofnn's) is summarised with
 eofnn's loop metrics (:func:`eofnn.evaluation.metrics.loop_metrics`: median RMS after the settling frames).
 
-Controllers are objects with ``reset(n_actuators)`` and ``step(measurement) -> command`` (numpy, nm):
-:class:`IntegratorControl` (plus white dither for recording), :class:`FilterControl` (an exported
-:class:`eofnn.runtime.PredictiveFilter`, the code a real-time computer runs) and :class:`TorchControl` (any eofnn
-:class:`~eofnn.control.predictive.PredictiveController`).
+The loop runs eofnn's controller protocol (:class:`~eofnn.sim.loop.kernel.Controller`: ``reset(batch, K, delay,
+dtype)``, ``step(LoopInput) -> command``, batch 1, float64), the one :func:`~eofnn.sim.loop.runner.run_loop` runs:
+any eofnn controller closes another simulator's loop as it is. Controllers written against numpy, with
+``reset(n_actuators)`` and ``step(measurement) -> command`` (nm; and ``applied(command)`` to be told what the loop
+really applied), reach it through a thin adapter (:func:`~eofnn.interop.controls.loop_controller`; the controllers
+live in :mod:`eofnn.interop.controls`): :class:`IntegratorControl` (eofnn's
+:class:`~eofnn.control.baselines.Integrator` plus white dither for recording), :class:`FilterControl` (an exported
+:class:`eofnn.runtime.PredictiveFilter`, the code a real-time computer runs), :class:`SplitControl`, and
+:class:`TorchControl` (any eofnn :class:`~eofnn.control.predictive.PredictiveController`, handed to the loop as it
+is).
 """
 
 from __future__ import annotations
@@ -30,17 +36,28 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from eofnn.control.predictive import PredictiveController
-from eofnn.data.history import HistorySpec, pseudo_open_loop
 from eofnn.errors import ConfigError, ShiftWarning, require
 from eofnn.evaluation.metrics import LoopMetrics, loop_metrics
+from eofnn.interop.controls import (
+    FilterControl,
+    IntegratorControl,
+    NumpyController,
+    SplitControl,
+    TorchControl,
+    check_command,
+    loop_controller,
+    pol_modes,
+    runtime_filter,
+)
 from eofnn.interop.shift import warn_loop_shift
-from eofnn.models.linear import LinearFilter
-from eofnn.runtime import PredictiveFilter
 from eofnn.sim.loop.runner import LoopInput, LoopResult
 from eofnn.telemetry.record import Telemetry
-from eofnn.training.export import filter_coefficients, filter_taps
-from eofnn.validation import COUNT, FRACTION, Interval, check_value
+from eofnn.validation import COUNT, check_value
+
+#: The controllers, with the loop (:mod:`eofnn.interop.controls` holds them).
+__all__ = ["DIVERGENCE_FACTOR", "MAX_EXTRA_GAINS", "FilterControl", "IntegratorControl", "LoopRecord", "NumpyController",
+           "SimulatorAdapter", "SplitControl", "TorchControl", "check_command", "loop_controller", "pol_modes",
+           "require_recorded", "run_closed_loop", "runtime_filter", "scan_integrator"]
 
 #: A loop whose residual exceeds this times its first frames' turbulence RMS (or is not finite) has diverged.
 DIVERGENCE_FACTOR = 10.0
@@ -85,172 +102,6 @@ class SimulatorAdapter(Protocol):
         """The set-up, JSON-ready."""
 
 
-def check_command(command_nm, n_actuators: int, what: str = "command") -> np.ndarray:
-    """``(K,)`` finite float64, or one :class:`ConfigError` line naming the size and what is allowed."""
-    command = np.asarray(command_nm, dtype=np.float64)
-    if command.shape != (n_actuators,):
-        raise ConfigError(f"{what} has shape {command.shape}: the simulator has {n_actuators} actuators, so it must "
-                          f"be ({n_actuators},) nm")
-    if not np.isfinite(command).all():
-        raise ConfigError(f"{what} holds {int((~np.isfinite(command)).sum())} non-finite value(s): the loop diverged "
-                          "or the controller is broken")
-    return command
-
-
-def _check_filter_size(runtime: PredictiveFilter, n_actuators: int) -> None:
-    if runtime.n_actuators != n_actuators:
-        raise ConfigError(f"the filter has {runtime.n_actuators} actuators but the simulator has {n_actuators}: fit "
-                          "it on telemetry of this simulator")
-
-
-# -- controllers ----------------------------------------------------------------------------------------------
-class IntegratorControl:
-    """``y(n) = y(n-1) - gain * m(n)`` on the delayed measurement ``m``, plus white dither of ``dither_nm`` RMS
-    that is not fed back into the integrator state (as :class:`eofnn.control.baselines.Dithered`)."""
-
-    def __init__(self, gain: float, dither_nm: float = 0.0, seed: int = 0) -> None:
-        check_value("integrator gain", gain, Interval(0, 10))
-        check_value("dither_nm", dither_nm, Interval(0, 1e5, unit="nm"))
-        self.gain, self.dither_nm, self.seed = float(gain), float(dither_nm), seed
-
-    def reset(self, n_actuators: int) -> None:
-        self._state = np.zeros(n_actuators)
-        self._rng = np.random.default_rng(self.seed)
-
-    def step(self, measurement: np.ndarray) -> np.ndarray:
-        self._state -= self.gain * measurement
-        if not self.dither_nm:
-            return self._state.copy()
-        return self._state + self.dither_nm * self._rng.standard_normal(len(self._state))
-
-
-class FilterControl:
-    """An :class:`eofnn.runtime.PredictiveFilter` as the simulator's controller (plus white dither of ``dither_nm``
-    RMS when recording telemetry for a refit: the filter reads back what was applied, dither included).
-
-    The first ``warmup_frames`` frames are closed by an integrator of gain ``warmup_gain`` while the filter reads
-    the same measurements and the commands really applied (``y_last``), so that it takes over with full, true
-    histories instead of from a flat DM (its first ``first_frame`` commands would be zero otherwise).
-    """
-
-    def __init__(self, runtime: PredictiveFilter, warmup_gain: float = 0.3, warmup_frames: int = 0,
-                 dither_nm: float = 0.0, seed: int = 0, conditions: dict | None = None) -> None:
-        check_value("warmup_frames", warmup_frames, Interval(0, None, integer=True, unit="frames"))
-        self.runtime, self.warmup_frames = runtime, warmup_frames
-        #: The conditions the filter was trained in (a checkpoint's ``info["conditions"]``), or ``None``: the loop
-        #: warns in one line when its own differ (:mod:`eofnn.interop.shift`).
-        self.trained_conditions = conditions
-        self._warmup = IntegratorControl(warmup_gain)
-        self._dither = IntegratorControl(0.0, dither_nm, seed)  # white dither alone (a zero-gain integrator)
-
-    def reset(self, n_actuators: int) -> None:
-        _check_filter_size(self.runtime, n_actuators)
-        self.runtime.reset()
-        self._warmup.reset(n_actuators)
-        self._dither.reset(n_actuators)
-        self._frame, self._last = 0, None
-
-    def step(self, measurement: np.ndarray) -> np.ndarray:
-        y = self.runtime.step(measurement, y_last=self._last)
-        if self._frame < self.warmup_frames:
-            y = self._warmup.step(measurement)
-        self._frame += 1
-        return y + self._dither.step(measurement) if self._dither.dither_nm else y
-
-    def applied(self, command: np.ndarray) -> None:
-        """What the loop really applied (projected): the filter's next ``y_last``."""
-        self._last = command
-
-
-class TorchControl:
-    """An eofnn :class:`~eofnn.control.predictive.PredictiveController` (any torch network) as the controller;
-    ``conditions``: those its predictor was trained in (:meth:`from_predictor` takes them from the checkpoint), which
-    the loop compares with its own (:mod:`eofnn.interop.shift`)."""
-
-    def __init__(self, controller: PredictiveController, delay_frames: int, conditions: dict | None = None) -> None:
-        self.controller, self.delay_frames, self.trained_conditions = controller, delay_frames, conditions
-
-    @classmethod
-    def from_predictor(cls, predictor, delay_frames: int, dm_gain_model: float | None = None,
-                       name: str = "the predictor") -> TorchControl:
-        """A trained predictor (:func:`eofnn.training.checkpoint.load_predictor`) as the controller, with the
-        conditions its checkpoint recorded; ``name`` (e.g. the checkpoint's path) names it in a shift warning."""
-        control = cls(predictor.controller(dm_gain_model), delay_frames, predictor.info.get("conditions"))
-        control.name = name
-        return control
-
-    def reset(self, n_actuators: int) -> None:
-        self.controller.reset(1, n_actuators, self.delay_frames, torch.float64)
-        self._frame, self._zeros = 0, torch.zeros(1, n_actuators, dtype=torch.float64)
-
-    def step(self, measurement: np.ndarray) -> np.ndarray:
-        inp = LoopInput(self._frame, torch.from_numpy(np.asarray(measurement, dtype=np.float64))[None], self._zeros)
-        self._frame += 1
-        return self.controller.step(inp)[0].numpy()
-
-
-class SplitControl:
-    """A predictive filter on the modes where prediction pays, the integrator on the rest.
-
-    ``modes`` ``(K, M)`` (orthonormal columns) span what ``runtime`` (an :class:`eofnn.runtime.PredictiveFilter`)
-    commands; the integrator of ``gain`` commands the orthogonal complement, ``y(n) = i(n) + mix B Bᵀ (f(n) - i(n))``
-    with ``i(n) = y(n-1) - gain m(n)`` (``y(n-1)`` the command really applied) and ``f(n)`` the filter's command:
-    ``mix`` (0 to 1) is the share of the filter's command on its modes, the rest the integrator's (a smaller share
-    lowers the bandwidth at which the filter passes what it predicts of the aliasing).
-    The filter reads every measurement and applied command, so its histories are whole wherever it acts. The first
-    ``warmup_frames`` frames are the integrator's alone. ``M = K``: the filter everywhere; ``M = 0``: the integrator.
-
-    With a Shack-Hartmann and a zonal reconstructor the lowest-order modes carry the most propagated aliasing
-    (their singular values are the smallest), which a filter fitted to predict the measurement predicts too;
-    :func:`pol_modes` orders the modes so that the integrator can keep the lowest ones (``docs/interop.md``).
-    """
-
-    def __init__(self, runtime: PredictiveFilter, modes: np.ndarray, gain: float, warmup_frames: int = 0,
-                 mix: float = 1.0) -> None:
-        check_value("integrator gain", gain, Interval(0, 10))
-        check_value("mix", mix, FRACTION)
-        check_value("warmup_frames", warmup_frames, Interval(0, None, integer=True, unit="frames"))
-        modes = np.asarray(modes, dtype=np.float64)
-        if modes.ndim != 2 or modes.shape[0] != runtime.n_actuators or modes.shape[1] > modes.shape[0]:
-            raise ConfigError(f"modes have shape {modes.shape}: they must be ({runtime.n_actuators}, M) with "
-                              f"M <= {runtime.n_actuators}, one column per mode the filter commands")
-        self.runtime, self.modes, self.gain, self.warmup_frames = runtime, modes, float(gain), warmup_frames
-        self.mix = float(mix)
-
-    def reset(self, n_actuators: int) -> None:
-        _check_filter_size(self.runtime, n_actuators)
-        self.runtime.reset()
-        self._last, self._frame = np.zeros(n_actuators), 0
-
-    def step(self, measurement: np.ndarray) -> np.ndarray:
-        predicted = self.runtime.step(measurement, y_last=self._last)
-        integrated = self._last - self.gain * measurement
-        self._frame += 1
-        if self._frame <= self.warmup_frames or not self.modes.shape[1]:
-            return integrated
-        return integrated + self.mix * (self.modes @ (self.modes.T @ (predicted - integrated)))
-
-    def applied(self, command: np.ndarray) -> None:
-        self._last = command
-
-
-def pol_modes(telemetry: Telemetry, dm_gain: float) -> np.ndarray:
-    """``(K, K)`` orthonormal modes of the pseudo-open-loop residual ``wfs - dm_gain y`` of ``telemetry`` (its
-    principal components, a measured Karhunen-Loeve basis: smooth modes first), by decreasing variance."""
-    pol = pseudo_open_loop(telemetry.wfs.double(), telemetry.y.double(), float(dm_gain)).numpy()
-    pol = pol - pol.mean(0)
-    variance, modes = np.linalg.eigh(pol.T @ pol / max(len(pol) - 1, 1))
-    return modes[:, np.argsort(variance)[::-1]]
-
-
-def runtime_filter(network: LinearFilter, spec: HistorySpec, dm_gain_model: float = 1.0) -> PredictiveFilter:
-    """The exported filter of ``network`` (what :func:`eofnn.training.export.export_filter` writes), in memory."""
-    if not isinstance(network, LinearFilter):
-        raise ConfigError(f"only linear filters run in eofnn.runtime, not {type(network).__name__}: use TorchControl")
-    coefficients, neighbours = filter_coefficients(network)
-    return PredictiveFilter(coefficients, filter_taps(spec), spec.delay_frames, dm_gain_model, neighbours)
-
-
 # -- the loop -------------------------------------------------------------------------------------------------
 @dataclass
 class LoopRecord:
@@ -287,9 +138,11 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
                     divergence_factor: float = DIVERGENCE_FACTOR, observers=()) -> LoopRecord:
     """Close ``sim``'s loop with ``controller`` for ``n_frames`` frames on the turbulence realisation ``seed``.
 
-    Per frame ``n``: the controller gets the measurement of frame ``n - d`` (zeros before the first) and returns
-    ``y(n)``; the loop applies ``sim.project(y(n))`` (the modes the sensor sees) and the simulator advances one
-    frame with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
+    Per frame ``n``: the controller (:func:`loop_controller`: eofnn's protocol, batch 1, float64) gets the
+    measurement of frame ``n - d`` (zeros before the first; its ``turbulence`` is zeros too: another simulator's
+    truth is not the controller's) and returns ``y(n)``; the loop applies ``sim.project(y(n))`` (the modes the
+    sensor sees), tells a numpy controller that reads it back (``applied``), and the simulator advances one frame
+    with it. A residual above ``divergence_factor`` times the RMS of the first frame (the uncorrected
     turbulence) stops the run as diverged. A controller that carries the conditions its predictor was trained in
     (``trained_conditions``) is compared with the loop's (:func:`eofnn.interop.shift.warn_loop_shift`): the record's
     ``shift`` holds the lines, and the first run of that controller issues them as one warning each. Each of
@@ -300,15 +153,20 @@ def run_closed_loop(sim: SimulatorAdapter, controller, n_frames: int, seed: int,
     k, d = sim.n_actuators, sim.delay_frames
     require(float(d).is_integer() and d >= 1, f"delay_frames={d!r} is invalid: the adapters run integer delays >= 1")
     sim.reset(seed)
-    controller.reset(k)
+    control = loop_controller(controller)
+    control.reset(1, k, d, torch.float64)
+    zeros = torch.zeros(1, k, dtype=torch.float64)
     pending = [np.zeros(k) for _ in range(int(d))]  # measurements in flight, oldest first
     y_all, wfs_all, rms_all = np.zeros((n_frames, k)), np.zeros((n_frames, k)), np.zeros(n_frames)
     diverged, limit = None, None
     for n in range(n_frames):
-        command = check_command(controller.step(pending.pop(0)), k, f"{type(controller).__name__} command")
+        m = torch.from_numpy(np.asarray(pending.pop(0), dtype=np.float64))[None]
+        y = control.step(LoopInput(n, m, zeros))
+        y = y.detach().cpu().numpy() if isinstance(y, torch.Tensor) else np.asarray(y)
+        command = check_command(y[0] if y.ndim == 2 and len(y) == 1 else y, k, f"{type(controller).__name__} command")
         command = sim.project(command)
-        if hasattr(controller, "applied"):
-            controller.applied(command)
+        if isinstance(control, NumpyController):
+            control.applied(command)
         measurement, rms = sim.advance(command)
         for observe in observers:
             observe(n, sim)

@@ -8,150 +8,138 @@ the plant's own :class:`~eofnn.sim.loop.plant.PlantModel`), but out of place, so
 
 Truncated backpropagation: the first ``warmup`` frames of a window run without gradients (they bring the loop's state,
 from a reset, to where the filter holds it), and :func:`loop_loss` is the mean squared residual of the frames after
-them. :class:`LoopWindows` cuts the training streams of a fit (the same turbulence, plants and WFS-noise draws that the
-closed-form fit learns from) into such windows; :func:`loop_step` is the optimiser step of
+them. :class:`~eofnn.training.windows.LoopWindows` cuts the training streams of a fit (the same turbulence, plants and
+WFS-noise draws that the closed-form fit learns from) into such windows; :func:`loop_step` is the optimiser step of
 :class:`~eofnn.training.task.PredictorTask` on them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, replace
+from collections.abc import Iterable
+from dataclasses import replace
 
 import torch
 from torch import nn
-from torch.utils.data import Dataset
 
 from eofnn.data.history import HistorySpec
-from eofnn.data.stream import SimulatedTelemetry, sequence_plant
-from eofnn.errors import require
 from eofnn.models.build import input_dtype
-from eofnn.resources import require_memory
-from eofnn.seeding import torch_generator
-from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop.kernel import Loop, LoopInput, ZonalSensor, is_one, loop_sensor
 from eofnn.sim.loop.plant import Plant, PlantModel
+from eofnn.training.windows import ROLLOUT_BYTES, LoopBatch, LoopWindow, LoopWindows, joined, merged, window_starts
+
+#: The windows (:mod:`eofnn.training.windows`) beside the rollout that closes the loop over them.
+__all__ = ["ROLLOUT_BYTES", "LoopBatch", "LoopWindow", "LoopWindows", "RolloutPredictor", "batch_loss", "closed_loop",
+           "joined", "log_loop_residual", "loop_loss", "loop_residual", "loop_step", "merged", "rollout",
+           "sensor_measurement", "window_starts"]
 
 
-@dataclass
-class LoopWindow:
-    """Windows of turbulence that close the loop side by side, each from a reset, in one plant (up to its gains).
+class RolloutPredictor:
+    """A predictor as a :class:`~eofnn.sim.loop.kernel.Controller` that keeps its histories out of place (lists of
+    the frames' tensors), so that every command stays in the graph: what
+    :class:`~eofnn.control.predictive.PredictiveController` computes, differentiably.
 
-    Attributes
-    ----------
-    s : Tensor
-        ``(batch, warmup + frames, K)`` turbulence in nm; the loop is reset at its first frame.
-    noise : Tensor or None
-        ``(batch, warmup + frames, K)`` unit normal draws, scaled by the plant's ``wfs_noise_nm``; ``None``: no noise.
-    plant : Plant
-        The plant the windows close the loop in (delay, DM, WFS; its static DM gain: a drift is not followed).
-    grid : ActuatorGrid
-        The actuators (the plant's misregistration).
-    warmup : int
-        Frames run without gradients before those of the loss.
-    dm_gain_model : float
-        DM gain of the pseudo-open-loop reconstruction (open-loop histories).
-    dm_gains, wfs_gains : Tensor, optional
-        ``(batch, 1)``: each window's own DM and WFS gains, in place of the plant's.
+    Per frame ``n``: the measurement ``wfs(n - d)`` enters the history, as itself (closed loop) or as the
+    pseudo-open-loop value ``wfs(n - d) - g_model y_applied(n - d)`` (open loop, ``y_applied`` averaged like the DM
+    for a fractional delay); ``y(n)`` is the network's command on ``spec``'s history once it is full (zeros before
+    ``spec.first_frame``).
     """
 
-    s: torch.Tensor
-    noise: torch.Tensor | None
-    plant: Plant
-    grid: ActuatorGrid
-    warmup: int
-    dm_gain_model: float = 1.0
-    dm_gains: torch.Tensor | None = None
-    wfs_gains: torch.Tensor | None = None
+    def __init__(self, network: nn.Module, spec: HistorySpec, dm_gain_model: float = 1.0) -> None:
+        self.network, self.spec, self.dm_gain_model = network, spec, dm_gain_model
+        self._dtype = input_dtype(network)
 
-    @property
-    def samples(self) -> int:
-        """Residual values in the loss: windows x frames after the warm-up x actuators."""
-        batch, frames, n_act = self.s.shape
-        return batch * (frames - self.warmup) * n_act
+    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
+        self._ys: list[torch.Tensor] = []  # y(0), y(1), ...: the commands computed so far
+        self._signal: list[torch.Tensor] = []  # what the history reads (POL values or measurements), its last p frames
 
+    def _command(self, lag: int, zero: torch.Tensor) -> torch.Tensor:
+        """``y(n - lag)`` for the frame ``n`` being computed (zeros before the reset)."""
+        return self._ys[len(self._ys) - lag] if lag <= len(self._ys) else zero
 
-class LoopBatch:
-    """The windows of one optimiser step. Not a collection, so that the DataLoader and Lightning hand it over as it
-    is (Lightning refuses frozen dataclasses such as :class:`~eofnn.sim.loop.plant.Plant`); :func:`rollout` moves
-    each window's tensors to the network's device."""
-
-    def __init__(self, windows: Iterable[LoopWindow]) -> None:
-        self.windows = tuple(windows)
-
-    @property
-    def samples(self) -> int:
-        return sum(window.samples for window in self.windows)
+    def step(self, inp: LoopInput) -> torch.Tensor:
+        spec, wfs = self.spec, inp.wfs
+        p, d, f = spec.history_length, spec.whole_delay, spec.delay_fraction
+        zero = torch.zeros_like(wfs)
+        if spec.kind == "open_loop":
+            applied = (self._command(d, zero) if not f
+                       else (1 - f) * self._command(d, zero) + f * self._command(d + 1, zero))
+            self._signal.append(wfs - self.dm_gain_model * applied)
+        else:
+            self._signal.append(wfs)
+        if len(self._signal) > p:
+            self._signal.pop(0)
+        if inp.frame >= spec.first_frame:
+            history = torch.stack(self._signal[::-1], dim=-1)
+            if spec.kind == "closed_loop":
+                past = torch.stack([self._command(lag, zero) for lag in range(1, p + 1)], dim=-1)
+                history = torch.cat([past, history], -1)
+            y = self.network(history.to(self._dtype)).to(wfs.dtype)
+        else:
+            y = zero
+        self._ys.append(y)
+        return y
 
 
 def rollout(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.Tensor:
     """``(batch, frames, K)`` residuals ``eps`` of ``network`` closing the loop over ``window``, with gradients
     (when enabled) from the frame ``window.warmup`` on.
 
-    Per frame ``n`` (after the reset at the window's first frame), as :func:`~eofnn.sim.loop.runner.run_loop` and
-    :class:`~eofnn.control.predictive.PredictiveController` do it: the measurement ``wfs(n - d)`` (zeros before the
-    first) enters the history, as itself (closed loop) or as the pseudo-open-loop value ``wfs(n - d) - g_model
-    y_applied(n - d)`` (open loop); ``y(n)`` is the network's command on ``spec``'s history once it is full (zeros
-    before ``spec.first_frame``); the DM applies it (``(1 - f) DM(y(n)) + f DM(y(n - 1))`` for a fractional delay);
-    ``eps(n) = s(n) + DM``; the WFS reports ``wfs_gain eps(n)`` plus noise.
+    The loop is :class:`~eofnn.sim.loop.kernel.Loop`'s step, the one :func:`~eofnn.sim.loop.runner.run_loop` runs,
+    out of place, through the window's sensor (its measurement, noise colour and what it reports in the modes it
+    cannot see: the Shack-Hartmann's ``(I - P) y``), with the network as a :class:`RolloutPredictor` (what
+    :class:`~eofnn.control.predictive.PredictiveController` computes): per frame ``n`` (after the reset at the
+    window's first frame) the measurement ``wfs(n - d)`` enters the history, the network's ``y(n)`` goes through the
+    DM (``(1 - f) DM(y(n)) + f DM(y(n - 1))`` for a fractional delay), ``eps(n) = s(n) + DM`` and the sensor measures
+    it.
     """
+    return closed_loop(network, spec, window)[0]
+
+
+def closed_loop(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(eps, dm)``: :func:`rollout`'s residuals and the DM terms acting over each frame, ``(batch, frames, K)``."""
     params = next(network.parameters(), None)
     device = params.device if params is not None else window.s.device
     s = window.s.to(device)
-    noise = None if window.noise is None else window.noise.to(device)
     batch, frames, n_act = s.shape
-    p, d, f = spec.history_length, spec.whole_delay, spec.delay_fraction
     plant = window.plant
     dm_gain = plant.dm_gain if window.dm_gains is None else window.dm_gains.to(device)
-    wfs_gain = plant.wfs_gain if window.wfs_gains is None else window.wfs_gains.to(device)
-    # The plant's DM up to its gain, which is applied here (a number, or one per window), as PlantModel applies it.
+    wfs_gain = None if window.wfs_gains is None else window.wfs_gains.to(device)
+    # The plant's DM up to its gain, which is applied after it (a number, or one per window), as PlantModel applies it.
     model = PlantModel(replace(plant, dm_gain=1.0, dm_gain_drift=None), window.grid, s.dtype).to(device)
-    dtype = input_dtype(network)
-    zero = s.new_zeros(batch, n_act)
-    ys: list[torch.Tensor] = []  # y(0), y(1), ...: the commands computed so far
-    measured: list[torch.Tensor] = []  # wfs(0), wfs(1), ...
-    signal: list[torch.Tensor] = []  # what the history reads (POL values or measurements), its last p frames
-    eps_out = []
-    dm_previous = zero
+    measurement = sensor_measurement(window, plant, dm_gain, wfs_gain).to(device)
+    noise = None
+    if window.noise is not None and measurement.noisy:
+        noise = measurement.noise(window.noise.to(device))  # the whole window's at once, as run_loop's chunk
+    controller = RolloutPredictor(network, spec, window.dm_gain_model)
+    loop = Loop(model, measurement, controller, dm_gain=None if is_one(dm_gain) else dm_gain, in_place=False)
+    loop.reset(batch, n_act, s.dtype, device)
     grad = torch.is_grad_enabled()
-
-    def command(lag: int) -> torch.Tensor:  # y(n - lag) for the frame n being computed (zeros before the reset)
-        return ys[len(ys) - lag] if lag <= len(ys) else zero
-
+    eps_out, dm_out = [], []
     for n in range(frames):
         with torch.set_grad_enabled(grad and n >= window.warmup):
-            wfs = measured[n - d] if n >= d else zero
-            if spec.kind == "open_loop":
-                applied = command(d) if not f else (1 - f) * command(d) + f * command(d + 1)
-                signal.append(wfs - window.dm_gain_model * applied)
-            else:
-                signal.append(wfs)
-            if len(signal) > p:
-                signal.pop(0)
-            if n >= spec.first_frame:
-                history = torch.stack(signal[::-1], dim=-1)
-                if spec.kind == "closed_loop":
-                    history = torch.cat([torch.stack([command(lag) for lag in range(1, p + 1)], dim=-1), history], -1)
-                y = network(history.to(dtype)).to(s.dtype)
-            else:
-                y = zero
-            dm = model.apply_dm(y)
-            if not isinstance(dm_gain, float) or dm_gain != 1.0:
-                dm = dm_gain * dm
-            if f:
-                dm, dm_previous = (1 - f) * dm + f * dm_previous, dm
-            eps = s[:, n] + dm
-            wfs = wfs_gain * eps if not isinstance(wfs_gain, float) or wfs_gain != 1.0 else eps
-            if plant.wfs_noise_nm > 0 and noise is not None:
-                wfs = wfs + plant.wfs_noise_nm * noise[:, n]
-            ys.append(y)
-            measured.append(wfs)
-            eps_out.append(eps)
-    return torch.stack(eps_out, dim=1)
+            step = loop.step(n, s[:, n], None if noise is None else noise[:, n])
+            eps_out.append(step.eps)
+            dm_out.append(step.dm)
+    return torch.stack(eps_out, dim=1), torch.stack(dm_out, dim=1)
+
+
+def sensor_measurement(window: LoopWindow, plant: Plant, dm_gain, wfs_gain):
+    """The measurement of ``window``'s sensor (the zonal one when it has none; a registered name is built on the
+    window's grid) in ``plant`` with these gains."""
+    sensor = loop_sensor(window.sensor, window.grid) or ZonalSensor(window.s.shape[-1])
+    return sensor.measurement(plant, dm_gain, wfs_gain)
 
 
 def loop_loss(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.Tensor:
-    """Mean squared residual (nm²) of ``network`` in the closed loop over ``window``'s frames after its warm-up."""
-    return rollout(network, spec, window)[:, window.warmup:].pow(2).mean()
+    """Mean squared residual (nm²) of ``network`` in the closed loop over ``window``'s frames after its warm-up: at
+    the actuators, or over the pupil (piston removed) when the window has one (a Shack-Hartmann's: what the loop is
+    scored on, fitting error and aliasing included)."""
+    eps, dm = closed_loop(network, spec, window)
+    if window.pupil is None:
+        return eps[:, window.warmup:].pow(2).mean()
+    device = dm.device
+    pupil = {k: v[:, window.warmup:].to(device) for k, v in window.pupil.items()}
+    return window.sensor.pupil_mean_square(pupil, dm[:, window.warmup:]).mean()
 
 
 def batch_loss(network: nn.Module, spec: HistorySpec, batch: LoopBatch, backward=None) -> torch.Tensor:
@@ -208,139 +196,3 @@ def log_loop_residual(task, batch: LoopBatch, name: str) -> torch.Tensor:
     loss = batch_loss(task.network, task.spec, batch)
     task.log(name, loss, prog_bar=True, batch_size=batch.samples)
     return loss
-
-
-def window_starts(frames: int, window: int, warmup: int) -> list[int]:
-    """First frames (of the warm-up) of the windows a sequence of ``frames`` is cut into: the loss frames tile
-    ``[warmup, frames)`` in windows of ``window`` frames, the last one moved back to end with the sequence (so every
-    frame after the first warm-up is in a loss, some of the last ones twice); one shorter window when the sequence
-    holds fewer than ``warmup + window`` frames."""
-    span = min(window, frames - warmup)
-    starts = list(range(0, frames - warmup - span + 1, span))
-    if starts[-1] + warmup + span < frames:
-        starts.append(frames - warmup - span)
-    return starts
-
-
-#: Most bytes one rollout's graph may hold (windows beyond it run as rollouts of their own).
-ROLLOUT_BYTES = 2**29
-
-
-def joined(windows: list[LoopWindow], name: str) -> torch.Tensor:
-    """``(rows, 1)``: the DM or WFS gain (``name``) of every row of ``windows``, their own or their plant's."""
-    return torch.cat([getattr(w, f"{name}s") if getattr(w, f"{name}s") is not None
-                      else w.s.new_full((w.s.shape[0], 1), getattr(w.plant, name)) for w in windows])
-
-
-def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
-    """``windows`` side by side in as few rollouts as they allow: those whose plants differ at most in their DM and
-    WFS gains become one, each window keeping its gains (the same residuals, fewer and larger tensor operations), in
-    pieces of at most ``max_rows`` rows."""
-    groups: dict[Plant, list[LoopWindow]] = {}
-    for window in windows:
-        groups.setdefault(replace(window.plant, dm_gain=1.0, wfs_gain=1.0), []).append(window)
-    out = []
-    for plant, group in groups.items():
-        first = group[0]
-        if len(group) == 1 and first.s.shape[0] <= max_rows:
-            out.append(first)
-            continue
-
-        s, dm_gains, wfs_gains = torch.cat([w.s for w in group]), joined(group, "dm_gain"), joined(group, "wfs_gain")
-        noise = None if first.noise is None else torch.cat([w.noise for w in group])
-        for i in range(0, s.shape[0], max_rows):
-            rows = slice(i, i + max_rows)
-            out.append(LoopWindow(s[rows], None if noise is None else noise[rows], plant, first.grid, first.warmup,
-                                  first.dm_gain_model, dm_gains[rows], wfs_gains[rows]))
-    return out
-
-
-class LoopWindows(Dataset):
-    """The sequences of a training stream cut into windows of the loop, as :class:`LoopBatch` es: all of them in one
-    (``full_batch``: one quasi-Newton step per epoch) or one per sequence.
-
-    The same turbulence sequences, plants and WFS-noise draws as ``telemetry``, the stream whose history tensors the
-    closed-form fit learns from: training through the loop sees the same data. Under ``data.plant_range`` the DM and
-    WFS gains are drawn again for each window (each window restarts the loop, so it may close it in a plant of its
-    own: the range is covered by many more draws than there are sequences); a misregistration is drawn per sequence,
-    as the closed-form data has it.
-
-    Parameters
-    ----------
-    telemetry : SimulatedTelemetry
-        The stream (its scenario, history, sequences, seed, plants).
-    window : int
-        Frames of each window's loss.
-    warmup : int
-        Frames before each window's loss, run without gradients.
-    full_batch : bool
-        All the windows in one batch.
-    """
-
-    def __init__(self, telemetry: SimulatedTelemetry, window: int, warmup: int, full_batch: bool = True) -> None:
-        super().__init__()
-        frames = telemetry.data.sequence_frames
-        require(frames > warmup + telemetry.spec.first_frame,
-                f"optimization.loop_warmup={warmup} leaves no frame to train on in the {telemetry.stream} sequences "
-                f"of {frames} frames (data.sequence_frames, or the stream's frames when fewer): it must be below "
-                f"{frames - telemetry.spec.first_frame}")
-        self.telemetry, self.window, self.warmup, self.full_batch = telemetry, window, warmup, full_batch
-        self.starts = window_starts(frames, window, warmup)
-        span, n_act = min(window, frames - warmup) + warmup, telemetry.scenario.grid.n_actuators
-        # A rollout's graph keeps about 3 taps + 12 tensors of (rows, K) per frame; the windows (turbulence and noise)
-        # are kept, twice while they are put side by side.
-        self.max_rows = max(1, ROLLOUT_BYTES // (span * n_act * (3 * telemetry.spec.n_taps + 12) * 8))
-        noisy = telemetry.scenario.plant.wfs_noise_nm > 0
-        require_memory(2 * (2 if noisy else 1) * self.n_windows * span * n_act * 8 + ROLLOUT_BYTES,
-                       f"training through the loop: {self.n_windows} {telemetry.stream} windows of {span} frames and "
-                       f"{n_act} actuators")
-        self._batches: list[LoopBatch] | None = None
-
-    @property
-    def n_windows(self) -> int:
-        """Windows of the stream: per sequence and realisation."""
-        data = self.telemetry.data
-        return len(self.starts) * data.realisations * self.telemetry.n_sequences
-
-    def __len__(self) -> int:
-        return 1 if self.full_batch else self.telemetry.n_sequences
-
-    def sequence(self, index: int) -> LoopWindow:
-        """The windows of sequence ``index`` side by side, ``(windows x realisations, warmup + window, K)``."""
-        t, data = self.telemetry, self.telemetry.data
-        name = f"{t.stream}:{index}"
-        s = t.scenario.turbulence(data.seed, name, data.realisations).frames(0, data.sequence_frames)
-        plant = t.plant(index)
-        # The unit draws of the closed-form fit's open-loop noise (SimulatedTelemetry.telemetry): the same data.
-        noise = (torch.randn(s.shape, generator=torch_generator(data.seed, name, 1), dtype=s.dtype)
-                 if plant.wfs_noise_nm > 0 else None)
-        span = min(self.window, data.sequence_frames - self.warmup) + self.warmup
-
-        def cut(x: torch.Tensor) -> torch.Tensor:
-            return torch.cat([x[:, start: start + span] for start in self.starts])
-
-        gains = {}
-        for field in ("dm_gain", "wfs_gain"):
-            if field in (data.plant_range or {}):
-                drawn = [getattr(sequence_plant(t.scenario.plant, data, f"{name}:window:{j}"), field)
-                         for j in range(len(self.starts))]
-                gains[f"{field}s"] = torch.tensor(drawn, dtype=s.dtype).repeat_interleave(data.realisations)[:, None]
-        return LoopWindow(cut(s), None if noise is None else cut(noise), plant, t.scenario.grid, self.warmup,
-                          t.dm_gain_model, **gains)
-
-    def batches(self) -> list[LoopBatch]:
-        """The stream's batches (simulated once, then kept): every sequence's windows in one, or one per sequence,
-        put side by side (:func:`merged`)."""
-        if self._batches is None:
-            windows = [self.sequence(index) for index in range(self.telemetry.n_sequences)]
-            groups = [windows] if self.full_batch else [[window] for window in windows]
-            self._batches = [LoopBatch(merged(group, self.max_rows)) for group in groups]
-        return self._batches
-
-    def __getitem__(self, index: int) -> LoopBatch:
-        if not 0 <= index < len(self):
-            raise IndexError(index)
-        return self.batches()[index]
-
-    def __iter__(self) -> Iterator[LoopBatch]:
-        return (self[index] for index in range(len(self)))

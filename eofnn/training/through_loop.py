@@ -5,8 +5,11 @@ The closed-form fit learns to predict the turbulence from histories recorded in 
 pseudo-open-loop values that are exact only in the nominal plant; closed loop: an integrator plus dither). Once it
 holds the loop itself, what it sees and what its errors cost change. Here the loss is what the loop delivers: the
 mean squared residual ``eps(n) = s(n) + DM(y(n))`` of the predictor closing the loop
-(:func:`~eofnn.training.rollout.rollout`), backpropagated through windows of ``optimization.loop_window`` frames,
-each after ``optimization.loop_warmup`` frames of the loop run without gradients (truncated backpropagation).
+(:func:`~eofnn.training.rollout.rollout`, the step :func:`~eofnn.sim.loop.runner.run_loop` runs), backpropagated
+through windows of ``optimization.loop_window`` frames, each after ``optimization.loop_warmup`` frames of the loop run
+without gradients (truncated backpropagation). The loop is the scenario's, sensor included: in a Shack-Hartmann
+scenario the measurement is the sensor's (``R S phi``, its photon and read noise reconstructed, the fill of the modes
+the reconstructor cuts) and the loss is the residual over the pupil, piston removed, where the loop is scored.
 
 Data budget: the same as the closed-form fit's. The windows are cut from the same training sequences (the same
 turbulence frames, ``data.frames`` of them, the same WFS-noise draws and, under ``data.plant_range``, the same range;
@@ -60,7 +63,8 @@ def train_through_loop(task, loop: LoopData | None, start: ClosedFormFit,
     """Train ``task``'s network (fitted in closed form: ``start``) through the loop on ``loop``'s windows, for
     ``optimization.epochs`` epochs of Lightning's ``fit``, and keep the epoch of least validation residual (the start
     included). Returns the trainer (which holds ``task``, to save it) and the metrics (residuals in nm²); the
-    provenance (``task.hparams["info"]["through_loop"]``) gets the start's and the result's residuals."""
+    provenance (``task.hparams["info"]["through_loop"]``) gets the start's and the result's residuals, and where they
+    are taken (``residual_over``: ``pupil`` through a Shack-Hartmann, else ``actuators``)."""
     require(loop is not None, "optimization.fit_method: closed_loop trains through the simulated loop: it needs a "
                               "scenario and simulator truth (data.truth: true), not telemetry alone")
     network, spec, optimization = task.network, task.spec, task.optimization
@@ -80,6 +84,8 @@ def train_through_loop(task, loop: LoopData | None, start: ClosedFormFit,
         "epochs": keep.epochs, "optimizer": optimization.gradient_optimizer, "lr": optimization.learning_rate,
         "window_frames": loop.train.window, "warmup_frames": loop.train.warmup,
         "train_windows": loop.train.n_windows,
+        # Where the residuals are taken: over the pupil through a Shack-Hartmann, else at the actuators.
+        "residual_over": "pupil" if loop.train.telemetry.scenario.sensor.is_shack_hartmann else "actuators",
     }
     task.hparams["info"] = {**task.hparams["info"], "alpha": start.alpha, "through_loop": summary}
     return trainer, {"train_loss": train_loss, "val_loss": keep.best, "alpha": start.alpha,

@@ -6,7 +6,6 @@ import functools
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 from tqdm.auto import tqdm
 
@@ -14,6 +13,7 @@ from eofnn.errors import DivergedError, require
 from eofnn.lazy import lazy_module
 from eofnn.seeding import torch_generator
 from eofnn.sim.atmosphere.turbulence import Turbulence
+from eofnn.sim.loop.kernel import Controller, Loop, LoopInput
 from eofnn.sim.loop.plant import Plant, PlantModel
 from eofnn.sim.loop.sensing import loop_sensing
 from eofnn.telemetry.record import Telemetry
@@ -21,36 +21,7 @@ from eofnn.validation import COUNT, check_value
 
 torch = lazy_module("torch")
 
-
-@dataclass
-class LoopInput:
-    """What a controller sees when it computes ``y(n)``.
-
-    Attributes
-    ----------
-    frame : int
-        The frame ``n`` the command is for.
-    wfs : Tensor
-        ``(batch, n_actuators)`` WFS measurement of ``eps(n - d)`` in nm (zeros before the first one), ``d`` the
-        whole frames of the delay.
-    turbulence : Tensor
-        ``(batch, n_actuators)`` true ``s(n - d)`` in nm: only oracle baselines (the pseudo-integrator) may use it.
-    """
-
-    frame: int
-    wfs: torch.Tensor
-    turbulence: torch.Tensor
-
-
-@runtime_checkable
-class Controller(Protocol):
-    """Anything the runner can close the loop with."""
-
-    def reset(self, batch: int, n_actuators: int, delay_frames: int | float, dtype: torch.dtype) -> None:
-        """Clear internal state before a run (``delay_frames``: the plant's, possibly fractional)."""
-
-    def step(self, inp: LoopInput) -> torch.Tensor:
-        """Return the command ``y(n)`` in nm, ``(batch, n_actuators)``."""
+__all__ = ["Controller", "LoopInput", "LoopResult", "record_loop", "run_loop"]
 
 
 @dataclass
@@ -95,13 +66,15 @@ def run_loop(
     divergence_factor: float = 10.0,
     progress: bool | None = None,
     on_chunk: Callable[[int, dict[str, torch.Tensor]], None] | None = None,
+    sensor=None,
 ) -> LoopResult:
     """Close the loop for ``n_frames`` frames.
 
-    Per frame ``n``: the controller gets the WFS measurement of ``eps(n - d)`` and returns ``y(n)``; the DM applies
-    it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS measures ``eps(n)``. For a fractional delay
-    ``d + f`` (:mod:`eofnn.delay`) the DM term is the time average ``(1 - f) DM(y(n)) + f DM(y(n - 1))``:
-    telemetry's ``y`` is the command computed for frame ``n``, its ``eps`` and ``wfs`` include the averaged DM.
+    Per frame ``n`` (:class:`~eofnn.sim.loop.kernel.Loop`'s step, in place): the controller gets the WFS measurement
+    of ``eps(n - d)`` and returns ``y(n)``; the DM applies it through the plant; ``eps(n) = s(n) + DM(y(n))``; the WFS
+    measures ``eps(n)``. For a fractional delay ``d + f`` (:mod:`eofnn.delay`) the DM term is the time average
+    ``(1 - f) DM(y(n)) + f DM(y(n - 1))``: telemetry's ``y`` is the command computed for frame ``n``, its ``eps`` and
+    ``wfs`` include the averaged DM.
     A Shack-Hartmann scenario's turbulence (:class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`) measures through
     slopes and a reconstructor and scores the residual over the pupil too (:mod:`eofnn.sim.loop.sensing`).
 
@@ -132,22 +105,22 @@ def run_loop(
         Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk; in a
         Shack-Hartmann scenario ``arrays["pupil_residual"](frame)`` also gives the residual over the pupil's fine
         points at a frame of the chunk that is a multiple of :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`.
+    sensor : LoopSensor or str, optional
+        A sensor of the actuator-grid turbulence in place of the zonal one: a
+        :class:`~eofnn.sim.loop.kernel.LoopSensor`, or the name it was registered under
+        (:func:`~eofnn.sim.loop.kernel.register_sensor`); ``None``: the scenario's.
     """
     check_value("n_frames", n_frames, COUNT)
     unknown = set(record) - {"s", "y", "eps", "wfs", "slopes"}
     require(not unknown, f"record={sorted(unknown)!r} is invalid: allowed are s, y, eps, wfs, slopes")
     grid = turbulence.grid
     model = PlantModel(plant, grid, frame_rate_hz=getattr(turbulence, "frame_rate_hz", None))
-    sensing = loop_sensing(turbulence, model, "slopes" in record)
+    sensing = loop_sensing(turbulence, model, "slopes" in record, sensor)
     batch, n_act = turbulence.n_realisations, grid.n_actuators
-    delay, fraction = plant.whole_delay_frames, plant.delay_fraction
     dtype = torch.float64
-    controller.reset(batch, n_act, plant.delay_frames, dtype)
+    loop = Loop(model, sensing.measurement(), controller)
+    loop.reset(batch, n_act, dtype)
     generator = torch_generator(noise_seed, "wfs-noise")
-    dm_previous = torch.zeros(batch, n_act, dtype=dtype)  # DM(y(n - 1)), for a fractional delay
-    # Ring buffers of the last `delay` measurements and turbulence frames: slot n % delay holds frame n - delay.
-    wfs_ring = torch.zeros(delay, batch, n_act, dtype=dtype).unbind(0)
-    turb_ring = torch.zeros(delay, batch, n_act, dtype=dtype).unbind(0)
     # Per-chunk arrays are allocated only for what leaves the loop; eps (for the RMS) otherwise reuses one buffer.
     kept_arrays = set(record) | ({"y", "eps", "wfs"} if on_chunk is not None else set())
     eps_scratch = None
@@ -174,25 +147,16 @@ def run_loop(
             y_out, eps_out, wfs_out, slopes_out = arrays.get("y"), arrays["eps"], arrays.get("wfs"), arrays.get("slopes")
             arrays["s"] = s_chunk
             for i in range(t):
-                n = first + i
-                slot = n % delay
-                y = controller.step(LoopInput(n, wfs_ring[slot], turb_ring[slot]))
                 s_n = s_chunk[:, i]
-                dm = model.apply_dm(y, n)
-                if fraction:  # the shape acting over frame n: the time average of the commands acting over it
-                    dm, dm_previous = (1 - fraction) * dm + fraction * dm_previous, dm
-                eps = torch.add(s_n, dm, out=eps_out[:, i])
-                wfs = sensing.measure(i, eps, dm, y, generator)
+                step = loop.step(first + i, s_n, sensing.noise(i, s_n, generator), out=eps_out[:, i])
                 if dm_chunk is not None:
-                    dm_chunk[:, i] = dm
-                wfs_ring[slot].copy_(wfs)
-                turb_ring[slot].copy_(s_n)
+                    dm_chunk[:, i] = step.dm
                 if y_out is not None:
-                    y_out[:, i] = y
+                    y_out[:, i] = step.y
                 if wfs_out is not None:
-                    wfs_out[:, i] = wfs
+                    wfs_out[:, i] = step.wfs
                 if slopes_out is not None:
-                    slopes_out[:, i] = sensing.slopes(i, dm)
+                    slopes_out[:, i] = sensing.slopes(i, step.dm)
             rms = arrays["eps"].pow(2).mean(-1).sqrt()
             turb = s_chunk.pow(2).mean(-1).sqrt()
             bad = ~torch.isfinite(rms) | (rms > divergence_factor * turb)

@@ -64,6 +64,8 @@ from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop.kernel import ZonalMeasurement, loop_sensor
+from eofnn.sim.loop.measurement import ShackHartmannMeasurement, nominal_dm, scaled_slope_noise
 from eofnn.sim.sensing.sensor import Sensor
 
 if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
@@ -200,10 +202,8 @@ class ShackHartmannTurbulence:
         :attr:`~eofnn.sim.sensing.shack_hartmann.ShackHartmannSensor.slope_noise_scale` (partly lit subapertures)."""
         if sigma_nm <= 0:
             return None
-        sensor = self.operators.sensor
-        noise = sigma_nm * torch.randn((*shape, sensor.n_slopes), generator=generator, dtype=torch.float64)
-        scale = sensor.slope_noise_scale
-        return noise if (scale == 1).all() else noise * torch.as_tensor(scale)
+        unit = torch.randn((*shape, self.operators.sensor.n_slopes), generator=generator, dtype=torch.float64)
+        return scaled_slope_noise(self.operators, unit, sigma_nm)
 
     def noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
         """``R n`` for ``(R, frames)`` frames of white slope noise of RMS ``sigma_nm`` (``None`` when 0)."""
@@ -228,26 +228,63 @@ class ShackHartmannTurbulence:
         noise = self.noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)
         return s, s_hat if noise is None else s_hat + noise / plant.wfs_gain
 
+    def pupil_mean_square(self, pupil: dict[str, torch.Tensor], u: torch.Tensor) -> torch.Tensor:
+        """``(..., frames)`` piston-removed mean square over the pupil (nm²) of ``phi + IF u``, from :meth:`products`'
+        ``z, sum, sumsq`` (``pupil``) and the applied commands ``u`` ``(..., frames, K)``: what ``run_loop`` scores
+        (:meth:`~eofnn.sim.sensing.pupil.LoopOperators.pupil_rms`, squared), in torch, so that it carries gradients
+        to ``u`` (the differentiable rollout's loss in a Shack-Hartmann scenario)."""
+        ops = self.operators
+        key = (id(ops), u.device, u.dtype)
+        if getattr(self, "_gram_key", None) != key:  # G and b dense, on the commands' device
+            self._gram = torch.as_tensor(ops.gram.toarray(), dtype=u.dtype, device=u.device)
+            self._pupil_sums = ops.pupil_sums.to(u.device, u.dtype)
+            self._gram_key = key
+        n = ops.n_pupil
+        mean_sq = (pupil["sumsq"] + 2 * (pupil["z"] * u).sum(-1) + (u * (u @ self._gram)).sum(-1)) / n
+        mean = (pupil["sum"] + u @ self._pupil_sums) / n
+        return (mean_sq - mean * mean).clamp(min=0)
+
+    def measurement(self, plant, dm_gain=None, wfs_gain=None) -> ShackHartmannMeasurement:
+        """The sensor's measurement in ``plant`` (:class:`ShackHartmannMeasurement`); ``dm_gain``, ``wfs_gain``: gains
+        in place of the plant's (a number, or ``(batch, 1)``, one per row), as the differentiable rollout's windows
+        carry them."""
+        ops = self.operators
+        dm_gain = plant.dm_gain if dm_gain is None else dm_gain
+        wfs_gain = plant.wfs_gain if wfs_gain is None else wfs_gain
+        return ShackHartmannMeasurement(ops, ops.projector.T.contiguous(), self.slope_noise_nm(plant.wfs_noise_nm),
+                                        wfs_gain, plant.delay_fraction, nominal_dm(plant, dm_gain, wfs_gain))
+
 
 class ZonalLoopSensing:
-    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise`` frame by frame."""
+    """Today's sensing: ``s`` at the actuators, measured as ``wfs_gain eps + noise``, the noise drawn frame by frame;
+    or, through ``sensor`` (a :class:`~eofnn.sim.loop.kernel.LoopSensor`), by another sensor of that turbulence."""
 
     pupil = False
     n_slopes = 0
 
-    def __init__(self, turbulence: Turbulence, model) -> None:
+    def __init__(self, turbulence: Turbulence, model, sensor=None) -> None:
         self.turbulence, self.model = turbulence, model
+        plant = model.plant
+        self._measurement = (ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm, plant.wfs_gain)
+                             if sensor is None else sensor.measurement(plant))
 
     def chunks(self, n_frames: int, chunk: int, generator):
         return self.turbulence.chunks(n_frames, chunk)
 
-    def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
-        return self.model.measure(eps, generator)
+    def measurement(self) -> ZonalMeasurement:
+        return self._measurement
+
+    def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
+        """The noise of frame ``i`` of the chunk (``s`` its turbulence), drawn now."""
+        m = self._measurement
+        if not m.noisy:
+            return None
+        return m.noise(torch.randn((*s.shape[:-1], m.noise_size), generator=generator, dtype=s.dtype))
 
 
 class ShackHartmannLoopSensing:
     """The Shack-Hartmann in the loop (module docstring): a chunk's ``s``, sensed turbulence and noise at once, the
-    DM term and the pupil's residual per frame."""
+    measurement, the pupil's residual per frame."""
 
     pupil = True
 
@@ -255,19 +292,22 @@ class ShackHartmannLoopSensing:
         require(not slopes or turbulence.isolate != "perfect",
                 "record 'slopes' is invalid with isolate='perfect': that sensor reads the DM's fit, not slopes")
         self.turbulence, self.model, self.record_slopes = turbulence, model, slopes
-        self.gain = model.plant.wfs_gain
-        self.sigma_nm = turbulence.slope_noise_nm(model.plant.wfs_noise_nm)
+        plant = model.plant
+        self.gain = plant.wfs_gain
+        self.sigma_nm = turbulence.slope_noise_nm(plant.wfs_noise_nm)
         ops = turbulence.operators
         self.n_slopes = ops.sensor.n_slopes
         self.projector_t = ops.projector.T.contiguous()
         self.interaction_t = ops.interaction_matrix.T.contiguous() if slopes else None
-        self.fraction = model.plant.delay_fraction
-        plant = model.plant
+        self.fraction = plant.delay_fraction
         # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
-        self.identity_dm = (plant.dm_gain == 1.0 and not plant.misregistration_x and not plant.misregistration_y
-                            and plant.nonlinearity == "none" and plant.dm_gain_drift is None and self.gain == 1.0)
+        self.identity_dm = nominal_dm(plant, plant.dm_gain, self.gain)
         self._chunk: dict = {}
-        self._noise = self._slope_noise = self._y_previous = None
+        self._noise = self._slope_noise = None
+
+    def measurement(self) -> ShackHartmannMeasurement:
+        return ShackHartmannMeasurement(self.turbulence.operators, self.projector_t, self.sigma_nm, self.gain,
+                                        self.fraction, self.identity_dm)
 
     def chunks(self, n_frames: int, chunk: int, generator):
         for first in range(0, n_frames, chunk):
@@ -281,19 +321,9 @@ class ShackHartmannLoopSensing:
                 self.turbulence.release()
             yield first, out["s"]
 
-    def measure(self, i: int, eps: torch.Tensor, dm: torch.Tensor, y: torch.Tensor, generator) -> torch.Tensor:
-        if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
-            wfs = self._chunk["sensed"][:, i] + dm
-            return wfs if self._noise is None else wfs + self._noise[:, i]
-        wfs = self._chunk["sensed"][:, i] + dm @ self.projector_t
-        if self.gain != 1.0:
-            wfs = self.gain * wfs
-        sent = y
-        if self.fraction:  # the commands acting over the frame, as the DM averages them
-            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
-            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
-        wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
-        return wfs if self._noise is None else wfs + self._noise[:, i]
+    def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
+        """``R n`` of frame ``i`` of the chunk (drawn with the chunk)."""
+        return None if self._noise is None else self._noise[:, i]
 
     def slopes(self, i: int, dm: torch.Tensor) -> torch.Tensor:
         """``(R, 2 n_sub)``: the sensor's slopes of frame ``i`` of the chunk, ``wfs_gain (S phi + D dm) + n`` (nm of OPD
@@ -329,11 +359,24 @@ class ShackHartmannLoopSensing:
         return (self.turbulence.phase_at(frame) + ops.surface(dm))[:, ops.pupil]
 
 
-def loop_sensing(turbulence, model, slopes: bool = False):
-    """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one); ``slopes``: record
-    the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none)."""
+def loop_measurement(turbulence, plant, dm_gain=None, wfs_gain=None):
+    """The measurement (:class:`~eofnn.sim.loop.kernel.Measurement`) of ``turbulence``'s sensor in ``plant``: the
+    Shack-Hartmann's when it carries one, else the zonal sensor's; ``dm_gain``, ``wfs_gain``: in place of the plant's
+    (a number, or ``(batch, 1)``, one per row)."""
     if isinstance(turbulence, ShackHartmannTurbulence):
+        return turbulence.measurement(plant, dm_gain, wfs_gain)
+    return ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm,
+                            plant.wfs_gain if wfs_gain is None else wfs_gain)
+
+
+def loop_sensing(turbulence, model, slopes: bool = False, sensor=None):
+    """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one); ``slopes``: record
+    the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none); ``sensor``: a
+    :class:`~eofnn.sim.loop.kernel.LoopSensor` (or a registered name, :func:`~eofnn.sim.loop.kernel.register_sensor`)
+    that measures a turbulence on the actuator grid in place of the zonal sensor."""
+    if isinstance(turbulence, ShackHartmannTurbulence):
+        require(sensor is None, "sensor is invalid with a Shack-Hartmann scenario: its turbulence comes with its sensor")
         return ShackHartmannLoopSensing(turbulence, model, slopes)
     require(not slopes, "record 'slopes' is invalid in this scenario: the zonal sensor (sensor.kind: subaperture) "
             "measures no slopes; record them with sensor.kind: shack_hartmann")
-    return ZonalLoopSensing(turbulence, model)
+    return ZonalLoopSensing(turbulence, model, loop_sensor(sensor, turbulence.grid))

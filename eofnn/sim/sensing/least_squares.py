@@ -10,10 +10,9 @@ import scipy.sparse as sp
 
 from eofnn.errors import ConfigError
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.constants import MECHANICAL_COUPLING
 from eofnn.validation import Interval, check_value
 
-#: OOPAO's default mechanical coupling (``DeformableMirror(mechCoupling=0.35)``): the influence at a neighbour.
-MECHANICAL_COUPLING = 0.35
 #: Influence functions are cut where they fall below this fraction of their peak (a radius of
 #: ``d sqrt(ln(1e-6) / ln(coupling))``: 3.6 pitches at coupling 0.35).
 INFLUENCE_FLOOR = 1e-6

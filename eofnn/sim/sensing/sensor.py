@@ -19,14 +19,13 @@ from typing import ClassVar
 
 from eofnn.errors import ConfigError, require
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.sensing.detector import Detector
-from eofnn.validation import Constraint, Interval, OneOf, OrNone, from_mapping, validated
 
-#: Subaperture geometries (:data:`eofnn.sim.sensing.shack_hartmann.GEOMETRIES`; numpy, scipy and torch stay unimported
-#: until a Shack-Hartmann is built).
-GEOMETRIES = ("fried", "cell")
-#: OOPAO's default mechanical coupling (:data:`eofnn.sim.sensing.least_squares.MECHANICAL_COUPLING`).
-MECHANICAL_COUPLING = 0.35
+# The Shack-Hartmann's constants and field constraints are declared once, in a light module of their own.
+from eofnn.sim.sensing.constants import GEOMETRIES, MECHANICAL_COUPLING, SHACK_HARTMANN_CONSTRAINTS
+from eofnn.sim.sensing.detector import Detector
+from eofnn.validation import Constraint, OneOf, from_mapping, validated
+
+__all__ = ["GEOMETRIES", "MECHANICAL_COUPLING", "SENSOR_KINDS", "Sensor", "build_sensor"]
 
 #: Sensor kinds a scenario may have.
 SENSOR_KINDS = ("subaperture", "shack_hartmann")
@@ -66,16 +65,7 @@ class Sensor:
     lit_fraction: float | None = None
     detector: Detector | None = None
 
-    _constraints: ClassVar[dict[str, Constraint]] = {
-        "kind": OneOf(SENSOR_KINDS),
-        "geometry": OneOf(GEOMETRIES),
-        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
-        "subapertures_across": OrNone(Interval(2, 512, integer=True, unit="subapertures across")),
-        "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
-        "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
-        "pupil_diameter_m": OrNone(Interval(0, 100, closed="right", unit="m")),
-        "lit_fraction": OrNone(Interval(0, 1, closed="right", unit="of a subaperture's area")),
-    }
+    _constraints: ClassVar[dict[str, Constraint]] = {"kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS}
 
     def __post_init__(self) -> None:
         if self.detector is not None:
@@ -117,6 +107,18 @@ class Sensor:
         if self.pupil_diameter_m is not None and self.pupil_diameter_m > grid.diameter_m:
             raise ConfigError(f"sensor.pupil_diameter_m={self.pupil_diameter_m!r} is invalid: the actuator grid is "
                               f"{grid.diameter_m:g} m across; allowed up to that")
+        pitch = self.subaperture_pitch_m(grid)
+        if self.pupil_diameter_m is not None and self.pupil_diameter_m < pitch * (1 - 1e-9):
+            raise ConfigError(f"sensor.pupil_diameter_m={self.pupil_diameter_m!r} is invalid: a pupil narrower than "
+                              f"one subaperture ({pitch:g} m on this grid) lights none of them; allowed {pitch:g} to "
+                              f"{grid.diameter_m:g} m")
+
+    def subaperture_pitch_m(self, grid: ActuatorGrid) -> float:
+        """A subaperture's side on ``grid`` (m): the actuator pitch (``fried``), or the grid's diameter over the
+        subapertures across (``cell``)."""
+        if self.geometry == "fried":
+            return grid.pitch_m
+        return grid.diameter_m / (self.subapertures_across or grid.n_across)
 
     def to_dict(self) -> dict:
         return asdict(self)

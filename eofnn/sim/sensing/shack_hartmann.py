@@ -71,17 +71,12 @@ import torch
 
 from eofnn.errors import require
 from eofnn.sim.grid import MAX_N_ACROSS, ActuatorGrid
-from eofnn.sim.sensing.least_squares import (
-    MECHANICAL_COUPLING,
-    default_relative_cut,
-    influence_functions,
-    least_squares_reconstructor,
-)
+from eofnn.sim.sensing.constants import GEOMETRIES, MECHANICAL_COUPLING, SHACK_HARTMANN_CONSTRAINTS  # noqa: F401 (GEOMETRIES: re-exported)
+from eofnn.sim.sensing.least_squares import default_relative_cut, influence_functions, least_squares_reconstructor
 from eofnn.sim.sensing.subapertures import check_pupil, edge_weights, lattice, lit_fractions, partly_lit_rows
-from eofnn.validation import Constraint, Interval, OneOf, OrNone, check_value, validated
+from eofnn.validation import Constraint, Interval, check_value, validated
 
-#: Subaperture geometries: ``fried`` (between four actuators), ``cell`` (one subaperture per actuator cell).
-GEOMETRIES = ("fried", "cell")
+
 class SubapertureGeometry:
     """Where the subapertures lie, the fine grid of phase samples that covers their edges, and the slope operator.
 
@@ -109,10 +104,8 @@ class SubapertureGeometry:
         ``S`` ``(2 n_sub, n_fine)``: fine-point OPD (nm) to slopes (nm of OPD difference across a subaperture).
     """
 
-    _constraints: ClassVar[dict[str, Constraint]] = {
-        "geometry": OneOf(GEOMETRIES),
-        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
-    }
+    _constraints: ClassVar[dict[str, Constraint]] = {name: SHACK_HARTMANN_CONSTRAINTS[name]
+                                                      for name in ("geometry", "samples_per_subaperture")}
 
     def __init__(self, grid: ActuatorGrid, geometry: str = "fried", samples_per_subaperture: int = 4,
                  subapertures_across: int | None = None, pupil_diameter_m: float | None = None,
@@ -282,15 +275,7 @@ class ShackHartmann:
     pupil_diameter_m: float | None = None
     lit_fraction: float | None = None
 
-    _constraints: ClassVar[dict[str, Constraint]] = {
-        "geometry": OneOf(GEOMETRIES),
-        "samples_per_subaperture": Interval(1, 16, integer=True, unit="fine intervals per subaperture side"),
-        "subapertures_across": OrNone(Interval(2, MAX_N_ACROSS, integer=True, unit="subapertures across")),
-        "mechanical_coupling": Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"),
-        "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
-        "pupil_diameter_m": OrNone(Interval(0, 100, closed="right", unit="m")),
-        "lit_fraction": OrNone(Interval(0, 1, closed="right", unit="of a subaperture's area")),
-    }
+    _constraints: ClassVar[dict[str, Constraint]] = SHACK_HARTMANN_CONSTRAINTS
 
     def build(self, grid: ActuatorGrid) -> ShackHartmannSensor:
         """The sensor on ``grid``: geometry, slope operator, influence functions, ``D`` and ``R``."""

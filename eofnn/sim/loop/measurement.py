@@ -1,0 +1,91 @@
+"""The Shack-Hartmann's measurement in the loop (:class:`ShackHartmannMeasurement`, a
+:class:`~eofnn.sim.loop.kernel.Measurement`): what the real-time computer reports of the residual through the slopes,
+the reconstructor and the fill of the modes it cuts (:mod:`eofnn.sim.loop.sensing` says why each term is there)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from eofnn.lazy import lazy_module
+from eofnn.sim.loop.kernel import is_one
+
+if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
+    from eofnn.sim.sensing.pupil import LoopOperators
+
+torch = lazy_module("torch")
+
+
+def scaled_slope_noise(operators: LoopOperators, unit: torch.Tensor, sigma_nm: float) -> torch.Tensor:
+    """``n``: unit normal slope draws ``(..., 2 n_sub)`` times ``sigma_nm`` and each slope's
+    :attr:`~eofnn.sim.sensing.shack_hartmann.ShackHartmannSensor.slope_noise_scale` (partly lit subapertures)."""
+    noise = sigma_nm * unit
+    scale = operators.sensor.slope_noise_scale
+    return noise if (scale == 1).all() else noise * torch.as_tensor(scale, device=unit.device)
+
+
+def nominal_dm(plant, dm_gain, wfs_gain) -> bool:
+    """Whether the DM applies the command as sent and the sensor has unit gain: ``P DM(y) + (I - P) y`` is then ``y``
+    itself (one ``K x K`` product a frame saved)."""
+    return (is_one(dm_gain) and not plant.misregistration_x and not plant.misregistration_y
+            and plant.nonlinearity == "none" and plant.dm_gain_drift is None and is_one(wfs_gain))
+
+
+class ShackHartmannMeasurement:
+    """The real-time computer's measurement through the Shack-Hartmann (module docstring), a
+    :class:`~eofnn.sim.loop.kernel.Measurement`: ``wfs = wfs_gain (R S phi + P DM) + (I - P) y_sent + R n``.
+
+    Parameters
+    ----------
+    operators : LoopOperators
+        The sensor's operators (``R``, the slopes' noise scale).
+    projector_t : Tensor
+        ``P^T`` ``(K, K)``, contiguous.
+    sigma_nm : float
+        RMS white noise per slope (nm).
+    wfs_gain : float or Tensor
+        The sensor's gain (``(batch, 1)``: one per row).
+    fraction : float
+        The delay's fraction: the commands sent over a frame are averaged as the DM averages them.
+    identity_dm : bool
+        The DM applies the command as sent and the gain is 1 (:func:`nominal_dm`): ``wfs = R S phi + DM + R n``.
+    """
+
+    def __init__(self, operators: LoopOperators, projector_t: torch.Tensor, sigma_nm: float, wfs_gain,
+                 fraction: float, identity_dm: bool) -> None:
+        self.operators, self.projector_t, self.sigma_nm = operators, projector_t, sigma_nm
+        self.reconstructor_t = operators.reconstructor.T
+        self.gain, self.fraction, self.identity_dm = wfs_gain, fraction, identity_dm
+        self.noise_size, self.noisy = operators.sensor.n_slopes, sigma_nm > 0
+        self._y_previous = None
+
+    def reset(self) -> None:
+        self._y_previous = None
+
+    def slope_noise(self, unit: torch.Tensor) -> torch.Tensor:
+        """``n`` ``(..., 2 n_sub)`` of unit draws (:func:`scaled_slope_noise`)."""
+        return scaled_slope_noise(self.operators, unit, self.sigma_nm)
+
+    def noise(self, unit: torch.Tensor) -> torch.Tensor:
+        """``R n`` ``(..., K)`` of unit slope draws ``(..., 2 n_sub)``."""
+        return self.slope_noise(unit) @ self.reconstructor_t
+
+    def measure(self, s, eps, dm, y, noise):
+        """``wfs`` of ``s = R S phi`` (the sensed turbulence) and the DM term ``dm``; ``y`` fills the cut modes."""
+        if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
+            wfs = s + dm
+            return wfs if noise is None else wfs + noise
+        wfs = s + dm @ self.projector_t
+        if not is_one(self.gain):
+            wfs = self.gain * wfs
+        sent = y
+        if self.fraction:  # the commands acting over the frame, as the DM averages them
+            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
+            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
+        wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
+        return wfs if noise is None else wfs + noise
+
+    def to(self, device) -> ShackHartmannMeasurement:
+        self.projector_t, self.reconstructor_t = self.projector_t.to(device), self.reconstructor_t.to(device)
+        if isinstance(self.gain, torch.Tensor):
+            self.gain = self.gain.to(device)
+        return self
