@@ -235,6 +235,7 @@ class Experiment:
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
+            metrics.realisation_contrast_at = contrast.realisations_at()
             metrics.spatial_split_nm = contrast.spatial_split()
         wanted = ev.error_budget if ev.error_budget is not None else scenario.sensor.is_shack_hartmann
         if plant_scenario is None and wanted and not result.diverged:  # a diverged run has no budget to split
