@@ -21,6 +21,7 @@ from eofnn.evaluation.contenders import (
     build_scenarios,
     check_experiment,
     fit_from_config,
+    oracle_config,
     scan_classical_settings,
     scan_integrator_gains,
 )
@@ -68,6 +69,10 @@ class Experiment:
         self.scenarios = build_scenarios(scenario, scenarios)
         self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
                            for name, cfg in predictors.items()}
+        if evaluation.oracle and not any(cfg.oracle for cfg in self.predictors.values()):
+            require("oracle" not in self.predictors, "evaluation.oracle: true adds a controller named 'oracle', and "
+                    "predictors already has one: rename it, or mark it oracle: true")
+            self.predictors["oracle"] = oracle_config(self.predictors, next(iter(self.scenarios.values())))
         self.evaluation = evaluation
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.progress, self.log = progress, log

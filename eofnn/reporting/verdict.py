@@ -28,7 +28,7 @@ def _ratio_or_none(value: float | None, spread: dict | None) -> str:
 
 
 def _eta_text(value: float) -> str:
-    return f"{value:.2f}"
+    return f"{value:.3g}"
 
 
 def _predictor_ratio_text(name: str, r: dict, fitting_nm: float | None) -> str:
