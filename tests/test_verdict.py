@@ -323,3 +323,23 @@ def test_each_realisation_has_its_own_contrast_and_the_pooled_one_is_unchanged()
     for mine, theirs in zip(each, alone, strict=True):
         assert known(mine) == pytest.approx(known(theirs), rel=1e-12) and mine.keys() == theirs.keys()
     assert known(pooled.realisations_at()[0]) == pytest.approx(known(pooled.at()), rel=1e-12)
+
+
+def test_the_interop_contrast_gain_is_taken_against_the_classical_controller_best_in_contrast():
+    """In OOPAO's contest at I = 10 the integrator was best in variance, PFC in contrast at 3 lambda/D: the contrast
+    gain is PFC's contrast over the predictor's; the plain variance and RMS ratios come beside the after-fitting one."""
+    from eofnn.interop.antialias import best_in_contrast, gains
+
+    def run(medians, contrast):
+        return {"realisations_median_rms_nm": medians, "mean_of_realisations_nm": sum(medians) / len(medians),
+                "mean_contrast": {"3": contrast}}
+
+    results = {"integrator": run([100.0, 104.6], 6.39e-4), "lqg": run([110.0, 113.2], 7e-4),
+               "pfc": run([104.0, 105.4], 5.61e-4), "eof_antialias": run([75.0, 77.0], 2.61e-4)}
+    against = best_in_contrast(results, (3.0,))
+    assert against == {"3": "pfc"}
+    gain = gains(results, [45.8, 45.8], (3.0,), "integrator", against)["eof_antialias"]
+    assert gain["contrast"]["3"] == pytest.approx(5.61e-4 / 2.61e-4) and gain["contrast_against"] == {"3": "pfc"}
+    assert gain["variance"] == pytest.approx((100 ** 2 + 104.6 ** 2) / (75 ** 2 + 77 ** 2))
+    assert gain["rms"] == pytest.approx(102.3 / 76.0)
+    assert gains(results, [45.8, 45.8], (3.0,), "integrator")["eof_antialias"]["contrast_against"] == {"3": "integrator"}
