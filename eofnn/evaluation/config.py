@@ -113,6 +113,12 @@ class PredictorConfig:
         ``ar_orders``: one controller is built with each from the same telemetry, closes the loop on the scan stream
         and the lowest median residual wins (``classical_settings``). A Fourier mode of a finite pupil forgets its
         past within about a pupil crossing, so the default 0.9999 can cost much (``docs/findings.md``).
+    oracle : bool
+        ``true``: this predictor is the contest's oracle, a bound and not a contender. It must learn from the
+        simulator's truth (``data.truth``), knowledge no telescope has; the verdict never counts it as the best
+        predictor, gives its ratio over the best classical controller and, for every predictor, ``eta``: the share of
+        its variance gain reached. ``evaluation.oracle: true`` adds one built by
+        :func:`~eofnn.evaluation.contenders.oracle_config`.
     fallback : FallbackConfig
         Never worse than the integrator: ``per: whole`` or ``per: mode`` deploys this controller only where it beats
         the best-gain integrator on a validation stream of its own by more than the scatter, the integrator's command
@@ -145,6 +151,7 @@ class PredictorConfig:
     pfc: PfcConfig = field(default_factory=PfcConfig)
     pfc_alphas: list[float] | None = None
     fallback: FallbackConfig = field(default_factory=FallbackConfig)
+    oracle: bool = False
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "controller": OneOf(controller_names()),
@@ -158,6 +165,7 @@ class PredictorConfig:
         "smoothing": Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True, unit="frames"),
         "modes": OrNone(Interval(1, 1_000_000, integer=True)),
         "ar_order": OneOf(AR_ORDERS),
+        "oracle": IsBool(),
     }
 
     def __post_init__(self) -> None:
@@ -188,6 +196,11 @@ class PredictorConfig:
                 Integrator(gain, self.leak)
         self._check_setting_scans()
         self._check_fallback()
+        if self.oracle and not (self.trains and self.data.truth):
+            raise ConfigError(f"oracle: true is for a predictor the experiment trains from the simulator's truth "
+                              f"(controller: predictor, no checkpoint, data.truth: true), not controller="
+                              f"{self.controller!r}" + (f" with checkpoint={self.checkpoint!r}" if self.checkpoint else "")
+                              + ("" if self.data.truth else " with data.truth: false"))
         if self.trains and self.optimization.fit_method == "closed_loop" and not self.data.truth:
             raise ConfigError("optimization.fit_method: closed_loop trains through the simulated loop: it needs "
                               "data.truth: true (a fit from telemetry alone has no turbulence to close it on)")
@@ -310,6 +323,12 @@ class EvaluationConfig:
         Analyse every linear controller's stability (DM-gain interval, delay margin) and report it (the default).
         ``false`` skips it: a neighbourhood filter's coupled analysis can take minutes of CPU on a busy machine
         (``docs/findings.md``), which a study of residuals alone does without.
+    oracle : bool
+        Add an oracle to the contest (named ``oracle``): the least-squares open-loop filter fitted on the simulator's
+        truth with ample data, more taps and a wider neighbourhood than any contender
+        (:func:`~eofnn.evaluation.contenders.oracle_config`); the verdict gives its ratio over the best classical
+        controller and every predictor's share of its gain (``eta``). Off by default: it trains the largest filter
+        of the contest in every scenario.
     """
 
     frames: int = 5000
@@ -321,6 +340,7 @@ class EvaluationConfig:
     psd_segment_frames: int | None = None
     error_budget: bool | None = None
     analytic_stability: bool = True
+    oracle: bool = False
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "frames": Interval(2, MAX_EVALUATION_FRAMES, integer=True),
@@ -332,6 +352,7 @@ class EvaluationConfig:
         "psd_segment_frames": OrNone(Interval(MIN_PSD_SEGMENT_FRAMES, MAX_EVALUATION_FRAMES, integer=True)),
         "error_budget": OrNone(IsBool()),
         "analytic_stability": IsBool(),
+        "oracle": IsBool(),
     }
     _where: ClassVar[str] = "evaluation."
 

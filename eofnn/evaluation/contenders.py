@@ -41,6 +41,60 @@ def fit_from_config(scenario: Scenario, cfg: PredictorConfig, output: FitOutput 
                output=output, margin=margin)
 
 
+#: The oracle's reach beyond the contenders' (:func:`oracle_config`): taps more than the longest history, a
+#: neighbourhood radius (pitches) wider than the widest (and at least :data:`ORACLE_MIN_RADIUS`), training frames a
+#: multiple of the most (and at least :data:`ORACLE_MIN_FRAMES`).
+ORACLE_EXTRA_TAPS = 2
+ORACLE_EXTRA_RADIUS = 1.0
+ORACLE_MIN_RADIUS = 1.5
+ORACLE_FRAMES_FACTOR = 4
+ORACLE_MIN_FRAMES = 8000
+
+
+def _radius(cfg: PredictorConfig) -> float:
+    """A trained predictor's neighbourhood radius in pitches (0 for a filter that reads one actuator or mode)."""
+    network = cfg.network or {}
+    args = network.get("init_args") or {}
+    return float(args.get("radius", 1.0)) if args.get("structure") == "neighbourhood" else 0.0
+
+
+def oracle_config(predictors: dict[str, PredictorConfig], scenario: Scenario) -> PredictorConfig:
+    """The contest's oracle: the best linear predictor given the true statistics, in the same sensor and loop, as
+    far as a least-squares fit finds it. An open-loop (POL) filter over a neighbourhood of actuators, fitted in
+    closed form on the simulator's truth: its target is the true future turbulence the loop must cancel (the zonal
+    sensor's ``s``; with a Shack-Hartmann the DM's least-squares fit of the true phase, ``data.target: dm_fit``, no
+    aliasing), its inputs the measured POL histories, with :data:`ORACLE_EXTRA_TAPS` more taps than the longest
+    contender history, a radius :data:`ORACLE_EXTRA_RADIUS` pitch wider than the widest contender's neighbourhood,
+    :data:`ORACLE_FRAMES_FACTOR` times the most training frames, and a ridge alpha chosen on validation data
+    (``alpha: auto``). It is retrained in each scenario, knows what no telescope knows, and is labelled so
+    (``oracle: true``).
+
+    Parameters
+    ----------
+    predictors : dict
+        The contest's controllers (the oracle's reach is set from the predictors it trains).
+    scenario : Scenario
+        The base scenario (its sensor sets the target).
+    """
+    from eofnn.data.config import DataConfig
+    from eofnn.data.history import MAX_HISTORY_LENGTH
+    from eofnn.training.config import OptimizationConfig
+
+    trained = [cfg for cfg in predictors.values() if cfg.trains and not cfg.oracle]
+    taps = min(max((cfg.history_length for cfg in trained), default=4) + ORACLE_EXTRA_TAPS, MAX_HISTORY_LENGTH)
+    radius = max(max((_radius(cfg) for cfg in trained), default=0.0) + ORACLE_EXTRA_RADIUS, ORACLE_MIN_RADIUS)
+    frames = max(ORACLE_FRAMES_FACTOR * max((cfg.data.frames for cfg in trained), default=0), ORACLE_MIN_FRAMES)
+    val = max(max((cfg.data.val_frames for cfg in trained), default=0), frames // 8)
+    sequence = min(frames, max((cfg.data.sequence_frames for cfg in trained), default=DataConfig.sequence_frames))
+    target = "dm_fit" if scenario.sensor.is_shack_hartmann else "measured"
+    return PredictorConfig(
+        controller="predictor", history="open_loop", history_length=taps,
+        network={"class_path": "eofnn.models.linear.LinearFilter",
+                 "init_args": {"structure": "neighbourhood", "radius": radius}},
+        data=DataConfig(frames=frames, val_frames=val, sequence_frames=sequence, truth=True, target=target),
+        optimization=OptimizationConfig(alpha="auto"), oracle=True)
+
+
 def build_scenarios(base: Scenario, scenarios: dict[str, dict[str, Any]]) -> dict[str, Scenario]:
     """The base scenario with each entry's plant changes (``{}`` is the base plant)."""
     require(isinstance(scenarios, dict) and len(scenarios) >= 1,

@@ -69,6 +69,9 @@ class RawContrast:
         self._sum: torch.Tensor | None = None
         self._phase_power: torch.Tensor | None = None  # sum over frames of |FFT(pupil x piston-free residual)|^2, nm^2
         self._count = 0
+        #: Per turbulence realisation (the first axis of ``eps``): the sum of its frames' intensities, and their count.
+        self._realisation_sums: torch.Tensor | None = None
+        self._realisation_count = 0
 
     def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
         eps = arrays["eps"]
@@ -77,20 +80,32 @@ class RawContrast:
             return
         if self._pupil:
             residual = torch.stack([arrays["pupil_residual"](first_frame + i) for i in frames], 1)
-            self.add(residual.reshape(-1, residual.shape[-1]))
+            self.add(residual.reshape(-1, residual.shape[-1]), realisations=residual.shape[0])
         else:
-            self.add(eps[:, frames].reshape(-1, eps.shape[-1]))
+            self.add(eps[:, frames].reshape(-1, eps.shape[-1]), realisations=eps.shape[0])
 
-    def add(self, residual_nm: torch.Tensor) -> None:
+    def add(self, residual_nm: torch.Tensor, realisations: int = 1) -> None:
         """Accumulate ``(frames, points)`` residuals (nm) on the grid's points (with ``pupil``: those in the pupil),
-        whatever frame they are (the caller picks them: :meth:`__call__` takes every ``every``-th settled one)."""
+        whatever frame they are (the caller picks them: :meth:`__call__` takes every ``every``-th settled one).
+
+        ``realisations`` > 1: the frames are that many turbulence realisations' in turn (realisation-major, the same
+        number each); each realisation's intensity is also kept on its own (:meth:`realisations_at`), the pooled sum
+        being added exactly as with one."""
         phase = torch.as_tensor(residual_nm, dtype=torch.float64) * (2 * math.pi * 1e-9 / self.wavelength_m)
         field = torch.exp(1j * phase)
         field = field - field.mean(-1, keepdim=True)  # the perfect coronagraph: no coherent part is left
         pupil = torch.zeros(field.shape[0], self._size * self._size, dtype=torch.complex128)
         pupil[:, self._index] = field
-        intensity = torch.fft.fft2(pupil.view(-1, self._size, self._size)).abs().pow(2).sum(0)
+        frames = torch.fft.fft2(pupil.view(-1, self._size, self._size)).abs().pow(2)
+        intensity = frames.sum(0)
         self._sum = intensity if self._sum is None else self._sum + intensity
+        per = frames.view(realisations, -1, self._size, self._size).sum(1)
+        if self._realisation_sums is not None and self._realisation_sums.shape[0] != realisations:
+            self._realisation_sums = None  # frames of another number of realisations: no per-realisation split
+            self._realisation_count = -1
+        elif self._realisation_count >= 0:
+            self._realisation_sums = per if self._realisation_sums is None else self._realisation_sums + per
+            self._realisation_count += field.shape[0] // realisations
         flat = torch.as_tensor(residual_nm, dtype=torch.float64)
         flat = torch.zeros(flat.shape[0], self._size * self._size, dtype=torch.float64).index_copy_(
             1, self._index, flat - flat.mean(-1, keepdim=True))
@@ -102,7 +117,11 @@ class RawContrast:
         """Separations (lambda/D, one per focal-plane pixel) and the azimuthally averaged raw contrast."""
         if self._sum is None:
             return [], []
-        image = torch.fft.fftshift(self._sum / (self._count * self._peak))
+        return self._profile(self._sum, self._count)
+
+    def _profile(self, total: torch.Tensor, count: int) -> tuple[list[float], list[float]]:
+        """The azimuthal average of ``total`` (a sum of ``count`` frames' intensities)."""
+        image = torch.fft.fftshift(total / (count * self._peak))
         c = self._size // 2
         yy, xx = torch.meshgrid(torch.arange(self._size) - c, torch.arange(self._size) - c, indexing="ij")
         radius = torch.hypot(yy.double(), xx.double())
@@ -141,7 +160,18 @@ class RawContrast:
 
     def at(self, separations: tuple[float, ...] = REPORTED_SEPARATIONS) -> dict[str, float | None]:
         """Raw contrast at the given separations (lambda/D); ``None`` beyond the control radius or with no frames."""
-        seps, values = self.profile()
+        return self._at(self.profile(), separations)
+
+    def realisations_at(self, separations: tuple[float, ...] = REPORTED_SEPARATIONS) -> list[dict[str, float | None]]:
+        """:meth:`at` of each turbulence realisation on its own (the spread a verdict gives); empty with no frames, or
+        when chunks of different numbers of realisations were added."""
+        if self._realisation_sums is None or self._realisation_count <= 0:
+            return []
+        return [self._at(self._profile(total, self._realisation_count), separations)
+                for total in self._realisation_sums]
+
+    def _at(self, profile: tuple[list[float], list[float]], separations: tuple[float, ...]) -> dict[str, float | None]:
+        seps, values = profile
         out = {}
         for s in separations:
             index = round(s * self.padding)

@@ -21,6 +21,7 @@ from eofnn.evaluation.contenders import (
     build_scenarios,
     check_experiment,
     fit_from_config,
+    oracle_config,
     scan_classical_settings,
     scan_integrator_gains,
 )
@@ -68,6 +69,10 @@ class Experiment:
         self.scenarios = build_scenarios(scenario, scenarios)
         self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
                            for name, cfg in predictors.items()}
+        if evaluation.oracle and not any(cfg.oracle for cfg in self.predictors.values()):
+            require("oracle" not in self.predictors, "evaluation.oracle: true adds a controller named 'oracle', and "
+                    "predictors already has one: rename it, or mark it oracle: true")
+            self.predictors["oracle"] = oracle_config(self.predictors, next(iter(self.scenarios.values())))
         self.evaluation = evaluation
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.progress, self.log = progress, log
@@ -235,6 +240,7 @@ class Experiment:
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
+            metrics.realisation_contrast_at = contrast.realisations_at()
             metrics.spatial_split_nm = contrast.spatial_split()
         wanted = ev.error_budget if ev.error_budget is not None else scenario.sensor.is_shack_hartmann
         if plant_scenario is None and wanted and not result.diverged:  # a diverged run has no budget to split

@@ -154,6 +154,10 @@ class LoopMetrics:
     #: turbulence seed of the test stream): the spread the verdict reports. Empty when the loop diverged. Not in
     #: :meth:`summary` (the pooled median above is the headline number).
     realisation_median_rms_nm: list[float] = field(default_factory=list, repr=False)
+    #: The raw contrast at the reported separations (as ``contrast_at``) of each turbulence realisation on its own, in
+    #: the order of ``realisation_median_rms_nm``: the verdict's spread. Empty when the loop diverged. Not in
+    #: :meth:`summary`.
+    realisation_contrast_at: list[dict[str, float | None]] = field(default_factory=list, repr=False)
     #: Where the residual is scored: ``"actuators"`` (the zonal sensor) or ``"pupil"`` (a Shack-Hartmann scenario:
     #: the statistics above are then the piston-removed RMS over the pupil on the fine grid, fitting error included).
     residual_over: str = "actuators"

@@ -9,8 +9,65 @@ def _nm(value: float) -> str:
 
 
 def _times(ratio: float) -> str:
-    """A ratio as people say it: two significant digits below 10, whole numbers above."""
-    return f"{ratio:.2g}x" if ratio < 10 else f"{ratio:.0f}x"
+    """A ratio as people say it, never rounded away: two decimals below 10 (``1.02x``, ``2.16x``), one below 100
+    (``52.4x``), whole numbers above."""
+    return f"{ratio:.2f}x" if ratio < 10 else f"{ratio:.1f}x" if ratio < 100 else f"{ratio:.0f}x"
+
+
+def _spread(spread: dict | None, fmt=_times) -> str:
+    """`` (1.48x to 1.62x over 3 realisations)``; empty without a spread."""
+    if spread is None:
+        return ""
+    if spread["min"] is None:
+        return " (not defined in every realisation)"
+    return f" ({fmt(spread['min'])} to {fmt(spread['max'])} over {len(spread['per_realisation'])} realisations)"
+
+
+def _ratio_or_none(value: float | None, spread: dict | None) -> str:
+    return "not defined" if value is None else _times(value) + _spread(spread)
+
+
+def _eta_text(value: float) -> str:
+    return f"{value:.3g}"
+
+
+def _predictor_ratio_text(name: str, r: dict, fitting_nm: float | None) -> str:
+    """One predictor's ratios over the best classical controller, the plain variance ratio first."""
+    parts = [f"variance {_ratio_or_none(r['variance_ratio'], r['variance_ratio_spread'])}",
+             f"RMS {_ratio_or_none(r['rms_ratio'], r['rms_ratio_spread'])}"]
+    if fitting_nm is not None:
+        parts.append(f"variance after fitting error ({fitting_nm:.3g} nm, estimated as said below) "
+                     + _ratio_or_none(r["after_fitting_variance_ratio"], r["after_fitting_variance_ratio_spread"]))
+    contrast = [f"{_ratio_or_none(c['ratio'], c['spread'])} at {sep} λ/D (against {c['against']}, the best classical "
+                f"controller in contrast there: {c['against_contrast']:.2g} against {c['contrast']:.2g})"
+                for sep, c in r["raw_contrast"].items() if c is not None]
+    missing = [sep for sep, c in r["raw_contrast"].items() if c is None]
+    if missing:
+        contrast.append(f"not available at {', '.join(missing)} λ/D")
+    parts.append("raw contrast " + ", ".join(contrast))
+    if "eta" in r:
+        parts.append("η " + ("not defined (the oracle gains nothing over the best classical controller)"
+                             if r["eta"] is None else _eta_text(r["eta"]) + _spread(r.get("eta_spread"), _eta_text)))
+    return f"{name}: " + "; ".join(parts)
+
+
+def _ratios_lines(ratios: dict) -> list[str]:
+    """The ``ratios`` of a scenario's verdict in words: every predictor, then the oracle, then how fitting error was
+    estimated."""
+    if ratios.get("over") is None or not (ratios["predictors"] or ratios["oracle"]):
+        return []
+    where = "over the pupil" if ratios["variance_over"] == "pupil" else "at the actuators"
+    lines = [f"Every predictor against the best classical controller, {ratios['over']} (its number over the "
+             f"predictor's: above 1 the predictor wins; variance is the median RMS squared {where}):"]
+    lines += [f"  - {_predictor_ratio_text(name, r, ratios['fitting_nm'])}." for name, r in ratios["predictors"].items()]
+    oracle = ratios["oracle"]
+    if oracle is not None:
+        lines.append(f"  - Oracle {_predictor_ratio_text(oracle['name'], oracle, ratios['fitting_nm'])}. It "
+                     f"{oracle['knowledge']}. η is the share of its variance gain a predictor reaches, "
+                     "(σ²_best classical − σ²_predictor) / (σ²_best classical − σ²_oracle).")
+    if ratios["fitting_nm"] is not None:
+        lines.append(f"  - How the after-fitting ratio is made: {ratios['after_fitting_how']}.")
+    return lines
 
 
 def dm_gain_interval_text(interval) -> str:
@@ -40,8 +97,8 @@ def _contender(entry: dict) -> str:
 def _ratio_text(against: dict) -> str:
     rms, variance = against["rms_ratio"], against["variance_ratio"]
     if rms >= 1:
-        return f"{_times(rms)} in RMS, {_times(variance)} in variance"
-    return f"the predictor loses: {_times(1 / rms)} higher in RMS, {_times(1 / variance)} in variance"
+        return f"{_times(variance)} in variance, {_times(rms)} in RMS"
+    return f"the predictor loses: {_times(1 / variance)} higher in variance, {_times(1 / rms)} in RMS"
 
 
 def _stability_text(entry: dict, dm_gain: float | None) -> str:
@@ -141,6 +198,9 @@ def _scenario_lines(scenario: str, v: dict, realisations: int) -> list[str]:
     spread = _spread_text(shown, realisations)
     if spread:
         lines.append(spread)
+    ratios = _ratios_lines(v.get("ratios") or {})
+    if ratios:
+        lines.append("\n".join(ratios))
     return [f"**{scenario}**"] + [f"- {line}" for line in lines]
 
 

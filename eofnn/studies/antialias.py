@@ -29,6 +29,7 @@ The adapter needs, beyond :class:`~eofnn.interop.loop.SimulatorAdapter`: ``turbu
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
 
@@ -216,7 +217,8 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
             "psd_frequency_hz": np.fft.rfftfreq(c.psd_segment_frames, 1 / sim.frame_rate_hz).tolist(),
             "frozen_flow_hz": frozen_flow_hz(sim),
             "gains": gains(results, fitting, c.separations_lod, "integrator"),
-            "gains_over_best_classical": gains(results, fitting, c.separations_lod, best)}
+            "gains_over_best_classical": gains(results, fitting, c.separations_lod, best,
+                                               best_in_contrast(results, c.separations_lod))}
 
 
 def fit_eofs(sim, telemetry: list, plant, c: AntiAliasConfig) -> tuple[dict, dict]:
@@ -324,22 +326,43 @@ def score(sim, control, name: str, seeds: list[int], c: AntiAliasConfig) -> dict
                               for s in contrasts[0]} if finite else None}
 
 
-def gains(results: dict, fitting: list[float], separations: tuple[float, ...], against: str) -> dict:
-    """Each predictor against the classical controller ``against``: variance after fitting (summed over
-    realisations) and mean raw contrast, as classical over predictor (above 1: the predictor is better), and the
-    paired RMS differences."""
-    base = results[against]
+def best_in_contrast(results: dict, separations: tuple[float, ...]) -> dict[str, str | None]:
+    """Per separation (``"3"``), the classical controller of least mean raw contrast there (``None`` where none held
+    the loop with a contrast): the baseline a contrast gain is taken against, not the one best in variance."""
+    out = {}
+    for s in (f"{s:g}" for s in separations):
+        have = [n for n in CLASSICAL if n in results and (results[n]["mean_contrast"] or {}).get(s) is not None]
+        out[s] = min(have, key=lambda n: results[n]["mean_contrast"][s]) if have else None
+    return out
+
+
+def gains(results: dict, fitting: list[float], separations: tuple[float, ...], against: str,
+          contrast_against: dict[str, str | None] | None = None) -> dict:
+    """Each predictor against the classical controller ``against``: the plain variance (median RMS squared, summed
+    over realisations) and RMS ratios, the variance after fitting (each realisation's fitting error subtracted in
+    quadrature, summed over realisations) and mean raw contrast, as classical over predictor (above 1: the predictor
+    is better), and the paired RMS differences. ``contrast_against``: per separation, the controller the contrast is
+    compared with (:func:`best_in_contrast`; said in ``contrast_against``); unset, ``against``."""
     out = {}
     for name in (n for n in results if n not in CLASSICAL):
-        mine = results[name]
+        base, mine = results[against], results[name]
         if mine["mean_of_realisations_nm"] is None or base["mean_of_realisations_nm"] is None:  # one diverged
             out[name] = None
             continue
         var = [sum(r * r - f * f for r, f in zip(run["realisations_median_rms_nm"], fitting, strict=True))
                for run in (base, mine)]
-        out[name] = {"variance_after_fitting": var[0] / var[1],
-                     "contrast": {f"{s:g}": base["mean_contrast"][f"{s:g}"] / mine["mean_contrast"][f"{s:g}"]
-                                  for s in separations if base["mean_contrast"][f"{s:g}"] is not None},
+        plain = [sum(r * r for r in run["realisations_median_rms_nm"]) for run in (base, mine)]
+        contrast, used = {}, {}
+        for s in (f"{s:g}" for s in separations):
+            other = results.get((contrast_against or {}).get(s) or against)
+            if other is None or other["mean_contrast"] is None or other["mean_contrast"].get(s) is None:
+                continue
+            contrast[s] = other["mean_contrast"][s] / mine["mean_contrast"][s]
+            used[s] = (contrast_against or {}).get(s) or against
+        out[name] = {"variance": plain[0] / plain[1],
+                     "rms": base["mean_of_realisations_nm"] / mine["mean_of_realisations_nm"],
+                     "variance_after_fitting": var[0] / var[1],
+                     "contrast": contrast, "contrast_against": used,
                      "paired_difference_nm": [a - b for a, b in zip(base["realisations_median_rms_nm"],
                                                                     mine["realisations_median_rms_nm"], strict=True)]}
     return out
@@ -375,13 +398,17 @@ def antialias_markdown(metrics: dict) -> str:
         (("gains_over_best_classical", metrics["best_classical"]),)
     for key, against in (("gains", "integrator"), *against_best):
         lines += ["", f"Against the {against} (its residual over the predictor's: above 1, the predictor is better):",
-                  "", "| predictor | variance gain after fitting | contrast gain | paired differences (nm) |",
-                  "|---|---|---|---|"]
+                  "", "| predictor | variance gain | RMS gain | variance gain after fitting (fitting error of each "
+                  "realisation subtracted in quadrature) | contrast gain (against the classical controller best in "
+                  "contrast at each separation) | paired differences (nm) |", "|---|---|---|---|---|---|"]
         for name, gain in metrics[key].items():
             if gain is None:
-                lines.append(f"| {name} | diverged | | |")
+                lines.append(f"| {name} | diverged | | | | |")
                 continue
-            lines.append(f"| {name} | {gain['variance_after_fitting']:.2f}x | "
-                         + ", ".join(f"{v:.2f}x at {s}" for s, v in gain["contrast"].items()) + " | "
+            against = gain.get("contrast_against", {})
+            lines.append(f"| {name} | {gain.get('variance', math.nan):.2f}x | {gain.get('rms', math.nan):.2f}x | "
+                         f"{gain['variance_after_fitting']:.2f}x | "
+                         + ", ".join(f"{v:.2f}x at {s}" + (f" ({against[s]})" if s in against else "")
+                                     for s, v in gain["contrast"].items()) + " | "
                          + ", ".join(f"{v:+.1f}" for v in gain["paired_difference_nm"]) + " |")
     return "\n".join(lines) + "\n"
