@@ -134,7 +134,8 @@ class TwinIdentification:
             config["sensor"] = {"kind": "shack_hartmann", "mechanical_coupling": self.mechanical_coupling,
                                 "detector": {"band": "R", "magnitude": round(float(noise_magnitude), 3)}}
         else:
-            config["plant"]["wfs_noise_nm"] = round(float(self.value("wfs_noise_nm")), 4)
+            noise = self.estimates.get("wfs_noise_nm")  # not yet identified while r0 is being fitted
+            config["plant"]["wfs_noise_nm"] = 0.0 if noise is None else round(float(noise.value), 4)
         return config
 
 
