@@ -10,7 +10,7 @@ import yaml
 import eofnn
 from eofnn.cli.common import Output, log
 from eofnn.outputs import check_output_folder, staged_folder
-from eofnn.validation import Interval, OrNone, check_value
+from eofnn.validation import Interval, OneOf, OrNone, check_value
 
 # The identification imports torch, scipy and the simulator (seconds): imported in the function, so that the parser
 # and its config errors answer without them.
@@ -42,6 +42,9 @@ class TwinConfig(Output):
     mechanical_coupling : float, optional
         The DM's Gaussian influence functions' value one pitch away, for a record of slopes (default 0.35, with a
         warning).
+    command_unit : str
+        What one nm of y and wfs is: 'surface' (nm of smooth DM surface, eofnn's) or 'peak' (nm at the peak of one
+        actuator's influence function, OOPAO's): the twin is in eofnn's units either way.
     max_layers : int
         Most frozen-flow layers fitted.
     max_speed_mps : float
@@ -58,6 +61,7 @@ class TwinConfig(Output):
     interaction_matrix: str | None = None
     reconstructor: str | None = None
     mechanical_coupling: float | None = None
+    command_unit: str = "surface"
     max_layers: int = 3
     max_speed_mps: float = 40.0
     blocks: int = 4
@@ -69,6 +73,7 @@ def twin(cfg: TwinConfig, config_dump: str | None = None) -> dict:
     """Identify the twin of ``cfg.telemetry`` and write ``twin.yaml`` and ``identified.json`` into ``cfg.out``;
     returns the summary line."""
     check_value("mechanical_coupling", cfg.mechanical_coupling, OrNone(Interval(0, 1, closed="neither")))
+    check_value("command_unit", cfg.command_unit, OneOf(("surface", "peak")))
     check_value("max_layers", cfg.max_layers, Interval(1, 3, integer=True))
     check_value("max_speed_mps", cfg.max_speed_mps, Interval(0, 200, closed="right", unit="m/s"))
     check_value("blocks", cfg.blocks, Interval(2, 100, integer=True))
@@ -105,7 +110,7 @@ def identify(cfg: TwinConfig) -> eofnn.training.twin.TwinIdentification:
     return identify_twin(telemetry, interaction_matrix=matrices.get("interaction_matrix"),
                          reconstructor=matrices.get("reconstructor"), max_layers=cfg.max_layers,
                          max_speed_mps=cfg.max_speed_mps, blocks=cfg.blocks,
-                         mechanical_coupling=cfg.mechanical_coupling, seed=cfg.seed)
+                         mechanical_coupling=cfg.mechanical_coupling, command_unit=cfg.command_unit, seed=cfg.seed)
 
 
 def _magnitude(result, screen_frames: int) -> float | None:

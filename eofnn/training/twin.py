@@ -65,6 +65,8 @@ DEAD_FRACTION = 1e-3
 #: fraction of its speed).
 CONSISTENT_DIRECTION_DEG = 5.0
 CONSISTENT_SPEED = 0.05
+#: What one nm of command may be: of smooth DM surface (eofnn's) or at an influence function's peak (OOPAO's).
+COMMAND_UNITS = ("surface", "peak")
 #: Fewest frames from which a layer is identified.
 MIN_LAYER_FRAMES = 1000
 
@@ -97,6 +99,7 @@ class TwinIdentification:
     sensor: str = "subaperture"
     remove_ptt: bool = True
     mechanical_coupling: float = DEFAULT_COUPLING
+    lit_pupil_m: float | None = None
     warnings: list[str] = field(default_factory=list)
 
     def value(self, name: str):
@@ -133,6 +136,8 @@ class TwinIdentification:
         if self.sensor == "shack_hartmann":
             config["sensor"] = {"kind": "shack_hartmann", "mechanical_coupling": self.mechanical_coupling,
                                 "detector": {"band": "R", "magnitude": round(float(noise_magnitude), 3)}}
+            if self.lit_pupil_m is not None:
+                config["sensor"]["pupil_diameter_m"] = self.lit_pupil_m
         else:
             noise = self.estimates.get("wfs_noise_nm")  # not yet identified while r0 is being fitted
             config["plant"]["wfs_noise_nm"] = 0.0 if noise is None else round(float(noise.value), 4)
@@ -258,8 +263,8 @@ def _ptt_projector(positions: np.ndarray) -> np.ndarray:
 
 def reference_covariances(config: dict, layers: list[dict], frames: int, *, realisations: int = 2,
                           seed: int = 0) -> dict[float, np.ndarray]:
-    """``{L0: (cov, leak)}``, ``(K, K)`` each: the covariance (nm²) and :func:`noise_covariance` of the noise-free
-    turbulence as the twin's sensor sees it, at
+    """``{L0: (cov, leak, positions)}``: the ``(K', K')`` covariance (nm²) and :func:`noise_covariance` of the
+    noise-free turbulence, and the ``(K', 2)`` positions (m) of the twin's actuators, as the twin's sensor sees it, at
     ``r0 =`` :data:`R0_REFERENCE_M` (at :data:`R0_WAVELENGTH_M`) and each outer scale of :data:`OUTER_SCALES_M`, the
     identified winds, over ``realisations`` streams of ``frames`` frames (``config``: the twin's scenario fields)."""
     from eofnn.sim.scenario import Scenario
@@ -274,8 +279,10 @@ def reference_covariances(config: dict, layers: list[dict], frames: int, *, real
         cfg["plant"]["wfs_noise_nm"] = 0.0
         if "sensor" in cfg:
             cfg["sensor"]["detector"] = None
-        s = Scenario.from_dict(cfg).turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
-        out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(noise_covariance(r) for r in s) / len(s))
+        scenario = Scenario.from_dict(cfg)
+        s = scenario.turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
+        out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(noise_covariance(r) for r in s) / len(s),
+                   np.asarray(scenario.grid.positions_m))
     return out
 
 
@@ -296,8 +303,10 @@ def seeing_and_noise(pol: np.ndarray, references: dict, positions_m: np.ndarray,
     raw, total = noise_covariance(pol), np.cov(pol.T)
     cv, seeing = raw, fit_seeing(total - raw, references, positions_m, pitch_m)
     for _ in range(iterations):
-        leak = references[seeing["outer_scale_m"]][1] * (R0_REFERENCE_M / seeing["r0_m"]) ** (5 / 3)
-        cv = raw - leak
+        _, leak, where = references[seeing["outer_scale_m"]]
+        if leak.shape != raw.shape or not np.allclose(where, positions_m):  # another layout: its mean, per actuator
+            leak = np.eye(len(raw)) * float(np.diag(leak).mean())
+        cv = raw - leak * (R0_REFERENCE_M / seeing["r0_m"]) ** (5 / 3)
         seeing = fit_seeing(total - cv, references, positions_m, pitch_m)
     return cv, seeing
 
@@ -308,14 +317,16 @@ def fit_seeing(turbulence_cov: np.ndarray, references: dict[float, np.ndarray], 
     :func:`reference_covariances` (module docstring, 5): ``{"r0_m", "outer_scale_m", "misfit": {L0: rms log
     misfit}}``. The structure function ``D(r)`` of each, piston, tip and tilt projected out, averaged over pairs
     of actuators in bins of a pitch from 1.5 pitches to half the pupil; ``D`` scales as ``r0^(-5/3)``."""
-    p = _ptt_projector(positions_m)
-    distance = np.linalg.norm(positions_m[:, None] - positions_m[None], axis=-1)
+    def structure(cov: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        p = _ptt_projector(positions)
+        return _structure(p @ cov @ p, np.linalg.norm(positions[:, None] - positions[None], axis=-1), bins)
+
     extent = float(np.ptp(positions_m, axis=0).max())
     bins = np.arange(1.5 * pitch_m, max(0.5 * extent, 3 * pitch_m) + pitch_m / 2, pitch_m)
-    measured = _structure(p @ turbulence_cov @ p, distance, bins)
+    measured = structure(turbulence_cov, positions_m)
     results = {}
-    for l0, (reference, _) in references.items():
-        model = _structure(p @ reference @ p, distance, bins)
+    for l0, (reference, _, where) in references.items():
+        model = structure(reference, where)
         good = np.isfinite(measured) & (measured > 0) & np.isfinite(model) & (model > 0)
         ratio = np.log(measured[good] / model[good])
         results[l0] = (float(ratio.mean()), float(ratio.std()))
@@ -420,12 +431,18 @@ def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_la
 
 def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max_layers: int = 3,
                   max_speed_mps: float = 40.0, blocks: int = 4, mechanical_coupling: float | None = None,
-                  seed: int = 0) -> TwinIdentification:
+                  command_unit: str = "surface", seed: int = 0) -> TwinIdentification:
     """Identify the twin of the system that recorded ``telemetry`` (a :class:`~eofnn.telemetry.record.Telemetry`
     with ``y``, ``wfs``, ``positions_m``, the delay and the frame rate; ``s``, ``eps`` and ``config`` are never read)
     (module docstring). ``interaction_matrix`` ``(S, K)`` and ``reconstructor`` ``(K, S)`` replace the file's;
     ``mechanical_coupling``: the DM's Gaussian influence functions' value one pitch away (a record of slopes without
-    it assumes :data:`DEFAULT_COUPLING`, in one line); ``seed``: the reference streams'."""
+    it assumes :data:`DEFAULT_COUPLING`, in one line); ``command_unit``: what one nm of ``y`` and ``wfs`` is,
+    ``"surface"`` (nm of smooth DM surface, eofnn's) or ``"peak"`` (nm at the peak of one actuator's influence
+    function, OOPAO's and many RTCs': ``y`` and ``wfs`` are multiplied by the lattice sum of the influence
+    functions, :func:`~eofnn.sim.sensing.least_squares.surface_per_command`, and everything identified is in eofnn's
+    units); ``seed``: the reference streams'."""
+    if command_unit not in COMMAND_UNITS:
+        raise TelemetryError(f"command_unit={command_unit!r} is invalid: allowed are {', '.join(COMMAND_UNITS)}")
     from eofnn.sim.grid import ActuatorGrid
     from eofnn.sim.layout import layout_from_positions
     from eofnn.training.identify import PlantNotIdentifiedWarning, identify_plant
@@ -477,6 +494,20 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                         "away assumed (give mechanical_coupling)")
         else:
             result.mechanical_coupling = float(mechanical_coupling)
+        if not isinstance(layout, ActuatorGrid) and pupil["valid_subapertures"]:
+            lit = pitch * math.sqrt(4 * pupil["valid_subapertures"] / math.pi)
+            if lit < result.grid["diameter_m"] - pitch / 2:
+                result.lit_pupil_m = round(lit, 4)
+                e["pupil"].value["lit_diameter_m"] = result.lit_pupil_m
+                e["pupil"].method += "; lit diameter from the valid subapertures' area, pitch sqrt(4 n / pi)"
+    if command_unit == "peak":
+        from eofnn.sim.sensing.least_squares import surface_per_command
+
+        scale = surface_per_command(result.mechanical_coupling)
+        y_all, wfs_all = y_all * scale, wfs_all * scale
+        rec = None if rec is None else rec * scale
+        result.warn(f"commands in nm of influence-function peak: y and wfs multiplied by {scale:.4g} (nm of smooth "
+                    f"surface per nm of command at coupling {result.mechanical_coupling:g}); all values in eofnn's units")
     if telemetry.frame_rate_hz is None:
         result.warn("telemetry has no frame rate (FRATE): 1000 Hz assumed, winds scale with it")
         e["frame_rate_hz"] = Estimate(1000.0, None, "Hz", "assumed", "no frame rate in the file")
