@@ -24,8 +24,12 @@ that gave it, and a quantity the record cannot tell is given with a one-line war
    much smaller than L0: one line says so and the twin keeps the best fit).
 6. *The layers* (:func:`identify_layers`): :func:`eofnn.control.wind.identify_winds` (lagged cross-spectra of the
    whitened POL maps: a frozen-flow layer's peak moves by ``v tau``) fitted with 1 to ``max_layers`` layers, the
-   count chosen by a Bayesian information criterion on the cross-spectra's residual (layers closer than
-   :data:`MERGE_SPEED_MPS` merged), their winds' spread over blocks of the record giving the uncertainty.
+   count chosen by the record's own consistency: a layer is added only if every block of the record finds it again
+   with the same wind, and it carries a fair share of the turbulence (an aliased Shack-Hartmann's modes have an
+   apparent motion that a cross-spectrum fit takes for a weak extra layer, whose wind changes from block to block);
+   layers closer than :data:`MERGE_SPEED_MPS` are merged, and the winds' spread over the blocks gives the
+   uncertainty. A Bayesian information criterion on the cross-spectra's residual is reported beside it, not used:
+   the cross-spectra's values are not independent, and it takes the aliased component for a layer.
 
 Uncertainties are standard errors from splitting the record into ``blocks`` consecutive blocks (the spread of the
 blocks' estimates over ``sqrt(blocks)``), except the plant's (the regression's own standard errors).
@@ -64,7 +68,12 @@ DEAD_FRACTION = 1e-3
 #: A layer's wind is consistent over the record's blocks when their standard errors are below these (degrees; a
 #: fraction of its speed).
 CONSISTENT_DIRECTION_DEG = 5.0
-CONSISTENT_SPEED = 0.05
+CONSISTENT_SPEED = 0.08
+#: A layer beyond the first must carry at least this share of the turbulence.
+MIN_EXTRA_WEIGHT = 0.15
+#: The wind search is bounded by this times the fastest wind of a first fit, and at least by this speed (m/s).
+SEARCH_MARGIN = 1.5
+SLOWEST_BOUND_MPS = 10.0
 #: What one nm of command may be: of smooth DM surface (eofnn's) or at an influence function's peak (OOPAO's).
 COMMAND_UNITS = ("surface", "peak")
 #: Fewest frames from which a layer is identified.
@@ -381,50 +390,82 @@ def _merged(layers: list[dict]) -> list[dict]:
 
 
 def _with_errors(layers: list[dict], blocks: list[list[dict]]) -> list[dict]:
-    """``layers`` with the standard errors of each over the blocks' layers (each block's nearest in wind)."""
+    """``layers`` with the standard errors of each over the blocks' layers (each block's nearest in wind, every
+    block's layers used once) and ``found_again``: whether every block has a layer of its own within
+    :data:`MERGE_SPEED_MPS` or a quarter of its speed."""
+    matched: list[list[dict]] = [[] for _ in layers]
+    found_again = [True] * len(layers)
+    for block in blocks:
+        free = list(block)
+        for i in np.argsort([-lay["weight"] for lay in layers]):
+            lay = layers[i]
+            if not free:
+                found_again[i] = False
+                matched[i].append(min(block, key=lambda f: _distance(f, lay)))
+                continue
+            near = min(free, key=lambda f: _distance(f, lay))
+            free.remove(near)
+            found_again[i] &= _distance(near, lay) <= max(MERGE_SPEED_MPS, 0.25 * lay["speed_mps"])
+            matched[i].append(near)
     out = []
-    for lay in layers:
-        matched = [min(found, key=lambda f: math.hypot(f["vx_mps"] - lay["vx_mps"], f["vy_mps"] - lay["vy_mps"]))
-                   for found in blocks]
-        lay = dict(lay)
+    for lay, near, again in zip(layers, matched, found_again, strict=True):
+        lay = dict(lay, found_again=bool(again))
         for key in ("vx_mps", "vy_mps", "speed_mps", "weight"):
-            lay[key + "_se"] = _se([m[key] for m in matched])
-        angles = np.radians([m["direction_deg"] for m in matched])
+            lay[key + "_se"] = _se([m[key] for m in near])
+        angles = np.radians([m["direction_deg"] for m in near])
         mean = math.atan2(np.sin(angles).mean(), np.cos(angles).mean())
         lay["direction_deg_se"] = math.degrees(_se(np.angle(np.exp(1j * (angles - mean)))))
         out.append(lay)
     return out
 
 
+def _distance(a: dict, b: dict) -> float:
+    return math.hypot(a["vx_mps"] - b["vx_mps"], a["vy_mps"] - b["vy_mps"])
+
+
 def _consistent(lay: dict) -> bool:
-    """A layer whose wind the blocks agree on: direction within :data:`CONSISTENT_DIRECTION_DEG`, speed within
-    :data:`CONSISTENT_SPEED` (standard errors)."""
-    return lay["direction_deg_se"] <= CONSISTENT_DIRECTION_DEG and lay["speed_mps_se"] <= CONSISTENT_SPEED * lay[
-        "speed_mps"]
+    """A layer every block finds again, with the same wind: direction within :data:`CONSISTENT_DIRECTION_DEG`,
+    speed within :data:`CONSISTENT_SPEED` (standard errors)."""
+    return lay["found_again"] and lay["direction_deg_se"] <= CONSISTENT_DIRECTION_DEG and lay["speed_mps_se"] <= (
+        CONSISTENT_SPEED * lay["speed_mps"])
 
 
 def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_layers: int = 3,
                     max_speed_mps: float = 40.0, blocks: int = 4) -> tuple[list[dict], dict]:
     """Frozen-flow layers of ``(frames, K)`` POL values (columns in the telemetry's order) with uncertainties
     (module docstring, 6): ``(layers, info)``; each layer has ``vx_mps, vy_mps, speed_mps, direction_deg, weight``
-    and their ``*_se``. The model order: ``n`` layers are accepted while every one of them is found again, with
-    the same wind, in each block of the record (:func:`_consistent`); a component that is not (an aliased mode's
-    apparent motion, noise) stops the search at the last order whose layers all were."""
+    and their ``*_se``.
+
+    First a fit of ``max_layers`` layers up to ``max_speed_mps`` finds the fastest wind; the search is then bounded
+    by :data:`SEARCH_MARGIN` times it (at least :data:`SLOWEST_BOUND_MPS`), which lengthens the lags
+    (:func:`eofnn.control.wind.wind_lags`) so that a slow layer moves far enough to be measured. The model order:
+    ``n`` layers are accepted while every one of them is found again, with the same wind, in each block of the
+    record (:func:`_consistent`) and each added layer carries at least :data:`MIN_EXTRA_WEIGHT` of the turbulence;
+    a component that fails (an aliased mode's apparent motion, noise) stops the search at the last order whose
+    layers all passed."""
     x = pol[:, lattice.order]
+    first, _, _ = _layer_fit(x, lattice, period, max_layers, max_speed_mps)
+    fastest = max(lay["speed_mps"] for lay in _merged(first))
+    bound = min(max_speed_mps, max(SLOWEST_BOUND_MPS, SEARCH_MARGIN * fastest))
     chosen, scores, why = None, {}, ""
     for n in range(1, max_layers + 1):
-        layers, rss, size = _layer_fit(x, lattice, period, n, max_speed_mps)
+        layers, rss, size = _layer_fit(x, lattice, period, n, bound)
         layers = _merged(layers)
-        scores[str(n)] = size * math.log(rss / size) + 3 * len(layers) * math.log(size)
+        scores[str(n)] = round(size * math.log(rss / size) + 3 * len(layers) * math.log(size), 1)
         if chosen is not None and len(layers) <= len(chosen):
             break  # merged back: no new layer
-        found = [_merged(_layer_fit(x[part], lattice, period, n, max_speed_mps)[0]) for part in _blocks(len(x), blocks)]
+        found = [_merged(_layer_fit(x[part], lattice, period, n, bound)[0]) for part in _blocks(len(x), blocks)]
         layers = _with_errors(layers, found)
-        if chosen is not None and not all(_consistent(lay) for lay in layers):
-            why = f"{len(layers)} layers rejected: a component's wind differs between blocks of the record"
-            break
+        if chosen is not None:
+            weak = [lay for lay in layers if lay["weight"] < MIN_EXTRA_WEIGHT]
+            moving = [lay for lay in layers if not _consistent(lay)]
+            if weak or moving:
+                why = (f"{len(layers)} layers rejected: "
+                       + ("a component's wind differs between blocks of the record" if moving else
+                          f"a component carries {min(lay['weight'] for lay in weak):.0%} of the turbulence"))
+                break
         chosen = layers
-    return chosen, {"bic": scores, "chosen": len(chosen), "stopped": why}
+    return chosen, {"bic": scores, "chosen": len(chosen), "stopped": why, "search_mps": round(bound, 2)}
 
 
 # ----------------------------------------------------------------------------------------------------------- whole
@@ -557,7 +598,8 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                                    blocks=blocks)
     result.layers = layers
     e["layers"] = Estimate(len(layers), None, "", f"lagged cross-spectra of whitened POL maps (control/wind.py) with "
-                           f"1-{max_layers} layers, layers added while each is found again in every block (BIC "
+                           f"1-{max_layers} layers, winds searched up to {info['search_mps']} m/s, layers added while "
+                           f"each is found again in every block and carries {MIN_EXTRA_WEIGHT:.0%} or more (BIC "
                            f"{info['bic']}{'; ' + info['stopped'] if info['stopped'] else ''}), layers within "
                            f"{MERGE_SPEED_MPS} m/s merged; winds' errors from {blocks} blocks")
 
