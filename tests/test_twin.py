@@ -105,3 +105,41 @@ def test_twin_identifies_the_system_and_its_scenario_runs(cli, cli_error, record
     assert rms is not None and 0 < rms < 1000
     # A second run never overwrites the first without --overwrite.
     cli_error(["twin", "--telemetry", recorded, "--out", out], "not empty")
+
+
+def test_noise_covariance_recovers_coloured_white_noise_under_smooth_turbulence():
+    """``(4 D(1) - D(2)) / 6`` is the covariance of white noise, spatial colour included, whatever smooth signal is
+    added (a random walk of drifts here stands in for slow turbulence)."""
+    from eofnn.training.twin import noise_covariance
+
+    rng = np.random.default_rng(3)
+    frames, k = 20000, 6
+    mixing = np.eye(k) + 0.5 * np.eye(k, k=1)  # neighbours' noise correlated
+    noise = rng.normal(size=(frames, k)) @ mixing.T * 10.0
+    t = np.arange(frames)[:, None] / 1000.0
+    smooth = 300.0 * np.sin(2 * np.pi * (0.5 + np.arange(k)) * t)  # a few Hz: smooth over two frames
+    found = noise_covariance(noise + smooth)
+    truth = 100.0 * mixing @ mixing.T
+    assert np.abs(found - truth).max() < 0.05 * truth.max()
+
+
+def test_pupil_and_layer_bookkeeping():
+    from eofnn.training.twin import _with_errors, pupil_from_matrices
+
+    k = GRID.n_actuators
+    im = np.random.default_rng(2).normal(size=(20, k))
+    im[[3, 17]] = 0.0  # two slopes that do not respond
+    pupil = pupil_from_matrices(k, None, im, None)
+    assert pupil["valid_slopes"] == 18 and pupil["dead_slopes"] == [3, 17] and pupil["valid_subapertures"] == 9
+
+    def layer(vx, vy, weight):
+        return {"vx_mps": vx, "vy_mps": vy, "speed_mps": math.hypot(vx, vy),
+                "direction_deg": math.degrees(math.atan2(vy, vx)), "weight": weight}
+
+    two = [layer(10.0, 0.0, 0.6), layer(0.0, 5.0, 0.4)]
+    seen = _with_errors(two, [[layer(10.1, 0.1, 0.6), layer(0.1, 5.1, 0.4)]] * 3 + [[layer(9.9, 0.0, 0.62),
+                                                                                   layer(-0.1, 4.9, 0.38)]])
+    assert all(lay["found_again"] for lay in seen) and seen[0]["speed_mps_se"] < 0.1
+    # A block that finds one layer only: the weaker is not found again there.
+    once = _with_errors(two, [[layer(10.0, 0.0, 1.0)]] + [[layer(10.0, 0.0, 0.6), layer(0.0, 5.0, 0.4)]] * 3)
+    assert once[0]["found_again"] and not once[1]["found_again"]
