@@ -346,17 +346,18 @@ def fit_seeing(turbulence_cov: np.ndarray, references: dict[float, np.ndarray], 
 
 # --------------------------------------------------------------------------------------------------------- layers
 
-def _layer_fit(pol_lattice: np.ndarray, lattice: _Lattice, period: float, n_layers: int, max_speed: float):
+def _layer_fit(pol_lattice: np.ndarray, lattice: _Lattice, period: float, n_layers: int, max_speed: float,
+               shift_pitches: float | None = None):
     """Layers and the residual sum of squares of their cross-spectra model (weights refitted by least squares)."""
     from eofnn.control.fourier import FourierBasis
     from eofnn.control.wind import HIGHEST_CYCLES_PER_PITCH, cross_spectra, identify_winds, wind_lags
 
     basis = FourierBasis(lattice)
     pol = torch.as_tensor(pol_lattice[None])
-    layers = identify_winds(pol, basis, period, n_layers, max_speed)
+    layers = identify_winds(pol, basis, period, n_layers, max_speed, shift_pitches)
     norm = basis.frequencies.norm(dim=1)
     keep = (norm <= HIGHEST_CYCLES_PER_PITCH / lattice.pitch_m) & (norm > 0)
-    lags = wind_lags(lattice.n_across, lattice.pitch_m, max_speed, period, pol.shape[1])
+    lags = wind_lags(lattice.n_across, lattice.pitch_m, max_speed, period, pol.shape[1], shift_pitches)
     spectra = cross_spectra(pol, basis, lags, keep).numpy()
     x0, data = spectra[0], spectra[1:]
     f = basis.frequencies[keep].numpy()
@@ -437,24 +438,29 @@ def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_la
     and their ``*_se``.
 
     First a fit of ``max_layers`` layers up to ``max_speed_mps`` finds the fastest wind; the search is then bounded
-    by :data:`SEARCH_MARGIN` times it (at least :data:`SLOWEST_BOUND_MPS`), which lengthens the lags
-    (:func:`eofnn.control.wind.wind_lags`) so that a slow layer moves far enough to be measured. The model order:
+    by :data:`SEARCH_MARGIN` times it (at least :data:`SLOWEST_BOUND_MPS`) and the longest lag is the time that
+    bound takes to cross half the pupil (:func:`eofnn.control.wind.wind_lags`: a quarter by default), so that a slow
+    layer moves far enough to be measured and two close winds' peaks part (8 and 13 m/s along one direction on a
+    4 m pupil merge into one 10.8 m/s layer with the default lags). The model order:
     ``n`` layers are accepted while every one of them is found again, with the same wind, in each block of the
     record (:func:`_consistent`) and each added layer carries at least :data:`MIN_EXTRA_WEIGHT` of the turbulence;
     a component that fails (an aliased mode's apparent motion, noise) stops the search at the last order whose
     layers all passed."""
+    from eofnn.control.wind import LONGEST_SHIFT_PITCHES
+
     x = pol[:, lattice.order]
     first, _, _ = _layer_fit(x, lattice, period, max_layers, max_speed_mps)
     fastest = max(lay["speed_mps"] for lay in _merged(first))
     bound = min(max_speed_mps, max(SLOWEST_BOUND_MPS, SEARCH_MARGIN * fastest))
+    shift = max(LONGEST_SHIFT_PITCHES, lattice.n_across / 2)
     chosen, scores, why = None, {}, ""
     for n in range(1, max_layers + 1):
-        layers, rss, size = _layer_fit(x, lattice, period, n, bound)
+        layers, rss, size = _layer_fit(x, lattice, period, n, bound, shift)
         layers = _merged(layers)
         scores[str(n)] = round(size * math.log(rss / size) + 3 * len(layers) * math.log(size), 1)
         if chosen is not None and len(layers) <= len(chosen):
             break  # merged back: no new layer
-        found = [_merged(_layer_fit(x[part], lattice, period, n, bound)[0]) for part in _blocks(len(x), blocks)]
+        found = [_merged(_layer_fit(x[part], lattice, period, n, bound, shift)[0]) for part in _blocks(len(x), blocks)]
         layers = _with_errors(layers, found)
         if chosen is not None:
             weak = [lay for lay in layers if lay["weight"] < MIN_EXTRA_WEIGHT]
@@ -465,7 +471,8 @@ def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_la
                           f"a component carries {min(lay['weight'] for lay in weak):.0%} of the turbulence"))
                 break
         chosen = layers
-    return chosen, {"bic": scores, "chosen": len(chosen), "stopped": why, "search_mps": round(bound, 2)}
+    return chosen, {"bic": scores, "chosen": len(chosen), "stopped": why, "search_mps": round(bound, 2),
+                    "shift_pitches": shift}
 
 
 # ----------------------------------------------------------------------------------------------------------- whole
@@ -598,7 +605,8 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                                    blocks=blocks)
     result.layers = layers
     e["layers"] = Estimate(len(layers), None, "", f"lagged cross-spectra of whitened POL maps (control/wind.py) with "
-                           f"1-{max_layers} layers, winds searched up to {info['search_mps']} m/s, layers added while "
+                           f"1-{max_layers} layers, winds searched up to {info['search_mps']} m/s (longest lag: "
+                           f"{info['shift_pitches']:g} pitches at that speed), layers added while "
                            f"each is found again in every block and carries {MIN_EXTRA_WEIGHT:.0%} or more (BIC "
                            f"{info['bic']}{'; ' + info['stopped'] if info['stopped'] else ''}), layers within "
                            f"{MERGE_SPEED_MPS} m/s merged; winds' errors from {blocks} blocks")
