@@ -1,6 +1,7 @@
 """How well ``eofnn twin`` identifies a system from its telemetry alone: record at stated conditions, identify, compare.
 
-Two sources of telemetry, each case recorded by a dithered integrator (gain 0.4, 10 nm of dither) and written with
+Two sources of telemetry, each case recorded by a dithered integrator (10 nm of dither; eofnn's default gain, 0.4
+in OOPAO) and written with
 ``y``, ``wfs``, positions, the delay and the frame rate only (the truth is kept aside, never given to the twin):
 
 - ``eofnn``: eofnn's geometric Shack-Hartmann, 4 m, 16 actuators across (Fried), photon noise of an R = 8-10 guide
@@ -63,7 +64,7 @@ def record_eofnn(name: str, folder: Path) -> tuple[Path, dict, list[str]]:
     full = folder / f"{name}_full.fits"
     if not full.exists():
         subprocess.run(["eofnn", "simulate", "--scenario", str(folder / f"{name}.yaml"), "--predictor.controller",
-                        "dithered_integrator", "--predictor.gain", "0.4", "--predictor.data.dither_nm", "10",
+                        "dithered_integrator", "--predictor.data.dither_nm", "10",
                         "--frames", str(FRAMES), "--seed", str(case["seed"]), "--out", str(full)], check=True)
     tel = Telemetry.load(full, required=TELEMETRY_REQUIRED)
     s, y, wfs = (a.numpy().reshape(-1, a.shape[-1]) for a in (tel.s, tel.y, tel.wfs))
