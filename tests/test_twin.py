@@ -103,6 +103,8 @@ def test_twin_identifies_the_system_and_its_scenario_runs(cli, cli_error, record
     assert scenario.atmosphere.layers[0].wind_speed_mps == pytest.approx(layer["speed_mps"], rel=1e-3)
     rms = scenario.median_residual_nm(Integrator(0.4), 200, seed=1, stream="check", settle_frames=50)
     assert rms is not None and 0 < rms < 1000
+    code, err = cli("simulate", "--scenario", out / "twin.yaml", "--frames", 100, "--out", tmp_path / "run.npz")
+    assert code == 0, err
     # A second run never overwrites the first without --overwrite.
     cli_error(["twin", "--telemetry", recorded, "--out", out], "not empty")
 
