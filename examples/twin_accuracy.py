@@ -36,10 +36,13 @@ EOFNN_CASES = {  # r0 at 500 nm; layers (speed m/s, direction deg, Cn2 fraction)
     "B": {"r0": 0.10, "layers": [(6.0, -45.0, 0.6), (14.0, 200.0, 0.4)], "magnitude": 8.0, "seed": 11},
     "C": {"r0": 0.08, "layers": [(8.0, 60.0, 0.5), (13.0, 60.0, 0.5)], "magnitude": 8.0, "seed": 5},
     "D": {"r0": 0.20, "layers": [(7.0, 250.0, 1.0)], "magnitude": 10.0, "seed": 3},
+    "E": {"r0": 0.12, "layers": [(9.0, 170.0, 0.7), (20.0, 100.0, 0.3)], "magnitude": 9.0, "seed": 31},
+    "F": {"r0": 0.09, "layers": [(22.0, -20.0, 1.0)], "magnitude": 8.0, "seed": 32},
 }
 OOPAO_CASES = {  # r0 at 500 nm, L0, one layer (speed, OOPAO direction), seed
     "O1": {"r0": 0.12, "outer_scale": 25.0, "speed": 12.0, "direction": 0.0, "seed": 21},
     "O2": {"r0": 0.16, "outer_scale": 25.0, "speed": 18.0, "direction": 30.0, "seed": 22},
+    "O3": {"r0": 0.10, "outer_scale": 25.0, "speed": 8.0, "direction": 45.0, "seed": 23},
 }
 FRAMES = 4000
 OOPAO_NOISE_NM = 25.0
