@@ -17,11 +17,16 @@ that gave it, and a quantity the record cannot tell is given with a one-line war
    ``D(l) = E[(s_hat(n + l) - s_hat(n)) (s_hat(n + l) - s_hat(n))^T]`` at every lag ``l >= 1``, while turbulence
    that is smooth over a few frames adds ``c l^2``: ``C_v = (4 D(1) - D(2)) / 6``, per actuator (its diagonal) and
    between actuators (its spatial colour, compared with ``sigma^2 R R^T`` when a reconstructor is given).
-5. *r0 and L0* (:func:`fit_seeing`): the noise-corrected covariance of ``s_hat``, with piston, tip and tilt projected
-   out over the actuators, against the von Kármán covariance seen through a pitch-wide box (the subaperture
-   average) with the same projection, over actuator separations from 1.5 pitches to half the pupil: the scale gives
-   ``r0^(-5/3)`` at :data:`R0_WAVELENGTH_M`, the shape L0 over :data:`OUTER_SCALES_M` (not identifiable on a pupil
-   much smaller than L0: one line says so and the twin keeps the best fit).
+5. *r0 and L0* (:func:`seeing_and_noise`, :func:`fit_seeing`): the noise-corrected covariance of ``s_hat`` against
+   the covariance of the twin's own noise-free turbulence (:func:`reference_covariances`: the twin's grid, sensor
+   and identified winds, simulated at r0 = :data:`R0_REFERENCE_M` for each L0 of :data:`OUTER_SCALES_M`), so that
+   the sensing (a subaperture average, or a Shack-Hartmann's reconstruction with its aliasing, in command units)
+   is the twin's: their structure functions over actuator separations from 1.5 pitches to half the pupil, piston,
+   tip and tilt projected out of both, differ by the factor ``(r0 / r0_ref)^(-5/3)`` (r0 at
+   :data:`R0_WAVELENGTH_M`); L0 is the one whose shape fits best (not identifiable on a pupil much smaller than L0:
+   one line says so and the twin keeps the best fit). A Shack-Hartmann's aliased turbulence is not smooth over two
+   frames and leaves part of itself in the noise estimate of 4; the references say how much per unit of their
+   turbulence, so the noise and r0 are solved for together.
 6. *The layers* (:func:`identify_layers`): :func:`eofnn.control.wind.identify_winds` (lagged cross-spectra of the
    whitened POL maps: a frozen-flow layer's peak moves by ``v tau``) fitted with 1 to ``max_layers`` layers, the
    count chosen by the record's own consistency: a layer is added only if every block of the record finds it again
