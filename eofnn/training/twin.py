@@ -79,6 +79,11 @@ MIN_EXTRA_WEIGHT = 0.15
 #: The wind search is bounded by this times the fastest wind of a first fit, and at least by this speed (m/s).
 SEARCH_MARGIN = 1.5
 SLOWEST_BOUND_MPS = 10.0
+#: The refined search's longest lag: the time the bound speed takes to cross this fraction of the pupil (at least
+#: :data:`eofnn.control.wind.LONGEST_SHIFT_PITCHES`). Measured on 16 actuators across: with a quarter (wind.py's
+#: default) 8 and 13 m/s along one direction merge into one layer; with a half a 20 m/s layer beside a 9 m/s one
+#: is lost (too little overlap left); 3/8 parts both.
+LONGEST_SHIFT_OF_PUPIL = 0.375
 #: What one nm of command may be: of smooth DM surface (eofnn's) or at an influence function's peak (OOPAO's).
 COMMAND_UNITS = ("surface", "peak")
 #: Fewest frames from which a layer is identified.
@@ -444,9 +449,8 @@ def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_la
 
     First a fit of ``max_layers`` layers up to ``max_speed_mps`` finds the fastest wind; the search is then bounded
     by :data:`SEARCH_MARGIN` times it (at least :data:`SLOWEST_BOUND_MPS`) and the longest lag is the time that
-    bound takes to cross half the pupil (:func:`eofnn.control.wind.wind_lags`: a quarter by default), so that a slow
-    layer moves far enough to be measured and two close winds' peaks part (8 and 13 m/s along one direction on a
-    4 m pupil merge into one 10.8 m/s layer with the default lags). The model order:
+    bound takes to cross :data:`LONGEST_SHIFT_OF_PUPIL` of the pupil (:func:`eofnn.control.wind.wind_lags`: a quarter
+    by default), so that a slow layer moves far enough to be measured and two close winds' peaks part. The model order:
     ``n`` layers are accepted while every one of them is found again, with the same wind, in each block of the
     record (:func:`_consistent`) and each added layer carries at least :data:`MIN_EXTRA_WEIGHT` of the turbulence;
     a component that fails (an aliased mode's apparent motion, noise) stops the search at the last order whose
@@ -457,7 +461,7 @@ def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_la
     first, _, _ = _layer_fit(x, lattice, period, max_layers, max_speed_mps)
     fastest = max(lay["speed_mps"] for lay in _merged(first))
     bound = min(max_speed_mps, max(SLOWEST_BOUND_MPS, SEARCH_MARGIN * fastest))
-    shift = max(LONGEST_SHIFT_PITCHES, lattice.n_across / 2)
+    shift = max(LONGEST_SHIFT_PITCHES, LONGEST_SHIFT_OF_PUPIL * lattice.n_across)
     chosen, scores, why = None, {}, ""
     for n in range(1, max_layers + 1):
         layers, rss, size = _layer_fit(x, lattice, period, n, bound, shift)
