@@ -48,6 +48,7 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn fit      --telemetry run.fits --plant plant.json --out runs/ol.ckpt  # train on telemetry alone
   eofnn replay   --checkpoint runs/ol.ckpt --telemetry held_out.fits --out results/replay
   eofnn export   --checkpoint runs/ol.ckpt --out filter.fits                # for eofnn.runtime / any RTC
+  eofnn twin     --telemetry run.fits --out twin/         # twin.yaml + identified.json from telemetry alone
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -121,6 +122,8 @@ COMMANDS: dict[str, Command] = {
                       "replay"),
     "export": Command("Export a linear predictor as filter FITS.", "eofnn.cli.telemetry", "EXPORT", "ExportConfig",
                       "export"),
+    "twin": Command("Identify a twin of the system from its telemetry alone.", "eofnn.cli.twin", "DESCRIPTION",
+                    "TwinConfig", "twin"),
 }
 
 

@@ -47,10 +47,12 @@ LONGEST_SHIFT_PITCHES = 4.0
 HIGHEST_CYCLES_PER_PITCH = 0.3
 
 
-def wind_lags(n_across: int, pitch_m: float, max_speed_mps: float, frame_period_s: float, frames: int) -> list[int]:
+def wind_lags(n_across: int, pitch_m: float, max_speed_mps: float, frame_period_s: float, frames: int,
+              shift_pitches: float | None = None) -> list[int]:
     """Four lags (frames), the longest the time ``max_speed_mps`` takes to move :data:`LONGEST_SHIFT_PITCHES` or a
-    quarter of the pupil, whichever is more (two layers' peaks must part by more than their width, about a pitch)."""
-    shift = max(LONGEST_SHIFT_PITCHES, n_across / 4) * pitch_m
+    quarter of the pupil, whichever is more (two layers' peaks must part by more than their width, about a pitch);
+    ``shift_pitches`` replaces that displacement."""
+    shift = (max(LONGEST_SHIFT_PITCHES, n_across / 4) if shift_pitches is None else shift_pitches) * pitch_m
     longest = max(1, min(int(shift / (max_speed_mps * frame_period_s)), frames // 4))
     return sorted({max(1, round(longest / 2**j)) for j in range(4)})
 
@@ -88,9 +90,10 @@ def cross_spectra(pol: torch.Tensor, basis: FourierBasis, lags: list[int], keep:
 
 
 def identify_winds(pol: torch.Tensor, basis: FourierBasis, frame_period_s: float, n_layers: int,
-                   max_speed_mps: float) -> list[dict]:
+                   max_speed_mps: float, shift_pitches: float | None = None) -> list[dict]:
     """Layers ``[{"vx_mps", "vy_mps", "speed_mps", "direction_deg", "weight"}]`` (weights sum to 1, strongest
-    first) of ``(R, T, K)`` POL values on ``basis``'s grid (module docstring)."""
+    first) of ``(R, T, K)`` POL values on ``basis``'s grid (module docstring); ``shift_pitches``: the fastest wind's
+    displacement at the longest lag (:func:`wind_lags`; longer lags part layers of close winds)."""
     from scipy.optimize import least_squares
 
     pitch = basis.grid.pitch_m
@@ -98,7 +101,7 @@ def identify_winds(pol: torch.Tensor, basis: FourierBasis, frame_period_s: float
     if int(keep.sum()) < 8:
         raise ConfigError(f"the grid has {int(keep.sum())} Fourier modes to identify winds from: too few (give "
                           "pfc.winds, or a grid of more actuators)")
-    lags = wind_lags(basis.grid.n_across, pitch, max_speed_mps, frame_period_s, pol.shape[1])
+    lags = wind_lags(basis.grid.n_across, pitch, max_speed_mps, frame_period_s, pol.shape[1], shift_pitches)
     spectra = cross_spectra(pol, basis, lags, keep).numpy()
     x0, data = spectra[0], spectra[1:]
     f = basis.frequencies[keep].numpy()

@@ -1,0 +1,122 @@
+"""``eofnn twin``: the twin of a user's system identified from its telemetry alone, as an eofnn scenario."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import yaml
+
+import eofnn
+from eofnn.cli.common import Output, log
+from eofnn.outputs import check_output_folder, staged_folder
+from eofnn.validation import Interval, OneOf, OrNone, check_value
+
+# The identification imports torch, scipy and the simulator (seconds): imported in the function, so that the parser
+# and its config errors answer without them.
+
+DESCRIPTION = ("Identify a twin of the system that recorded the telemetry (FITS/npz with y, wfs or slopes, positions, "
+               "the delay and the frame rate; docs/telemetry.md), from the telemetry alone: the pupil and valid "
+               "subapertures, the DM gain x optical gain (from a dither), the WFS noise and its spatial colour, r0 "
+               "and L0, and the frozen-flow layers (count, Cn2 fractions, winds), each with an uncertainty and its "
+               "method. Writes DIR/twin.yaml (an eofnn scenario: eofnn fit --scenario DIR/twin.yaml) and "
+               "DIR/identified.json.")
+
+
+@dataclass(kw_only=True)
+class TwinConfig(Output):
+    """``eofnn twin``: a scenario identified from telemetry.
+
+    Parameters
+    ----------
+    telemetry : str
+        Telemetry file, .fits or .npz (docs/telemetry.md): y and wfs (nm), or slopes with an interaction matrix or a
+        reconstructor; positions_m; the delay; the frame rate. s, eps and any simulator config are never read.
+    interaction_matrix : str, optional
+        File (.npy, .npz, .fits) of the (S, K) interaction matrix, slopes = IM @ y; replaces the file's. Its columns
+        say which actuators the sensor sees (every actuator of the telemetry must move some slope), its rows which
+        slopes respond (the valid subapertures).
+    reconstructor : str, optional
+        File of the (K, S) reconstructor, wfs = R @ slopes; replaces the file's (shape checked; the noise's spatial
+        colour is compared with R R^T).
+    mechanical_coupling : float, optional
+        The DM's Gaussian influence functions' value one pitch away, for a record of slopes (default 0.35, with a
+        warning).
+    command_unit : str
+        What one nm of y and wfs is: 'surface' (nm of smooth DM surface, eofnn's) or 'peak' (nm at the peak of one
+        actuator's influence function, OOPAO's): the twin is in eofnn's units either way.
+    max_layers : int
+        Most frozen-flow layers fitted.
+    max_speed_mps : float
+        Fastest wind searched (m/s).
+    blocks : int
+        Consecutive blocks the record is split into for the uncertainties and the layer count.
+    screen_frames : int
+        atmosphere.screen_frames of twin.yaml (the longest stream the twin will be asked for).
+    seed : int
+        Seed of the twin's reference streams (r0 and L0 are scaled from them).
+    """
+
+    telemetry: str
+    interaction_matrix: str | None = None
+    reconstructor: str | None = None
+    mechanical_coupling: float | None = None
+    command_unit: str = "surface"
+    max_layers: int = 3
+    max_speed_mps: float = 40.0
+    blocks: int = 4
+    screen_frames: int = 10000
+    seed: int = 0
+
+
+def twin(cfg: TwinConfig, config_dump: str | None = None) -> dict:
+    """Identify the twin of ``cfg.telemetry`` and write ``twin.yaml`` and ``identified.json`` into ``cfg.out``;
+    returns the summary line."""
+    check_value("mechanical_coupling", cfg.mechanical_coupling, OrNone(Interval(0, 1, closed="neither")))
+    check_value("command_unit", cfg.command_unit, OneOf(("surface", "peak")))
+    check_value("max_layers", cfg.max_layers, Interval(1, 3, integer=True))
+    check_value("max_speed_mps", cfg.max_speed_mps, Interval(0, 200, closed="right", unit="m/s"))
+    check_value("blocks", cfg.blocks, Interval(2, 100, integer=True))
+    check_value("screen_frames", cfg.screen_frames, Interval(100, 10**7, integer=True, unit="frames"))
+    out = check_output_folder(cfg.out, cfg.overwrite)
+    result = identify(cfg)
+    config = result.scenario_config(cfg.screen_frames, noise_magnitude=_magnitude(result, cfg.screen_frames))
+    with staged_folder(out, cfg.overwrite) as folder:
+        (folder / "twin.yaml").write_text(
+            f"# eofnn twin of {cfg.telemetry}, identified from its telemetry alone (identified.json: values, "
+            "uncertainties, methods)\n" + yaml.safe_dump(config, sort_keys=False))
+        result.to_json(folder / "identified.json")
+    for warning in result.warnings:
+        log(f"twin: {warning}")
+    summary = {"twin": str(out / "twin.yaml"), "r0_m": result.value("r0_m"), "outer_scale_m": result.value("outer_scale_m"),
+               "wfs_noise_nm": result.value("wfs_noise_nm"), "dm_gain": result.value("dm_gain"),
+               "layers": [[round(lay["speed_mps"], 3), round(lay["direction_deg"], 2), round(lay["weight"], 3)]
+                          for lay in result.layers]}
+    log(json.dumps(summary))
+    return summary
+
+
+def identify(cfg: TwinConfig) -> eofnn.training.twin.TwinIdentification:
+    """The identification of ``cfg.telemetry`` (its matrices replaced by the files given)."""
+    from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
+    from eofnn.telemetry.spaces import read_matrix
+    from eofnn.training.twin import identify_twin
+
+    matrices = {name: read_matrix(path, name) for name, path in
+                (("interaction_matrix", cfg.interaction_matrix), ("reconstructor", cfg.reconstructor)) if path}
+    telemetry = Telemetry.load(cfg.telemetry, required=TELEMETRY_REQUIRED, space=matrices)
+    if telemetry.measurement:
+        log(f"telemetry {cfg.telemetry}: {telemetry.measurement}")
+    return identify_twin(telemetry, interaction_matrix=matrices.get("interaction_matrix"),
+                         reconstructor=matrices.get("reconstructor"), max_layers=cfg.max_layers,
+                         max_speed_mps=cfg.max_speed_mps, blocks=cfg.blocks,
+                         mechanical_coupling=cfg.mechanical_coupling, command_unit=cfg.command_unit, seed=cfg.seed)
+
+
+def _magnitude(result, screen_frames: int) -> float | None:
+    """A Shack-Hartmann twin's guide star, set so that its noise per actuator is the one identified."""
+    from eofnn.training.twin import twin_magnitude
+
+    if result.sensor != "shack_hartmann":
+        return None
+    return twin_magnitude(result.scenario_config(screen_frames, noise_magnitude=8.0), result.value("wfs_noise_nm"))

@@ -1,0 +1,147 @@
+"""``eofnn twin``: a scenario identified from telemetry alone (y, wfs, positions, delay, frame rate)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from eofnn.control import Dithered, Integrator
+from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
+from eofnn.sim.loop.plant import Plant
+from eofnn.sim.scenario import Scenario
+from eofnn.training.twin import MIN_LAYER_FRAMES
+
+GRID = ActuatorGrid(2.5, 10)
+HEAVY = ("torch", "lightning", "hcipy", "matplotlib", "scipy")
+PROBE = """
+import json, sys
+from eofnn.cli.main import main
+try:
+    code = main({args!r})
+except SystemExit as stop:
+    code = stop.code
+print(json.dumps({{"code": code, "heavy": [m for m in {heavy!r} if m in sys.modules]}}))
+"""
+
+
+@pytest.mark.parametrize("args", [["twin", "--help"], ["twin", "--telemetry", "x.npz", "--max_layers", "5", "--out", "o"]])
+def test_help_and_config_errors_import_nothing_heavy(args):
+    """``eofnn twin --help`` and a value out of range answer before torch & co. are imported."""
+    proc = subprocess.run([sys.executable, "-c", PROBE.format(args=args, heavy=HEAVY)],
+                          cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=120)
+    answer = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert answer["heavy"] == [] and answer["code"] == (0 if "--help" in args else 2), (answer, proc.stderr[-500:])
+    assert "--help" in args or "max_layers=5" in proc.stderr
+
+
+def _random_telemetry(path, frames: int = 1200, **extra) -> None:
+    rng = np.random.default_rng(0)
+    k = GRID.n_actuators
+    np.savez(path, y=rng.normal(size=(frames, k)), wfs=rng.normal(size=(frames, k)), positions_m=GRID.positions_m,
+             delay_frames=2, frame_rate_hz=1000.0, **extra)
+
+
+def test_refusals_are_one_line(cli_error, tmp_path):
+    """Too short a record, a mask that disagrees with the interaction matrix, a reconstructor of the wrong shape."""
+    k = GRID.n_actuators
+    _random_telemetry(tmp_path / "short.npz", frames=MIN_LAYER_FRAMES - 1)
+    cli_error(["twin", "--telemetry", tmp_path / "short.npz", "--out", tmp_path / "a"], "too short to identify a layer",
+              tmp_path / "a")
+    _random_telemetry(tmp_path / "ok.npz")
+    im = np.random.default_rng(1).normal(size=(2 * 81, k))
+    im[:, 5] = 0.0  # actuator 5 moves no slope, yet the telemetry controls it
+    np.save(tmp_path / "im.npy", im)
+    cli_error(["twin", "--telemetry", tmp_path / "ok.npz", "--interaction_matrix", tmp_path / "im.npy", "--out",
+               tmp_path / "b"], "actuators and its interaction matrix disagree", tmp_path / "b")
+    np.save(tmp_path / "r.npy", np.ones((k + 1, 2 * 81)))
+    cli_error(["twin", "--telemetry", tmp_path / "ok.npz", "--reconstructor", tmp_path / "r.npy", "--out",
+               tmp_path / "c"], f"reconstructor has shape ({k + 1}, 162): expected ({k}, 2 n_sub)", tmp_path / "c")
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """3000 frames of a dithered integrator on 10 actuators across 2.5 m: one 12 m/s layer at 140 degrees, r0 0.12 m
+    at 500 nm, 15 nm of white WFS noise; written with y, wfs, positions, delay and frame rate only."""
+    atmosphere = Atmosphere(r0_m=0.12, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=(Layer(1.0, 12.0, 140.0),),
+                            screen_frames=3200)
+    scenario = Scenario(GRID, atmosphere, 1000.0, Plant(delay_frames=2, wfs_noise_nm=15.0))
+    result = run_loop(scenario.turbulence(4, "twin_test"), scenario.plant, Dithered(Integrator(0.4), 10.0, seed=5),
+                      3000, noise_seed=6, progress=False)
+    t = result.telemetry.realisation(0)
+    path = tmp_path_factory.mktemp("twin") / "loop.npz"
+    Telemetry(y=t.y, wfs=t.wfs, delay_frames=2, frame_rate_hz=1000.0,
+              positions_m=torch.as_tensor(GRID.positions_m)).save(path)
+    return path
+
+
+@pytest.mark.slow
+def test_twin_identifies_the_system_and_its_scenario_runs(cli, cli_error, recorded, tmp_path):
+    out = tmp_path / "twin"
+    code, err = cli("twin", "--telemetry", recorded, "--out", out, "--screen_frames", 400)
+    assert code == 0, err
+    found = json.loads((out / "identified.json").read_text())
+    q = found["quantities"]
+    assert q["r0_m"]["value"] == pytest.approx(0.12, rel=0.15)
+    assert q["wfs_noise_nm"]["value"] == pytest.approx(15.0, rel=0.2)
+    assert q["dm_gain"]["value"] == pytest.approx(1.0, abs=0.05)
+    assert q["layers"]["value"] == 1
+    (layer,) = found["layers"]
+    assert layer["speed_mps"] == pytest.approx(12.0, rel=0.1)
+    assert abs((layer["direction_deg"] - 140.0 + 180) % 360 - 180) < 10
+    for name in ("r0_m", "wfs_noise_nm", "dm_gain", "outer_scale_m"):
+        assert q[name]["uncertainty"] is not None and math.isfinite(q[name]["uncertainty"]) and q[name]["method"]
+    # The twin is a scenario eofnn runs.
+    scenario = Scenario.from_yaml(out / "twin.yaml")
+    assert scenario.grid == GRID and scenario.plant.delay_frames == 2
+    assert scenario.atmosphere.layers[0].wind_speed_mps == pytest.approx(layer["speed_mps"], rel=1e-3)
+    rms = scenario.median_residual_nm(Integrator(0.4), 200, seed=1, stream="check", settle_frames=50)
+    assert rms is not None and 0 < rms < 1000
+    code, err = cli("simulate", "--scenario", out / "twin.yaml", "--frames", 100, "--out", tmp_path / "run.npz")
+    assert code == 0, err
+    # A second run never overwrites the first without --overwrite.
+    cli_error(["twin", "--telemetry", recorded, "--out", out], "not empty")
+
+
+def test_noise_covariance_recovers_coloured_white_noise_under_smooth_turbulence():
+    """``(4 D(1) - D(2)) / 6`` is the covariance of white noise, spatial colour included, whatever smooth signal is
+    added (a random walk of drifts here stands in for slow turbulence)."""
+    from eofnn.training.twin import noise_covariance
+
+    rng = np.random.default_rng(3)
+    frames, k = 20000, 6
+    mixing = np.eye(k) + 0.5 * np.eye(k, k=1)  # neighbours' noise correlated
+    noise = rng.normal(size=(frames, k)) @ mixing.T * 10.0
+    t = np.arange(frames)[:, None] / 1000.0
+    smooth = 300.0 * np.sin(2 * np.pi * (0.5 + np.arange(k)) * t)  # a few Hz: smooth over two frames
+    found = noise_covariance(noise + smooth)
+    truth = 100.0 * mixing @ mixing.T
+    assert np.abs(found - truth).max() < 0.05 * truth.max()
+
+
+def test_pupil_and_layer_bookkeeping():
+    from eofnn.training.twin import _with_errors, pupil_from_matrices
+
+    k = GRID.n_actuators
+    im = np.random.default_rng(2).normal(size=(20, k))
+    im[[3, 17]] = 0.0  # two slopes that do not respond
+    pupil = pupil_from_matrices(k, None, im, None)
+    assert pupil["valid_slopes"] == 18 and pupil["dead_slopes"] == [3, 17] and pupil["valid_subapertures"] == 9
+
+    def layer(vx, vy, weight):
+        return {"vx_mps": vx, "vy_mps": vy, "speed_mps": math.hypot(vx, vy),
+                "direction_deg": math.degrees(math.atan2(vy, vx)), "weight": weight}
+
+    two = [layer(10.0, 0.0, 0.6), layer(0.0, 5.0, 0.4)]
+    seen = _with_errors(two, [[layer(10.1, 0.1, 0.6), layer(0.1, 5.1, 0.4)]] * 3 + [[layer(9.9, 0.0, 0.62),
+                                                                                   layer(-0.1, 4.9, 0.38)]])
+    assert all(lay["found_again"] for lay in seen) and seen[0]["speed_mps_se"] < 0.1
+    # A block that finds one layer only: the weaker is not found again there.
+    once = _with_errors(two, [[layer(10.0, 0.0, 1.0)]] + [[layer(10.0, 0.0, 0.6), layer(0.0, 5.0, 0.4)]] * 3)
+    assert once[0]["found_again"] and not once[1]["found_again"]
