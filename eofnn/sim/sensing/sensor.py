@@ -30,6 +30,8 @@ MECHANICAL_COUPLING = 0.35
 
 #: Sensor kinds a scenario may have.
 SENSOR_KINDS = ("subaperture", "shack_hartmann")
+#: A Shack-Hartmann's reconstructors: truncated least squares, or noise-aware MMSE (:mod:`eofnn.sim.sensing.mmse`).
+RECONSTRUCTORS = ("least_squares", "mmse")
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,11 @@ class Sensor:
     detector : Detector or None
         Guide star and detector (band, magnitude, throughput, pixels, read noise): photon and read noise on every
         slope by Rousset's formulas (:class:`~eofnn.sim.sensing.detector.Detector`). ``None``: no photon noise.
+    reconstructor : {"least_squares", "mmse"}
+        ``least_squares`` (default): the truncated least-squares ``R`` (``relative_cut``). ``mmse``: the noise-aware
+        ``C D^T (D C D^T + C_n)^-1`` (:mod:`eofnn.sim.sensing.mmse`) with the prior's r0 and L0 taken from the
+        scenario's atmosphere (a simulation's knowledge) and the noise from this sensor's slope noise; every
+        controller then measures through it (:mod:`eofnn.sim.loop.sensing`).
     """
 
     kind: str = "subaperture"
@@ -65,6 +72,7 @@ class Sensor:
     pupil_diameter_m: float | None = None
     lit_fraction: float | None = None
     detector: Detector | None = None
+    reconstructor: str = "least_squares"
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "kind": OneOf(SENSOR_KINDS),
@@ -75,6 +83,7 @@ class Sensor:
         "relative_cut": OrNone(Interval(1e-3, 1, unit="fraction of the largest singular value")),
         "pupil_diameter_m": OrNone(Interval(0, 100, closed="right", unit="m")),
         "lit_fraction": OrNone(Interval(0, 1, closed="right", unit="of a subaperture's area")),
+        "reconstructor": OneOf(RECONSTRUCTORS),
     }
 
     def __post_init__(self) -> None:
@@ -119,7 +128,10 @@ class Sensor:
                               f"{grid.diameter_m:g} m across; allowed up to that")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        out = asdict(self)
+        if out["reconstructor"] == "least_squares":  # configs written before the choice existed still match
+            del out["reconstructor"]
+        return out
 
 
 def build_sensor(value) -> Sensor:
