@@ -266,7 +266,8 @@ class ShackHartmannTurbulence:
 
     def open_loop(self, start: int, stop: int, plant, generator) -> tuple[torch.Tensor, torch.Tensor]:
         """``(s, s_hat)`` of frames ``start..stop-1`` with no correction: the truth and the sensor's reading of it
-        with the gain divided out, ``R S phi + R n / wfs_gain`` (what pseudo-open-loop data is)."""
+        with the gain divided out, ``R S phi + R n / wfs_gain`` (what pseudo-open-loop data is; through the MMSE
+        reconstructor ``R_mmse (S phi + n / wfs_gain)`` when the sensor has one)."""
         mmse = self.reconstructor(plant.wfs_noise_nm)
         out = self.products(start, stop, slopes=mmse is not None)
         self.release()
