@@ -5,7 +5,9 @@ residual against the least-squares one's."""
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -112,3 +114,22 @@ def test_the_best_gain_integrator_does_better_through_the_mmse_reconstructor():
     # (2 - g) / g frames; weighted like that average (g / (2 - g) at g = 0.2) the MMSE wins.
     least_squares = _best(_scenario("least_squares", 13.0))
     assert _best(_scenario("mmse", 13.0), weight=0.1) < 0.97 * least_squares
+
+
+@pytest.mark.cli
+@pytest.mark.slow
+def test_compare_runs_every_contender_through_the_mmse_reconstructor(tmp_path, cli):
+    """``tests/conf/tiny_sh_mmse.yaml``: the best-gain integrator and PFC with the reconstructor's coloured noise, its
+    memory scanned on past its grid's edge while the best is there, all measured through the MMSE reconstructor."""
+    from eofnn.control.config import alpha_past_edge
+
+    code, err = cli("compare", "--config", Path(__file__).parent / "conf" / "tiny_sh_mmse.yaml", "--out", tmp_path)
+    assert code == 0, err
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    runs = metrics["scenarios"]["nominal"]
+    assert all(runs[name]["residual_over"] == "pupil" and not runs[name]["diverged"] for name in ("integrator", "pfc"))
+    assert metrics["classical_models"]["nominal"]["pfc"]["noise_covariance"] == "coloured (noise_shape)"
+    scanned = {e["pfc.alpha"]: e["median_rms_nm"] for e in metrics["classical_settings"]["nominal"]["pfc"]["scanned"]}
+    assert list(scanned)[:2] == [0.98, 0.99] and alpha_past_edge(scanned, len(scanned) - 2) is None
+    budget = runs["integrator"]["error_budget"]
+    assert budget["runs_nm"]["perfect"] < budget["runs_nm"]["noise_free"] < budget["runs_nm"]["total"]
