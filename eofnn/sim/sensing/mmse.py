@@ -50,7 +50,7 @@ def von_karman_covariance_nm2(r_m: np.ndarray, r0_m: float, outer_scale_m: float
 
 
 def slope_covariances(slope_operator, fit_rows, in_pupil: np.ndarray, lattice: np.ndarray, covariance_table: np.ndarray,
-                       block: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+                       block: int = 512) -> tuple[np.ndarray, np.ndarray]:
     """``(C_ss, C_ys)``: ``S C_phi S^T`` ``(n_slopes, n_slopes)`` and ``F C_phi S^T`` ``(K, n_slopes)`` (nm²).
 
     Parameters
