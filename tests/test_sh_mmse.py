@@ -9,6 +9,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -16,7 +17,7 @@ from eofnn.control.baselines import Integrator
 from eofnn.errors import ConfigError
 from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.scenario import Scenario
-from eofnn.sim.sensing.mmse import mmse_reconstructor, von_karman_covariance_nm2
+from eofnn.sim.sensing.mmse import mmse_reconstructor, slope_covariances, von_karman_covariance_nm2
 from eofnn.sim.sensing.sensor import Sensor
 
 GRID = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}  # 0.22 m subapertures, 9 x 9 Fried
@@ -40,6 +41,29 @@ def test_von_karman_covariance_has_its_variance_and_kolmogorovs_structure_functi
     r, r0, outer = 1e-3, 0.1, 1e4
     structure = 2 * (von_karman_covariance_nm2(0.0, r0, outer, 500e-9) - von_karman_covariance_nm2(r, r0, outer, 500e-9))
     assert float(structure) * to_rad2 == pytest.approx(6.88 * (r / r0) ** (5 / 3), rel=0.01)
+
+
+def test_the_blockwise_covariances_are_the_dense_ones_with_piston_tip_and_tilt_removed():
+    scenario = Scenario.from_dict({"grid": {"diameter_m": 1.0, "n_across": 6, "obstruction": 0.0},
+                                   "sensor": {"kind": "shack_hartmann", "samples_per_subaperture": 2}})
+    ops = scenario.turbulence(0, "test").operators
+    geometry = ops.sensor.geometry
+    h = geometry.fine_pitch_m
+    lattice = np.rint((geometry.fine_positions_m - geometry.fine_positions_m.min(0)) / h).astype(np.int64)
+    n = int(lattice.max()) + 1
+    table = von_karman_covariance_nm2(np.hypot(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij")) * h,
+                                      0.1, 20.0, 5e-7)
+    q = geometry.fine_grid.ptt_basis()
+    dense = von_karman_covariance_nm2(np.hypot(*(geometry.fine_positions_m[:, None] - geometry.fine_positions_m[None]).T),
+                                      0.1, 20.0, 5e-7)
+    keep = np.eye(len(q)) - q @ q.T
+    dense = keep @ dense @ keep
+    s = geometry.slope_operator.toarray()
+    fit = ops.influence_pupil_t.toarray()
+    signal, cross = slope_covariances(geometry.slope_operator, ops.influence_pupil_t, ops.pupil, lattice, table,
+                                      block=7, removed=q)
+    np.testing.assert_allclose(signal, s @ dense @ s.T, rtol=1e-9, atol=1e-9 * np.abs(signal).max())
+    np.testing.assert_allclose(cross, fit @ dense[ops.pupil] @ s.T, rtol=1e-9, atol=1e-9 * np.abs(cross).max())
 
 
 def test_the_field_is_checked_and_the_default_leaves_configs_as_they_were():

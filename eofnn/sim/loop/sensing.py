@@ -168,7 +168,7 @@ class ShackHartmannTurbulence:
         atm, ops = self.atmosphere, self.operators
         sigma = self.sensor.slope_noise_nm(ops.sensor.geometry.pitch_m, 1.0 / self.frame_rate_hz, extra_nm)
         key = (repr(self.grid), repr(self.sensor.shack_hartmann()), atm.r0_m, atm.r0_wavelength_m, atm.outer_scale_m,
-               sigma, self.mmse_noise_weight)
+               atm.remove_ptt, sigma, self.mmse_noise_weight)
         if key not in _MMSE:
             if len(_MMSE) >= 4:
                 _MMSE.pop(next(iter(_MMSE)))
@@ -180,8 +180,9 @@ class ShackHartmannTurbulence:
             n = int(lattice.max()) + 1
             offsets = np.hypot(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij")) * h
             table = von_karman_covariance_nm2(offsets, atm.r0_m, atm.outer_scale_m, atm.r0_wavelength_m)
+            removed = geometry.fine_grid.ptt_basis() if atm.remove_ptt else None  # as the screens are made
             signal, cross = slope_covariances(geometry.slope_operator, ops.influence_pupil_t, ops.pupil, lattice,
-                                              table)
+                                              table, removed=removed)
             gram = ops.gram.toarray()  # C_ys = F C_phi S^T with F = (G + ridge)^-1 IF_p^T, the pupil's ridge
             cross = np.linalg.solve(gram + 1e-10 * np.diag(gram).max() * np.eye(len(gram)), cross)
             _MMSE[key] = torch.as_tensor(mmse_reconstructor(signal, cross, sigma * self.mmse_noise_weight ** 0.5,

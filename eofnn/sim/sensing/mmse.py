@@ -7,8 +7,8 @@ minimises ``E|y_fit - R s|²`` for slopes ``s = S phi + n``, with
 - ``C_ss = S C_phi S^T`` and ``C_ys = F C_phi S^T``, ``C_phi`` von Kármán's phase covariance between the sensor's
   fine points: the slopes' covariance *with* the aliasing of the phase the DM cannot fit, which a command-space prior
   ``C D^T (D C D^T + C_n)^-1`` leaves out (then aliasing passes as signal). Its ``r0`` and ``L0`` are the scenario's
-  atmosphere's: knowledge a simulation has; a real system identifies them from its telemetry. The piston, tip and
-  tilt the atmosphere may remove stay in the prior (they are measured far above the noise);
+  atmosphere's: knowledge a simulation has; a real system identifies them from its telemetry. Piston, tip and tilt
+  over the fine grid leave the prior when the atmosphere removes them from its screens (``remove_ptt``);
 - ``C_n`` the slope noise covariance (nm²): the sensor's white noise per slope (photon and read noise of the
   detector, the plant's ``wfs_noise_nm``), scaled per slope for partly lit subapertures.
 
@@ -50,7 +50,7 @@ def von_karman_covariance_nm2(r_m: np.ndarray, r0_m: float, outer_scale_m: float
 
 
 def slope_covariances(slope_operator, fit_rows, in_pupil: np.ndarray, lattice: np.ndarray, covariance_table: np.ndarray,
-                       block: int = 512) -> tuple[np.ndarray, np.ndarray]:
+                       block: int = 512, removed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(C_ss, C_ys)``: ``S C_phi S^T`` ``(n_slopes, n_slopes)`` and ``F C_phi S^T`` ``(K, n_slopes)`` (nm²).
 
     Parameters
@@ -66,6 +66,11 @@ def slope_covariances(slope_operator, fit_rows, in_pupil: np.ndarray, lattice: n
         ``(n_fine, 2)`` integer (column, row) indices of the fine points on their lattice.
     covariance_table : ndarray
         ``B[|di|, |dj|]`` (nm²): the phase covariance at a lattice offset.
+    block : int
+        Fine points per block of the covariance (memory: three ``block x n_points`` arrays).
+    removed : ndarray or None
+        ``(n_fine, m)`` orthonormal modes removed from every phase screen (piston, tip and tilt over the fine grid):
+        the covariance is then ``(I - Q Q^T) C_phi (I - Q Q^T)``.
     """
     import scipy.sparse as sp
 
@@ -89,6 +94,19 @@ def slope_covariances(slope_operator, fit_rows, in_pupil: np.ndarray, lattice: n
     for lo in range(0, len(pupil), block):
         part = np.arange(lo, min(lo + block, len(pupil)))
         c_ys += np.asarray(fit[:, part] @ against_edges(pupil[part]))
+    if removed is not None:  # C' = C - C Q Q^T - Q Q^T C + Q (Q^T C Q) Q^T
+        q = np.asarray(removed, dtype=np.float64)
+        cq = np.zeros_like(q)
+        for lo in range(0, len(q), block):
+            rows = np.arange(lo, min(lo + block, len(q)))
+            di = np.abs(lattice[rows, None, 0] - lattice[None, :, 0])
+            dj = np.abs(lattice[rows, None, 1] - lattice[None, :, 1])
+            cq[rows] = covariance_table[di, dj] @ q
+        a, b = np.asarray(s @ cq), np.asarray(s @ q)  # S C Q, S Q: (n_slopes, m)
+        x, y = np.asarray(fit @ cq[pupil]), np.asarray(fit @ q[pupil])  # F' C Q, F' Q: (K, m)
+        qcq = q.T @ cq
+        c_ss = c_ss - a @ b.T - b @ a.T + b @ qcq @ b.T
+        c_ys = c_ys - x @ b.T - y @ a.T + y @ qcq @ b.T
     return 0.5 * (c_ss + c_ss.T), c_ys
 
 
