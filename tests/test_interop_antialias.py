@@ -127,8 +127,8 @@ def test_the_lqg_is_built_from_the_same_telemetry_and_the_best_classical_is_chos
     lqg = study["contenders"]["lqg"]["realisations_median_rms_nm"]
     integrator = study["contenders"]["integrator"]["realisations_median_rms_nm"]
     assert all(0.8 < a / b < 1.2 for a, b in zip(lqg, integrator, strict=True))  # an AR model per mode: near the integrator here
-    on_scan = {"integrator": study["guard"]["scan_integrator_nm"], "lqg": scan[study["lqg_scan"]["ar_order"]],
-               "pfc": study["pfc_scan"]["median_rms_nm"]}
+    on_scan = {"integrator": study["guard"]["scan_integrator_nm"], "modal": study["modal_scan"]["median_rms_nm"],
+               "lqg": scan[study["lqg_scan"]["ar_order"]], "pfc": study["pfc_scan"]["median_rms_nm"]}
     assert study["best_classical"] == min(on_scan, key=on_scan.get)
     # With its memory alpha tuned, predictive Fourier control is the best classical controller of this frozen flow
     # (it was last of the three at the default alpha 0.9999); the anti-aliasing EOF still beats it (1.37x here).
@@ -143,16 +143,27 @@ def test_predictive_fourier_control_is_built_from_the_same_telemetry_with_its_wi
     11-across lattice; 24.1 from 3 x 900); its aliases are chosen on the scan, and it is scored on the same
     realisations as the others. Its memory alpha is scanned without aliases, then one ring is tried at the best alpha,
     and the lowest of the six wins."""
+    from eofnn.control.config import alpha_past_edge
     from eofnn.studies.antialias import PFC_ALPHAS
 
     pfc = study["pfc_scan"]
     scan = pfc["scan"]
     assert list(scan)[:len(PFC_ALPHAS)] == [f"aliases=0, alpha={a}" for a in PFC_ALPHAS]
-    no_ring = {float(k.split("alpha=")[1]): v for k, v in list(scan.items())[:len(PFC_ALPHAS)]}
+    no_ring = {float(k.split("alpha=")[1]): v for k, v in scan.items() if k.startswith("aliases=0")}
     assert pfc["alpha"] == min(no_ring, key=no_ring.get)
-    assert list(scan)[-1] == f"aliases=1, alpha={pfc['alpha']:g}"
-    assert pfc["median_rms_nm"] == min(scan.values())
-    assert pfc["aliases"] == (1 if scan[list(scan)[-1]] < no_ring[pfc["alpha"]] else 0)
+    # On past the grid's edge exactly while the best was at it: the scan ends with nothing more to try.
+    extra = len(no_ring) - len(PFC_ALPHAS)
+    assert alpha_past_edge(no_ring, extra) is None
+    assert all(alpha_past_edge(dict(list(no_ring.items())[:i]), i - len(PFC_ALPHAS)) == alpha
+               for i, alpha in enumerate(list(no_ring)[len(PFC_ALPHAS):], start=len(PFC_ALPHAS)))
+    ring = f"aliases=1, alpha={pfc['alpha']:g}"
+    assert list(scan)[len(no_ring)] == ring
+    assert pfc["median_rms_nm"] == min(v for v in scan.values() if v is not None)
+    assert pfc["aliases"] == (1 if scan[ring] < no_ring[pfc["alpha"]] else 0)
+    # Then the noise coloured by OOPAO's reconstructor at the chosen alpha and aliases, kept where it does better.
+    coloured = f"aliases={pfc['aliases']}, alpha={pfc['alpha']:g}, noise=reconstructor"
+    assert list(scan)[-1] == coloured
+    assert pfc["noise_covariance"] == ("reconstructor" if scan[coloured] == pfc["median_rms_nm"] else "white")
     strongest = pfc["identified"]["layers"][0]
     assert strongest["speed_mps"] == pytest.approx(20.0, rel=0.25)
     assert abs(strongest["vx_mps"]) < 0.25 * strongest["speed_mps"]  # along the lattice's rows (its y)
@@ -161,9 +172,29 @@ def test_predictive_fourier_control_is_built_from_the_same_telemetry_with_its_wi
 
 
 @pytest.mark.slow
+def test_the_modal_integrator_with_optimised_gains_is_built_from_the_same_telemetry(study):
+    """Gendron & Léna's gain per KL mode from the recorded telemetry's PSDs, the cap on its gains chosen on the scan
+    realisation; scored on the same realisations, it does no worse than the best single gain beyond their scatter."""
+    from eofnn.control.modal import GAIN_MARGIN_CANDIDATES
+
+    modal = study["modal_scan"]
+    scan = {float(k): v for k, v in modal["scan"].items()}
+    assert list(scan) == list(GAIN_MARGIN_CANDIDATES)
+    assert modal["gain_margin"] == min(scan, key=scan.get) and modal["median_rms_nm"] == scan[modal["gain_margin"]]
+    quantiles = modal["info"]["gains_quantiles_0_10_50_90_100"]
+    assert 0 < quantiles[0] < quantiles[-1] < modal["info"]["critical_gain"]  # not one gain for every mode
+    mine = study["contenders"]["modal"]["realisations_median_rms_nm"]
+    integrator = study["contenders"]["integrator"]["realisations_median_rms_nm"]
+    assert len(mine) == CONFIG.scored_realisations
+    assert np.mean(mine) < 1.05 * np.mean(integrator)
+    assert "modal" not in study["gains"]  # a classical controller: a baseline, not a predictor to rate
+
+
+@pytest.mark.slow
 def test_the_results_table_names_every_contender(study):
     text = antialias_markdown(study)
-    for name in ("integrator", "lqg", "pfc", "eof_measured", "eof_antialias", "guarded"):
+    assert "Modal integrator (optimised gains): gain margin" in text
+    for name in ("integrator", "modal", "lqg", "pfc", "eof_measured", "eof_antialias", "guarded"):
         assert f"| {name} |" in text
         psd = study["contenders"][name]["measured_psd_nm2_per_hz"]
         assert len(psd) == len(study["psd_frequency_hz"]) == CONFIG.psd_segment_frames // 2 + 1

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import pytest
 
+from eofnn.control.config import MAX_EXTRA_ALPHAS, alpha_past_edge
 from eofnn.errors import ConfigError
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig, with_setting
 from eofnn.evaluation.contenders import SCAN_STREAM
@@ -70,6 +71,42 @@ def test_the_alpha_scan_keeps_the_lowest_residual_on_its_own_stream(small_scenar
     assert describe_setting_scan(scan) == "alpha 0.99 chosen (3 nm) over alpha 0.9999 (4), alpha 0.98 (5)"
 
 
+def test_the_memory_goes_past_the_grids_edge_only_while_the_best_is_there():
+    assert alpha_past_edge({0.98: 5.0, 0.99: 3.0}) == 0.995  # still falling at the top: twice the memory
+    assert alpha_past_edge({0.98: 3.0, 0.99: 5.0}) == 0.96  # rising from the bottom: half of it
+    assert alpha_past_edge({0.51: 3.0, 0.9: 5.0}) == 0.5 and alpha_past_edge({0.5: 3.0, 0.9: 5.0}) is None
+    assert alpha_past_edge({0.98: 5.0, 0.99: 3.0, 0.995: 4.0}) is None  # inside the grid: done
+    assert alpha_past_edge({0.98: 5.0, 0.99: 3.0, 0.995: None}) is None  # the next one up diverged
+    assert alpha_past_edge({0.99: 3.0}) is None  # a single setting is no scan
+    assert alpha_past_edge({0.98: 5.0, 0.99: 3.0}, extra_so_far=MAX_EXTRA_ALPHAS) is None
+
+
+def test_the_alpha_scan_goes_on_past_the_grids_edge_while_the_residual_falls(small_scenario, monkeypatch):
+    """Residuals lowest at 0.9975: the grid [0.98, 0.99] ends with its best at its edge, so the scan doubles the
+    memory until the residual rises (0.995, 0.9975, then 0.99875) and keeps 0.9975 and its model."""
+    built: list[float] = []
+
+    def fake_build(config, scenario):
+        built.append(config.pfc.alpha)
+        return _FakePfc(config.pfc.alpha)
+
+    def fake_residual(self, controller, n_frames, seed, stream, settle_frames, **kwargs):
+        return 1.0 + 1e3 * abs(controller.alpha - 0.9975)
+
+    registry = __import__("eofnn.control.registry", fromlist=["FROM_TELEMETRY"])
+    monkeypatch.setitem(registry.FROM_TELEMETRY, "pfc", fake_build)
+    monkeypatch.setattr(Scenario, "median_residual_nm", fake_residual)
+    experiment = Experiment(small_scenario, {"nominal": {}},
+                            {"pfc": PredictorConfig(controller="pfc", pfc_alphas=[0.98, 0.99],
+                                                    data={"frames": 1024, "seed": 5, "dither_nm": 5.0})},
+                            EvaluationConfig(frames=600, settle_frames=100, seed=1), log=lambda line: None)
+    assert experiment.config("pfc", "nominal").pfc.alpha == 0.9975
+    assert built == [0.98, 0.99, 0.995, 0.9975, 0.99875]
+    assert experiment.predictor_if_any("pfc", "nominal") == _FakePfc(0.9975)
+    scan = experiment.setting_scans[("pfc", "nominal")]
+    assert [e["pfc.alpha"] for e in scan["scanned"]] == built
+
+
 @pytest.mark.slow
 def test_compare_builds_and_runs_the_pfc_of_the_chosen_alpha(small_scenario):
     experiment = Experiment(small_scenario, {"nominal": {}},
@@ -79,7 +116,11 @@ def test_compare_builds_and_runs_the_pfc_of_the_chosen_alpha(small_scenario):
                             log=lambda line: None)
     result = experiment.run()
     scan = result.classical_settings["nominal"]["pfc"]
-    assert [e["pfc.alpha"] for e in scan["scanned"]] == [0.9, 0.99]
+    tried = [e["pfc.alpha"] for e in scan["scanned"]]
+    assert tried[:2] == [0.9, 0.99]  # then past the edge while the best is there
+    assert all(alpha_past_edge({e["pfc.alpha"]: e["median_rms_nm"] for e in scan["scanned"][:i]}, i - 2) == alpha
+               for i, alpha in enumerate(tried[2:], start=2))
+    assert alpha_past_edge({e["pfc.alpha"]: e["median_rms_nm"] for e in scan["scanned"]}, len(tried) - 2) is None
     assert scan["median_rms_nm"] == min(e["median_rms_nm"] for e in scan["scanned"] if e["median_rms_nm"])
     assert experiment.classical_models[("pfc", "nominal")].info["alpha"] == scan["pfc.alpha"]
     assert result.stability["nominal"]["pfc"]["stable"]

@@ -20,6 +20,33 @@ MAX_EXTRAPOLATION_SMOOTHING = 16
 AR_ORDERS = (1, 2)
 #: The most frozen-flow layers a predictive Fourier controller models.
 MAX_PFC_LAYERS = 4
+#: The noise covariances predictive Fourier control may assume (:attr:`PfcConfig.noise_covariance`).
+PFC_NOISE_COVARIANCES = ("white", "reconstructor")
+#: The most memories a scan of PFC's ``alpha`` tries past its grid's edge (:func:`alpha_past_edge`).
+MAX_EXTRA_ALPHAS = 4
+
+
+def alpha_past_edge(scanned: dict[float, float | None], extra_so_far: int = 0) -> float | None:
+    """The next memory ``alpha`` a scan of predictive Fourier control tries past its grid's edge, or ``None``.
+
+    ``scanned`` maps each alpha tried to its median residual (``None``: diverged). When the lowest residual is at
+    the highest alpha tried (the residual still falling towards 1): ``1 - (1 - best) / 2``, twice the memory; at
+    the lowest alpha tried (and above 0.5): ``max(0.5, 1 - 2 (1 - best))``, half of it; else, or after
+    :data:`MAX_EXTRA_ALPHAS` extra alphas, ``None``. As the best-gain integrator's scan climbs past its grid
+    (:func:`eofnn.interop.loop.scan_integrator`), the choice is then never the grid's edge unless it is the edge of
+    what helps.
+    """
+    finite = {alpha: rms for alpha, rms in scanned.items() if rms is not None}
+    if not finite or extra_so_far >= MAX_EXTRA_ALPHAS or len(scanned) < 2:
+        return None
+    best = min(finite, key=finite.get)
+    if best == max(scanned):
+        candidate = float(f"{1 - (1 - best) / 2:.8g}")
+    elif best == min(scanned) and best > 0.5:
+        candidate = max(0.5, float(f"{1 - 2 * (1 - best):.8g}"))
+    else:
+        return None
+    return None if candidate in scanned or candidate >= 1 else candidate
 
 
 @dataclass
@@ -49,6 +76,11 @@ class PfcConfig:
         time for little residual (``docs/findings.md``).
     max_speed_mps : float
         Fastest wind the identification searches for, m/s.
+    noise_covariance : {"white", "reconstructor"}
+        The measurement noise's covariance on the actuators: ``white`` (default), the same variance on every
+        actuator, uncorrelated; ``reconstructor``: a Shack-Hartmann's white slope noise through its reconstructor,
+        ``R W R^T`` (spatially coloured; ``W`` the slopes' relative noise variances), scaled to the white-noise
+        variance per actuator the telemetry shows. A sensor without slopes has white noise: the same as ``white``.
     """
 
     layers: int = 2
@@ -57,6 +89,7 @@ class PfcConfig:
     aliases: int = 1
     padding: float = 2.0
     max_speed_mps: float = 50.0
+    noise_covariance: str = "white"
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         "layers": Interval(1, MAX_PFC_LAYERS, integer=True, unit="frozen-flow layers"),
@@ -64,6 +97,7 @@ class PfcConfig:
         "aliases": Interval(0, 2, integer=True, unit="rings of aliased frequencies"),
         "padding": Interval(1, 4, unit="FFT grid over the actuator grid"),
         "max_speed_mps": Interval(0, 1000, closed="right", unit="m/s"),
+        "noise_covariance": OneOf(PFC_NOISE_COVARIANCES),
     }
     _where: ClassVar[str] = "pfc."
 

@@ -29,6 +29,7 @@ from eofnn.control.config import PfcConfig
 from eofnn.control.fourier import DTYPE, FourierBasis, FourierPredictor, state_frequencies, stationary_gain
 from eofnn.control.modal import record_pol_telemetry, within_screen
 from eofnn.control.wind import identify_winds, known_winds
+from eofnn.errors import ConfigError
 from eofnn.sim.atmosphere.exact import von_karman_psd
 from eofnn.sim.scenario import Scenario
 from eofnn.sim.sensing.kernels import kernel_power
@@ -68,17 +69,29 @@ def smooth_variance(variance: torch.Tensor, model: torch.Tensor, frequencies: to
 
 def pfc_from_pol(pol: torch.Tensor, scenario: Scenario, config: PfcConfig | None = None,
                  dm_gain_model: float = 1.0, info: dict | None = None,
-                 noise_variance: float | None = None) -> FourierPredictor:
+                 noise_variance: float | None = None, noise_shape: torch.Tensor | None = None) -> FourierPredictor:
     """The predictive Fourier controller of ``(realisations, frames, K)`` POL values recorded in ``scenario``: noise
     (``noise_variance``, nm² per actuator, where known; else estimated), winds (``config.winds`` if given, else
-    identified), per-mode variances and Kalman gains (module docstring)."""
+    identified), per-mode variances and Kalman gains (module docstring). ``noise_shape`` ``(K, K)`` (e.g. ``R W
+    R^T``, a Shack-Hartmann's slope noise through its reconstructor): the noise's covariance up to a factor, scaled
+    so that its mean diagonal is that variance per actuator; each mode's noise is then ``(F^H C F)_kk`` rather than
+    white noise's (``None``: white)."""
     config = config or PfcConfig()
     grid, period = scenario.grid, 1.0 / scenario.frame_rate_hz
     pol = pol.to(DTYPE)
     basis = FourierBasis(grid, config.padding)
     b, t, k = pol.shape
     sigma2 = white_noise_variance(pol) if noise_variance is None else noise_variance
-    noise = sigma2 * basis.noise_gain()
+    if noise_shape is None:
+        noise = sigma2 * basis.noise_gain()
+    else:
+        shape = torch.as_tensor(noise_shape, dtype=DTYPE)
+        if shape.shape != (k, k):
+            raise ConfigError(f"noise_shape of shape {tuple(shape.shape)} does not fit: expected ({k}, {k}) "
+                              f"({k} actuators)")
+        forward = basis.forward(torch.eye(k, dtype=DTYPE))  # (K, M): mode k of actuator j's unit value
+        coloured = (forward.conj() * basis.forward(shape)).sum(0).real  # diag(F^H C F), C symmetric
+        noise = sigma2 * coloured.clamp(min=0) / float(shape.diagonal().mean())
     flat = pol.reshape(b * t, k)
     measured = sum(basis.forward(flat[i: i + 512]).abs().pow(2).sum(0) for i in range(0, b * t, 512)) / (b * t)
     variance = (measured - noise).clamp(min=1e-12 * float(noise.max() + 1))
@@ -104,6 +117,8 @@ def pfc_from_pol(pol: torch.Tensor, scenario: Scenario, config: PfcConfig | None
                  "winds_source": "given (pfc.winds)" if config.winds is not None else "identified from telemetry",
                  "noise_rms_nm": math.sqrt(sigma2), "remove_ptt": remove_ptt, "fft_size": basis.size,
                  "n_modes": basis.n_modes, "states_per_mode": transition.shape[1], "alpha": config.alpha})
+    if noise_shape is not None:
+        info["noise_covariance"] = "coloured (noise_shape)"
     return FourierPredictor(basis, transition, gain, scenario.plant.delay_frames, dm_gain_model, remove_ptt, info)
 
 
@@ -115,4 +130,20 @@ def build_pfc(scenario: Scenario, data, config: PfcConfig | None = None,
     if note is not None:
         warnings.warn(note, stacklevel=2)
     pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
-    return pfc_from_pol(pol, scenario, config, info["dm_gain_model"], info)
+    shape = reconstructed_noise_shape(scenario) if config is not None and config.noise_covariance == "reconstructor" \
+        else None
+    return pfc_from_pol(pol, scenario, config, info["dm_gain_model"], info, noise_shape=shape)
+
+
+def reconstructed_noise_shape(scenario: Scenario) -> torch.Tensor | None:
+    """``R W R^T`` ``(K, K)``: the shape of a Shack-Hartmann scenario's measurement noise on the actuators, its white
+    slope noise (``W``: each slope's relative variance) through the reconstructor the loop applies (least squares or
+    MMSE); ``None`` for the zonal sensor, whose noise is white."""
+    if not scenario.sensor.is_shack_hartmann:
+        return None
+    turbulence = scenario.turbulence(0, "noise-shape")
+    ops = turbulence.operators
+    mmse = turbulence.reconstructor(scenario.plant.wfs_noise_nm)
+    r = ops.reconstructor if mmse is None else mmse
+    weights = torch.as_tensor(ops.sensor.slope_noise_scale, dtype=DTYPE) ** 2
+    return (r * weights) @ r.T

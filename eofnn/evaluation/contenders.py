@@ -15,6 +15,7 @@ from typing import Any
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
+from eofnn.control.config import alpha_past_edge
 from eofnn.control.modal import require_telemetry, within_screen
 from eofnn.control.registry import FROM_TELEMETRY, build_controller
 from eofnn.data.history import HistorySpec
@@ -168,8 +169,9 @@ SCAN_FIELDS = ("orders", "smoothings", "ar_orders", "pfc_alphas")
 def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_frames: int,
                             divergence_factor: float) -> tuple[dict, Any]:
     """A classical controller's settings tuned like the integrator's gain (the extrapolator's order and smoothing,
-    the LQG's AR order): each of ``cfg.setting_grid`` closes the loop on the scan stream, and the lowest median
-    residual wins (the first tried on a tie). A controller built from telemetry builds one model per setting, each
+    the LQG's AR order, PFC's memory): each of ``cfg.setting_grid`` closes the loop on the scan stream, and the lowest
+    median residual wins (the first tried on a tie); PFC's memory is scanned on past the grid's edge while the best is
+    there (:func:`~eofnn.control.config.alpha_past_edge`). A controller built from telemetry builds one model per setting, each
     from the same telemetry (its own streams: neither the scan's nor the test's).
 
     Returns the scan, ``{**chosen setting, "median_rms_nm": its residual, "scanned": every setting tried with its
@@ -181,8 +183,14 @@ def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_fra
         models.append(from_telemetry(setting_cfg, scenario))
         return models[-1]
 
-    scanned = scan_settings(replace(cfg, **dict.fromkeys(SCAN_FIELDS)), cfg.setting_grid, scenario, settle_frames,
-                            divergence_factor, model_of if from_telemetry is not None else None)
+    plain = replace(cfg, **dict.fromkeys(SCAN_FIELDS))
+    scanned = scan_settings(plain, cfg.setting_grid, scenario, settle_frames, divergence_factor,
+                            model_of if from_telemetry is not None else None)
+    # PFC's memory, like the integrator's gain, goes on past the grid's edge while the residual still falls there.
+    while cfg.pfc_alphas is not None and (alpha := alpha_past_edge(
+            {e["pfc.alpha"]: e["median_rms_nm"] for e in scanned}, len(scanned) - len(cfg.setting_grid))) is not None:
+        scanned += scan_settings(plain, [{"pfc.alpha": alpha}], scenario, settle_frames, divergence_factor,
+                                 model_of if from_telemetry is not None else None)
     finite = [i for i, entry in enumerate(scanned) if entry["median_rms_nm"] is not None]
     asked = ", ".join(f"{name}={getattr(cfg, name)!r}" for name in SCAN_FIELDS if getattr(cfg, name) is not None)
     require(bool(finite), f"every setting of controller {cfg.controller} ({asked}) diverged: check the plant's DM "

@@ -36,7 +36,8 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from eofnn.control.modal import lqg_from_pol
+from eofnn.control.classical import ModalIntegrator
+from eofnn.control.modal import GAIN_MARGIN_CANDIDATES, lqg_from_pol, modal_statistics, optimal_gains
 from eofnn.data.history import HistorySpec, pseudo_open_loop
 from eofnn.errors import ConfigError
 from eofnn.evaluation.contrast import RawContrast
@@ -60,8 +61,8 @@ from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value,
 
 #: What the adapter must offer beyond a SimulatorAdapter.
 NEEDED = ("turbulence_fit_nm", "residual_opd_nm", "pupil_mask", "dm_gain", "settings")
-CONTENDERS = ("integrator", "lqg", "pfc", "eof_measured", "eof_antialias")
-CLASSICAL = ("integrator", "lqg", "pfc")
+CONTENDERS = ("integrator", "modal", "lqg", "pfc", "eof_measured", "eof_antialias")
+CLASSICAL = ("integrator", "modal", "lqg", "pfc")
 
 
 @dataclass
@@ -183,12 +184,15 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     scan_seed = c.seed + 3
     scan = scan_integrator(sim, c.gains, c.loop_frames, scan_seed, c.settle_frames)
     pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, plant.dm_gain) for seq in telemetry])
+    modal = scan_modal(sim, pol, plant.dm_gain, c, scan_seed)
     lqg = scan_lqg(sim, pol, plant.dm_gain, c, scan_seed)
     pfc = scan_pfc(sim, pol, plant, c, scan_seed)
 
     def control(name: str):
         if name == "integrator":
             return IntegratorControl(scan["gain"])
+        if name == "modal":
+            return TorchControl(modal["controller"], sim.delay_frames)
         if name == "lqg":
             return TorchControl(lqg["controller"], sim.delay_frames)
         if name == "pfc":
@@ -203,13 +207,16 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     results["guarded"] = {**results[deployed], "deployed": deployed}
     fitting = [fitting_error(sim, c.loop_frames, seed, start=c.settle_frames)["median_rms_nm"] for seed in scored]
     # The best classical controller is chosen on the scan realisation, as each was tuned: not on the scored ones.
-    on_scan = {"integrator": scan["median_rms_nm"], "lqg": lqg["median_rms_nm"], "pfc": pfc["median_rms_nm"]}
+    on_scan = {"integrator": scan["median_rms_nm"], "modal": modal["median_rms_nm"], "lqg": lqg["median_rms_nm"],
+               "pfc": pfc["median_rms_nm"]}
     best = min((name for name, v in on_scan.items() if v is not None), key=on_scan.get)
     return {"simulator": sim.describe(), "config": asdict(c), "scored_seeds": scored,
             "identified": {"dm_gain": plant.dm_gain, "wfs_noise_nm": plant.wfs_noise_nm, "dm_gain_true": sim.dm_gain},
             "fits": fits, "integrator_scan": {"gain": scan["gain"], "scan": {str(g): v for g, v in scan["scan"].items()}},
+            "modal_scan": {key: modal[key] for key in ("gain_margin", "median_rms_nm", "scan", "info")},
             "lqg_scan": {"ar_order": lqg["ar_order"], "scan": lqg["scan"]},
-            "pfc_scan": {"alpha": pfc["alpha"], "aliases": pfc["aliases"], "median_rms_nm": pfc["median_rms_nm"],
+            "pfc_scan": {"alpha": pfc["alpha"], "aliases": pfc["aliases"], "noise_covariance": pfc["noise_covariance"],
+                         "median_rms_nm": pfc["median_rms_nm"],
                          "scan": pfc["scan"], "identified": pfc["info"]},
             "guard": {"scan_integrator_nm": scan["median_rms_nm"], "scan_eof_antialias_nm": guard.median_rms_nm,
                       "deployed": deployed},
@@ -238,13 +245,39 @@ def fit_eofs(sim, telemetry: list, plant, c: AntiAliasConfig) -> tuple[dict, dic
     return filters, fits
 
 
+def _grid_indices(sim) -> torch.Tensor | None:
+    """``(K, 2)`` lattice rows and columns of ``sim``'s actuators (``None`` off a lattice): the KL modes' homogenised
+    covariance (:func:`eofnn.control.modal.modal_statistics`)."""
+    layout = layout_from_positions(sim.positions_m)
+    indices = layout.lattice_indices if isinstance(layout, ActuatorLayout) else layout.indices
+    return None if indices is None else torch.as_tensor(indices)
+
+
+def scan_modal(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:
+    """The modal integrator with optimised gains (Gendron & Léna 1994, :func:`eofnn.control.modal.optimal_gains`)
+    built from the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain): KL modes, each
+    mode's temporal PSD and noise, one gain per mode minimising its predicted residual, and how near its critical gain
+    a mode may go (:data:`~eofnn.control.modal.GAIN_MARGIN_CANDIDATES`) chosen in the loop on the scan realisation
+    ``seed``, as eofnn's own loop chooses it: ``{"controller", "gain_margin", "median_rms_nm", "scan", "info"}``."""
+    stats = modal_statistics(pol, grid_indices=_grid_indices(sim))
+    built, critical = {}, None
+    for margin in GAIN_MARGIN_CANDIDATES:
+        gains, _, critical = optimal_gains(stats, sim.delay_frames, dm_gain, min_gain_margin=margin)
+        built[margin] = ModalIntegrator(stats.modes, gains, sim.delay_frames, dm_gain)
+    margin, rms, scan = _best_in_loop(sim, {m: TorchControl(ctrl, sim.delay_frames) for m, ctrl in built.items()},
+                                      c, seed, fallback=GAIN_MARGIN_CANDIDATES[-1])
+    gains = built[margin].gains
+    quantiles = gains.quantile(torch.tensor([0.0, 0.1, 0.5, 0.9, 1.0], dtype=gains.dtype))
+    return {"controller": built[margin], "gain_margin": margin, "median_rms_nm": rms, "scan": scan,
+            "info": {"critical_gain": critical, "gains_quantiles_0_10_50_90_100": [round(float(q), 4) for q in quantiles],
+                     "noise_rms_nm_median": float(stats.noise_variance.median().sqrt())}}
+
+
 def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:
     """The LQG (:func:`eofnn.control.modal.lqg_from_pol`: AR model per KL mode, stationary Kalman filter) built
     from the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain), its AR order (1 or
     2) chosen in the loop on the scan realisation ``seed``: ``{"controller", "ar_order", "median_rms_nm", "scan"}``."""
-    layout = layout_from_positions(sim.positions_m)
-    indices = layout.lattice_indices if isinstance(layout, ActuatorLayout) else layout.indices
-    grid_indices = None if indices is None else torch.as_tensor(indices)
+    grid_indices = _grid_indices(sim)
     built = {order: lqg_from_pol(pol, sim.delay_frames, dm_gain, order, grid_indices=grid_indices)
              for order in (1, 2)}
     order, rms, scan = _best_in_loop(sim, {order: TorchControl(lqg, sim.delay_frames) for order, lqg in built.items()},
@@ -263,25 +296,43 @@ def scan_pfc(sim, pol: torch.Tensor, plant, c: AntiAliasConfig, seed: int) -> di
     """Predictive Fourier control (:func:`eofnn.studies.pfc.pfc_in_loop`: a Kalman filter per Fourier mode, the
     winds, noise and per-mode variances from the recorded telemetry's ``(R, T, K)`` POL values) tuned in the loop on
     the scan realisation ``seed``, as the integrator's gain and the LQG's AR order are: its memory ``alpha`` over
-    :data:`PFC_ALPHAS` without aliases in its state, then one ring of aliases at the chosen alpha (six settings, the
-    integrator's budget): ``{"controller", "alpha", "aliases", "median_rms_nm", "scan", "info"}``."""
-    from eofnn.control.config import PfcConfig
+    :data:`PFC_ALPHAS` without aliases in its state, on past the grid's edge while the best is there
+    (:func:`~eofnn.control.config.alpha_past_edge`), then one ring of aliases at the chosen alpha, then (where the
+    loop exposes its reconstructor) the noise coloured by it, ``R R^T``, at the chosen alpha and aliases:
+    ``{"controller", "alpha", "aliases", "noise_covariance", "median_rms_nm", "scan", "info"}``."""
+    from eofnn.control.config import PfcConfig, alpha_past_edge
     from eofnn.studies.pfc import pfc_in_loop
 
-    def build(aliases: int, alpha: float):
-        return pfc_in_loop(sim, pol, plant.dm_gain, plant.wfs_noise_nm, PfcConfig(aliases=aliases, alpha=alpha))
+    def build(aliases: int, alpha: float, noise: str = "white"):
+        return pfc_in_loop(sim, pol, plant.dm_gain, plant.wfs_noise_nm,
+                           PfcConfig(aliases=aliases, alpha=alpha, noise_covariance=noise))
 
     built = {alpha: build(0, alpha) for alpha in PFC_ALPHAS}
     alpha, rms, scan = _best_in_loop(sim, built, c, seed, fallback=PFC_ALPHAS[-1])
-    scan = {f"aliases=0, alpha={key}": v for key, v in scan.items()}
+    tried = {float(key): v for key, v in scan.items()}
+    # On past the grid's edge while the best is there, as the integrator's gain scan climbs.
+    while (extra := alpha_past_edge(tried, len(tried) - len(PFC_ALPHAS))) is not None:
+        built[extra] = build(0, extra)
+        tried[extra] = run_closed_loop(sim, built[extra], c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
+        stable = {a: v for a, v in tried.items() if v is not None}
+        alpha = min(stable, key=stable.get) if stable else alpha
+        rms = stable.get(alpha)
+    scan = {f"aliases=0, alpha={key}": v for key, v in tried.items()}
     with_ring = build(1, alpha)
     ring = run_closed_loop(sim, with_ring, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
     scan[f"aliases=1, alpha={alpha:g}"] = ring
     aliases = 1 if ring is not None and (rms is None or ring < rms) else 0
-    controller = with_ring if aliases else built[alpha]
+    controller, rms = (with_ring, ring) if aliases else (built[alpha], rms)
+    noise = "white"
+    if getattr(sim, "reconstructor", None) is not None:
+        coloured = build(aliases, alpha, "reconstructor")
+        coloured_rms = run_closed_loop(sim, coloured, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
+        scan[f"aliases={aliases}, alpha={alpha:g}, noise=reconstructor"] = coloured_rms
+        if coloured_rms is not None and (rms is None or coloured_rms < rms):
+            controller, rms, noise = coloured, coloured_rms, "reconstructor"
     info = controller.controller.info or {}
-    return {"controller": controller, "alpha": alpha, "aliases": aliases,
-            "median_rms_nm": ring if aliases else rms, "scan": scan,
+    return {"controller": controller, "alpha": alpha, "aliases": aliases, "noise_covariance": noise,
+            "median_rms_nm": rms, "scan": scan,
             "info": {"layers": info.get("layers"), "noise_rms_nm": info.get("noise_rms_nm")}}
 
 
@@ -388,12 +439,16 @@ def antialias_markdown(metrics: dict) -> str:
                      + " | ".join("" if contrast.get(s) is None else f"{contrast[s]:.2e}" for s in seps) + " |")
     lines += psd_bands_markdown(metrics)
     lqg, pfc = metrics["lqg_scan"], metrics.get("pfc_scan")
-    winds = "" if not pfc else f" PFC: alpha {pfc.get('alpha', 0.9999):g}, {pfc['aliases']} ring(s) of aliases " \
+    winds = "" if not pfc else f" PFC: alpha {pfc.get('alpha', 0.9999):g}, {pfc['aliases']} ring(s) of aliases, " \
+        f"{pfc.get('noise_covariance', 'white')} noise " \
         f"(scan: {pfc['scan']}), layers " + ", ".join(
         f"{lay['speed_mps']:.1f} m/s at {lay['direction_deg']:.0f}° ({lay['weight']:.0%})"
         for lay in pfc["identified"]["layers"] or []) + " identified from the telemetry."
-    lines += ["", f"LQG: AR order {lqg['ar_order']} (scan: {lqg['scan']}).{winds} Best classical controller, chosen on "
-                  f"the scan realisation: {metrics['best_classical']}."]
+    modal = metrics.get("modal_scan")
+    gains_line = "" if not modal else f" Modal integrator (optimised gains): gain margin {modal['gain_margin']:g} " \
+        f"(scan: {modal['scan']}), gains {modal['info']['gains_quantiles_0_10_50_90_100']} (quantiles 0-10-50-90-100%)."
+    lines += ["", f"LQG: AR order {lqg['ar_order']} (scan: {lqg['scan']}).{winds}{gains_line} Best classical controller, "
+                  f"chosen on the scan realisation: {metrics['best_classical']}."]
     against_best = () if metrics["best_classical"] == "integrator" else \
         (("gains_over_best_classical", metrics["best_classical"]),)
     for key, against in (("gains", "integrator"), *against_best):

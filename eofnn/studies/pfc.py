@@ -17,8 +17,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+import torch
+
 from eofnn.control.config import PfcConfig
 from eofnn.control.frozen_flow import pfc_from_pol
+from eofnn.errors import require
 from eofnn.interop.pfc import LatticeControl, LatticeGrid
 
 
@@ -34,12 +38,23 @@ class _LoopScenario:
 
 def pfc_in_loop(sim, pol, dm_gain: float, noise_nm: float | None, config: PfcConfig | None = None) -> LatticeControl:
     """Predictive Fourier control of ``sim``'s loop from its ``(R, T, K)`` POL values (formed with the identified
-    ``dm_gain``; ``noise_nm``: the identified white noise per actuator, else estimated), as a loop controller."""
+    ``dm_gain``; ``noise_nm``: the identified white noise per actuator, else estimated), as a loop controller.
+    ``config.noise_covariance: reconstructor`` takes the noise's shape from the loop's own reconstructor,
+    ``R R^T`` (``sim.reconstructor``, ``(K, n_slopes)``: its slope noise taken as white and equal on every slope),
+    scaled to that variance per actuator."""
     from eofnn.studies.transfer import eofnn_twin
 
+    config = config or PfcConfig()
     grid = LatticeGrid(sim.positions_m)
     twin = eofnn_twin(sim).eofnn_scenario(None, screen_frames=50)
     scenario = _LoopScenario(grid, float(sim.frame_rate_hz), twin.atmosphere, twin.plant)
-    controller = pfc_from_pol(pol[..., grid.order], scenario, config or PfcConfig(), dm_gain,
-                              noise_variance=None if noise_nm is None else float(noise_nm) ** 2)
+    shape = None
+    if config.noise_covariance == "reconstructor":
+        require(getattr(sim, "reconstructor", None) is not None,
+                f"pfc.noise_covariance='reconstructor' is invalid in {type(sim).__name__}'s loop: it exposes no "
+                "reconstructor (K x slopes); use 'white'")
+        r = torch.as_tensor(np.asarray(sim.reconstructor, dtype=np.float64))[grid.order]
+        shape = r @ r.T
+    controller = pfc_from_pol(pol[..., grid.order], scenario, config, dm_gain,
+                              noise_variance=None if noise_nm is None else float(noise_nm) ** 2, noise_shape=shape)
     return LatticeControl(controller, sim.delay_frames, grid.order)

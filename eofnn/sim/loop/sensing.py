@@ -36,6 +36,16 @@ Two sensings share one interface (:func:`loop_sensing`):
   - the residual over the pupil is ``phi + IF DM(y)`` on the fine points inside the pupil, its RMS taken with
     piston removed (as OOPAO's ``np.std(tel.OPD[pupil])``): fitting error included.
 
+  - with ``sensor.reconstructor: mmse`` (:mod:`eofnn.sim.sensing.mmse`) the computer applies the noise-aware
+    ``R_mmse`` in place of ``R``, in the very formula above with ``P = R_mmse D``, which is no projector. The
+    pseudo-open-loop value ``wfs - y`` is then ``R_mmse (S phi + n)`` in a nominal plant: the MMSE estimate of the
+    open-loop phase from pseudo-open-loop slopes, the statistics its prior describes (a closed-loop residual's are
+    not), and an integrator on ``wfs`` is pseudo-open-loop control (Ellerbroek & Vogel 2003),
+    ``y <- y - g (R_mmse s_pol + y)``. The truth ``s`` stays the least-squares ``R S phi`` (the actuator-space scores
+    of both reconstructors are against one truth); recorded slopes still satisfy ``R_mmse slopes + (I - P) y = wfs``,
+    and the telemetry carries ``R_mmse``. Its noise term is one frame's; a loop that averages many frames is served
+    better by a smaller one (:attr:`ShackHartmannTurbulence.mmse_noise_weight`).
+
   ``isolate`` (the error budget's runs) swaps parts of the sensor for perfect ones: ``noise_free`` drops ``n``;
   ``perfect`` also reads ``P F phi`` in place of ``R S phi`` (no aliasing; ``s`` is then ``P F phi`` too).
 
@@ -73,6 +83,7 @@ if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann i
     from eofnn.sim.sensing.shack_hartmann import ShackHartmann
 
 torch = lazy_module("torch")
+np = lazy_module("numpy")
 
 #: What the budget's runs may swap for perfect: nothing, the noise, or the noise and the aliasing.
 ISOLATE = ("none", "noise_free", "perfect")
@@ -84,6 +95,7 @@ CACHE_BYTES = 2 ** 30
 PHASE_EVERY = 10
 _CACHE: OrderedDict = OrderedDict()
 _OPERATORS: dict = {}
+_MMSE: dict = {}
 
 
 def loop_operators(grid: ActuatorGrid, config: ShackHartmann) -> LoopOperators:
@@ -120,6 +132,9 @@ class ShackHartmannTurbulence:
         self._args = (replace(atmosphere, kernel="point"), self.fine_grid, frame_rate_hz, seed, stream,
                       n_realisations, vibrations)
         self._fine: Turbulence | None = None  # built when a chunk is not cached
+        # The MMSE reconstructor's noise variance over the sensor's: 1 for one frame's estimate; a loop that averages
+        # its measurements over time (an integrator of gain g: about g / (2 - g)) is better served by less.
+        self.mmse_noise_weight = 1.0
         self._key = repr((self._args, repr(sensor.shack_hartmann()), repr(grid)))
 
     @property
@@ -144,6 +159,37 @@ class ShackHartmannTurbulence:
             return 0.0
         geometry = self.operators.sensor.geometry
         return self.sensor.slope_noise_nm(geometry.pitch_m, 1.0 / self.frame_rate_hz, extra_nm)
+
+    def reconstructor(self, extra_nm: float) -> torch.Tensor | None:
+        """The MMSE reconstructor ``(K, 2 n_sub)`` in the loop's units for the sensor's slope noise with the plant's
+        ``extra_nm`` (``sensor.reconstructor: mmse``; the nominal noise even when isolated, so the error budget's
+        runs keep the reconstructor they isolate) times :attr:`mmse_noise_weight`, or ``None``: the least-squares one
+        (:attr:`operators`). Cached by sensor, atmosphere and noise: a study builds it once."""
+        if self.sensor.reconstructor != "mmse":
+            return None
+        atm, ops = self.atmosphere, self.operators
+        sigma = self.sensor.slope_noise_nm(ops.sensor.geometry.pitch_m, 1.0 / self.frame_rate_hz, extra_nm)
+        key = (repr(self.grid), repr(self.sensor.shack_hartmann()), atm.r0_m, atm.r0_wavelength_m, atm.outer_scale_m,
+               atm.remove_ptt, sigma, self.mmse_noise_weight)
+        if key not in _MMSE:
+            if len(_MMSE) >= 4:
+                _MMSE.pop(next(iter(_MMSE)))
+            from eofnn.sim.sensing.mmse import mmse_reconstructor, slope_covariances, von_karman_covariance_nm2
+
+            geometry = ops.sensor.geometry
+            h = geometry.fine_pitch_m
+            lattice = np.rint((geometry.fine_positions_m - geometry.fine_positions_m.min(0)) / h).astype(np.int64)
+            n = int(lattice.max()) + 1
+            offsets = np.hypot(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij")) * h
+            table = von_karman_covariance_nm2(offsets, atm.r0_m, atm.outer_scale_m, atm.r0_wavelength_m)
+            removed = geometry.fine_grid.ptt_basis() if atm.remove_ptt else None  # as the screens are made
+            signal, cross = slope_covariances(geometry.slope_operator, ops.influence_pupil_t, ops.pupil, lattice,
+                                              table, removed=removed)
+            gram = ops.gram.toarray()  # C_ys = F C_phi S^T with F = (G + ridge)^-1 IF_p^T, the pupil's ridge
+            cross = np.linalg.solve(gram + 1e-10 * np.diag(gram).max() * np.eye(len(gram)), cross)
+            _MMSE[key] = torch.as_tensor(mmse_reconstructor(signal, cross, sigma * self.mmse_noise_weight ** 0.5,
+                                                            ops.sensor.slope_noise_scale))
+        return _MMSE[key]
 
     @property
     def chunk_frames(self) -> int:
@@ -221,11 +267,17 @@ class ShackHartmannTurbulence:
 
     def open_loop(self, start: int, stop: int, plant, generator) -> tuple[torch.Tensor, torch.Tensor]:
         """``(s, s_hat)`` of frames ``start..stop-1`` with no correction: the truth and the sensor's reading of it
-        with the gain divided out, ``R S phi + R n / wfs_gain`` (what pseudo-open-loop data is)."""
-        out = self.products(start, stop)
+        with the gain divided out, ``R S phi + R n / wfs_gain`` (what pseudo-open-loop data is; through the MMSE
+        reconstructor ``R_mmse (S phi + n / wfs_gain)`` when the sensor has one)."""
+        mmse = self.reconstructor(plant.wfs_noise_nm)
+        out = self.products(start, stop, slopes=mmse is not None)
         self.release()
         s, s_hat = out["s"], out["sensed"]
-        noise = self.noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)
+        n = self.slope_noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)
+        if mmse is not None:  # the MMSE reconstruction of the open-loop slopes
+            slopes = out["slopes"] if n is None else out["slopes"] + n / plant.wfs_gain
+            return s, s_hat if self.isolate == "perfect" else slopes @ mmse.T
+        noise = None if n is None else n @ self.operators.reconstructor.T
         return s, s_hat if noise is None else s_hat + noise / plant.wfs_gain
 
     def pupil_mean_square(self, pupil: dict[str, torch.Tensor], u: torch.Tensor) -> torch.Tensor:
@@ -297,7 +349,11 @@ class ShackHartmannLoopSensing:
         self.sigma_nm = turbulence.slope_noise_nm(plant.wfs_noise_nm)
         ops = turbulence.operators
         self.n_slopes = ops.sensor.n_slopes
-        self.projector_t = ops.projector.T.contiguous()
+        # The reconstructor the computer applies: least squares, or MMSE (then P = R D is no projector).
+        self.mmse = turbulence.reconstructor(model.plant.wfs_noise_nm)
+        self.reconstructor = ops.reconstructor if self.mmse is None else self.mmse
+        projector = ops.projector if self.mmse is None else self.mmse @ ops.interaction_matrix
+        self.projector_t = projector.T.contiguous()
         self.interaction_t = ops.interaction_matrix.T.contiguous() if slopes else None
         self.fraction = plant.delay_fraction
         # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
@@ -310,13 +366,16 @@ class ShackHartmannLoopSensing:
                                         self.fraction, self.identity_dm)
 
     def chunks(self, n_frames: int, chunk: int, generator):
+        mmse = self.mmse is not None
         for first in range(0, n_frames, chunk):
-            out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes)
+            out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes or mmse)
+            if mmse and self.turbulence.isolate != "perfect":  # the computer's MMSE view; s stays the truth
+                out = {**out, "sensed": out["slopes"] @ self.mmse.T}
             self._chunk = out
             # R n from the very draws recorded slopes hold: the same draws, and numbers, as without them.
             n = self.turbulence.slope_noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
             self._slope_noise = n if self.record_slopes else None
-            self._noise = None if n is None else n @ self.turbulence.operators.reconstructor.T
+            self._noise = None if n is None else n @ self.reconstructor.T
             if first + chunk >= n_frames:
                 self.turbulence.release()
             yield first, out["s"]
@@ -345,7 +404,7 @@ class ShackHartmannLoopSensing:
                           "wfs_gain (S phi + D DM(y)) + noise",
                 "measurement": "wfs = reconstructor @ slopes + (I - P) y, P = reconstructor @ interaction_matrix "
                                "(the cut modes report the command sent)"}
-        return {"interaction_matrix": ops.interaction_matrix, "reconstructor": ops.reconstructor}, note
+        return {"interaction_matrix": ops.interaction_matrix, "reconstructor": self.reconstructor}, note
 
     def pupil_rms(self, dm: torch.Tensor) -> torch.Tensor:
         """``(R, frames)`` piston-removed RMS over the pupil of ``phi + IF DM`` for the chunk's applied ``dm``."""

@@ -29,6 +29,8 @@ __all__ = ["GEOMETRIES", "MECHANICAL_COUPLING", "SENSOR_KINDS", "Sensor", "build
 
 #: Sensor kinds a scenario may have.
 SENSOR_KINDS = ("subaperture", "shack_hartmann")
+#: A Shack-Hartmann's reconstructors: truncated least squares, or noise-aware MMSE (:mod:`eofnn.sim.sensing.mmse`).
+RECONSTRUCTORS = ("least_squares", "mmse")
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,11 @@ class Sensor:
     detector : Detector or None
         Guide star and detector (band, magnitude, throughput, pixels, read noise): photon and read noise on every
         slope by Rousset's formulas (:class:`~eofnn.sim.sensing.detector.Detector`). ``None``: no photon noise.
+    reconstructor : {"least_squares", "mmse"}
+        ``least_squares`` (default): the truncated least-squares ``R`` (``relative_cut``). ``mmse``: the noise-aware
+        ``C D^T (D C D^T + C_n)^-1`` (:mod:`eofnn.sim.sensing.mmse`) with the prior's r0 and L0 taken from the
+        scenario's atmosphere (a simulation's knowledge) and the noise from this sensor's slope noise; every
+        controller then measures through it (:mod:`eofnn.sim.loop.sensing`).
     """
 
     kind: str = "subaperture"
@@ -64,8 +71,10 @@ class Sensor:
     pupil_diameter_m: float | None = None
     lit_fraction: float | None = None
     detector: Detector | None = None
+    reconstructor: str = "least_squares"
 
-    _constraints: ClassVar[dict[str, Constraint]] = {"kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS}
+    _constraints: ClassVar[dict[str, Constraint]] = {"kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS,
+                                                       "reconstructor": OneOf(RECONSTRUCTORS)}
 
     def __post_init__(self) -> None:
         if self.detector is not None:
@@ -121,7 +130,10 @@ class Sensor:
         return grid.diameter_m / (self.subapertures_across or grid.n_across)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        out = asdict(self)
+        if out["reconstructor"] == "least_squares":  # configs written before the choice existed still match
+            del out["reconstructor"]
+        return out
 
 
 def build_sensor(value) -> Sensor:
