@@ -381,8 +381,14 @@ class ShackHartmannLoopSensing:
             yield first, out["s"]
 
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
-        """``R n`` of frame ``i`` of the chunk (drawn with the chunk)."""
-        return None if self._noise is None else self._noise[:, i]
+        """``R n`` of frame ``i`` of the chunk (drawn with the chunk). Through the MMSE reconstructor the computer
+        reads ``R_mmse S phi`` where the loop's truth ``s`` is ``R S phi``: the difference, times the sensor's gain,
+        joins the term the kernel adds to its measurement, so ``wfs = wfs_gain (R_mmse S phi + P DM) + ... + R_mmse n``."""
+        noise = None if self._noise is None else self._noise[:, i]
+        if self.mmse is None or self.turbulence.isolate == "perfect":
+            return noise
+        view = self.gain * (self._chunk["sensed"][:, i] - s)
+        return view if noise is None else view + noise
 
     def slopes(self, i: int, dm: torch.Tensor) -> torch.Tensor:
         """``(R, 2 n_sub)``: the sensor's slopes of frame ``i`` of the chunk, ``wfs_gain (S phi + D dm) + n`` (nm of OPD
