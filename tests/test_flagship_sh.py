@@ -47,7 +47,7 @@ def test_the_flagship_is_extreme_ao_through_a_shack_hartmann_with_winds_off_the_
     assert len(atm.layers) == 2
     assert all(lattice_direction(lay.wind_direction_deg) is None for lay in atm.layers)
     names = set(config["predictors"])
-    assert {"integrator", "lqg", "pfc"} <= names
+    assert {"integrator", "lqg"} <= names
     assert any(p.get("fallback") for p in config["predictors"].values())
     assert any(p.get("data", {}).get("target") == "dm_fit" for p in config["predictors"].values())
 
