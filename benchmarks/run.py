@@ -31,7 +31,8 @@ from benchmarks.common import Series, Skipped, fmt_value
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
-BENCHMARKS = ("turbulence", "exact", "loop", "fit", "stability", "end_to_end", "scaling", "stream", "startup")
+BENCHMARKS = ("turbulence", "exact", "loop", "fit", "stability", "end_to_end", "scaling", "stream", "startup",
+              "flagship")
 #: Benchmarks whose functions take a ``device``; the others are CPU code in eofnn (HCIPy, numpy, the loop).
 DEVICE_BENCHMARKS = ("loop", "fit")
 
@@ -52,6 +53,7 @@ FULL = {
     "scaling": {},
     "stream": {"n_actuators": 5000, "big_frames": 50000, "small_frames": 4000, "batch_frames": 256, "repeat": 2},
     "startup": {"repeat": 7},
+    "flagship": {"repeat": 1},
 }
 QUICK = {
     "turbulence": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
@@ -77,6 +79,7 @@ QUICK = {
     "stream": {"n_actuators": 80, "big_frames": 8000, "small_frames": 2000, "batch_frames": 256, "repeat": 1,
                "contrast": False},
     "startup": {"repeat": 1, "warmup": 0},
+    "flagship": {"repeat": 1, "quick": True},
 }
 
 
@@ -144,6 +147,10 @@ def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, 
         from benchmarks.bench_startup import bench_startup
 
         return bench_startup(**sizes), []
+    if name == "flagship":
+        from benchmarks.bench_flagship import bench_flagship
+
+        return bench_flagship(**sizes), []
     raise ValueError(f"unknown benchmark {name!r}: allowed are {', '.join(BENCHMARKS)}")
 
 

@@ -35,6 +35,9 @@ not fit: :func:`eofnn.resources.require_memory`).
 from __future__ import annotations
 
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -72,14 +75,21 @@ _NUFFT_EPS = 1e-6
 _NUFFT_THREADS = 1
 #: Elements (rows x modes or rows x actuators) processed together: bounds the set-up's working memory (~100 MB).
 _CHUNK_ELEMENTS = 2**22
-#: Amplitude tables up to this size are kept (the latest one) and shared by the realisations of a layer.
+#: Amplitude tables up to this size are kept and shared by the realisations of a layer; up to
+#: ``_SHARED_AMPLITUDE_TABLES`` of them (one per layer of a two-layer sky: realisations alternate between the layers),
+#: the least recently used dropped first.
 _MAX_SHARED_AMPLITUDE_BYTES = 256 * 2**20
+_SHARED_AMPLITUDE_TABLES = 2
 _AMPLITUDE_CACHE: dict[tuple, list] = {}
 #: Built screens shared by the layers that ask for the same realisation (least recently used dropped first), up to
 #: ``_SCREEN_CACHE_BYTES`` and ``_SCREEN_CACHE_FRACTION`` of the memory available when one is added.
 _SCREEN_CACHE: dict[tuple, AnyWindFrozenFlow] = {}
 _SCREEN_CACHE_BYTES = 2 * 2**30
 _SCREEN_CACHE_FRACTION = 0.25
+#: Guards the caches above: :func:`build_screens` builds screens in threads.
+_LOCK = threading.RLock()
+#: Most screens built at once by :func:`build_screens` (also bounded by the cores this process may use and memory).
+_MAX_BUILD_THREADS = 4
 
 
 def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, outer_scale_m: float,
@@ -96,13 +106,38 @@ def frozen_flow_layer(grid: ActuatorGrid, r0_m: float, r0_wavelength_m: float, o
     key = (positions.shape, positions.tobytes(), float(grid.pitch_m), r0_m, r0_wavelength_m, outer_scale_m,
            wind_speed_mps, wind_direction_deg, frame_period_s, kernel, screen_frames, seed.entropy,
            tuple(seed.spawn_key), seed.pool_size)
-    if key in _SCREEN_CACHE:
-        _SCREEN_CACHE[key] = _SCREEN_CACHE.pop(key)  # most recently used last
-        return _SCREEN_CACHE[key]
+    with _LOCK:
+        if key in _SCREEN_CACHE:
+            _SCREEN_CACHE[key] = _SCREEN_CACHE.pop(key)  # most recently used last
+            return _SCREEN_CACHE[key]
     layer = AnyWindFrozenFlow(grid, r0_m, r0_wavelength_m, outer_scale_m, wind_speed_mps, wind_direction_deg,
                               frame_period_s, kernel, screen_frames, seed)
     _remember_screen(key, layer)
     return layer
+
+
+def build_screens(calls: list[tuple]) -> list:
+    """``[frozen_flow_layer(*args) for args in calls]``, the non-lattice screens among them built side by side in
+    threads (FINUFFT, numpy's generator and torch release the GIL): each screen is drawn from its own seed, so the
+    numbers are those of building them one after the other. Threads: at most the cores this process may use,
+    :data:`_MAX_BUILD_THREADS`, and as many screens' peak memory as a quarter of the memory available holds."""
+    costly = [i for i, args in enumerate(calls) if lattice_direction(args[5]) is None]
+    out: list = [None] * len(calls)
+    threads = 1
+    if len(costly) > 1:
+        grid, _, _, outer_scale_m, speed, direction, period, _, frames, _ = calls[costly[0]]
+        peak = max(1, screen_bytes(grid, outer_scale_m, speed, direction, period, frames))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        threads = max(1, min(len(costly), cores, _MAX_BUILD_THREADS, int(0.25 * available_memory_bytes() // peak)))
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            for i, layer in zip(costly, pool.map(lambda args: frozen_flow_layer(*args), [calls[i] for i in costly]),
+                                strict=True):
+                out[i] = layer
+    for i, args in enumerate(calls):
+        if out[i] is None:
+            out[i] = frozen_flow_layer(*args)
+    return out
 
 
 def _remember_screen(key: tuple, layer: AnyWindFrozenFlow) -> None:
@@ -111,9 +146,10 @@ def _remember_screen(key: tuple, layer: AnyWindFrozenFlow) -> None:
     size = layer.screen_nbytes
     if size > budget:
         return
-    _SCREEN_CACHE[key] = layer
-    while sum(lay.screen_nbytes for lay in _SCREEN_CACHE.values()) > budget:
-        _SCREEN_CACHE.pop(next(iter(_SCREEN_CACHE)))
+    with _LOCK:
+        _SCREEN_CACHE[key] = layer
+        while sum(lay.screen_nbytes for lay in _SCREEN_CACHE.values()) > budget:
+            _SCREEN_CACHE.pop(next(iter(_SCREEN_CACHE)))
 
 
 def screen_bytes(grid: ActuatorGrid, outer_scale_m: float, wind_speed_mps: float, wind_direction_deg: float,
@@ -136,6 +172,27 @@ def _peak_bytes(n_period: int, screen_frames: int, n_positions: int) -> int:
     most ``_MAX_SHARED_AMPLITUDE_BYTES``)."""
     return (8 * (n_period // 2 + 1) * n_positions + 4 * screen_frames * n_positions + 100 * _CHUNK_ELEMENTS
             + _MAX_SHARED_AMPLITUDE_BYTES)
+
+
+def _runs(rows: np.ndarray, targets: np.ndarray):
+    """Yield ``((a, b), (lo, hi), step)``: the increasing ``rows`` split into runs of consecutive rows ``a .. b - 1``
+    whose ``targets`` are consecutive too, ``lo .. hi - 1`` upwards (``step`` 1) or downwards (``step`` -1)."""
+    if len(rows) == 0:
+        return
+    t = targets[rows]
+    gap = np.diff(rows)
+    up, down = (gap == 1) & (np.diff(t) == 1), (gap == 1) & (np.diff(t) == -1)
+    start = 0
+    while start < len(rows):
+        stop, step = start + 1, 0
+        if stop < len(rows) and (up[start] or down[start]):
+            step = 1 if up[start] else -1
+            run = up if step > 0 else down
+            while stop < len(rows) and run[stop - 1]:
+                stop += 1
+        first, last = int(t[start]), int(t[stop - 1])
+        yield (int(rows[start]), int(rows[stop - 1]) + 1), (min(first, last), max(first, last) + 1), step or 1
+        start = stop
 
 
 class AnyWindFrozenFlow:
@@ -220,8 +277,10 @@ class AnyWindFrozenFlow:
         They do not depend on the seed: tables up to ``_MAX_SHARED_AMPLITUDE_BYTES`` are shared by realisations.
         """
         key = self._amplitude_key(r0_m, r0_wavelength_m, outer_scale_m)
-        if key in _AMPLITUDE_CACHE:
-            return _AMPLITUDE_CACHE[key]
+        with _LOCK:
+            if key in _AMPLITUDE_CACHE:
+                _AMPLITUDE_CACHE[key] = _AMPLITUDE_CACHE.pop(key)  # most recently used last
+                return _AMPLITUDE_CACHE[key]
         cos, sin = (np.float32(v) for v in self._unit)
         nm2 = VON_KARMAN_COEFFICIENT * r0_m ** (-5 / 3) * (r0_wavelength_m / (2 * np.pi) * 1e9) ** 2
         out = []
@@ -241,8 +300,10 @@ class AnyWindFrozenFlow:
                 amplitude.mul_(torch.where(torch.as_tensor(q) > 0, 2 * scale, scale).sqrt().float().unsqueeze(1))
                 out.append((q, across_period, amplitude.numpy()))
         if 4 * self.n_coefficients <= _MAX_SHARED_AMPLITUDE_BYTES:
-            _AMPLITUDE_CACHE.clear()  # one table kept: the latest layer's
-            _AMPLITUDE_CACHE[key] = out
+            with _LOCK:
+                while len(_AMPLITUDE_CACHE) >= _SHARED_AMPLITUDE_TABLES:
+                    _AMPLITUDE_CACHE.pop(next(iter(_AMPLITUDE_CACHE)))
+                _AMPLITUDE_CACHE[key] = out
         return out
 
     def _synthesise(self, rng: np.random.Generator, r0_m: float, r0_wavelength_m: float,
@@ -278,11 +339,15 @@ class AnyWindFrozenFlow:
             # phases in double precision, rounded once to the series' single precision).
             first = torch.remainder(int(q[0]) * u / self.period_m, 1.0)
             across.mul_(ramp[:rows]).mul_(torch.polar(torch.ones_like(first), 2 * math.pi * first).to(torch.complex64))
-            m = torch.as_tensor(q % m_period)
-            mirror = torch.remainder(-m, m_period)
-            low, high = m < half, mirror < half  # both at m = 0 and m = M / 2
-            hermitian.index_add_(0, m[low], torch.conj_physical(across[low]))
-            hermitian.index_add_(0, mirror[high], across[high])
+            m = q % m_period
+            mirror = (-m) % m_period
+            # Rows q = m (mod M) of the lower half add their conjugate at m, the others themselves at M - m (both at
+            # m = 0 and M / 2): all the chunk's lower rows first, then the others, each in the order of q, as runs
+            # of consecutive rows (the same additions, in the same order, as one index_add_ of each set).
+            for rows_at, targets, conjugate in ((m < half, m, True), (mirror < half, mirror, False)):
+                for (a, b), (lo, hi), step in _runs(np.flatnonzero(rows_at), targets):
+                    source = across[a:b] if step > 0 else across[a:b].flip(0)
+                    hermitian[lo:hi].add_(source.conj() if conjugate else source)
         return self._frames_of(hermitian)
 
     def _frames_of(self, hermitian: torch.Tensor) -> torch.Tensor:

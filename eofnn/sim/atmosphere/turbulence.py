@@ -30,10 +30,10 @@ import numpy as np
 from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.seeding import stream_seed, sub_seed
-from eofnn.sim.atmosphere.anywind import frozen_flow_layer
+from eofnn.sim.atmosphere.anywind import build_screens, frozen_flow_layer
 from eofnn.sim.atmosphere.changes import AtmosphereChange, build_changes, layer_winds, with_changes
 from eofnn.sim.atmosphere.disturbances import BoilingLayer, Vibration, VibrationSeries
-from eofnn.sim.atmosphere.exact import project_out
+from eofnn.sim.atmosphere.exact import lattice_direction, project_out
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.kernels import KERNELS
 from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OneOf, OrNone, check_value, from_mapping, validated
@@ -213,7 +213,11 @@ class Turbulence:
         self.n_realisations = n_realisations
         self.frame_rate_hz = frame_rate_hz
 
+        prebuilt = _screens_side_by_side(atmosphere, grid, 1.0 / frame_rate_hz, seed, stream, n_realisations)
+
         def layer(r: int, i: int, lay: Layer, *key: int):  # a changed wind is a new screen, seeded by its index
+            if not key and (r, i) in prebuilt:
+                return prebuilt[r, i]
             return _layer_generator(atmosphere, grid, lay, 1.0 / frame_rate_hz, stream_seed(seed, stream, r, i, *key))
 
         self._strips = [
@@ -250,6 +254,26 @@ class Turbulence:
         """Yield ``(first_frame, frames)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
         for first in range(start, start + n_frames, chunk):
             yield first, self.frames(first, min(first + chunk, start + n_frames))
+
+
+def _screens_side_by_side(atmosphere: Atmosphere, grid: ActuatorGrid, frame_period_s: float, seed: int, stream: str,
+                          n_realisations: int) -> dict[tuple[int, int], object]:
+    """``{(realisation, layer): screen}``: the frozen-flow screens of the ``exact`` layers (not boiling) of every
+    realisation, built side by side when two or more are non-lattice winds (:func:`build_screens`: the same numbers
+    as one after the other, each from its own seed); ``{}`` otherwise (each layer is then built where it is used)."""
+    if atmosphere.model != "exact":
+        return {}
+    keys, calls = [], []
+    for r in range(n_realisations):
+        for i, lay in enumerate(atmosphere.layers):
+            if not lay.boiling_time_s:
+                keys.append((r, i))
+                calls.append((grid, atmosphere.layer_r0_m(lay), atmosphere.r0_wavelength_m, atmosphere.outer_scale_m,
+                              lay.wind_speed_mps, lay.wind_direction_deg, frame_period_s, atmosphere.sensing_kernel,
+                              atmosphere.screen_frames, stream_seed(seed, stream, r, i)))
+    if sum(lattice_direction(call[5]) is None for call in calls) < 2:
+        return {}
+    return dict(zip(keys, build_screens(calls), strict=True))
 
 
 def _layer_generator(atmosphere: Atmosphere, grid: ActuatorGrid, layer: Layer, frame_period_s: float,
