@@ -136,3 +136,20 @@ def test_ci_checks_the_wheel_before_the_readmes_test_command():
 def test_the_wheel_check_script_parses():
     done = subprocess.run(["bash", "-n", str(ROOT / "scripts" / "check_wheel.sh")], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(bundled_configs()))
+def test_every_bundled_config_parses_by_name(name, tmp_path, monkeypatch, capsys):
+    import yaml
+
+    monkeypatch.chdir(tmp_path)  # no checkout around: the name alone finds it
+    keys = set(yaml.safe_load(bundled_configs()[name].read_text()))
+    if keys & {"grid", "atmosphere"}:  # a scenario
+        args = ["simulate", "--scenario", name, "--frames", "10", "--out", "runs/x.fits"]
+    else:
+        args = ["evaluate" if "checkpoints" in keys else "compare", "--config", name, "--out", "results/x"]
+    with pytest.raises(SystemExit) as stop:
+        main([*args, "--print_config"])
+    assert stop.value.code == 0, capsys.readouterr().err
+    assert "n_across:" in capsys.readouterr().out
