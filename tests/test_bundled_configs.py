@@ -153,3 +153,30 @@ def test_every_bundled_config_parses_by_name(name, tmp_path, monkeypatch, capsys
         main([*args, "--print_config"])
     assert stop.value.code == 0, capsys.readouterr().err
     assert "n_across:" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_the_wheel_holds_every_bundled_config(tmp_path):
+    """The wheel built from the files git would commit holds eofnn/configs/*.yaml (the full install-and-run check is
+    CI's scripts/check_wheel.sh)."""
+    import shutil
+    import sys
+    import zipfile
+
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                           capture_output=True, text=True)
+    if files.returncode != 0:
+        pytest.skip("not a git checkout")
+    source = tmp_path / "src"
+    for name in files.stdout.splitlines():
+        path = ROOT / name
+        if name.startswith(("eofnn/", "pyproject.toml", "README.md")) and path.is_file() and not path.is_symlink():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, source / name)
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                            str(tmp_path / "dist"), str(source)], capture_output=True, text=True)
+    assert built.returncode == 0, built.stderr[-2000:]
+    wheel = next((tmp_path / "dist").glob("eofnn-*.whl"))
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert {f"eofnn/configs/{p.name}" for p in INSTALLED_CONFIGS.glob("*.yaml")} <= names
+    assert "eofnn/cli/configs.py" in names
