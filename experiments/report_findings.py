@@ -56,8 +56,9 @@ def study_row() -> dict | None:
     ol2, cl2 = doubled["ol_eof"], doubled["cl_eof"]
     ol2_text = f"diverges (frame {ol2['diverged_frame']})" if ol2["diverged"] else f"{rms(ol2):.3g} nm"
     return {"section": "1",
-            "claim": "The reference study reproduces; under a DM that applies 2x the command the closed-loop EOF, "
-                     "retrained, holds and the open-loop EOF does not",
+            "claim": "The reference study's baselines reproduce (its EOFs' noise-free floors are the simulator's); "
+                     "under a DM that applies 2x the command the closed-loop EOF, retrained, holds and the open-loop "
+                     "EOF does not",
             "number": f"{_x((rms(integ) / rms(cl)) ** 2)} (integrator {rms(integ):.3g} nm / closed-loop EOF "
                       f"{rms(cl):.3g} nm); pseudo-integrator {rms(pi):.3g} nm (study 24.3); at 2x: closed-loop EOF "
                       f"{rms(cl2):.3g} nm, open-loop EOF {ol2_text}",
