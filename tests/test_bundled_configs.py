@@ -180,3 +180,8 @@ def test_the_wheel_holds_every_bundled_config(tmp_path):
     names = set(zipfile.ZipFile(wheel).namelist())
     assert {f"eofnn/configs/{p.name}" for p in INSTALLED_CONFIGS.glob("*.yaml")} <= names
     assert "eofnn/cli/configs.py" in names
+
+
+def test_an_inline_value_is_never_taken_for_a_name():
+    inline = "{grid: {n_across: 8, diameter_m: 2.0}, atmosphere: {r0_m: 0.1}}" + " " * 400  # longer than a file name
+    assert find_config_file(inline, "--scenario", say=pytest.fail) == inline

@@ -124,10 +124,8 @@ def find_config_file(value: str, option: str = "--config", say=None) -> str:
     /abs/eofnn/configs/realistic_sh.yaml (eofnn's own; no such file here)``. Anything else is returned as it is,
     for :func:`check_config_file` to refuse.
     """
-    if Path(value).exists():
-        return value
     found = bundled_config(value)
-    if found is None:
+    if found is None or Path(value).exists():  # a name first: an inline YAML value may be too long for a path
         return value
     say = say or (lambda line: print(line, file=sys.stderr, flush=True))
     say(f"eofnn: {option} {value!r} -> {found} (eofnn's own; no such file here)")
