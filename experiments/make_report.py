@@ -24,6 +24,7 @@ from pathlib import Path
 
 from report_common import HERE, NAMES, STUDY, cell, fmt, load, margin, number, point_margin, sweep_rows
 from report_fair import realistic_section
+from report_findings import findings_table
 from report_robust import robust_section
 from report_scale import elt_section, interop_section
 from report_sh import sh_section
@@ -300,6 +301,15 @@ def main(argv: list[str] | None = None) -> None:
     else:
         generated = json.loads(STAMP.read_text())
     text = f"""# eofnn's experiments: the reference study reproduced, and what changes on realistic physics
+
+## Findings
+
+What the sections below found, each row computed from their summaries (`report_findings.py`; the project's README
+opens its results with the same table). The ratio is a controller's residual variance over the predictor's, above
+1 the predictor wins: the plain ratio (RMS squared) first, then, labelled, after the fitting error is removed (the
+error budget's estimate from a run without noise and with a perfect sensor) or in raw contrast at 3 λ/D.
+
+{findings_table()}
 
 Regenerate everything on this page with one command (well over two hours on 2 cores: sections 1, 3 and 4 took
 about 40 minutes; the fair contest of section 2 took 1 h 40 min (its classical settings scanned, on a heavily loaded

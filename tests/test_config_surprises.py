@@ -106,7 +106,7 @@ def test_a_scenario_taken_from_eofnns_configs_is_said_in_one_line(cli, tmp_path)
     copy.write_text((ROOT / "configs" / "realistic_small.yaml").read_text())  # names scenario: realistic.yaml
     _, err = cli("compare", "--config", copy, "--out", tmp_path / "o", "--evaluation.frames", "-1")
     said = [line for line in err.splitlines() if "realistic.yaml" in line]
-    assert said == [f"eofnn: scenario 'realistic.yaml' -> {ROOT / 'configs' / 'realistic.yaml'} (eofnn's own; none "
+    assert said == [f"eofnn: scenario 'realistic.yaml' -> {ROOT / 'eofnn' / 'configs' / 'realistic.yaml'} (eofnn's own; none "
                     f"beside your config {str(copy)!r})"], err
     # Beside the config, the file is the one its reader looks for: nothing is said.
     (tmp_path / "realistic.yaml").write_text((ROOT / "configs" / "realistic.yaml").read_text())

@@ -85,10 +85,18 @@ def test_every_path_a_page_names_is_tracked(page):
 COMMANDS = ["README.md", "experiments/reproduce.sh", "experiments/interop/run.sh"]
 
 
+def _committed(path: str) -> str:
+    """``path`` as git tracks it: through the links of the checkout (``configs/`` -> ``eofnn/configs/``)."""
+    try:
+        return str((ROOT / path).resolve().relative_to(ROOT))
+    except ValueError:  # a link out of the repository
+        return path
+
+
 @pytest.mark.skipif(not TRACKED, reason="not a git checkout")
 def test_every_shown_command_writes_to_runs_and_reads_committed_inputs():
     pages = [p for p in PAGES if p.count("/") <= 1]  # not the runs' own results.md: they record what was run
-    sources = sorted({*pages, *COMMANDS, *(f for f in TRACKED if f.startswith(("configs/", "examples/")))})
+    sources = sorted({*pages, *COMMANDS, *(f for f in TRACKED if f.startswith(("eofnn/configs/", "examples/")))})
     wrong_out, missing_in = [], []
     for source in sources:
         text = (ROOT / source).read_text().replace("$r/", "experiments/runs/").replace("$x/", "experiments/")
@@ -97,7 +105,7 @@ def test_every_shown_command_writes_to_runs_and_reads_committed_inputs():
             if not out.startswith("experiments/runs/"):
                 wrong_out.append(f"{source}: --out {out}")
         for flag, path in re.findall(r"(--config|--grid|--scenario)\s+((?:experiments|configs)/[\w./-]+\.yaml)", text):
-            if "$" not in path and path not in FILES:
+            if "$" not in path and _committed(path) not in FILES:
                 missing_in.append(f"{source}: {flag} {path}")
     assert not wrong_out, f"raw output outside experiments/runs/: {wrong_out}"
     assert not missing_in, f"inputs that are not committed: {missing_in}"

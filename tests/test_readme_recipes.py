@@ -1,5 +1,6 @@
-"""The README's commands, as written, so that they cannot rot: every command parses (configs found, keys known,
-values valid), and the telemetry recipe runs end to end in order, at short sizes on a small telescope."""
+"""The README's commands, as written, so that they cannot rot: every command of the README and of its reference page
+(docs/usage.md) parses (configs found, keys known, values valid), and the telemetry recipe runs end to end in order,
+at short sizes on a small telescope."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from eofnn.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
+#: The README's reference page: the commands and options the README leaves out to stay short.
+USAGE = (ROOT / "docs" / "usage.md").read_text()
 TELEMETRY_SECTION = "## From telemetry alone"
 #: Short sizes for the telemetry recipe: a 2 m telescope, 10 actuators across, a few thousand frames.
 SMALL = {"--frames 20000": "--frames 3000", "--frames 5000": "--frames 800"}
@@ -47,7 +50,7 @@ def section(title: str) -> str:
     return README[start:end if end > 0 else None]
 
 
-ALL = commands(README)
+ALL = commands(README) + commands(USAGE)
 
 
 def test_the_readme_has_commands_to_check():

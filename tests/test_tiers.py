@@ -1,4 +1,4 @@
-"""The test tiers (README, "Test tiers") hold: every test that runs the command line or another process is marked
+"""The test tiers (docs/usage.md, "Test tiers") hold: every test that runs the command line or another process is marked
 ``cli``, every mark a test module sets is registered, and every module keeps a test in the fast tier (``-m "not slow"``).
 
 Read from the test files' syntax trees: a test runs the command line when it, a helper function of its module, or a

@@ -30,6 +30,7 @@ from eofnn.cli.configfile import (
     check_config_file,
     check_config_keys,
     config_field_types,
+    find_config_file,
     resolve_config_references,
     unwrap_optional,
 )
@@ -49,6 +50,7 @@ eofnn: predictive wavefront control for adaptive optics, in simulated closed loo
   eofnn replay   --checkpoint runs/ol.ckpt --telemetry held_out.fits --out results/replay
   eofnn export   --checkpoint runs/ol.ckpt --out filter.fits                # for eofnn.runtime / any RTC
   eofnn twin     --telemetry run.fits --out twin/         # twin.yaml + identified.json from telemetry alone
+  eofnn configs  list                                                      # eofnn's own configs; copy NAME DIR
 
 Each subcommand takes --config FILE (YAML) and dotted overrides; '<subcommand> --help' lists them all,
 '<subcommand> --print_config' prints the resolved configuration.
@@ -73,6 +75,9 @@ class Command:
     description_name: str
     config_name: str
     function_name: str
+    #: A function of ``module``, ``(parser) -> None``, that adds the command's arguments itself (positional ones:
+    #: ``eofnn configs copy NAME FOLDER``); unset, the configuration's fields are the options, with ``--config FILE``.
+    arguments_name: str | None = None
 
     def _get(self, name: str):
         return getattr(importlib.import_module(self.module), name)
@@ -94,10 +99,18 @@ class Command:
     def add_arguments(self, parser: ArgumentParser) -> None:
         """The configuration's fields as the parser's options (and ``--config FILE`` unless it has a field of that
         name)."""
+        if self.arguments_name is not None:
+            self._get(self.arguments_name)(parser)
+            return
         names = {f.name for f in fields(self.config)}
         if "config" not in names:
             parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
         parser.add_class_arguments(self.config, nested_key=None, as_group=False)
+
+    @property
+    def takes_config_files(self) -> bool:
+        """Whether the command reads config files (``--config FILE`` and config groups given as files)."""
+        return self.arguments_name is None
 
     def build(self, parsed) -> Any:
         """The configuration dataclass from the instantiated namespace of its options."""
@@ -124,6 +137,8 @@ COMMANDS: dict[str, Command] = {
                       "export"),
     "twin": Command("Identify a twin of the system from its telemetry alone.", "eofnn.cli.twin", "DESCRIPTION",
                     "TwinConfig", "twin"),
+    "configs": Command("List eofnn's own configs, or copy one to edit.", "eofnn.cli.configs", "DESCRIPTION",
+                       "ConfigsConfig", "configs", arguments_name="add_arguments"),
 }
 
 
@@ -230,10 +245,18 @@ def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
     PYTHONPATH tricks). A config group given as a file on the command line (``--scenario FILE``) has its keys
     checked the same way.
 
-    Returns ``args`` with the configs' references to eofnn's own configs resolved (``scenario: realistic.yaml``
-    in a config copied out of ``configs/``; see :func:`~eofnn.cli.configfile.resolve_config_references`).
+    Returns ``args`` with eofnn's own configs found: by name (``--config realistic_sh``, ``--scenario realistic``:
+    :func:`~eofnn.cli.configfile.find_config_file`) and as the references of a config (``scenario:
+    realistic.yaml`` in a config copied out of ``configs/``: :func:`~eofnn.cli.configfile.resolve_config_references`).
     """
     command = COMMANDS.get(args[0]) if args else None
+    hints = (config_field_types(command.config) or {}) if command is not None and command.takes_config_files else {}
+    args = list(args)
+    for index, value in enumerate(args):  # a bare name of eofnn's own configs: --config realistic_sh
+        option = args[index - 1] if index > 0 else ""
+        if option == "--config" or (option.startswith("--") and dataclasses.is_dataclass(
+                unwrap_optional(hints.get(option[2:])))):
+            args[index] = find_config_file(value, option)
     resolved = list(args)
     for index, value in enumerate(args):
         if index > 0 and args[index - 1] == "--config":
@@ -243,7 +266,7 @@ def _prepare_config_files(args: list[str], folders: list[str]) -> list[str]:
                 if command is not None:
                     check_config_keys(value, command.config)
                 resolved[index] = resolve_config_references(value)
-    if command is not None and args[0] != "sweep":
+    if command is not None and args[0] != "sweep" and command.takes_config_files:
         for name, group, path in _nested_files(args, command.config):
             check_config_file(path)
             check_config_keys(path, group, where=name)

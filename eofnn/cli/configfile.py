@@ -23,9 +23,10 @@ import yaml
 
 from eofnn.errors import ConfigError
 
-#: eofnn's own configs (``configs/`` of the checkout eofnn runs from), where a config's ``scenario: realistic.yaml``
-#: is looked for when no such file is beside the config.
-INSTALLED_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+#: eofnn's own configs, installed with the package (``eofnn/configs/``; a checkout's ``configs/`` links to it): a
+#: config's ``scenario: realistic.yaml`` is looked for there when no such file is beside the config, and ``--config
+#: NAME`` finds one by name (:func:`bundled_config`).
+INSTALLED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: Entries whose ``.yaml`` values are outputs or other files, not configs to load.
 NOT_CONFIG_KEYS = ("out", "grid")
 #: Most YAML nodes a config may expand to (the full study's config has about 300).
@@ -73,7 +74,8 @@ def check_config_file(path: str | Path, _depth: int = 0) -> None:
     """
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
+        hint = " (eofnn's own configs, run by name as --config NAME: eofnn configs list)" if not path.exists() else ""
+        raise ConfigError(f"config file {str(path)!r} does not exist{hint}")
     if path.stat().st_size > MAX_CONFIG_BYTES:
         raise ConfigError(f"config file {str(path)!r} is larger than {MAX_CONFIG_BYTES} bytes: is it a config?")
     try:
@@ -100,6 +102,34 @@ def check_config_file(path: str | Path, _depth: int = 0) -> None:
             nested = path.parent / value
             if nested.is_file():
                 check_config_file(nested, _depth + 1)
+
+
+def bundled_configs() -> dict[str, Path]:
+    """eofnn's own configs by name (``realistic_sh`` -> ``.../eofnn/configs/realistic_sh.yaml``), sorted."""
+    return {path.stem: path for path in sorted(INSTALLED_CONFIGS.glob("*.yaml"))}
+
+
+def bundled_config(name: str) -> Path | None:
+    """The config of eofnn's own that ``name`` means (``realistic_sh`` or ``realistic_sh.yaml``); ``None`` if
+    ``name`` is a path (it holds a folder separator) or names none of them."""
+    if not name or "/" in name or "\\" in name:
+        return None
+    return bundled_configs().get(name.removesuffix(".yaml").removesuffix(".yml"))
+
+
+def find_config_file(value: str, option: str = "--config", say=None) -> str:
+    """The file that ``--config VALUE`` (or ``--scenario VALUE``) reads: ``value`` itself when it is a file, else
+    the config of eofnn's own it names (:func:`bundled_config`: ``--config realistic_sh`` from any folder, a wheel's
+    install included), said in one line to ``say`` (default: stderr), ``eofnn: --config 'realistic_sh' ->
+    /abs/eofnn/configs/realistic_sh.yaml (eofnn's own; no such file here)``. Anything else is returned as it is,
+    for :func:`check_config_file` to refuse.
+    """
+    found = bundled_config(value)
+    if found is None or Path(value).exists():  # a name first: an inline YAML value may be too long for a path
+        return value
+    say = say or (lambda line: print(line, file=sys.stderr, flush=True))
+    say(f"eofnn: {option} {value!r} -> {found} (eofnn's own; no such file here)")
+    return str(found)
 
 
 def _is_config_name(value) -> bool:
