@@ -17,11 +17,10 @@ Two sensings share one interface (:func:`loop_sensing`):
   - what the sensor cannot tell, the fitting error and the aliasing, is scored over the pupil. The DM's best fit of
     the phase on the modes the sensor sees is ``P F phi`` with ``F = (IF^T W IF)^-1 IF^T W`` (``W`` the fine points in
     the pupil): ``phi - IF P F phi`` is the fitting error, ``R S phi - P F phi`` the aliasing in command space.
-    Why not ``s = P F phi`` (measured, 16 across, R = 8): the aliasing is large in command space (high spatial
-    frequencies of the commands, which the influence functions barely pass: 520 nm there against 85 nm over the
-    pupil at 20 across), so a predictor fitted to it from the measurements shrinks towards zero and loses to the
-    integrator even without noise (292 against 275 nm over the pupil); a target without aliasing is issue 30's
-    anti-aliasing prediction, a choice of target, not of the loop's truth;
+    Why not ``s = P F phi``: the aliasing is large in command space (high spatial frequencies of the commands, which
+    the influence functions barely pass), so a predictor fitted to it from the measurements shrinks towards zero and
+    loses to the integrator even without noise (measured: ``docs/findings.md``); a target without aliasing is the
+    anti-aliasing prediction's (``data.target: dm_fit``), a choice of target, not of the loop's truth;
   - the measurement is the real-time computer's: ``wfs = wfs_gain R S (phi + IF DM(y)) + R n + (I - P) y =
     wfs_gain (R S phi + P DM(y)) + R n + (I - P) y``, with ``n`` white slope noise of the sensor's RMS (photon and
     read noise, :class:`~eofnn.sim.sensing.detector.Detector`, and the plant's ``wfs_noise_nm`` per slope). ``R S phi
@@ -30,8 +29,8 @@ Two sensings share one interface (:func:`loop_sensing`):
     nothing of them, so it reports there the command it sent (``y``, averaged like the DM for a fractional delay).
     Every controller's pseudo-open-loop value ``wfs - y`` is then ``R S phi + R n`` in a nominal plant, exactly as a
     slope-space ``R (s - D y)`` would be, and an integrator leaks whatever it put in those modes away instead of
-    letting a per-actuator filter feed it back on itself (measured: without it an open-loop EOF diverges within 100
-    frames while its analysis, which assumes ``wfs - y`` is the turbulence, calls it stable). The DM still applies
+    letting a per-actuator filter feed it back on itself (without it an open-loop EOF diverged while its analysis,
+    which assumes ``wfs - y`` is the turbulence, called it stable: ``docs/findings.md``). The DM still applies
     those commands: the pupil's residual has them;
   - the residual over the pupil is ``phi + IF DM(y)`` on the fine points inside the pupil, its RMS taken with
     piston removed (as OOPAO's ``np.std(tel.OPD[pupil])``): fitting error included.
