@@ -31,6 +31,7 @@ print(json.dumps({{"code": code, "heavy": [m for m in {heavy!r} if m in sys.modu
 """
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("args", [["twin", "--help"], ["twin", "--telemetry", "x.npz", "--max_layers", "5", "--out", "o"]])
 def test_help_and_config_errors_import_nothing_heavy(args):
     """``eofnn twin --help`` and a value out of range answer before torch & co. are imported."""
@@ -48,6 +49,7 @@ def _random_telemetry(path, frames: int = 1200, **extra) -> None:
              delay_frames=2, frame_rate_hz=1000.0, **extra)
 
 
+@pytest.mark.cli
 def test_refusals_are_one_line(cli_error, tmp_path):
     """Too short a record, a mask that disagrees with the interaction matrix, a reconstructor of the wrong shape."""
     k = GRID.n_actuators
@@ -82,6 +84,7 @@ def recorded(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.cli
 def test_twin_identifies_the_system_and_its_scenario_runs(cli, cli_error, recorded, tmp_path):
     out = tmp_path / "twin"
     code, err = cli("twin", "--telemetry", recorded, "--out", out, "--screen_frames", 400)
