@@ -24,6 +24,19 @@ from eofnn.sim.sensing.shack_hartmann import ShackHartmannSensor
 torch = lazy_module("torch")
 
 
+
+def piston_removed_rms(gram, pupil_sums: torch.Tensor, n_pupil: int, z: torch.Tensor, total: torch.Tensor,
+                       total_sq: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Piston-removed RMS over ``n_pupil`` pupil points of ``phi + IF u``, ``(...)``, without forming it: from ``z =
+    IF^T phi`` ``(..., K)``, the pupil's ``sum phi`` and ``sum phi²`` ``(...)``, the applied commands ``u`` ``(..., K)``,
+    the influence functions' Gram matrix ``G = IF^T IF`` over the pupil (sparse, symmetric) and their sums over it
+    ``(K,)``."""
+    flat = u.reshape(-1, u.shape[-1])
+    gu = torch.as_tensor(np.asarray((gram @ flat.numpy().T).T)).reshape(u.shape)  # G symmetric
+    mean_sq = (total_sq + 2 * (z * u).sum(-1) + (u * gu).sum(-1)) / n_pupil
+    mean = (total + u @ pupil_sums) / n_pupil
+    return (mean_sq - mean * mean).clamp(min=0).sqrt()
+
 class LoopOperators:
     """A built :class:`ShackHartmannSensor` with the loop's operators (module docstring).
 
@@ -73,12 +86,7 @@ class LoopOperators:
     def pupil_rms(self, z: torch.Tensor, total: torch.Tensor, total_sq: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Piston-removed RMS over the pupil of ``phi + IF u`` from :meth:`products`' ``z, sum, sumsq`` and the applied
         command ``u`` (``(..., K)``): ``(...)``."""
-        n = self.n_pupil
-        flat = u.reshape(-1, u.shape[-1])
-        gu = torch.as_tensor(np.asarray((self.gram @ flat.numpy().T).T)).reshape(u.shape)  # G symmetric
-        mean_sq = (total_sq + 2 * (z * u).sum(-1) + (u * gu).sum(-1)) / n
-        mean = (total + u @ self.pupil_sums) / n
-        return (mean_sq - mean * mean).clamp(min=0).sqrt()
+        return piston_removed_rms(self.gram, self.pupil_sums, self.n_pupil, z, total, total_sq, u)
 
     def surface(self, u: torch.Tensor) -> torch.Tensor:
         """``IF u``: the DM surface (nm) on every fine point for ``(rows, K)`` commands."""

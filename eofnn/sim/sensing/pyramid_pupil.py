@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from eofnn.sim.sensing.least_squares import surface_per_command
+from eofnn.sim.sensing.pupil import piston_removed_rms
 from eofnn.sim.sensing.pyramid import PyramidSensor
 
 
@@ -76,9 +77,4 @@ class PyramidLoopOperators:
     def pupil_rms(self, z: torch.Tensor, total: torch.Tensor, total_sq: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Piston-removed RMS over the pupil of ``phi + IF u`` from :meth:`products`' ``z, sum, sumsq`` and the applied
         command ``u`` (``(..., K)``): ``(...)``."""
-        n = self.n_pupil
-        flat = u.reshape(-1, u.shape[-1])
-        gu = torch.as_tensor(np.asarray((self.gram @ flat.numpy().T).T)).reshape(u.shape)  # G symmetric
-        mean_sq = (total_sq + 2 * (z * u).sum(-1) + (u * gu).sum(-1)) / n
-        mean = (total + u @ self.pupil_sums) / n
-        return (mean_sq - mean * mean).clamp(min=0).sqrt()
+        return piston_removed_rms(self.gram, self.pupil_sums, self.n_pupil, z, total, total_sq, u)
