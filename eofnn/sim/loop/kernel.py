@@ -221,10 +221,11 @@ class Loop:
         self._dm_previous = torch.zeros(batch, n_actuators, dtype=dtype, device=device)  # DM(y(n - 1))
 
     def step(self, n: int, s: torch.Tensor, noise: torch.Tensor | None = None,
-             out: torch.Tensor | None = None) -> LoopStep:
+             out: torch.Tensor | None = None, sensed: torch.Tensor | None = None) -> LoopStep:
         """Frame ``n`` (counted from the reset) of turbulence ``s`` ``(batch, K)`` nm and sensor noise ``noise`` (the
         measurement's :meth:`~Measurement.noise` of this frame, or ``None``); ``out``: where the residual is written
-        (in place only)."""
+        (in place only); ``sensed``: what the sensor reads of the turbulence where it is not the loop's truth ``s``
+        (a Shack-Hartmann's MMSE reconstructor), else ``None``."""
         slot = n % self.delay
         y = self.controller.step(LoopInput(n, self._wfs[slot], self._turbulence[slot]))
         dm = self.model.apply_dm(y, n)
@@ -234,7 +235,7 @@ class Loop:
             f = self.fraction
             dm, self._dm_previous = (1 - f) * dm + f * self._dm_previous, dm
         eps = torch.add(s, dm, out=out) if out is not None else s + dm
-        wfs = self.measurement.measure(s, eps, dm, y, noise)
+        wfs = self.measurement.measure(s if sensed is None else sensed, eps, dm, y, noise)
         if self.in_place:
             self._wfs[slot].copy_(wfs)
             self._turbulence[slot].copy_(s)

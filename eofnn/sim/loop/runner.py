@@ -148,7 +148,8 @@ def run_loop(
             arrays["s"] = s_chunk
             for i in range(t):
                 s_n = s_chunk[:, i]
-                step = loop.step(first + i, s_n, sensing.noise(i, s_n, generator), out=eps_out[:, i])
+                step = loop.step(first + i, s_n, sensing.noise(i, s_n, generator), out=eps_out[:, i],
+                                 sensed=sensing.sensed(i))
                 if dm_chunk is not None:
                     dm_chunk[:, i] = step.dm
                 if y_out is not None:

@@ -82,7 +82,6 @@ if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann i
     from eofnn.sim.sensing.shack_hartmann import ShackHartmann
 
 torch = lazy_module("torch")
-np = lazy_module("numpy")
 
 #: What the budget's runs may swap for perfect: nothing, the noise, or the noise and the aliasing.
 ISOLATE = ("none", "noise_free", "perfect")
@@ -173,21 +172,9 @@ class ShackHartmannTurbulence:
         if key not in _MMSE:
             if len(_MMSE) >= 4:
                 _MMSE.pop(next(iter(_MMSE)))
-            from eofnn.sim.sensing.mmse import mmse_reconstructor, slope_covariances, von_karman_covariance_nm2
+            from eofnn.sim.sensing.mmse import loop_mmse_reconstructor
 
-            geometry = ops.sensor.geometry
-            h = geometry.fine_pitch_m
-            lattice = np.rint((geometry.fine_positions_m - geometry.fine_positions_m.min(0)) / h).astype(np.int64)
-            n = int(lattice.max()) + 1
-            offsets = np.hypot(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij")) * h
-            table = von_karman_covariance_nm2(offsets, atm.r0_m, atm.outer_scale_m, atm.r0_wavelength_m)
-            removed = geometry.fine_grid.ptt_basis() if atm.remove_ptt else None  # as the screens are made
-            signal, cross = slope_covariances(geometry.slope_operator, ops.influence_pupil_t, ops.pupil, lattice,
-                                              table, removed=removed)
-            gram = ops.gram.toarray()  # C_ys = F C_phi S^T with F = (G + ridge)^-1 IF_p^T, the pupil's ridge
-            cross = np.linalg.solve(gram + 1e-10 * np.diag(gram).max() * np.eye(len(gram)), cross)
-            _MMSE[key] = torch.as_tensor(mmse_reconstructor(signal, cross, sigma * self.mmse_noise_weight ** 0.5,
-                                                            ops.sensor.slope_noise_scale))
+            _MMSE[key] = torch.as_tensor(loop_mmse_reconstructor(ops, atm, sigma * self.mmse_noise_weight ** 0.5))
         return _MMSE[key]
 
     @property
@@ -332,6 +319,10 @@ class ZonalLoopSensing:
             return None
         return m.noise(torch.randn((*s.shape[:-1], m.noise_size), generator=generator, dtype=s.dtype))
 
+    def sensed(self, i: int) -> None:
+        """The zonal sensor reads the loop's truth ``s`` itself."""
+        return None
+
 
 class ShackHartmannLoopSensing:
     """The Shack-Hartmann in the loop (module docstring): a chunk's ``s``, sensed turbulence and noise at once, the
@@ -358,7 +349,7 @@ class ShackHartmannLoopSensing:
         # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
         self.identity_dm = nominal_dm(plant, plant.dm_gain, self.gain)
         self._chunk: dict = {}
-        self._noise = self._slope_noise = None
+        self._noise = self._slope_noise = self._sensed = None
 
     def measurement(self) -> ShackHartmannMeasurement:
         return ShackHartmannMeasurement(self.turbulence.operators, self.projector_t, self.sigma_nm, self.gain,
@@ -368,8 +359,8 @@ class ShackHartmannLoopSensing:
         mmse = self.mmse is not None
         for first in range(0, n_frames, chunk):
             out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes or mmse)
-            if mmse and self.turbulence.isolate != "perfect":  # the computer's MMSE view; s stays the truth
-                out = {**out, "sensed": out["slopes"] @ self.mmse.T}
+            # The computer's MMSE view of the turbulence; s stays the truth.
+            self._sensed = out["slopes"] @ self.mmse.T if mmse and self.turbulence.isolate != "perfect" else None
             self._chunk = out
             # R n from the very draws recorded slopes hold: the same draws, and numbers, as without them.
             n = self.turbulence.slope_noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
@@ -380,14 +371,13 @@ class ShackHartmannLoopSensing:
             yield first, out["s"]
 
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
-        """``R n`` of frame ``i`` of the chunk (drawn with the chunk). Through the MMSE reconstructor the computer
-        reads ``R_mmse S phi`` where the loop's truth ``s`` is ``R S phi``: the difference, times the sensor's gain,
-        joins the term the kernel adds to its measurement, so ``wfs = wfs_gain (R_mmse S phi + P DM) + ... + R_mmse n``."""
-        noise = None if self._noise is None else self._noise[:, i]
-        if self.mmse is None or self.turbulence.isolate == "perfect":
-            return noise
-        view = self.gain * (self._chunk["sensed"][:, i] - s)
-        return view if noise is None else view + noise
+        """``R n`` of frame ``i`` of the chunk (drawn with the chunk)."""
+        return None if self._noise is None else self._noise[:, i]
+
+    def sensed(self, i: int) -> torch.Tensor | None:
+        """What the computer reads of the turbulence at frame ``i`` of the chunk where it is not the loop's truth:
+        ``R_mmse S phi`` through the MMSE reconstructor (``s`` stays ``R S phi``); ``None`` otherwise."""
+        return None if self._sensed is None else self._sensed[:, i]
 
     def slopes(self, i: int, dm: torch.Tensor) -> torch.Tensor:
         """``(R, 2 n_sub)``: the sensor's slopes of frame ``i`` of the chunk, ``wfs_gain (S phi + D dm) + n`` (nm of OPD

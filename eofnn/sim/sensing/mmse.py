@@ -135,3 +135,23 @@ def mmse_reconstructor(signal_nm2: np.ndarray, cross_nm2: np.ndarray, slope_nois
 
     # C_ss + C_n is symmetric positive definite: R^T = (C_ss + C_n)^-1 C_ys^T.
     return cho_solve(cho_factor(total), np.asarray(cross_nm2, dtype=np.float64).T).T
+
+
+def loop_mmse_reconstructor(operators, atmosphere, slope_noise_nm: float) -> np.ndarray:
+    """The MMSE reconstructor ``(K, 2 n_sub)`` of a Shack-Hartmann's loop operators
+    (:class:`~eofnn.sim.sensing.pupil.LoopOperators`) for ``atmosphere``'s von Kármán statistics (its ``r0_m``,
+    ``outer_scale_m``, ``r0_wavelength_m``; piston, tip and tilt out of the prior when its screens remove them) and
+    white slope noise of RMS ``slope_noise_nm`` (nm) scaled per slope as partly lit subapertures have it:
+    ``R = C_ys (C_ss + C_n)^-1`` with ``C_ys = F C_phi S^T``, ``F`` the DM's fit of the phase over the pupil."""
+    geometry = operators.sensor.geometry
+    h = geometry.fine_pitch_m
+    lattice = np.rint((geometry.fine_positions_m - geometry.fine_positions_m.min(0)) / h).astype(np.int64)
+    n = int(lattice.max()) + 1
+    offsets = np.hypot(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij")) * h
+    table = von_karman_covariance_nm2(offsets, atmosphere.r0_m, atmosphere.outer_scale_m, atmosphere.r0_wavelength_m)
+    removed = geometry.fine_grid.ptt_basis() if atmosphere.remove_ptt else None  # as the screens are made
+    signal, cross = slope_covariances(geometry.slope_operator, operators.influence_pupil_t, operators.pupil, lattice,
+                                      table, removed=removed)
+    gram = operators.gram.toarray()  # C_ys = F C_phi S^T with F = (G + ridge)^-1 IF_p^T, the pupil's ridge
+    cross = np.linalg.solve(gram + 1e-10 * np.diag(gram).max() * np.eye(len(gram)), cross)
+    return mmse_reconstructor(signal, cross, slope_noise_nm, operators.sensor.slope_noise_scale)
