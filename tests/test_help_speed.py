@@ -26,9 +26,10 @@ print(json.dumps({{"code": code, "heavy": [m for m in {heavy!r} if m in sys.modu
 
 
 def imported(args: list[str]) -> dict:
+    """``eofnn args`` in a fresh interpreter: its exit ``code``, the ``heavy`` modules it imported and its ``stderr``."""
     proc = subprocess.run([sys.executable, "-c", PROBE.format(args=args, heavy=HEAVY)], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return {**json.loads(proc.stdout.strip().splitlines()[-1]), "stderr": proc.stderr}
 
 
 @pytest.mark.parametrize("args", [["--help"], ["--version"], [], ["sweep", "--help"]])

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from test_help_speed import imported
 
 from eofnn.control import Dithered, Integrator
 from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
@@ -19,27 +17,15 @@ from eofnn.sim.scenario import Scenario
 from eofnn.training.twin import MIN_LAYER_FRAMES
 
 GRID = ActuatorGrid(2.5, 10)
-HEAVY = ("torch", "lightning", "hcipy", "matplotlib", "scipy")
-PROBE = """
-import json, sys
-from eofnn.cli.main import main
-try:
-    code = main({args!r})
-except SystemExit as stop:
-    code = stop.code
-print(json.dumps({{"code": code, "heavy": [m for m in {heavy!r} if m in sys.modules]}}))
-"""
 
 
 @pytest.mark.cli
 @pytest.mark.parametrize("args", [["twin", "--help"], ["twin", "--telemetry", "x.npz", "--max_layers", "5", "--out", "o"]])
 def test_help_and_config_errors_import_nothing_heavy(args):
     """``eofnn twin --help`` and a value out of range answer before torch & co. are imported."""
-    proc = subprocess.run([sys.executable, "-c", PROBE.format(args=args, heavy=HEAVY)],
-                          cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=120)
-    answer = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert answer["heavy"] == [] and answer["code"] == (0 if "--help" in args else 2), (answer, proc.stderr[-500:])
-    assert "--help" in args or "max_layers=5" in proc.stderr
+    answer = imported(args)
+    assert answer["heavy"] == [] and answer["code"] == (0 if "--help" in args else 2), answer
+    assert "--help" in args or "max_layers=5" in answer["stderr"]
 
 
 def _random_telemetry(path, frames: int = 1200, **extra) -> None:
