@@ -8,12 +8,12 @@ from dataclasses import replace
 
 import pytest
 import torch
+from test_through_loop import filter_for
 
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.config import DataConfig
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import LoopDataModule
-from eofnn.models.linear import LinearFilter
 from eofnn.seeding import torch_generator
 from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.loop.sensing import ShackHartmannTurbulence
@@ -31,20 +31,6 @@ def sh_scenario(**plant) -> Scenario:
     """A small Shack-Hartmann scenario with photon noise (a faint guide star) and ``plant``."""
     return Scenario.from_dict({"grid": GRID, "atmosphere": ATMOSPHERE, "plant": {"delay_frames": 2, **plant},
                                "sensor": {"kind": "shack_hartmann", "detector": {"magnitude": 10.0}}})
-
-
-def filter_for(spec: HistorySpec, n_act: int, seed: int = 0) -> LinearFilter:
-    """A stable-ish linear filter of ``spec``'s kind: a POL predictor or an integrator, plus small random taps."""
-    net = LinearFilter(n_act, spec.n_taps)
-    generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        net.weight.copy_(0.05 * torch.randn(net.weight.shape, generator=generator, dtype=torch.float64))
-        if spec.kind == "open_loop":
-            net.weight[:, 0] -= 0.6
-        else:
-            net.weight[:, 0] += 0.5  # y(n - 1): an integrator
-            net.weight[:, spec.history_length] -= 0.3  # eps(n - d)
-    return net
 
 
 @pytest.mark.parametrize(("kind", "plant"), [
