@@ -101,7 +101,7 @@ def test_twin_identifies_the_system_and_its_scenario_runs(cli, cli_error, record
 def test_noise_covariance_recovers_coloured_white_noise_under_smooth_turbulence():
     """``(4 D(1) - D(2)) / 6`` is the covariance of white noise, spatial colour included, whatever smooth signal is
     added (a random walk of drifts here stands in for slow turbulence)."""
-    from eofnn.training.twin import noise_covariance
+    from eofnn.training.twin_seeing import noise_covariance
 
     rng = np.random.default_rng(3)
     frames, k = 20000, 6
@@ -115,7 +115,8 @@ def test_noise_covariance_recovers_coloured_white_noise_under_smooth_turbulence(
 
 
 def test_pupil_and_layer_bookkeeping():
-    from eofnn.training.twin import _with_errors, pupil_from_matrices
+    from eofnn.training.twin import pupil_from_matrices
+    from eofnn.training.twin_layers import _with_errors
 
     k = GRID.n_actuators
     im = np.random.default_rng(2).normal(size=(20, k))

@@ -13,28 +13,32 @@ that gave it, and a quantity the record cannot tell is given with a one-line war
    when the record holds a dither; without one it is not identifiable and 1 is assumed. The delay is the file's.
 3. *The pseudo-open-loop signal* ``s_hat(n) = wfs(n) - g y(n)`` (eofnn's alignment, ``docs/telemetry.md``: ``wfs(n)``
    measures ``s(n) + g y(n)``; a fractional delay ``d + f`` averages the commands, ``(1 - f) y(n) + f y(n - 1)``).
-4. *The WFS noise* (:func:`noise_covariance`): white noise ``v`` adds ``2 C_v`` to the lagged structure matrix
-   ``D(l) = E[(s_hat(n + l) - s_hat(n)) (s_hat(n + l) - s_hat(n))^T]`` at every lag ``l >= 1``, while turbulence
-   that is smooth over a few frames adds ``c l^2``: ``C_v = (4 D(1) - D(2)) / 6``, per actuator (its diagonal) and
-   between actuators (its spatial colour, compared with ``sigma^2 R R^T`` when a reconstructor is given).
-5. *r0 and L0* (:func:`seeing_and_noise`, :func:`fit_seeing`): the noise-corrected covariance of ``s_hat`` against
-   the covariance of the twin's own noise-free turbulence (:func:`reference_covariances`: the twin's grid, sensor
-   and identified winds, simulated at r0 = :data:`R0_REFERENCE_M` for each L0 of :data:`OUTER_SCALES_M`), so that
-   the sensing (a subaperture average, or a Shack-Hartmann's reconstruction with its aliasing, in command units)
-   is the twin's: their structure functions over actuator separations from 1.5 pitches to half the pupil, piston,
-   tip and tilt projected out of both, differ by the factor ``(r0 / r0_ref)^(-5/3)`` (r0 at
-   :data:`R0_WAVELENGTH_M`); L0 is the one whose shape fits best (not identifiable on a pupil much smaller than L0:
-   one line says so and the twin keeps the best fit). A Shack-Hartmann's aliased turbulence is not smooth over two
-   frames and leaves part of itself in the noise estimate of 4; the references say how much per unit of their
-   turbulence, so the noise and r0 are solved for together.
-6. *The layers* (:func:`identify_layers`): :func:`eofnn.control.wind.identify_winds` (lagged cross-spectra of the
-   whitened POL maps: a frozen-flow layer's peak moves by ``v tau``) fitted with 1 to ``max_layers`` layers, the
-   count chosen by the record's own consistency: a layer is added only if every block of the record finds it again
-   with the same wind, and it carries a fair share of the turbulence (an aliased Shack-Hartmann's modes have an
-   apparent motion that a cross-spectrum fit takes for a weak extra layer, whose wind changes from block to block);
-   layers closer than :data:`MERGE_SPEED_MPS` are merged, and the winds' spread over the blocks gives the
-   uncertainty. A Bayesian information criterion on the cross-spectra's residual is reported beside it, not used:
-   the cross-spectra's values are not independent, and it takes the aliased component for a layer.
+4. *The WFS noise* (:func:`~eofnn.training.twin_seeing.noise_covariance`): white noise ``v`` adds ``2 C_v`` to the
+   lagged structure matrix ``D(l) = E[(s_hat(n + l) - s_hat(n)) (s_hat(n + l) - s_hat(n))^T]`` at every lag ``l >=
+   1``, while turbulence that is smooth over a few frames adds ``c l^2``: ``C_v = (4 D(1) - D(2)) / 6``, per actuator
+   (its diagonal) and between actuators (its spatial colour, compared with ``sigma^2 R R^T`` when a reconstructor is
+   given).
+5. *r0 and L0* (:func:`~eofnn.training.twin_seeing.seeing_and_noise`,
+   :func:`~eofnn.training.twin_seeing.fit_seeing`): the noise-corrected covariance of ``s_hat`` against the
+   covariance of the twin's own noise-free turbulence (:func:`~eofnn.training.twin_seeing.reference_covariances`: the
+   twin's grid, sensor and identified winds, simulated at r0 = :data:`~eofnn.training.twin_seeing.R0_REFERENCE_M` for
+   each L0 of :data:`~eofnn.training.twin_seeing.OUTER_SCALES_M`), so that the sensing (a subaperture average, or a
+   Shack-Hartmann's reconstruction with its aliasing, in command units) is the twin's: their structure functions over
+   actuator separations from 1.5 pitches to half the pupil, piston, tip and tilt projected out of both, differ by the
+   factor ``(r0 / r0_ref)^(-5/3)`` (r0 at :data:`~eofnn.training.twin_seeing.R0_WAVELENGTH_M`); L0 is the one whose
+   shape fits best (not identifiable on a pupil much smaller than L0: one line says so and the twin keeps the best
+   fit). A Shack-Hartmann's aliased turbulence is not smooth over two frames and leaves part of itself in the noise
+   estimate of 4; the references say how much per unit of their turbulence, so the noise and r0 are solved for
+   together.
+6. *The layers* (:func:`~eofnn.training.twin_layers.identify_layers`): :func:`eofnn.control.wind.identify_winds`
+   (lagged cross-spectra of the whitened POL maps: a frozen-flow layer's peak moves by ``v tau``) fitted with 1 to
+   ``max_layers`` layers, the count chosen by the record's own consistency: a layer is added only if every block of
+   the record finds it again with the same wind, and it carries a fair share of the turbulence (an aliased
+   Shack-Hartmann's modes have an apparent motion that a cross-spectrum fit takes for a weak extra layer, whose wind
+   changes from block to block); layers closer than :data:`~eofnn.training.twin_layers.MERGE_SPEED_MPS` are merged,
+   and the winds' spread over the blocks gives the uncertainty. A Bayesian information criterion on the
+   cross-spectra's residual is reported beside it, not used: the cross-spectra's values are not independent, and it
+   takes the aliased component for a layer.
 
 Uncertainties are standard errors from splitting the record into ``blocks`` consecutive blocks (the spread of the
 blocks' estimates over ``sqrt(blocks)``), except the plant's (the regression's own standard errors).
@@ -52,38 +56,32 @@ import numpy as np
 
 from eofnn.errors import TelemetryError
 from eofnn.lazy import lazy_module
+from eofnn.training.twin_layers import (
+    MERGE_SPEED_MPS,
+    MIN_EXTRA_WEIGHT,
+    Lattice,
+    identify_layers,
+    record_blocks,
+    standard_error,
+)
+from eofnn.training.twin_seeing import (
+    OUTER_SCALES_M,
+    R0_REFERENCE_M,
+    R0_WAVELENGTH_M,
+    REFERENCE_FRAMES,
+    pseudo_open_loop,
+    ptt_projector,
+    reference_covariances,
+    seeing_and_noise,
+)
 
 torch = lazy_module("torch")
 
-#: The wavelength r0 is given at (m).
-R0_WAVELENGTH_M = 5e-7
-#: Outer scales (m) the structure function is fitted over.
-OUTER_SCALES_M = (10.0, 20.0, 40.0)
-#: The r0 (m, at :data:`R0_WAVELENGTH_M`) of the reference turbulence the record's is scaled from.
-R0_REFERENCE_M = 0.1
-#: Frames of each reference stream (at most; two realisations).
-REFERENCE_FRAMES = 3000
 #: The DM's influence functions when the record has slopes and no coupling is given: Gaussian, this value one pitch
 #: away (OOPAO's and eofnn's default).
 DEFAULT_COUPLING = 0.35
-#: Layers whose winds differ by less than this (m/s) are one layer.
-MERGE_SPEED_MPS = 2.0
 #: An interaction-matrix column (row) below this fraction of the median column (row) norm moves (answers) nothing.
 DEAD_FRACTION = 1e-3
-#: A layer's wind is consistent over the record's blocks when their standard errors are below these (degrees; a
-#: fraction of its speed).
-CONSISTENT_DIRECTION_DEG = 5.0
-CONSISTENT_SPEED = 0.08
-#: A layer beyond the first must carry at least this share of the turbulence.
-MIN_EXTRA_WEIGHT = 0.15
-#: The wind search is bounded by this times the fastest wind of a first fit, and at least by this speed (m/s).
-SEARCH_MARGIN = 1.5
-SLOWEST_BOUND_MPS = 10.0
-#: The refined search's longest lag: the time the bound speed takes to cross this fraction of the pupil (at least
-#: :data:`eofnn.control.wind.LONGEST_SHIFT_PITCHES`). Measured on 16 actuators across: with a quarter (wind.py's
-#: default) 8 and 13 m/s along one direction merge into one layer; with a half a 20 m/s layer beside a 9 m/s one
-#: is lost (too little overlap left); 3/8 parts both.
-LONGEST_SHIFT_OF_PUPIL = 0.375
 #: What one nm of command may be: of smooth DM surface (eofnn's) or at an influence function's peak (OOPAO's).
 COMMAND_UNITS = ("surface", "peak")
 #: Fewest frames from which a layer is identified.
@@ -220,270 +218,6 @@ def pupil_from_matrices(n_actuators: int, n_slopes: int | None, interaction_matr
     return out
 
 
-class _Lattice:
-    """Actuators on a square lattice as :class:`~eofnn.control.fourier.FourierBasis` reads eofnn's grid (row-major
-    ``indices``, ``pitch_m``, ``n_across``, ``neighbours``); ``order`` takes the telemetry's columns to it."""
-
-    def __init__(self, layout) -> None:
-        from eofnn.sim.grid import ActuatorGrid
-        from eofnn.sim.layout import ActuatorLayout
-
-        lattice = layout.indices if isinstance(layout, ActuatorGrid) else layout.lattice_indices
-        if lattice is None:
-            raise TelemetryError("identifying layers needs the actuators on a square lattice: these positions are "
-                                 "not (give the twin's winds by hand)")
-        lattice = np.asarray(lattice) - np.asarray(lattice).min(0)
-        self.order = np.lexsort((lattice[:, 1], lattice[:, 0]))
-        self.indices = lattice[self.order]
-        positions = np.asarray(layout.positions_m)[self.order]
-        self.positions_m = positions
-        self.pitch_m = float(layout.pitch_m)
-        self.n_across = int(lattice.max()) + 1
-        self.n_actuators = len(lattice)
-        self._layout = ActuatorLayout(positions)
-
-    def neighbours(self, radius: float):
-        return self._layout.neighbours(radius)
-
-    def ptt_basis(self) -> np.ndarray:
-        return self._layout.ptt_basis()
-
-
-# ------------------------------------------------------------------------------------------------------ statistics
-
-def pseudo_open_loop(y: np.ndarray, wfs: np.ndarray, dm_gain: float, delay_frames: float) -> np.ndarray:
-    """``s_hat(n) = wfs(n) - g DM-term(n)`` (module docstring, 3), ``(frames, K)`` nm."""
-    fraction = float(delay_frames) - math.floor(float(delay_frames))
-    acting = y if fraction == 0 else np.concatenate([y[:1], (1 - fraction) * y[1:] + fraction * y[:-1]])
-    return wfs - dm_gain * acting
-
-
-def noise_covariance(pol: np.ndarray) -> np.ndarray:
-    """``C_v = (4 D(1) - D(2)) / 6`` (module docstring, 4), ``(K, K)`` nm², of ``(frames, K)`` POL values."""
-    d1, d2 = pol[1:] - pol[:-1], pol[2:] - pol[:-2]
-    return (4 * d1.T @ d1 / len(d1) - d2.T @ d2 / len(d2)) / 6
-
-
-def _blocks(frames: int, blocks: int) -> list[slice]:
-    size = frames // blocks
-    return [slice(i * size, (i + 1) * size) for i in range(blocks)]
-
-
-def _se(values) -> float:
-    values = np.asarray(values, dtype=np.float64)
-    return float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else float("nan")
-
-
-def _ptt_projector(positions: np.ndarray) -> np.ndarray:
-    basis = np.column_stack([np.ones(len(positions)), positions - positions.mean(0)])
-    q, _ = np.linalg.qr(basis)
-    return np.eye(len(positions)) - q @ q.T
-
-
-def reference_covariances(config: dict, layers: list[dict], frames: int, *, realisations: int = 2,
-                          seed: int = 0) -> dict[float, np.ndarray]:
-    """``{L0: (cov, leak, positions)}``: the ``(K', K')`` covariance (nm²) and :func:`noise_covariance` of the
-    noise-free turbulence, and the ``(K', 2)`` positions (m) of the twin's actuators, as the twin's sensor sees it, at
-    ``r0 =`` :data:`R0_REFERENCE_M` (at :data:`R0_WAVELENGTH_M`) and each outer scale of :data:`OUTER_SCALES_M`, the
-    identified winds, over ``realisations`` streams of ``frames`` frames (``config``: the twin's scenario fields)."""
-    from eofnn.sim.scenario import Scenario
-
-    out = {}
-    for l0 in OUTER_SCALES_M:
-        cfg = json.loads(json.dumps(config))
-        cfg["atmosphere"].update(r0_m=R0_REFERENCE_M, r0_wavelength_m=R0_WAVELENGTH_M, outer_scale_m=l0,
-                                 screen_frames=frames,
-                                 layers=[{"cn2_fraction": lay["weight"], "wind_speed_mps": lay["speed_mps"],
-                                          "wind_direction_deg": lay["direction_deg"]} for lay in layers])
-        cfg["plant"]["wfs_noise_nm"] = 0.0
-        if "sensor" in cfg:
-            cfg["sensor"]["detector"] = None
-        scenario = Scenario.from_dict(cfg)
-        s = scenario.turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
-        out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(noise_covariance(r) for r in s) / len(s),
-                   np.asarray(scenario.grid.positions_m))
-    return out
-
-
-def _structure(cov: np.ndarray, distance: np.ndarray, bins: np.ndarray) -> np.ndarray:
-    d = np.diag(cov)
-    pairs = d[:, None] + d[None, :] - 2 * cov
-    which = np.digitize(distance, bins)
-    return np.array([pairs[which == b].mean() if (which == b).any() else np.nan for b in range(1, len(bins))])
-
-
-def seeing_and_noise(pol: np.ndarray, references: dict, positions_m: np.ndarray, pitch_m: float,
-                     iterations: int = 4) -> tuple[np.ndarray, dict]:
-    """``(C_v, seeing)``: the noise covariance and :func:`fit_seeing` of ``(frames, K)`` POL values, together.
-    Turbulence that is not smooth over two frames (an aliased Shack-Hartmann's) leaves part of itself in
-    :func:`noise_covariance`; the references tell how much per unit of their turbulence (their own
-    :func:`noise_covariance`, scaling as ``r0^(-5/3)``), so that part is removed at the r0 found, and r0 fitted
-    again with the noise so corrected."""
-    raw, total = noise_covariance(pol), np.cov(pol.T)
-    cv, seeing = raw, fit_seeing(total - raw, references, positions_m, pitch_m)
-    for _ in range(iterations):
-        _, leak, where = references[seeing["outer_scale_m"]]
-        if leak.shape != raw.shape or not np.allclose(where, positions_m):  # another layout: its mean, per actuator
-            leak = np.eye(len(raw)) * float(np.diag(leak).mean())
-        cv = raw - leak * (R0_REFERENCE_M / seeing["r0_m"]) ** (5 / 3)
-        seeing = fit_seeing(total - cv, references, positions_m, pitch_m)
-    return cv, seeing
-
-
-def fit_seeing(turbulence_cov: np.ndarray, references: dict[float, np.ndarray], positions_m: np.ndarray,
-               pitch_m: float) -> dict:
-    """r0 (m, at :data:`R0_WAVELENGTH_M`) and L0 (m) of a ``(K, K)`` turbulence covariance against the
-    :func:`reference_covariances` (module docstring, 5): ``{"r0_m", "outer_scale_m", "misfit": {L0: rms log
-    misfit}}``. The structure function ``D(r)`` of each, piston, tip and tilt projected out, averaged over pairs
-    of actuators in bins of a pitch from 1.5 pitches to half the pupil; ``D`` scales as ``r0^(-5/3)``."""
-    def structure(cov: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        p = _ptt_projector(positions)
-        return _structure(p @ cov @ p, np.linalg.norm(positions[:, None] - positions[None], axis=-1), bins)
-
-    extent = float(np.ptp(positions_m, axis=0).max())
-    bins = np.arange(1.5 * pitch_m, max(0.5 * extent, 3 * pitch_m) + pitch_m / 2, pitch_m)
-    measured = structure(turbulence_cov, positions_m)
-    results = {}
-    for l0, (reference, _, where) in references.items():
-        model = structure(reference, where)
-        good = np.isfinite(measured) & (measured > 0) & np.isfinite(model) & (model > 0)
-        ratio = np.log(measured[good] / model[good])
-        results[l0] = (float(ratio.mean()), float(ratio.std()))
-    best = min(results, key=lambda k: results[k][1])
-    return {"r0_m": float(R0_REFERENCE_M * math.exp(-0.6 * results[best][0])), "outer_scale_m": best,
-            "misfit": {str(k): round(v[1], 4) for k, v in results.items()}}
-
-
-# --------------------------------------------------------------------------------------------------------- layers
-
-def _layer_fit(pol_lattice: np.ndarray, lattice: _Lattice, period: float, n_layers: int, max_speed: float,
-               shift_pitches: float | None = None):
-    """Layers and the residual sum of squares of their cross-spectra model (weights refitted by least squares)."""
-    from eofnn.control.fourier import FourierBasis
-    from eofnn.control.wind import HIGHEST_CYCLES_PER_PITCH, cross_spectra, identify_winds, wind_lags
-
-    basis = FourierBasis(lattice)
-    pol = torch.as_tensor(pol_lattice[None])
-    layers = identify_winds(pol, basis, period, n_layers, max_speed, shift_pitches)
-    norm = basis.frequencies.norm(dim=1)
-    keep = (norm <= HIGHEST_CYCLES_PER_PITCH / lattice.pitch_m) & (norm > 0)
-    lags = wind_lags(lattice.n_across, lattice.pitch_m, max_speed, period, pol.shape[1], shift_pitches)
-    spectra = cross_spectra(pol, basis, lags, keep).numpy()
-    x0, data = spectra[0], spectra[1:]
-    f = basis.frequencies[keep].numpy()
-    lag_s = np.asarray(lags, dtype=float) * period
-    columns = [(x0[None] * np.exp(-2j * np.pi * lag_s[:, None] * (f @ [lay["vx_mps"], lay["vy_mps"]])[None])).ravel()
-               for lay in layers]
-    a = np.stack(columns, 1)
-    a2 = np.concatenate([a.real, a.imag])
-    b2 = np.concatenate([data.ravel().real, data.ravel().imag])
-    weights, *_ = np.linalg.lstsq(a2, b2, rcond=None)
-    rss = float(np.sum((a2 @ weights - b2) ** 2))
-    return layers, rss, b2.size
-
-
-def _merged(layers: list[dict]) -> list[dict]:
-    out: list[dict] = []
-    for lay in layers:
-        for kept in out:
-            if math.hypot(lay["vx_mps"] - kept["vx_mps"], lay["vy_mps"] - kept["vy_mps"]) < MERGE_SPEED_MPS:
-                total = kept["weight"] + lay["weight"]
-                for key in ("vx_mps", "vy_mps"):
-                    kept[key] = (kept[key] * kept["weight"] + lay[key] * lay["weight"]) / total
-                kept["weight"] = total
-                break
-        else:
-            out.append(dict(lay))
-    for lay in out:
-        lay["speed_mps"] = math.hypot(lay["vx_mps"], lay["vy_mps"])
-        lay["direction_deg"] = math.degrees(math.atan2(lay["vy_mps"], lay["vx_mps"]))
-    return out
-
-
-def _with_errors(layers: list[dict], blocks: list[list[dict]]) -> list[dict]:
-    """``layers`` with the standard errors of each over the blocks' layers (each block's nearest in wind, every
-    block's layers used once) and ``found_again``: whether every block has a layer of its own within
-    :data:`MERGE_SPEED_MPS` or a quarter of its speed."""
-    matched: list[list[dict]] = [[] for _ in layers]
-    found_again = [True] * len(layers)
-    for block in blocks:
-        free = list(block)
-        for i in np.argsort([-lay["weight"] for lay in layers]):
-            lay = layers[i]
-            if not free:
-                found_again[i] = False
-                matched[i].append(min(block, key=lambda f: _distance(f, lay)))
-                continue
-            near = min(free, key=lambda f: _distance(f, lay))
-            free.remove(near)
-            found_again[i] &= _distance(near, lay) <= max(MERGE_SPEED_MPS, 0.25 * lay["speed_mps"])
-            matched[i].append(near)
-    out = []
-    for lay, near, again in zip(layers, matched, found_again, strict=True):
-        lay = dict(lay, found_again=bool(again))
-        for key in ("vx_mps", "vy_mps", "speed_mps", "weight"):
-            lay[key + "_se"] = _se([m[key] for m in near])
-        angles = np.radians([m["direction_deg"] for m in near])
-        mean = math.atan2(np.sin(angles).mean(), np.cos(angles).mean())
-        lay["direction_deg_se"] = math.degrees(_se(np.angle(np.exp(1j * (angles - mean)))))
-        out.append(lay)
-    return out
-
-
-def _distance(a: dict, b: dict) -> float:
-    return math.hypot(a["vx_mps"] - b["vx_mps"], a["vy_mps"] - b["vy_mps"])
-
-
-def _consistent(lay: dict) -> bool:
-    """A layer every block finds again, with the same wind: direction within :data:`CONSISTENT_DIRECTION_DEG`,
-    speed within :data:`CONSISTENT_SPEED` (standard errors)."""
-    return lay["found_again"] and lay["direction_deg_se"] <= CONSISTENT_DIRECTION_DEG and lay["speed_mps_se"] <= (
-        CONSISTENT_SPEED * lay["speed_mps"])
-
-
-def identify_layers(pol: np.ndarray, lattice: _Lattice, period: float, *, max_layers: int = 3,
-                    max_speed_mps: float = 40.0, blocks: int = 4) -> tuple[list[dict], dict]:
-    """Frozen-flow layers of ``(frames, K)`` POL values (columns in the telemetry's order) with uncertainties
-    (module docstring, 6): ``(layers, info)``; each layer has ``vx_mps, vy_mps, speed_mps, direction_deg, weight``
-    and their ``*_se``.
-
-    First a fit of ``max_layers`` layers up to ``max_speed_mps`` finds the fastest wind; the search is then bounded
-    by :data:`SEARCH_MARGIN` times it (at least :data:`SLOWEST_BOUND_MPS`) and the longest lag is the time that
-    bound takes to cross :data:`LONGEST_SHIFT_OF_PUPIL` of the pupil (:func:`eofnn.control.wind.wind_lags`: a quarter
-    by default), so that a slow layer moves far enough to be measured and two close winds' peaks part. The model order:
-    ``n`` layers are accepted while every one of them is found again, with the same wind, in each block of the
-    record (:func:`_consistent`) and each added layer carries at least :data:`MIN_EXTRA_WEIGHT` of the turbulence;
-    a component that fails (an aliased mode's apparent motion, noise) stops the search at the last order whose
-    layers all passed."""
-    from eofnn.control.wind import LONGEST_SHIFT_PITCHES
-
-    x = pol[:, lattice.order]
-    first, _, _ = _layer_fit(x, lattice, period, max_layers, max_speed_mps)
-    fastest = max(lay["speed_mps"] for lay in _merged(first))
-    bound = min(max_speed_mps, max(SLOWEST_BOUND_MPS, SEARCH_MARGIN * fastest))
-    shift = max(LONGEST_SHIFT_PITCHES, LONGEST_SHIFT_OF_PUPIL * lattice.n_across)
-    chosen, scores, why = None, {}, ""
-    for n in range(1, max_layers + 1):
-        layers, rss, size = _layer_fit(x, lattice, period, n, bound, shift)
-        layers = _merged(layers)
-        scores[str(n)] = round(size * math.log(rss / size) + 3 * len(layers) * math.log(size), 1)
-        if chosen is not None and len(layers) <= len(chosen):
-            break  # merged back: no new layer
-        found = [_merged(_layer_fit(x[part], lattice, period, n, bound, shift)[0]) for part in _blocks(len(x), blocks)]
-        layers = _with_errors(layers, found)
-        if chosen is not None:
-            weak = [lay for lay in layers if lay["weight"] < MIN_EXTRA_WEIGHT]
-            moving = [lay for lay in layers if not _consistent(lay)]
-            if weak or moving:
-                why = (f"{len(layers)} layers rejected: "
-                       + ("a component's wind differs between blocks of the record" if moving else
-                          f"a component carries {min(lay['weight'] for lay in weak):.0%} of the turbulence"))
-                break
-        chosen = layers
-    return chosen, {"bic": scores, "chosen": len(chosen), "stopped": why, "search_mps": round(bound, 2),
-                    "shift_pitches": shift}
-
-
 # ----------------------------------------------------------------------------------------------------------- whole
 
 def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max_layers: int = 3,
@@ -601,15 +335,15 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
 
     pol = pseudo_open_loop(y_all, wfs_all, gain, delay)
     pol = pol - pol.mean(0)
-    parts = _blocks(frames, blocks)
+    parts = record_blocks(frames, blocks)
 
     # The POL carries piston/tip/tilt unless the loop removed them.
-    ptt = pol @ _ptt_projector(positions)
+    ptt = pol @ ptt_projector(positions)
     kept = 1 - float(np.mean(ptt.var(0))) / max(float(np.mean(pol.var(0))), 1e-300)
     result.remove_ptt = kept < 0.02
 
     # Layers.
-    lattice = _Lattice(layout)
+    lattice = Lattice(layout)
     layers, info = identify_layers(pol, lattice, period, max_layers=max_layers, max_speed_mps=max_speed_mps,
                                    blocks=blocks)
     result.layers = layers
@@ -631,7 +365,7 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     method = (f"noise-corrected POL covariance against the twin's ({sensing}) at r0 = {R0_REFERENCE_M} m over "
               f"{2 * min(frames, REFERENCE_FRAMES)} noise-free frames: the structure function (piston, tip, tilt "
               "projected out) over 1.5 pitches to half the pupil scales as r0^(-5/3)")
-    e["r0_m"] = Estimate(seeing["r0_m"], _se([f[1]["r0_m"] for f in fits]), "m at 500 nm", method)
+    e["r0_m"] = Estimate(seeing["r0_m"], standard_error([f[1]["r0_m"] for f in fits]), "m at 500 nm", method)
     l0s = [f[1]["outer_scale_m"] for f in fits]
     misfit = seeing["misfit"]
     l0_warning = ""
@@ -639,14 +373,14 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
         l0_warning = (f"L0 not identifiable from this record (pupil {result.grid['diameter_m']:.3g} m, blocks gave "
                       f"{sorted(l0s)} m): the twin keeps the best fit")
         result.warn(l0_warning)
-    e["outer_scale_m"] = Estimate(seeing["outer_scale_m"], _se(np.log(l0s)) * seeing["outer_scale_m"], "m",
+    e["outer_scale_m"] = Estimate(seeing["outer_scale_m"], standard_error(np.log(l0s)) * seeing["outer_scale_m"], "m",
                                   f"the outer scale of {list(OUTER_SCALES_M)} whose structure function fits best "
                                   f"(rms log misfit {misfit})", l0_warning)
 
     # WFS noise.
     per_act = np.clip(np.diag(cv), 0, None)
     e["wfs_noise_nm"] = Estimate(math.sqrt(float(per_act.mean())),
-                                 _se([math.sqrt(max(float(np.diag(f[0]).mean()), 0)) for f in fits]), "nm",
+                                 standard_error([math.sqrt(max(float(np.diag(f[0]).mean()), 0)) for f in fits]), "nm",
                                  "white floor of the POL's lagged structure, (4 D(1) - D(2)) / 6, less what the "
                                  "twin's turbulence leaves in it at the identified r0 and winds; RMS over actuators")
     e["wfs_noise_per_actuator_nm"] = Estimate(np.sqrt(per_act).round(4).tolist(), None, "nm", "diagonal of C_v")

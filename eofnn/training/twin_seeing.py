@@ -1,0 +1,116 @@
+"""The statistics a twin is identified from (steps 3-5 of :mod:`eofnn.training.twin`): the pseudo-open-loop
+signal, the WFS noise's covariance from its lagged structure, and r0 and L0 against the covariance of the twin's own
+noise-free turbulence."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from eofnn.lazy import lazy_module
+
+torch = lazy_module("torch")
+
+#: The wavelength r0 is given at (m).
+R0_WAVELENGTH_M = 5e-7
+#: Outer scales (m) the structure function is fitted over.
+OUTER_SCALES_M = (10.0, 20.0, 40.0)
+#: The r0 (m, at :data:`R0_WAVELENGTH_M`) of the reference turbulence the record's is scaled from.
+R0_REFERENCE_M = 0.1
+#: Frames of each reference stream (at most; two realisations).
+REFERENCE_FRAMES = 3000
+
+def pseudo_open_loop(y: np.ndarray, wfs: np.ndarray, dm_gain: float, delay_frames: float) -> np.ndarray:
+    """``s_hat(n) = wfs(n) - g DM-term(n)`` (module docstring, 3), ``(frames, K)`` nm."""
+    fraction = float(delay_frames) - math.floor(float(delay_frames))
+    acting = y if fraction == 0 else np.concatenate([y[:1], (1 - fraction) * y[1:] + fraction * y[:-1]])
+    return wfs - dm_gain * acting
+
+
+def noise_covariance(pol: np.ndarray) -> np.ndarray:
+    """``C_v = (4 D(1) - D(2)) / 6`` (module docstring, 4), ``(K, K)`` nm², of ``(frames, K)`` POL values."""
+    d1, d2 = pol[1:] - pol[:-1], pol[2:] - pol[:-2]
+    return (4 * d1.T @ d1 / len(d1) - d2.T @ d2 / len(d2)) / 6
+
+
+def ptt_projector(positions: np.ndarray) -> np.ndarray:
+    """``(K, K)``: the projector that removes piston, tip and tilt from values at ``positions`` (m, ``(K, 2)``)."""
+    basis = np.column_stack([np.ones(len(positions)), positions - positions.mean(0)])
+    q, _ = np.linalg.qr(basis)
+    return np.eye(len(positions)) - q @ q.T
+
+
+def reference_covariances(config: dict, layers: list[dict], frames: int, *, realisations: int = 2,
+                          seed: int = 0) -> dict[float, np.ndarray]:
+    """``{L0: (cov, leak, positions)}``: the ``(K', K')`` covariance (nm²) and :func:`noise_covariance` of the
+    noise-free turbulence, and the ``(K', 2)`` positions (m) of the twin's actuators, as the twin's sensor sees it, at
+    ``r0 =`` :data:`R0_REFERENCE_M` (at :data:`R0_WAVELENGTH_M`) and each outer scale of :data:`OUTER_SCALES_M`, the
+    identified winds, over ``realisations`` streams of ``frames`` frames (``config``: the twin's scenario fields)."""
+    from eofnn.sim.scenario import Scenario
+
+    out = {}
+    for l0 in OUTER_SCALES_M:
+        cfg = json.loads(json.dumps(config))
+        cfg["atmosphere"].update(r0_m=R0_REFERENCE_M, r0_wavelength_m=R0_WAVELENGTH_M, outer_scale_m=l0,
+                                 screen_frames=frames,
+                                 layers=[{"cn2_fraction": lay["weight"], "wind_speed_mps": lay["speed_mps"],
+                                          "wind_direction_deg": lay["direction_deg"]} for lay in layers])
+        cfg["plant"]["wfs_noise_nm"] = 0.0
+        if "sensor" in cfg:
+            cfg["sensor"]["detector"] = None
+        scenario = Scenario.from_dict(cfg)
+        s = scenario.turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
+        out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(noise_covariance(r) for r in s) / len(s),
+                   np.asarray(scenario.grid.positions_m))
+    return out
+
+
+def _structure(cov: np.ndarray, distance: np.ndarray, bins: np.ndarray) -> np.ndarray:
+    d = np.diag(cov)
+    pairs = d[:, None] + d[None, :] - 2 * cov
+    which = np.digitize(distance, bins)
+    return np.array([pairs[which == b].mean() if (which == b).any() else np.nan for b in range(1, len(bins))])
+
+
+def seeing_and_noise(pol: np.ndarray, references: dict, positions_m: np.ndarray, pitch_m: float,
+                     iterations: int = 4) -> tuple[np.ndarray, dict]:
+    """``(C_v, seeing)``: the noise covariance and :func:`fit_seeing` of ``(frames, K)`` POL values, together.
+    Turbulence that is not smooth over two frames (an aliased Shack-Hartmann's) leaves part of itself in
+    :func:`noise_covariance`; the references tell how much per unit of their turbulence (their own
+    :func:`noise_covariance`, scaling as ``r0^(-5/3)``), so that part is removed at the r0 found, and r0 fitted
+    again with the noise so corrected."""
+    raw, total = noise_covariance(pol), np.cov(pol.T)
+    cv, seeing = raw, fit_seeing(total - raw, references, positions_m, pitch_m)
+    for _ in range(iterations):
+        _, leak, where = references[seeing["outer_scale_m"]]
+        if leak.shape != raw.shape or not np.allclose(where, positions_m):  # another layout: its mean, per actuator
+            leak = np.eye(len(raw)) * float(np.diag(leak).mean())
+        cv = raw - leak * (R0_REFERENCE_M / seeing["r0_m"]) ** (5 / 3)
+        seeing = fit_seeing(total - cv, references, positions_m, pitch_m)
+    return cv, seeing
+
+
+def fit_seeing(turbulence_cov: np.ndarray, references: dict[float, np.ndarray], positions_m: np.ndarray,
+               pitch_m: float) -> dict:
+    """r0 (m, at :data:`R0_WAVELENGTH_M`) and L0 (m) of a ``(K, K)`` turbulence covariance against the
+    :func:`reference_covariances` (module docstring, 5): ``{"r0_m", "outer_scale_m", "misfit": {L0: rms log
+    misfit}}``. The structure function ``D(r)`` of each, piston, tip and tilt projected out, averaged over pairs
+    of actuators in bins of a pitch from 1.5 pitches to half the pupil; ``D`` scales as ``r0^(-5/3)``."""
+    def structure(cov: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        p = ptt_projector(positions)
+        return _structure(p @ cov @ p, np.linalg.norm(positions[:, None] - positions[None], axis=-1), bins)
+
+    extent = float(np.ptp(positions_m, axis=0).max())
+    bins = np.arange(1.5 * pitch_m, max(0.5 * extent, 3 * pitch_m) + pitch_m / 2, pitch_m)
+    measured = structure(turbulence_cov, positions_m)
+    results = {}
+    for l0, (reference, _, where) in references.items():
+        model = structure(reference, where)
+        good = np.isfinite(measured) & (measured > 0) & np.isfinite(model) & (model > 0)
+        ratio = np.log(measured[good] / model[good])
+        results[l0] = (float(ratio.mean()), float(ratio.std()))
+    best = min(results, key=lambda k: results[k][1])
+    return {"r0_m": float(R0_REFERENCE_M * math.exp(-0.6 * results[best][0])), "outer_scale_m": best,
+            "misfit": {str(k): round(v[1], 4) for k, v in results.items()}}
