@@ -116,9 +116,8 @@ class PredictorConfig:
     oracle : bool
         ``true``: this predictor is the contest's oracle, a bound and not a contender. It must learn from the
         simulator's truth (``data.truth``), knowledge no telescope has; the verdict never counts it as the best
-        predictor, gives its ratio over the best classical controller and, for every predictor, ``eta``: the share of
-        its variance gain reached. ``evaluation.oracle: true`` adds one built by
-        :func:`~eofnn.evaluation.contenders.oracle_config`.
+        predictor, gives its ratio over the best classical controller and every predictor's ``eta``, the share of
+        its variance gain reached (``evaluation.oracle: true`` adds one).
     fallback : FallbackConfig
         Never worse than the integrator: ``per: whole`` or ``per: mode`` deploys this controller only where it beats
         the best-gain integrator on a validation stream of its own by more than the scatter, the integrator's command
@@ -324,11 +323,10 @@ class EvaluationConfig:
         ``false`` skips it: a neighbourhood filter's coupled analysis can take minutes of CPU on a busy machine
         (``docs/findings.md``), which a study of residuals alone does without.
     oracle : bool
-        Add an oracle to the contest (named ``oracle``): the least-squares open-loop filter fitted on the simulator's
-        truth with ample data, more taps and a wider neighbourhood than any contender
-        (:func:`~eofnn.evaluation.contenders.oracle_config`); the verdict gives its ratio over the best classical
-        controller and every predictor's share of its gain (``eta``). Off by default: it trains the largest filter
-        of the contest in every scenario.
+        Add an oracle to the contest (named ``oracle``, :func:`~eofnn.evaluation.contenders.oracle_config`): the
+        least-squares open-loop filter fitted on the simulator's truth with ample data, more taps and a wider
+        neighbourhood than any contender; the verdict gives its ratio over the best classical controller and every
+        predictor's share of its gain (``eta``). Off by default: it trains the contest's largest filter in every scenario.
     """
 
     frames: int = 5000
