@@ -1,0 +1,59 @@
+"""A pyramid's optical gains: its response to a small probe about a residual, against its response about a flat
+wavefront, per mode.
+
+The pyramid (:mod:`eofnn.sim.sensing.pyramid`) is linear only about a flat wavefront; about a residual its response
+to a small probe of mode ``m`` is smaller (the residual smears the PSF over the faces as modulation does). Per mode,
+the gain is the projection of the response about the residual on the response about a flat wavefront,
+``<D_res m, D_0 m> / <D_0 m, D_0 m>`` (the convolutional model's and the gain-sensing camera's quantity:
+Chambouleyron et al. 2020, A&A 644, A6; Fauvarque et al. 2019, JATIS 5, 1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from eofnn.errors import require
+from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.sensing.pyramid_optics import as_phase
+from eofnn.validation import Interval, check_value
+
+
+def kl_modes(grid: ActuatorGrid, n_modes: int) -> np.ndarray:
+    """``(K, n_modes)`` orthonormal command-space Karhunen-Loève modes of Kolmogorov turbulence on ``grid``'s
+    actuators, piston removed, in decreasing variance: the eigenvectors of ``-P S P / 2`` (``S`` the structure
+    function ``|x_i - x_j|^(5/3)`` between actuators, ``P`` the piston-removing projector)."""
+    check_value("n_modes", n_modes, Interval(1, grid.n_actuators - 1, integer=True, unit="modes"))
+    x = grid.positions_m
+    structure = np.hypot(*(x[:, None, :] - x[None, :, :]).transpose(2, 0, 1)) ** (5 / 3)
+    k = len(x)
+    p = np.eye(k) - 1.0 / k
+    values, vectors = np.linalg.eigh(-0.5 * p @ structure @ p)
+    return vectors[:, np.argsort(values)[::-1][:n_modes]]
+
+
+def optical_gains(sensor, modes_nm: torch.Tensor, residual_nm: torch.Tensor,
+                  amplitude_nm: float | None = None) -> torch.Tensor:
+    """Optical gains ``(R, M)`` of ``(M, n_pupil)`` mode shapes (nm per unit) about each of ``(R, n_pupil)``
+    residual phases (nm): ``<D_res m, D_0 m> / <D_0 m, D_0 m>`` per mode (module docstring), the responses by
+    push-pull of ``amplitude_nm`` (the config's ``push_pull_nm`` if ``None``)."""
+    modes = as_phase(modes_nm, sensor.n_pupil).reshape(-1, sensor.n_pupil)
+    residuals = as_phase(residual_nm, sensor.n_pupil).reshape(-1, sensor.n_pupil)
+    flat = sensor.response(modes, None, amplitude_nm)
+    norm = (flat * flat).sum(-1)
+    require(bool((norm > 0).all()), "a mode the pyramid does not see (zero response about a flat wavefront) has no "
+                                    "optical gain: remove it from modes_nm")
+    gains = [(sensor.response(modes, r, amplitude_nm) * flat).sum(-1) / norm for r in residuals]
+    return torch.stack(gains)
+
+
+def modal_optical_gains(sensor, residual_nm: torch.Tensor, n_modes: int,
+                        amplitude_nm: float | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    """Optical gains of the first ``n_modes`` Karhunen-Loève command modes (:func:`kl_modes`) measured on a loop's
+    residual: ``(gains, modes)``, ``gains`` ``(n_modes,)`` the mean of :func:`optical_gains` over the ``(R,
+    n_pupil)`` residual phases (nm; e.g. frames of a closed loop's residual over the pupil), ``modes`` the ``(K,
+    n_modes)`` orthonormal command modes they belong to (a controller compensates mode ``m`` by dividing its
+    reconstruction ``modes[:, m] . y`` by ``gains[m]``)."""
+    modes = kl_modes(sensor.grid, n_modes)
+    shapes = sensor.dm_surface(torch.as_tensor(modes.T))
+    return optical_gains(sensor, shapes, residual_nm, amplitude_nm).mean(0), modes
