@@ -166,7 +166,7 @@ def test_metrics_and_contrast_are_over_the_pupil(bright):
     ({"samples_per_subaperture": 0}, {}, "samples_per_subaperture=0 is invalid"),
     ({}, {"kernel": "subaperture"}, "kernel='subaperture' is invalid with sensor.kind shack_hartmann"),
     ({}, {"model": "strip"}, "model='strip' is invalid with sensor.kind shack_hartmann"),
-    ({"kind": "pyramid"}, {}, "kind='pyramid' is invalid"),
+    ({"kind": "pyramids"}, {}, "kind='pyramids' is invalid"),
 ])
 def test_bad_sensors_are_one_line(sensor, atmosphere, match):
     with pytest.raises(ConfigError, match=match) as err:

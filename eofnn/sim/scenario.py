@@ -19,7 +19,7 @@ from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.plant import Plant
 from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.sim.loop.sensing import ShackHartmannTurbulence, loop_operators
-from eofnn.sim.sensing.sensor import Sensor, build_sensor
+from eofnn.sim.sensing.sensor import PYRAMID_ONLY, Sensor, build_sensor
 from eofnn.validation import Constraint, Interval, from_mapping, validated
 
 
@@ -68,6 +68,8 @@ class Scenario:
         object.__setattr__(self, "sensor", build_sensor(self.sensor))
         if self.sensor.is_shack_hartmann:
             self._check_shack_hartmann()
+        elif self.sensor.is_pyramid:
+            self._check_pyramid()
         for axis in ("x", "y"):  # the plant's own limit is +-10 pitches whatever the grid
             shift = getattr(self.plant, f"misregistration_{axis}")
             if abs(shift) >= self.grid.n_across:
@@ -77,9 +79,14 @@ class Scenario:
 
     @property
     def turbulence_grid(self) -> ActuatorGrid:
-        """Where the turbulence is synthesised: the actuators, or a Shack-Hartmann's fine grid."""
+        """Where the turbulence is synthesised: the actuators, a Shack-Hartmann's fine grid or a pyramid's pupil
+        points."""
         if self.sensor.is_shack_hartmann:
             return loop_operators(self.grid, self.sensor.shack_hartmann()).sensor.geometry.fine_grid
+        if self.sensor.is_pyramid:
+            from eofnn.sim.sensing.pyramid import pupil_grid
+
+            return pupil_grid(self.grid, self.sensor.pyramid())
         return self.grid
 
     @property
@@ -90,23 +97,38 @@ class Scenario:
     def turbulence(self, seed: int, stream: str = "test", n_realisations: int = 1,
                    isolate: str = "none") -> Turbulence | ShackHartmannTurbulence:
         """The turbulence stream of this scenario for ``seed`` and ``stream`` (a Shack-Hartmann scenario's carries its
-        sensor; ``isolate`` makes it noise-free or perfect for the error budget, :mod:`eofnn.sim.loop.sensing`)."""
+        sensor; ``isolate`` makes it noise-free or perfect for the error budget, :mod:`eofnn.sim.loop.sensing`; a
+        pyramid scenario's reads its phase over the pupil each frame, :mod:`eofnn.sim.loop.pyramid`)."""
+        if self.sensor.is_pyramid:
+            from eofnn.sim.loop.pyramid import PyramidTurbulence
+
+            return PyramidTurbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
+                                     self.vibrations, self.sensor, isolate)
         if self.sensor.is_shack_hartmann:
             return ShackHartmannTurbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream,
                                            n_realisations, self.vibrations, self.sensor, isolate)
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
                           self.vibrations)
 
+    def _check_phase_sampling(self) -> None:
+        """Refuse, in one line each, an atmosphere a sensor that samples the phase at points cannot run."""
+        atm, kind = self.atmosphere, self.sensor.kind
+        if atm.model != "exact":
+            raise ConfigError(f"atmosphere.model={atm.model!r} is invalid with sensor.kind {kind}: its phase is "
+                              "synthesised exactly on the sensor's own points; use model 'exact'")
+        if atm.kernel not in (None, "point"):
+            raise ConfigError(f"atmosphere.kernel={atm.kernel!r} is invalid with sensor.kind {kind}: the "
+                              "zonal kernel is the subaperture sensor's; this sensor samples the phase at "
+                              "points of its own grid (remove kernel, or set it to point)")
+
+    def _check_pyramid(self) -> None:
+        """Refuse, in one line each, what a pyramid scenario cannot run (its calibration waits for its first loop)."""
+        self._check_phase_sampling()
+        self.turbulence_grid  # noqa: B018 (the pupil's checks: diameter, points across, modulation)
+
     def _check_shack_hartmann(self) -> None:
         """Refuse, in one line each, what a Shack-Hartmann scenario cannot run."""
-        atm = self.atmosphere
-        if atm.model != "exact":
-            raise ConfigError(f"atmosphere.model={atm.model!r} is invalid with sensor.kind shack_hartmann: its phase is "
-                              "synthesised exactly on the sensor's fine grid; use model 'exact'")
-        if atm.kernel not in (None, "point"):
-            raise ConfigError(f"atmosphere.kernel={atm.kernel!r} is invalid with sensor.kind shack_hartmann: the "
-                              "zonal kernel is the subaperture sensor's; the Shack-Hartmann samples the phase at "
-                              "points of its fine grid (remove kernel, or set it to point)")
+        self._check_phase_sampling()
         self.sensor.check_fits(self.grid)
         loop_operators(self.grid, self.sensor.shack_hartmann())  # builds the geometry and R: their checks too
 
@@ -144,7 +166,7 @@ class Scenario:
             need = max(peaks) + (n_screens - 1) * 4 * atm.screen_frames * grid.n_actuators
             if n_screens:
                 require_memory(need, f"{what}: the set of exact screens of non-lattice winds ({n_screens} screen(s) "
-                                     f"of {grid.n_actuators} {'points' if self.sensor.is_shack_hartmann else 'actuators'} x "
+                                     f"of {grid.n_actuators} {'actuators' if self.sensor.kind == 'subaperture' else 'points'} x "
                                      f"screen_frames={atm.screen_frames})")
 
     def with_plant(self, **changes: Any) -> Scenario:
@@ -155,8 +177,10 @@ class Scenario:
         out = asdict(self)
         out["atmosphere"]["layers"] = [dict(lay) for lay in out["atmosphere"]["layers"]]
         out["vibrations"] = [dict(vib) for vib in out["vibrations"]]
-        if not self.sensor.is_shack_hartmann:  # the default sensor: configs written before it existed still match
+        if self.sensor.kind == "subaperture":  # the default sensor: configs written before it existed still match
             del out["sensor"]
+        else:  # a Shack-Hartmann's config written before the pyramid existed still matches
+            out["sensor"] = {k: v for k, v in out["sensor"].items() if k not in PYRAMID_ONLY or v is not None}
         return out
 
     @classmethod

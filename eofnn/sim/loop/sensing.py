@@ -120,6 +120,9 @@ class ShackHartmannTurbulence:
     It streams like :class:`~eofnn.sim.atmosphere.turbulence.Turbulence` on the actuator grid (``frames``,
     ``chunks``: ``s = R S phi``) and adds the sensor's side (:meth:`products`, :meth:`open_loop`)."""
 
+    #: The fine-grid phase is kept at frames that are multiples of this (a pyramid's loop keeps every frame's).
+    phase_every = PHASE_EVERY
+
     def __init__(self, atmosphere: Atmosphere, grid: ActuatorGrid, frame_rate_hz: float, seed: int, stream: str,
                  n_realisations: int, vibrations, sensor: Sensor, isolate: str = "none") -> None:
         require(isolate in ISOLATE, f"isolate={isolate!r} is invalid: allowed are {', '.join(ISOLATE)}")
@@ -197,7 +200,8 @@ class ShackHartmannTurbulence:
         flat = phase.reshape(-1, phase.shape[-1]).numpy()
         shape = phase.shape[:2]
         out = {k: v.reshape(*shape, *v.shape[1:]) for k, v in self.operators.products(flat, slopes).items()}
-        out["phase"] = phase[:, (-start) % PHASE_EVERY::PHASE_EVERY].clone()
+        every = self.phase_every
+        out["phase"] = phase[:, (-start) % every::every].clone()
         size = sum(v.numel() * v.element_size() for v in out.values())
         while _CACHE and sum(c["bytes"] for c in _CACHE.values()) + size > CACHE_BYTES:
             _CACHE.popitem(last=False)
@@ -225,9 +229,10 @@ class ShackHartmannTurbulence:
 
     def phase_at(self, frame: int) -> torch.Tensor:
         """The fine-grid phase ``(R, n_fine)`` of ``frame``, a multiple of :data:`PHASE_EVERY`."""
-        require(frame % PHASE_EVERY == 0, f"frame={frame} is invalid: the phase is kept at multiples of {PHASE_EVERY}")
+        every = self.phase_every
+        require(frame % every == 0, f"frame={frame} is invalid: the phase is kept at multiples of {every}")
         step = self.chunk_frames
-        return self._chunk(frame // step)["phase"][:, (frame % step) // PHASE_EVERY]
+        return self._chunk(frame // step)["phase"][:, (frame % step) // every]
 
     def slope_noise(self, shape: tuple[int, int], sigma_nm: float, generator) -> torch.Tensor | None:
         """``n``: ``(R, frames, 2 n_sub)`` white slope noise of RMS ``sigma_nm`` (``None`` when 0), times each slope's
@@ -281,6 +286,10 @@ class ShackHartmannTurbulence:
         mean_sq = (pupil["sumsq"] + 2 * (pupil["z"] * u).sum(-1) + (u * (u @ self._gram)).sum(-1)) / n
         mean = (pupil["sum"] + u @ self._pupil_sums) / n
         return (mean_sq - mean * mean).clamp(min=0)
+
+    def loop_sensing(self, model, slopes: bool = False) -> ShackHartmannLoopSensing:
+        """How ``run_loop`` senses this turbulence in ``model`` (:class:`ShackHartmannLoopSensing`)."""
+        return ShackHartmannLoopSensing(self, model, slopes)
 
     def measurement(self, plant, dm_gain=None, wfs_gain=None) -> ShackHartmannMeasurement:
         """The sensor's measurement in ``plant`` (:class:`ShackHartmannMeasurement`); ``dm_gain``, ``wfs_gain``: gains
@@ -430,7 +439,7 @@ def loop_sensing(turbulence, model, slopes: bool = False, sensor=None):
     that measures a turbulence on the actuator grid in place of the zonal sensor."""
     if isinstance(turbulence, ShackHartmannTurbulence):
         require(sensor is None, "sensor is invalid with a Shack-Hartmann scenario: its turbulence comes with its sensor")
-        return ShackHartmannLoopSensing(turbulence, model, slopes)
+        return turbulence.loop_sensing(model, slopes)
     require(not slopes, "record 'slopes' is invalid in this scenario: the zonal sensor (sensor.kind: subaperture) "
             "measures no slopes; record them with sensor.kind: shack_hartmann")
     return ZonalLoopSensing(turbulence, model, loop_sensor(sensor, turbulence.grid))

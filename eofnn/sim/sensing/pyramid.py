@@ -117,6 +117,23 @@ class Pyramid:
         return PyramidSensor(grid, self)
 
 
+def pupil_grid(grid: ActuatorGrid, config: Pyramid) -> ActuatorGrid:
+    """The pyramid's pupil points on ``grid`` (``pixels_across * samples_per_pixel`` across the lit pupil), or one
+    :class:`~eofnn.errors.ConfigError` line saying why the pyramid cannot be built there."""
+    pupil_m = grid.diameter_m if config.pupil_diameter_m is None else config.pupil_diameter_m
+    check_value("sensor.pupil_diameter_m", pupil_m,
+                Interval(0, grid.diameter_m, closed="right", unit=f"m (the actuator grid is {grid.diameter_m:g} m "
+                         "across)"))
+    pixels = config.pixels_across if config.pixels_across is not None else max(2, round(pupil_m / grid.pitch_m))
+    n = pixels * config.samples_per_pixel
+    require(n % 2 == 0, f"pixels_across x samples_per_pixel = {pixels} x {config.samples_per_pixel} is invalid: "
+                        "it must be even (the pupil is centred between four focal-plane points)")
+    require(config.modulation_lambda_over_d <= n / 2 - 1,
+            f"modulation_lambda_over_d={config.modulation_lambda_over_d!r} is invalid on {n} pupil points across: "
+            f"allowed up to {n / 2 - 1:g} (raise pixels_across or samples_per_pixel)")
+    return ActuatorGrid(pupil_m, n, grid.obstruction)
+
+
 class PyramidSensor:
     """A built :class:`Pyramid` on an actuator grid (torch inside; the reconstructor by numpy's eigen-solver).
 
@@ -140,18 +157,8 @@ class PyramidSensor:
 
     def __init__(self, grid: ActuatorGrid, config: Pyramid = Pyramid()) -> None:
         self.grid, self.config = grid, config
-        pupil_m = grid.diameter_m if config.pupil_diameter_m is None else config.pupil_diameter_m
-        check_value("sensor.pupil_diameter_m", pupil_m,
-                    Interval(0, grid.diameter_m, closed="right", unit=f"m (the actuator grid is {grid.diameter_m:g} m "
-                             "across)"))
-        pixels = config.pixels_across if config.pixels_across is not None else max(2, round(pupil_m / grid.pitch_m))
-        n = pixels * config.samples_per_pixel
-        require(n % 2 == 0, f"pixels_across x samples_per_pixel = {pixels} x {config.samples_per_pixel} is invalid: "
-                            "it must be even (the pupil is centred between four focal-plane points)")
-        require(config.modulation_lambda_over_d <= n / 2 - 1,
-                f"modulation_lambda_over_d={config.modulation_lambda_over_d!r} is invalid on {n} pupil points across: "
-                f"allowed up to {n / 2 - 1:g} (raise pixels_across or samples_per_pixel)")
-        self.pupil_grid = ActuatorGrid(pupil_m, n, grid.obstruction)
+        self.pupil_grid = pupil_grid(grid, config)
+        pixels = self.pupil_grid.n_across // config.samples_per_pixel
         self.optics = PyramidOptics(self.pupil_grid.mask, pixels, config.samples_per_pixel, config.separation_pixels,
                                     config.modulation_lambda_over_d, config.modulation_points, config.wavelength_nm)
         self.signals = PyramidSignals(self.optics, config.signal, config.light_ratio,

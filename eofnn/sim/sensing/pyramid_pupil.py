@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from eofnn.errors import require
 from eofnn.sim.sensing.least_squares import surface_per_command
 from eofnn.sim.sensing.pupil import piston_removed_rms
 from eofnn.sim.sensing.pyramid import PyramidSensor
@@ -66,12 +67,16 @@ class PyramidLoopOperators:
         signals = self.sensor.measure(residual, photons, read_noise_e, generator)
         return signals @ self.reconstructor.to(signals).T
 
-    def products(self, phase: np.ndarray) -> dict[str, torch.Tensor]:
+    def products(self, phase: np.ndarray, with_slopes: bool = False) -> dict[str, torch.Tensor]:
         """What scoring the loop needs of ``(rows, n_pupil)`` phase (nm): ``fit = P F phi`` and ``z = IF^T phi``
-        (``(rows, K)``), and the pupil's ``sum phi`` and ``sum phi²`` (``(rows,)``)."""
+        (``(rows, K)``), and the pupil's ``sum phi`` and ``sum phi²`` (``(rows,)``); ``sensed``, the loop's truth in
+        command space, is ``fit`` (the pyramid's reading is not linear in the phase: the loop reads the residual
+        itself). ``with_slopes`` is refused in one line: the pyramid has none."""
+        require(not with_slopes, "record 'slopes' is invalid with sensor.kind pyramid: it measures no slopes")
         phase = np.asarray(phase, dtype=np.float64)
         z = torch.as_tensor(np.ascontiguousarray((self.influence_t @ phase.T).T))
-        return {"fit": z @ self.fit_matrix.T, "z": z, "sum": torch.as_tensor(phase.sum(1)),
+        fit = z @ self.fit_matrix.T
+        return {"fit": fit, "sensed": fit, "z": z, "sum": torch.as_tensor(phase.sum(1)),
                 "sumsq": torch.as_tensor(np.einsum("ij,ij->i", phase, phase))}
 
     def pupil_rms(self, z: torch.Tensor, total: torch.Tensor, total_sq: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,12 @@
   noise-free) plus the plant's ``wfs_noise_nm`` as white noise per slope (nm of OPD difference across the
   subaperture). The loop then runs as :mod:`eofnn.sim.loop.sensing` describes, with the residual also scored over the
   pupil on the fine grid (fitting error included).
+- ``kind: pyramid``: the diffractive modulated pyramid of :mod:`eofnn.sim.sensing.pyramid`
+  (``modulation_lambda_over_d``, ``pixels_across``: one pixel per actuator pitch across the pupil by default,
+  ``samples_per_pixel``), calibrated by push-pull on the DM's actuators and read through its least-squares
+  reconstructor. It is not linear in the phase: the loop propagates the residual phase over the pupil each frame
+  (:mod:`eofnn.sim.loop.pyramid`). The sensing band and the photon and read noise come from ``detector:`` (its band,
+  magnitude, throughput and ``read_noise_e``; the I band and no noise without one).
 """
 
 from __future__ import annotations
@@ -21,16 +27,26 @@ from eofnn.errors import ConfigError, require
 from eofnn.sim.grid import ActuatorGrid
 
 # The Shack-Hartmann's constants and field constraints are declared once, in a light module of their own.
-from eofnn.sim.sensing.constants import GEOMETRIES, MECHANICAL_COUPLING, SHACK_HARTMANN_CONSTRAINTS
+from eofnn.sim.sensing.constants import (
+    GEOMETRIES,
+    MECHANICAL_COUPLING,
+    PYRAMID_CONSTRAINTS,
+    SHACK_HARTMANN_CONSTRAINTS,
+)
 from eofnn.sim.sensing.detector import Detector
-from eofnn.validation import Constraint, OneOf, from_mapping, validated
+from eofnn.validation import Constraint, OneOf, OrNone, from_mapping, validated
 
-__all__ = ["GEOMETRIES", "MECHANICAL_COUPLING", "SENSOR_KINDS", "Sensor", "build_sensor"]
+__all__ = ["GEOMETRIES", "MECHANICAL_COUPLING", "PYRAMID_CONSTRAINTS", "SENSOR_KINDS", "Sensor", "build_sensor"]
 
 #: Sensor kinds a scenario may have.
-SENSOR_KINDS = ("subaperture", "shack_hartmann")
+SENSOR_KINDS = ("subaperture", "shack_hartmann", "pyramid")
 #: A Shack-Hartmann's reconstructors: truncated least squares, or noise-aware MMSE (:mod:`eofnn.sim.sensing.mmse`).
 RECONSTRUCTORS = ("least_squares", "mmse")
+#: The fields only a Shack-Hartmann has, and those only a pyramid has (the others they share).
+SHACK_HARTMANN_ONLY = ("geometry", "samples_per_subaperture", "subapertures_across", "lit_fraction", "reconstructor")
+PYRAMID_ONLY = ("modulation_lambda_over_d", "pixels_across", "samples_per_pixel")
+#: A pyramid's modulation and samples per pixel when the scenario leaves them unset.
+PYRAMID_DEFAULTS = {"modulation_lambda_over_d": 3.0, "samples_per_pixel": 2}
 
 
 @dataclass(frozen=True)
@@ -40,9 +56,11 @@ class Sensor:
 
     Parameters
     ----------
-    kind : {"subaperture", "shack_hartmann"}
+    kind : {"subaperture", "shack_hartmann", "pyramid"}
         ``subaperture`` (default): the zonal average at each actuator (the atmosphere's ``kernel``), plus the
         plant's ``wfs_noise_nm``. ``shack_hartmann``: slopes, reconstructor, photon noise (the fields below).
+        ``pyramid``: a diffractive modulated pyramid (the last fields; ``mechanical_coupling``, ``relative_cut``,
+        ``pupil_diameter_m`` and ``detector`` as for the Shack-Hartmann).
     geometry, samples_per_subaperture, subapertures_across, mechanical_coupling, relative_cut
         The Shack-Hartmann and its reconstructor (:class:`~eofnn.sim.sensing.shack_hartmann.ShackHartmann`):
         ``fried`` (default) or ``cell`` subapertures; fine-grid intervals per subaperture side (4); subapertures across
@@ -60,6 +78,10 @@ class Sensor:
         ``C D^T (D C D^T + C_n)^-1`` (:mod:`eofnn.sim.sensing.mmse`) with the prior's r0 and L0 taken from the
         scenario's atmosphere (a simulation's knowledge) and the noise from this sensor's slope noise; every
         controller then measures through it (:mod:`eofnn.sim.loop.sensing`).
+    modulation_lambda_over_d, pixels_across, samples_per_pixel
+        The pyramid's (:class:`~eofnn.sim.sensing.pyramid.Pyramid`): modulation radius (``lambda / D``; 3 if unset),
+        detector pixels across a pupil image (``None``: one per actuator pitch across the pupil, the subapertures a
+        Fried Shack-Hartmann has there), pupil points per pixel (2 if unset).
     """
 
     kind: str = "subaperture"
@@ -72,9 +94,13 @@ class Sensor:
     lit_fraction: float | None = None
     detector: Detector | None = None
     reconstructor: str = "least_squares"
+    modulation_lambda_over_d: float | None = None
+    pixels_across: int | None = None
+    samples_per_pixel: int | None = None
 
-    _constraints: ClassVar[dict[str, Constraint]] = {"kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS,
-                                                       "reconstructor": OneOf(RECONSTRUCTORS)}
+    _constraints: ClassVar[dict[str, Constraint]] = {
+        "kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS, "reconstructor": OneOf(RECONSTRUCTORS),
+        **{name: OrNone(PYRAMID_CONSTRAINTS[name]) for name in PYRAMID_ONLY}}
 
     def __post_init__(self) -> None:
         if self.detector is not None:
@@ -85,6 +111,13 @@ class Sensor:
                 raise ConfigError(f"sensor.{changed[0]}={getattr(self, changed[0])!r} is invalid for sensor kind "
                                   "'subaperture' (the zonal average has no slopes, reconstructor or detector): set "
                                   "sensor.kind: shack_hartmann, or remove it")
+        foreign = {"shack_hartmann": PYRAMID_ONLY, "pyramid": SHACK_HARTMANN_ONLY}.get(self.kind, ())
+        defaults = {f.name: f.default for f in fields(self)}
+        for name in foreign:
+            if getattr(self, name) != defaults[name]:
+                other = "pyramid" if self.kind == "shack_hartmann" else "shack_hartmann"
+                raise ConfigError(f"sensor.{name}={getattr(self, name)!r} is invalid for sensor kind {self.kind!r}: "
+                                  f"it is a field of sensor.kind: {other}; remove it")
         if self.detector is not None:
             require(math.isfinite(self.detector.magnitude), f"sensor.detector.magnitude={self.detector.magnitude!r} "
                                                             "is invalid: it must be a finite number")
@@ -92,6 +125,19 @@ class Sensor:
     @property
     def is_shack_hartmann(self) -> bool:
         return self.kind == "shack_hartmann"
+
+    @property
+    def is_pyramid(self) -> bool:
+        return self.kind == "pyramid"
+
+    def pyramid(self):  # -> Pyramid (not imported here: jsonargparse reads this module's types)
+        """The pyramid config of these fields (its band the detector's, the I band without one)."""
+        from eofnn.sim.sensing.pyramid import Pyramid
+
+        given = {name: getattr(self, name) for name in PYRAMID_ONLY if getattr(self, name) is not None}
+        band = "I" if self.detector is None else self.detector.band
+        return Pyramid(**{**PYRAMID_DEFAULTS, **given}, band=band, mechanical_coupling=self.mechanical_coupling,
+                       relative_cut=self.relative_cut, pupil_diameter_m=self.pupil_diameter_m)
 
     def shack_hartmann(self):  # -> ShackHartmann (not imported here: jsonargparse reads this module's types)
         """The Shack-Hartmann config of these fields."""
@@ -133,6 +179,9 @@ class Sensor:
         out = asdict(self)
         if out["reconstructor"] == "least_squares":  # configs written before the choice existed still match
             del out["reconstructor"]
+        for name in PYRAMID_ONLY:  # likewise before the pyramid existed
+            if out[name] is None:
+                del out[name]
         return out
 
 
