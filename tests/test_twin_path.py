@@ -1,0 +1,72 @@
+"""The whole path from a user's telemetry: ``eofnn twin`` -> ``eofnn fit --scenario DIR/twin.yaml`` (trained in the
+twin) -> the guard on the user's own telemetry (``eofnn replay``) -> ``eofnn export`` of the guarded filter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from eofnn.control import Dithered, Integrator
+from eofnn.sim import run_loop
+from eofnn.sim.scenario import Scenario
+
+FRAMES = 2000
+#: The user's system: a small Shack-Hartmann loop (8 actuators across 2 m, an R = 7 guide star), one 15 m/s layer.
+SYSTEM = {"grid": {"diameter_m": 2.0, "n_across": 8, "obstruction": 0.0},
+          "atmosphere": {"r0_m": 0.10, "r0_wavelength_m": 5e-7, "outer_scale_m": 20.0, "model": "exact",
+                         "screen_frames": FRAMES + 200,
+                         "layers": [{"cn2_fraction": 1.0, "wind_speed_mps": 15.0, "wind_direction_deg": 30.0}]},
+          "frame_rate_hz": 1000.0, "plant": {"delay_frames": 2},
+          "sensor": {"kind": "shack_hartmann", "detector": {"band": "R", "magnitude": 7.0}}}
+#: The twin-trained predictor's fit: small, so that the chain stays a few seconds.
+FIT = ["--predictor.data.frames", 2000, "--predictor.data.val_frames", 500, "--predictor.data.sequence_frames", 2500]
+
+
+@pytest.fixture(scope="module")
+def user_system(tmp_path_factory):
+    """The user's record (dithered integrator, gain 0.4, 30 nm of dither) written as a real-time computer would: y,
+    wfs, positions, delay and frame rate in loop.npz, the interaction matrix and reconstructor beside it; nothing of
+    the simulator's settings."""
+    scenario = Scenario.from_dict(SYSTEM)
+    result = run_loop(scenario.turbulence(4, "user"), scenario.plant, Dithered(Integrator(0.4), 30.0, seed=5), FRAMES,
+                      noise_seed=6, record=("y", "wfs", "slopes"), progress=False)
+    t = result.telemetry
+    folder = tmp_path_factory.mktemp("user")
+    np.savez(folder / "loop.npz", y=t.y[0].numpy(), wfs=t.wfs[0].numpy(), positions_m=np.asarray(scenario.grid.positions_m),
+             delay_frames=2, frame_rate_hz=1000.0)
+    np.save(folder / "im.npy", t.interaction_matrix.numpy())
+    np.save(folder / "r.npy", t.reconstructor.numpy())
+    return folder
+
+
+@pytest.fixture(scope="module")
+def twin_trained(user_system, tmp_path_factory):
+    """The twin of the user's record and a predictor fitted in it (the DM's fit of the true phase as target)."""
+    from eofnn.cli.main import main
+
+    folder = user_system
+    assert main(["twin", "--telemetry", str(folder / "loop.npz"), "--interaction_matrix", str(folder / "im.npy"),
+                 "--reconstructor", str(folder / "r.npy"), "--screen_frames", "3000", "--out",
+                 str(folder / "twin")]) == 0
+    assert main(["fit", "--scenario", str(folder / "twin" / "twin.yaml"), "--predictor.data.target", "dm_fit",
+                 *map(str, FIT), "--out", str(folder / "twin_eof.ckpt")]) == 0
+    return folder
+
+
+@pytest.mark.slow
+@pytest.mark.cli
+def test_fit_trains_in_the_twin(twin_trained):
+    """``eofnn fit --scenario DIR/twin.yaml --predictor.data.target dm_fit`` writes a checkpoint trained in the twin's
+    scenario (its resolved config holds the twin's identified atmosphere, not the user's)."""
+    from eofnn.training.checkpoint import load_predictor
+
+    ckpt = twin_trained / "twin_eof.ckpt"
+    predictor = load_predictor(ckpt)
+    assert predictor.n_actuators == 52 and predictor.spec.delay_frames == 2
+    config = yaml.safe_load((twin_trained / "twin_eof.ckpt.yaml").read_text())
+    twin = yaml.safe_load((twin_trained / "twin" / "twin.yaml").read_text())
+    assert config["predictor"]["data"]["target"] == "dm_fit"
+    assert config["scenario"]["atmosphere"]["layers"][0]["wind_speed_mps"] == twin["atmosphere"]["layers"][0][
+        "wind_speed_mps"] != 15.0
+    assert config["scenario"]["sensor"]["kind"] == "shack_hartmann"
