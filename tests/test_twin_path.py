@@ -70,3 +70,41 @@ def test_fit_trains_in_the_twin(twin_trained):
     assert config["scenario"]["atmosphere"]["layers"][0]["wind_speed_mps"] == twin["atmosphere"]["layers"][0][
         "wind_speed_mps"] != 15.0
     assert config["scenario"]["sensor"]["kind"] == "shack_hartmann"
+
+
+def test_guard_decides_with_the_fallbacks_statistic():
+    """A predictor whose error is below the own controller's by much more than the blocks' scatter is deployed; one
+    whose error is the same, or above, is not."""
+    from eofnn.evaluation.fallback import decide_on_telemetry
+
+    rng = np.random.default_rng(0)
+    own = 100.0 + rng.normal(0, 5, 4000)
+    assert decide_on_telemetry(own - 20.0, own)["deployed"] == "predictor"
+    same = decide_on_telemetry(own + rng.normal(0, 1, 4000), own)
+    assert same["deployed"] == "own_controller" and "kept" in same["why"]
+    assert decide_on_telemetry(own + 20.0, own)["gain_nm2"] < 0
+
+
+@pytest.mark.slow
+@pytest.mark.cli
+def test_guard_on_the_users_telemetry_accepts_the_twin_trained_and_refuses_a_useless_one(twin_trained, cli):
+    import json
+
+    import torch
+
+    from eofnn.evaluation.replay import replay
+    from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
+    from eofnn.training.checkpoint import load_predictor
+
+    code, err = cli("replay", "--checkpoint", twin_trained / "twin_eof.ckpt", "--telemetry", twin_trained / "loop.npz",
+                    "--start", 1000, "--out", twin_trained / "guard")
+    assert code == 0, err
+    guard = json.loads((twin_trained / "guard" / "replay.json").read_text())["guard"]
+    assert guard["deployed"] == "predictor" and guard["gain_nm2"] > guard["sigmas"] * guard["scatter_nm2"], guard
+    useless = load_predictor(twin_trained / "twin_eof.ckpt")
+    with torch.no_grad():
+        for p in useless.network.parameters():
+            p.zero_()
+    record = Telemetry.load(twin_trained / "loop.npz", required=TELEMETRY_REQUIRED)
+    refused = replay(useless.network, useless.spec, record, start=1000).guard
+    assert refused["deployed"] == "own_controller" and refused["gain_nm2"] < 0, refused
