@@ -108,3 +108,44 @@ def test_guard_on_the_users_telemetry_accepts_the_twin_trained_and_refuses_a_use
     record = Telemetry.load(twin_trained / "loop.npz", required=TELEMETRY_REQUIRED)
     refused = replay(useless.network, useless.spec, record, start=1000).guard
     assert refused["deployed"] == "own_controller" and refused["gain_nm2"] < 0, refused
+
+
+@pytest.mark.slow
+@pytest.mark.cli
+def test_export_of_the_guarded_filter_reproduces_the_checkpoint(twin_trained, cli, cli_error, tmp_path):
+    """The exported FITS loads in eofnn.runtime and gives the
+    checkpoint's commands; a guard of another checkpoint, or one that kept the own controller, is refused in one line."""
+    import json
+
+    import torch
+
+    from eofnn.control.predictive import PredictiveController
+    from eofnn.runtime import PredictiveFilter
+    from eofnn.sim import LoopInput
+    from eofnn.training.checkpoint import load_predictor
+
+    ckpt, guard = twin_trained / "twin_eof.ckpt", twin_trained / "guard" / "replay.json"
+    if not guard.exists():
+        code, err = cli("replay", "--checkpoint", ckpt, "--telemetry", twin_trained / "loop.npz", "--start", 1000,
+                        "--out", twin_trained / "guard")
+        assert code == 0, err
+    code, err = cli("export", "--checkpoint", ckpt, "--guard", guard, "--out", tmp_path / "filter.fits")
+    assert code == 0 and '"deployed": "predictor"' in err, err
+    runtime = PredictiveFilter.from_file(tmp_path / "filter.fits")
+    predictor = load_predictor(ckpt)
+    controller = PredictiveController(predictor.network, predictor.spec, 1.0)
+    controller.reset(1, 52, 2, torch.float64)
+    gen = torch.Generator().manual_seed(1)
+    for n in range(30):
+        wfs = 50 * torch.randn(1, 52, generator=gen, dtype=torch.float64)
+        expected = controller.step(LoopInput(n, wfs, torch.zeros_like(wfs)))[0].numpy()
+        assert np.abs(runtime.step(wfs[0].numpy()) - expected).max() < 1e-9
+    other = tmp_path / "other.ckpt"
+    other.write_bytes(ckpt.read_bytes() + b"\0")
+    cli_error(["export", "--checkpoint", other, "--guard", guard, "--out", tmp_path / "f2.fits"],
+              "did not replay checkpoint", tmp_path / "f2.fits")
+    kept = json.loads(guard.read_text())
+    kept["guard"].update(deployed="own_controller", why="refused for the test")
+    (tmp_path / "kept.json").write_text(json.dumps(kept))
+    cli_error(["export", "--checkpoint", ckpt, "--guard", tmp_path / "kept.json", "--out", tmp_path / "f3.fits"],
+              "kept the telemetry's own controller (refused for the test): nothing exported", tmp_path / "f3.fits")
