@@ -206,6 +206,7 @@ def replay(cfg: ReplayConfig, config_dump: str | None = None) -> dict:
     result = replay_telemetry(predictor.network, predictor.spec, telemetry, plant=plant, start=cfg.start,
                     settle_frames=cfg.settle_frames)
     result.shift = shift
+    result.guard["checkpoint_sha256"] = _sha256(cfg.checkpoint)
     with staged_folder(out, cfg.overwrite) as folder:
         result.to_json(folder / "replay.json")
         replay_figure(result, folder / "replay.png", telemetry_grid(telemetry[0]))
@@ -226,16 +227,41 @@ class ExportConfig(Output):
         Filter FITS file to write.
     dm_gain_model : float, optional
         DM gain of the POL reconstruction (open loop); default the one the fit used, else 1.
+    guard : str, optional
+        replay.json of eofnn replay of this checkpoint on the user's telemetry: the filter is exported only if that
+        guard deployed the predictor.
     """
 
     checkpoint: str
     dm_gain_model: float | None = None
+    guard: str | None = None
+
+
+def _sha256(path: str) -> str:
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _check_guard(guard_file: str, checkpoint: str) -> dict:
+    """The guard's decision in ``guard_file``; one line unless it deployed this very checkpoint."""
+    try:
+        guard = json.loads(Path(guard_file).read_text()).get("guard") or {}
+    except (OSError, ValueError, AttributeError) as err:
+        raise ConfigError(f"guard={guard_file!r} is not a replay.json of eofnn replay: {err}") from None
+    if guard.get("checkpoint_sha256") != _sha256(checkpoint):
+        raise ConfigError(f"guard={guard_file!r} did not replay checkpoint {checkpoint!r}: run eofnn replay on it")
+    if guard.get("deployed") != "predictor":
+        raise ConfigError(f"guard={guard_file!r} kept the telemetry's own controller ({guard.get('why')}): nothing "
+                          "exported")
+    return guard
 
 
 def export(cfg: ExportConfig, config_dump: str | None = None) -> dict:
     """Write ``cfg.checkpoint``'s filter as FITS to ``cfg.out``; returns the summary line."""
     check_value("dm_gain_model", cfg.dm_gain_model, OrNone(Interval(0, 100, closed="right")))
     out = check_output_file(cfg.out, cfg.overwrite)
+    guard = _check_guard(cfg.guard, cfg.checkpoint) if cfg.guard else None
     from eofnn.control.predictive import believed_dm_gain
     from eofnn.training.checkpoint import load_predictor
     from eofnn.training.export import export_filter
@@ -248,6 +274,8 @@ def export(cfg: ExportConfig, config_dump: str | None = None) -> dict:
     except ConfigError as err:
         raise CheckpointError(f"checkpoint {cfg.checkpoint!r} cannot be exported: {err}") from None
     summary = {"filter": str(out), "history": predictor.spec.to_dict(), "dm_gain_model": gain}
+    if guard:
+        summary["guard"] = {k: guard[k] for k in ("deployed", "gain_nm2", "scatter_nm2")}
     log(json.dumps(summary))
     return summary
 

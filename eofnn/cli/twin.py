@@ -9,6 +9,7 @@ import yaml
 
 import eofnn
 from eofnn.cli.common import Output, log
+from eofnn.errors import TelemetryError
 from eofnn.outputs import check_output_folder, staged_folder
 from eofnn.validation import Interval, OneOf, OrNone, check_value
 
@@ -119,4 +120,8 @@ def _magnitude(result, screen_frames: int) -> float | None:
 
     if result.sensor != "shack_hartmann":
         return None
+    noise = result.value("wfs_noise_nm")
+    if not noise > 0:
+        raise TelemetryError(f"the WFS noise per actuator is identified as {noise:g} nm (the aliasing correction took "
+                             "all of the noise estimate): a Shack-Hartmann twin's guide star cannot be set for it")
     return twin_magnitude(result.scenario_config(screen_frames, noise_magnitude=8.0), result.value("wfs_noise_nm"))

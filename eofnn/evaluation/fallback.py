@@ -44,7 +44,7 @@ from eofnn.control.fallback import ModalFallback
 from eofnn.control.modal import homogeneous_covariance
 from eofnn.control.registry import dm_gain_model_of
 from eofnn.data.config import DataConfig
-from eofnn.errors import DivergedError
+from eofnn.errors import ConfigError, DivergedError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.contenders import scan_integrator_gains
 from eofnn.models.linear import LinearFilter
@@ -176,6 +176,28 @@ def decide_fallback(make_predictor: Callable[[], Controller], cfg: FallbackConfi
         f"the {deployed} beats the integrator by {judged[deployed]['gain_nm2']:.3g} +- "
         f"{judged[deployed]['scatter_nm2']:.2g} nm² of residual variance on the validation stream"))
     return FallbackDecision(deployed, gain, candidates[deployed][1], report)
+
+
+def decide_on_telemetry(predictor_rms_nm, own_rms_nm, blocks: int = 8, sigmas: float = 2.0) -> dict:
+    """:func:`decide_fallback`'s whole decision on recorded telemetry (``eofnn replay``, the guard on a user's own
+    record): the predictor's replayed error and the residual the telemetry's own controller (the integrator that
+    recorded it) left, frame by frame (RMS over the actuators, nm), cut into ``blocks`` consecutive blocks; the
+    predictor is deployed where its mean gain in residual variance over the blocks exceeds ``sigmas`` standard errors
+    of that mean, the telemetry's own controller is kept otherwise. The own controller's residual holds the dither
+    it recorded with, the replay's does not: a dithered record favours the predictor by about the dither's variance."""
+    own = torch.as_tensor(own_rms_nm, dtype=torch.float64).pow(2)[None]
+    predicted = torch.as_tensor(predictor_rms_nm, dtype=torch.float64).pow(2)[None]
+    if own.shape[1] < 2 * blocks:
+        raise ConfigError(f"guard blocks={blocks}: the replay has only {own.shape[1]} frames (at least 2 per block)")
+    mean, se = _gain(_blocks(own, blocks), _blocks(predicted, blocks))
+    mean, se = float(mean), float(se)
+    deployed = "predictor" if mean > sigmas * se else "own_controller"
+    why = (f"the predictor beats the telemetry's own controller by {mean:.3g} +- {se:.2g} nm² of residual variance"
+           if deployed == "predictor" else
+           f"the predictor does not beat the telemetry's own controller by more than {sigmas:g} standard errors "
+           f"({mean:+.3g} +- {se:.2g} nm²): the own controller is kept")
+    return {"deployed": deployed, "gain_nm2": mean, "scatter_nm2": se, "sigmas": sigmas, "blocks": blocks,
+            "frames": int(own.shape[1]), "why": why}
 
 
 def _per_mode(integrator: _Run, predictor: _Run, cfg: FallbackConfig, scenario: Scenario,

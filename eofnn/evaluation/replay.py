@@ -78,13 +78,16 @@ class ReplayResult:
     #: One line per condition (WFS noise, DM gain) in which the telemetry differs from the predictor's training
     #: (:mod:`eofnn.training.conditions`); empty when none does, or when either is unknown.
     shift: list[str] = field(default_factory=list)
+    #: The guard's decision (:func:`eofnn.evaluation.fallback.decide_on_telemetry`): the predictor or the own controller.
+    guard: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The JSON-ready scalars."""
         pick = ("median_rms_nm", "mean_rms_nm", "median_rms_noise_corrected_nm", "noise_correction")
         return {"predictor": {k: getattr(self.predictor, k) for k in pick},
                 "own_controller": {k: getattr(self.own_controller, k) for k in pick},
-                "noise_nm": self.noise_nm, "n_frames": self.n_frames, "plant": self.plant, "shift": self.shift}
+                "noise_nm": self.noise_nm, "n_frames": self.n_frames, "plant": self.plant, "shift": self.shift,
+                "guard": self.guard}
 
     def to_json(self, path: str | Path | None = None, overwrite: bool = False) -> str:
         text = json.dumps(asdict(self), indent=1)
@@ -133,7 +136,7 @@ REPLAY_BLOCK_ELEMENTS = 2**23
 def replay(network: nn.Module, spec: HistorySpec, telemetry: AnyTelemetry | Sequence[AnyTelemetry], *,
            plant: IdentifiedPlant | dict | None = None, noise_nm: float | None = None, grid: ActuatorGrid | None = None,
            start: int = 0, settle_frames: int = 0, segment_frames: int = 256,
-           frame_rate_hz: float | None = None) -> ReplayResult:
+           frame_rate_hz: float | None = None, guard_blocks: int = 8, guard_sigmas: float = 2.0) -> ReplayResult:
     """Replay ``network`` (reading ``spec`` histories) on recorded telemetry.
 
     Parameters
@@ -157,6 +160,8 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: AnyTelemetry | Sequ
         Welch segment length of the PSD.
     frame_rate_hz : float, optional
         For the PSD axis; default the telemetry's, else 1000.
+    guard_blocks, guard_sigmas : int, float
+        The guard's blocks and standard errors (:func:`eofnn.evaluation.fallback.decide_on_telemetry`).
     """
     sequences = check_sequences(telemetry, spec)
     first_item = telemetry_items(telemetry)[0]
@@ -199,4 +204,8 @@ def replay(network: nn.Module, spec: HistorySpec, telemetry: AnyTelemetry | Sequ
             own.add(measured)
     result = ReplayResult(predicted.stats(noise_nm), own.stats(noise_nm), noise_nm, predicted.frames, first, rate,
                           predicted.psd.result()[0], {"source": source, "dm_gain": dm_gain, **errors})
+    from eofnn.evaluation.fallback import decide_on_telemetry  # the fallback's statistic, on the record
+
+    result.guard = decide_on_telemetry(result.predictor.rms_nm, result.own_controller.rms_nm, guard_blocks,
+                                       guard_sigmas)
     return result
