@@ -104,7 +104,7 @@ class Scenario:
             return ShackHartmannTurbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream,
                                            n_realisations, self.vibrations, self.sensor, isolate)
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
-                          self.vibrations)
+                          self.vibrations, self.sensor.registered)
 
     def _check_shack_hartmann(self) -> None:
         """Refuse, in one line each, what a Shack-Hartmann scenario cannot run."""

@@ -14,8 +14,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from eofnn.errors import ConfigError, require
 from eofnn.sim.grid import ActuatorGrid
@@ -25,10 +26,30 @@ from eofnn.sim.sensing.constants import GEOMETRIES, MECHANICAL_COUPLING, SHACK_H
 from eofnn.sim.sensing.detector import Detector
 from eofnn.validation import Constraint, OneOf, from_mapping, validated
 
-__all__ = ["GEOMETRIES", "MECHANICAL_COUPLING", "SENSOR_KINDS", "Sensor", "build_sensor"]
+__all__ = ["GEOMETRIES", "LOOP_SENSORS", "MECHANICAL_COUPLING", "SENSOR_KINDS", "Sensor", "build_sensor",
+           "sensor_kinds"]
 
-#: Sensor kinds a scenario may have.
+#: eofnn's own sensor kinds.
 SENSOR_KINDS = ("subaperture", "shack_hartmann")
+#: Sensors that read the turbulence on the actuator grid, by name: ``name -> factory(grid) -> LoopSensor``, filled by
+#: :func:`eofnn.sim.loop.kernel.register_sensor`. A scenario's ``sensor.kind`` may name any of them.
+LOOP_SENSORS: dict[str, Callable] = {}
+
+
+def sensor_kinds() -> tuple[str, ...]:
+    """The kinds a scenario's ``sensor.kind`` may be: eofnn's own, then the registered sensors' names."""
+    return SENSOR_KINDS + tuple(sorted(set(LOOP_SENSORS) - set(SENSOR_KINDS)))
+
+
+@dataclass(frozen=True)
+class SensorKind(Constraint):
+    """One of :func:`sensor_kinds`, as they stand when a sensor is configured (registered sensors included)."""
+
+    def accepts(self, value: Any) -> bool:
+        return isinstance(value, str) and value in sensor_kinds()
+
+    def describe(self) -> str:
+        return "one of " + ", ".join(sensor_kinds())
 #: A Shack-Hartmann's reconstructors: truncated least squares, or noise-aware MMSE (:mod:`eofnn.sim.sensing.mmse`).
 RECONSTRUCTORS = ("least_squares", "mmse")
 
@@ -40,9 +61,11 @@ class Sensor:
 
     Parameters
     ----------
-    kind : {"subaperture", "shack_hartmann"}
+    kind : {"subaperture", "shack_hartmann"} or a registered sensor's name
         ``subaperture`` (default): the zonal average at each actuator (the atmosphere's ``kernel``), plus the
-        plant's ``wfs_noise_nm``. ``shack_hartmann``: slopes, reconstructor, photon noise (the fields below).
+        plant's ``wfs_noise_nm``. ``shack_hartmann``: slopes, reconstructor, photon noise (the fields below). The
+        name of a sensor registered with :func:`~eofnn.sim.loop.kernel.register_sensor`: that sensor, on the
+        actuator grid (it takes none of the fields below).
     geometry, samples_per_subaperture, subapertures_across, mechanical_coupling, relative_cut
         The Shack-Hartmann and its reconstructor (:class:`~eofnn.sim.sensing.shack_hartmann.ShackHartmann`):
         ``fried`` (default) or ``cell`` subapertures; fine-grid intervals per subaperture side (4); subapertures across
@@ -73,18 +96,20 @@ class Sensor:
     detector: Detector | None = None
     reconstructor: str = "least_squares"
 
-    _constraints: ClassVar[dict[str, Constraint]] = {"kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS,
+    _where: ClassVar[str] = "sensor."
+    _constraints: ClassVar[dict[str, Constraint]] = {"kind": SensorKind(), **SHACK_HARTMANN_CONSTRAINTS,
                                                        "reconstructor": OneOf(RECONSTRUCTORS)}
 
     def __post_init__(self) -> None:
         if self.detector is not None:
             object.__setattr__(self, "detector", from_mapping(Detector, self.detector, "sensor.detector"))
-        if self.kind == "subaperture":
+        if not self.is_shack_hartmann:
             changed = [f.name for f in fields(self) if f.name != "kind" and getattr(self, f.name) != f.default]
             if changed:
+                what = ("the zonal average has no slopes, reconstructor or detector" if self.kind == "subaperture"
+                        else "a registered sensor takes none of the Shack-Hartmann's fields")
                 raise ConfigError(f"sensor.{changed[0]}={getattr(self, changed[0])!r} is invalid for sensor kind "
-                                  "'subaperture' (the zonal average has no slopes, reconstructor or detector): set "
-                                  "sensor.kind: shack_hartmann, or remove it")
+                                  f"{self.kind!r} ({what}): set sensor.kind: shack_hartmann, or remove it")
         if self.detector is not None:
             require(math.isfinite(self.detector.magnitude), f"sensor.detector.magnitude={self.detector.magnitude!r} "
                                                             "is invalid: it must be a finite number")
@@ -92,6 +117,12 @@ class Sensor:
     @property
     def is_shack_hartmann(self) -> bool:
         return self.kind == "shack_hartmann"
+
+    @property
+    def registered(self) -> str | None:
+        """The registered sensor's name this kind names (it measures on the actuator grid), ``None`` for eofnn's own
+        kinds."""
+        return None if self.kind in SENSOR_KINDS else self.kind
 
     def shack_hartmann(self):  # -> ShackHartmann (not imported here: jsonargparse reads this module's types)
         """The Shack-Hartmann config of these fields."""
