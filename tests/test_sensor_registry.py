@@ -102,3 +102,61 @@ def test_the_rollout_and_the_external_driver_close_the_same_loop_with_it():
 def test_an_unknown_sensor_is_one_line():
     with pytest.raises(ConfigError, match="sensor='nope' is invalid: registered sensors are .*subaperture"):
         run_loop(SCENARIO.turbulence(3, "test", 1), SCENARIO.plant, Integrator(0.4), 10, sensor="nope")
+
+
+def _scenario_yaml(tmp_path, kind: str):
+    path = tmp_path / f"{kind}.yaml"
+    path.write_text("grid: {diameter_m: 2.0, n_across: 10}\n"
+                    "atmosphere: {r0_m: 0.15, layers: [{wind_speed_mps: 10.0}], screen_frames: 400}\n"
+                    f"sensor: {{kind: {kind}}}\n")
+    return path
+
+
+def test_a_compare_runs_the_sensor_its_yaml_names(cli, tmp_path):
+    import json
+
+    config = tmp_path / "compare.yaml"
+    config.write_text(f"scenario: {_scenario_yaml(tmp_path, 'test_projection')}\nscenarios: {{nominal: {{}}}}\n"
+                      "predictors: {integrator: {controller: integrator, gain: 0.4}}\n"
+                      "evaluation: {frames: 300, settle_frames: 100, realisations: 1, seed: 3, "
+                      "analytic_stability: false}\n")
+    code, err = cli("compare", "--config", config, "--out", tmp_path / "out")
+    assert code == 0, err
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    got = metrics["scenarios"]["nominal"]["integrator"]["median_rms_nm"]
+    scenario = Scenario.from_yaml(_scenario_yaml(tmp_path, "test_projection"))
+    assert scenario.sensor.registered == "test_projection"
+    # The loop compare closed is the batched loop with that sensor, and not the zonal sensor's.
+    seen = run_loop(SCENARIO.turbulence(3, "test", 1), SCENARIO.plant, Integrator(0.4), 300, noise_seed=3,
+                    sensor="test_projection", progress=False)
+    zonal = run_loop(SCENARIO.turbulence(3, "test", 1), SCENARIO.plant, Integrator(0.4), 300, noise_seed=3,
+                     progress=False)
+    assert got == pytest.approx(float(torch.quantile(seen.residual_rms_nm[0, 100:], 0.5)), rel=1e-9)
+    assert got > 1.5 * float(zonal.residual_rms_nm[0, 100:].median())
+    # The external-simulator driver takes the scenario's sensor too.
+    external = run_closed_loop(NativeLoop(scenario), IntegratorControl(0.4), 300, 3)
+    np.testing.assert_allclose(external.residual_rms_nm, seen.residual_rms_nm[0].numpy(), rtol=1e-12)
+
+
+def test_an_unknown_sensor_kind_is_one_line_naming_the_allowed_kinds(cli, tmp_path):
+    with pytest.raises(ConfigError, match=r"^sensor.kind='nope' is invalid: it must be one of subaperture, "
+                                          r"shack_hartmann, .*test_projection"):
+        Scenario.from_yaml(_scenario_yaml(tmp_path, "nope"))
+    code, err = cli("simulate", "--scenario", _scenario_yaml(tmp_path, "nope"), "--predictor.controller",
+                    "integrator", "--frames", "10", "--out", tmp_path / "t.npz")
+    assert code == 2
+    assert err.strip().splitlines()[-1].startswith("eofnn: error: ") and "sensor.kind='nope'" in err, err
+    assert "Traceback" not in err and "test_projection" in err
+    with pytest.raises(ConfigError, match="sensor.detector=.* is invalid for sensor kind 'test_projection'"):
+        Scenario.from_dict({"sensor": {"kind": "test_projection", "detector": {"magnitude": 8}}})
+
+
+def test_open_loop_training_data_is_what_the_named_sensor_measures(tmp_path):
+    from eofnn.data.config import DataConfig
+    from eofnn.data.stream import SimulatedTelemetry
+
+    scenario = Scenario.from_yaml(_scenario_yaml(tmp_path, "test_projection"))
+    spec = HistorySpec.from_scenario("open_loop", 2, scenario)
+    arrays = SimulatedTelemetry(scenario, spec, 300, data=DataConfig(seed=1, sequence_frames=300)).telemetry(0)
+    basis = ProjectionSensor(scenario.grid).basis
+    torch.testing.assert_close(arrays["s_hat"], arrays["s"] @ basis @ basis.T, rtol=0, atol=1e-9)

@@ -85,23 +85,20 @@ class EvaluateConfig(ExperimentCommand):
 def run_experiment(cfg: ExperimentCommand, predictors: dict[str, PredictorConfig], config_dump: str | None = None, *,
                    robustness: dict[str, list[float]] | None = None, simulated_margins: Sequence[str] = (),
                    pareto_scenario: bool | str = False) -> eofnn.evaluation.results.ExperimentResult:
-    """Check everything and the output folder, then run the stages (:mod:`eofnn.evaluation.stages`: the experiment,
-    then the analyses ``robustness``, ``simulated_margins`` and ``pareto_scenario`` as :class:`CompareConfig`
-    describes them) and write the results in one move."""
-    from eofnn.evaluation.experiment import Experiment
-    from eofnn.evaluation.stages import analyse, plan_analyses
+    """Check the output folder and plan the compare (:func:`eofnn.evaluation.stages.plan_compare`: everything checked),
+    then run its stages (the experiment, then the analyses ``robustness``, ``simulated_margins`` and
+    ``pareto_scenario`` as :class:`CompareConfig` describes them) and write the results in one move."""
+    from eofnn.evaluation.stages import plan_compare, run_compare
     from eofnn.reporting.experiment import write_experiment
 
     out = check_output_folder(cfg.out, cfg.overwrite)
-    plan = plan_analyses(list(cfg.scenarios), robustness=robustness, simulated_margins=simulated_margins,
-                         pareto=pareto_scenario)
-    experiment = Experiment(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, progress=cfg.progress, log=log,
-                            trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
+    plan = plan_compare(cfg.scenario, cfg.scenarios, predictors, cfg.evaluation, robustness=robustness,
+                        simulated_margins=simulated_margins, pareto=pareto_scenario, progress=cfg.progress, log=log,
+                        trusted_networks=cfg.trusted_networks, allow_long=cfg.allow_long)
     with staged_folder(out, cfg.overwrite) as staging:
-        experiment.checkpoint_dir = staging / "checkpoints"
+        plan.experiment.checkpoint_dir = staging / "checkpoints"
         (staging / "config.yaml").write_text(config_yaml(cfg, config_dump))
-        result = experiment.run()
-        analyses = analyse(experiment, result, plan, log)
+        result, analyses = run_compare(plan, log)
         write_experiment(staging, result, analyses, cfg.scenario.frame_rate_hz, cfg.reference,
                          cfg.evaluation.strehl_wavelength_m)
     log(f"results in {Path(out)}/ (metrics.json, results.md, figures)")

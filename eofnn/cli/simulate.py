@@ -83,7 +83,6 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
     # The evaluation and the figure import torch's users and matplotlib (seconds): only once the values are checked.
     from eofnn.evaluation.contenders import load_configured_checkpoint, trusted_class_paths
     from eofnn.evaluation.metrics import loop_metrics
-    from eofnn.evaluation.nonstationary import require_changes_within
     from eofnn.evaluation.results import ExperimentResult
     from eofnn.reporting.report import plot_rms_vs_time
 
@@ -95,7 +94,7 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
                    f"simulate with frames={cfg.frames}, realisations={cfg.realisations} and "
                    f"{scenario.grid.n_actuators} actuators")
     scenario.require_stream_frames(cfg.frames, f"frames={cfg.frames}", cfg.realisations)
-    require_changes_within(scenario, cfg.frames, "scenario")
+    scenario.require_changes_within(cfg.frames, "scenario")
     if p.controller in NEEDS_PREDICTOR:
         predictor = load_configured_checkpoint("controller", p, {"scenario": scenario},
                                                trusted_class_paths({"controller": p}, cfg.trusted_networks))

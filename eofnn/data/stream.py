@@ -157,6 +157,8 @@ class SimulatedTelemetry(IterableDataset):
                 return {"s": s, "s_hat": s_hat}
             s = turbulence.frames(0, self.data.sequence_frames)
             s_hat = s
+            if getattr(turbulence, "sensor", None) is not None:  # a registered sensor (sensor.kind): what it measures
+                return {"s": s, "s_hat": _registered_open_loop(turbulence, plant, s, torch_generator(seed, name, 1))}
             if plant.wfs_noise_nm > 0:
                 gen = torch_generator(seed, name, 1)
                 s_hat = s + plant.wfs_noise_nm / plant.wfs_gain * torch.randn(s.shape, generator=gen, dtype=s.dtype)
@@ -239,3 +241,18 @@ class LoopDataModule(L.LightningDataModule):
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.dataset("validation", self.data.val_frames), batch_size=None, num_workers=0)
+
+
+def _registered_open_loop(turbulence, plant, s: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """What a registered sensor (:func:`~eofnn.sim.loop.kernel.register_sensor`, the scenario's ``sensor.kind``)
+    measures of the open-loop turbulence ``s`` ``(R, frames, K)``: the residual is ``s`` itself (no DM acts)."""
+    from eofnn.sim.loop.sensing import loop_measurement
+
+    measurement = loop_measurement(turbulence, plant)
+    measurement.reset()
+    noise = None
+    if measurement.noisy:
+        noise = measurement.noise(torch.randn((*s.shape[:2], measurement.noise_size), generator=generator,
+                                              dtype=s.dtype))
+    zeros = torch.zeros_like(s)
+    return measurement.measure(s, s, zeros, zeros, noise)

@@ -22,7 +22,6 @@ from eofnn.data.history import HistorySpec
 from eofnn.data.stream import require_target, require_training_memory
 from eofnn.errors import CheckpointError, ConfigError, require
 from eofnn.evaluation.config import EvaluationConfig, PredictorConfig, with_setting
-from eofnn.evaluation.nonstationary import require_changes_within
 from eofnn.resources import require_memory, require_time
 from eofnn.sim.loop.runner import Controller
 from eofnn.sim.scenario import Scenario
@@ -291,7 +290,7 @@ def check_experiment(scenarios: dict[str, Scenario], predictors: dict[str, Predi
     for scenario_name, scenario_value in scenarios.items():
         scenario_value.require_stream_frames(evaluation.frames, f"evaluation.frames={evaluation.frames}",
                                              evaluation.realisations)
-        require_changes_within(scenario_value, evaluation.frames, f"scenario {scenario_name!r}")
+        scenario_value.require_changes_within(evaluation.frames, f"scenario {scenario_name!r}")
         for name, cfg in predictors.items():
             if cfg.gains is not None or cfg.setting_grid is not None:
                 what = "the gain scan" if cfg.gains is not None else "the scan of its settings"

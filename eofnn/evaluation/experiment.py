@@ -28,7 +28,7 @@ from eofnn.evaluation.contenders import (
 from eofnn.evaluation.contrast import scenario_contrast
 from eofnn.evaluation.fallback import FallbackDecision, decide_fallback, fallback_stability
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
-from eofnn.evaluation.nonstationary import reconvergence, scenario_changes
+from eofnn.evaluation.nonstationary import reconvergence
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
 from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
@@ -313,7 +313,7 @@ class Experiment:
                     gain_note = f"; gain {gain:g} ({'best of the scan' if scanned else 'fixed, not tuned'})"
                 self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins, self.scenarios[scenario_name])}"
                          f"{gain_note}")
-            changes = scenario_changes(self.scenarios[scenario_name])
+            changes = self.scenarios[scenario_name].changes()
             if changes:
                 runs = {name: None if m.diverged else m.rms_nm for name, m in metrics[scenario_name].items()}
                 rate = self.scenarios[scenario_name].frame_rate_hz

@@ -15,12 +15,9 @@ The RMS is the realisations' mean at each frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
-from eofnn.errors import ConfigError
-from eofnn.sim.scenario import Scenario
+from eofnn.sim.scenario import Change
 
 #: Running-median window of the residual RMS, in seconds.
 WINDOW_S = 0.2
@@ -28,37 +25,6 @@ WINDOW_S = 0.2
 HOLD_S = 1.0
 #: Re-converged: within this fraction above the reference level.
 TOLERANCE = 0.1
-
-
-@dataclass(frozen=True)
-class Change:
-    """One change of a scenario: its name, and the frames it starts and ends at."""
-
-    name: str
-    start_frame: int
-    end_frame: int
-
-
-def scenario_changes(scenario: Scenario) -> list[Change]:
-    """The changes of ``scenario`` (atmosphere changes and the DM gain drift), in time order of their end."""
-    rate = scenario.frame_rate_hz
-    out = [Change(f"atmosphere.changes[{i}]", round(c.at_s * rate), round((c.at_s + c.ramp_s) * rate))
-           for i, c in enumerate(scenario.atmosphere.changes)]
-    drift = scenario.plant.dm_gain_drift
-    if drift is not None:
-        out.append(Change("plant.dm_gain_drift", round(drift.start_s * rate), round(drift.stop_s * rate)))
-    return sorted(out, key=lambda c: (c.end_frame, c.start_frame))
-
-
-def require_changes_within(scenario: Scenario, frames: int, what: str) -> None:
-    """One-line :class:`ConfigError` for a change (wind, DM-gain drift) that starts after a run of ``frames`` ends:
-    it would change nothing, and a study of it would report a stationary run as if it had changed."""
-    rate = scenario.frame_rate_hz
-    for change in scenario_changes(scenario):
-        if change.start_frame >= frames:
-            raise ConfigError(f"{what}: {change.name} starts at {change.start_frame / rate:g} s (frame "
-                              f"{change.start_frame}), after the run of {frames} frames ({frames / rate:g} s at "
-                              f"{rate:g} Hz) ends: start it earlier or run longer")
 
 
 def running_median(rms: torch.Tensor, window: int) -> torch.Tensor:
@@ -75,7 +41,7 @@ def reconvergence(rms_by_controller: dict[str, list[float] | None], changes: lis
     rms_by_controller : dict
         Controller name -> residual RMS per frame (nm) from frame 0, or ``None`` if it diverged.
     changes : list of Change
-        The scenario's changes (:func:`scenario_changes`).
+        The scenario's changes (:meth:`~eofnn.sim.scenario.Scenario.changes`).
     frame_rate_hz : float
         Frames per second.
 

@@ -1,11 +1,13 @@
 """``compare``'s stages around the experiment's run, as functions: what the command line calls, in order.
 
-A compare is: plan its analyses (:func:`plan_analyses`: every name and grid checked before anything runs), run the
-experiment (:meth:`~eofnn.evaluation.experiment.Experiment.run`: tune, train, guard and evaluate every controller in
-every scenario), then analyse it (:func:`analyse`): the DM-gain intervals of the controllers without a linear model,
-found by closed-loop simulation (the verdict recomputed to quote them); the robustness map over a grid of plants; the
-Pareto front of the linear families along their tuning paths. Writing it all is the reporting floor's
-(:func:`eofnn.reporting.experiment.write_experiment`).
+A compare is: plan it (:func:`plan_compare`: its analyses, :func:`plan_analyses`, every name and grid checked, and
+its experiment set up, every refusal made, before anything runs), run the experiment
+(:meth:`~eofnn.evaluation.experiment.Experiment.run`: tune, train, guard and evaluate every controller in every
+scenario), then analyse it (:func:`analyse`): the DM-gain intervals of the controllers without a linear model, found
+by closed-loop simulation (the verdict recomputed to quote them); the robustness map over a grid of plants; the Pareto
+front of the linear families along their tuning paths (:func:`run_compare` runs the last two). Writing it all is the
+reporting floor's (:func:`eofnn.reporting.experiment.write_experiment`). ``eofnn sweep`` plans each of its points
+with the same :func:`plan_compare` and runs each as a compare.
 """
 
 from __future__ import annotations
@@ -56,6 +58,30 @@ def plan_analyses(scenarios: Sequence[str], *, robustness: Mapping[str, list[flo
 
 
 @dataclass
+class ComparePlan:
+    """A compare, checked before anything runs: its experiment set up and its analyses planned."""
+
+    experiment: object  # eofnn.evaluation.experiment.Experiment
+    analyses: AnalysisPlan
+
+
+def plan_compare(scenario, scenarios: Mapping[str, dict], predictors: Mapping[str, object], evaluation, *,
+                 robustness: Mapping[str, list[float]] | None = None, simulated_margins: Sequence[str] = (),
+                 pareto: bool | str = False, progress: bool | None = None, log: Callable[[str], None] = print,
+                 trusted_networks: Sequence[str] = (), allow_long: bool = False) -> ComparePlan:
+    """Everything a compare can refuse, before anything runs: its analyses (:func:`plan_analyses`), then its
+    experiment (:class:`~eofnn.evaluation.experiment.Experiment`: the scenarios, the contenders, their checkpoints,
+    the memory and the time), each refusal one line. The arguments are :class:`~eofnn.cli.compare.CompareConfig`'s."""
+    from eofnn.evaluation.experiment import Experiment
+
+    analyses = plan_analyses(list(scenarios or ()), robustness=robustness, simulated_margins=simulated_margins,
+                             pareto=pareto)
+    experiment = Experiment(scenario, scenarios, predictors, evaluation, progress=progress, log=log,
+                            trusted_networks=trusted_networks, allow_long=allow_long)
+    return ComparePlan(experiment, analyses)
+
+
+@dataclass
 class Analyses:
     """What :func:`analyse` computed beyond the experiment's own result (which it completes in place)."""
 
@@ -89,3 +115,9 @@ def analyse(experiment, result, plan: AnalysisPlan, log: Callable[[str], None] =
     add_simulated_margins(experiment, result, plan.simulated_margins, log)
     return Analyses(robustness_map(experiment, plan.grid) if plan.grid else None,
                     pareto(experiment, plan.pareto_scenario) if plan.pareto_scenario is not None else None)
+
+
+def run_compare(plan: ComparePlan, log: Callable[[str], None] = print):
+    """Run ``plan``'s experiment, then its analyses (:func:`analyse`): ``(result, analyses)``."""
+    result = plan.experiment.run()
+    return result, analyse(plan.experiment, result, plan.analyses, log)

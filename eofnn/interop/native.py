@@ -48,6 +48,8 @@ class NativeLoop:
         require(not plant.delay_fraction, f"plant.delay_frames={plant.delay_frames!r} is invalid in NativeLoop: the "
                                           "adapters run integer delays >= 1")
         self.scenario, self.stream = scenario, stream
+        if sensor is None:  # the scenario's: a registered sensor its sensor.kind names, or the zonal one
+            sensor = scenario.sensor.registered
         self.sensor = loop_sensor(sensor, scenario.grid) or ZonalSensor(scenario.grid.n_actuators)
         self._sensor_name = sensor if isinstance(sensor, str) else type(self.sensor).__name__
         self.positions_m = np.asarray(scenario.grid.positions_m)

@@ -24,6 +24,15 @@ from eofnn.validation import Constraint, Interval, from_mapping, validated
 
 
 @dataclass(frozen=True)
+class Change:
+    """One change of a scenario in time (:meth:`Scenario.changes`): its name, and the frames it starts and ends at."""
+
+    name: str
+    start_frame: int
+    end_frame: int
+
+
+@dataclass(frozen=True)
 @validated
 class Scenario:
     """Where a controller is evaluated or its training data recorded.
@@ -108,7 +117,7 @@ class Scenario:
             return ShackHartmannTurbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream,
                                            n_realisations, self.vibrations, self.sensor, isolate)
         return Turbulence(self.atmosphere, self.grid, self.frame_rate_hz, seed, stream, n_realisations,
-                          self.vibrations)
+                          self.vibrations, self.sensor.registered)
 
     def _check_phase_sampling(self) -> None:
         """Refuse, in one line each, an atmosphere a sensor that samples the phase at points cannot run."""
@@ -168,6 +177,27 @@ class Scenario:
                 require_memory(need, f"{what}: the set of exact screens of non-lattice winds ({n_screens} screen(s) "
                                      f"of {grid.n_actuators} {'actuators' if self.sensor.kind == 'subaperture' else 'points'} x "
                                      f"screen_frames={atm.screen_frames})")
+
+    def changes(self) -> list[Change]:
+        """The changes of this scenario (the atmosphere's ``changes`` and the plant's DM gain drift), in time order of
+        their end."""
+        rate = self.frame_rate_hz
+        out = [Change(f"atmosphere.changes[{i}]", round(c.at_s * rate), round((c.at_s + c.ramp_s) * rate))
+               for i, c in enumerate(self.atmosphere.changes)]
+        drift = self.plant.dm_gain_drift
+        if drift is not None:
+            out.append(Change("plant.dm_gain_drift", round(drift.start_s * rate), round(drift.stop_s * rate)))
+        return sorted(out, key=lambda c: (c.end_frame, c.start_frame))
+
+    def require_changes_within(self, n_frames: int, what: str) -> None:
+        """Refuse, in one line, a change (wind, DM-gain drift) that starts after a run of ``n_frames`` ends: it would
+        change nothing, and a study of it would report a stationary run as if it had changed."""
+        rate = self.frame_rate_hz
+        for change in self.changes():
+            if change.start_frame >= n_frames:
+                raise ConfigError(f"{what}: {change.name} starts at {change.start_frame / rate:g} s (frame "
+                                  f"{change.start_frame}), after the run of {n_frames} frames ({n_frames / rate:g} s "
+                                  f"at {rate:g} Hz) ends: start it earlier or run longer")
 
     def with_plant(self, **changes: Any) -> Scenario:
         """A copy whose plant has some fields changed (the same sky and telescope)."""

@@ -189,9 +189,11 @@ class LoopWindows(Dataset):
         name = f"{t.stream}:{index}"
         turbulence = t.scenario.turbulence(data.seed, name, data.realisations)
         s = turbulence.frames(0, data.sequence_frames)
-        sensor = turbulence if hasattr(turbulence, "measurement") else None  # a Shack-Hartmann's, or the zonal one
+        shack_hartmann = hasattr(turbulence, "measurement")
+        # A Shack-Hartmann's, a registered sensor's name (the scenario's sensor.kind), or None: the zonal one.
+        sensor = turbulence if shack_hartmann else turbulence.sensor
         pupil = None
-        if sensor is not None:  # the residual over the pupil, as the loop is scored
+        if shack_hartmann:  # the residual over the pupil, as the loop is scored
             products = turbulence.products(0, data.sequence_frames)
             pupil = {k: products[k] for k in ("z", "sum", "sumsq")}
             turbulence.release()

@@ -7,8 +7,9 @@ is that dump with the swept values set; it is written to the point's folder and 
 
 Checks: every grid key must name an existing config entry (its last part may be new only inside a free mapping
 such as ``scenario.model_errors``, where the compare parser or the plant then checks the name), and every value of
-every key is parsed, instantiated and set up as an experiment (``Experiment(...)``: scenarios, ``train_in``,
-checkpoints) beside the first value of the other keys. Combinations that are only invalid together (say
+every key is parsed, instantiated and planned as ``compare`` plans itself
+(:func:`eofnn.evaluation.stages.plan_compare`: scenarios, ``train_in``, checkpoints, memory and time, and the
+analyses' scenarios and grids) beside the first value of the other keys. Combinations that are only invalid together (say
 ``evaluation.frames`` below a swept ``evaluation.settle_frames``) are caught when that point starts, and recorded
 as a failed point with compare's one-line error.
 """
@@ -111,7 +112,7 @@ def to_yaml(config: dict) -> str:
 
 
 class _Checker:
-    """Parses configs as ``eofnn compare`` does and sets up the experiment, without running anything."""
+    """Parses configs as ``eofnn compare`` does and plans them as it does (its stages' first), running nothing."""
 
     def __init__(self, workdir: Path) -> None:
         self.parser = _compare_parser()
@@ -120,15 +121,16 @@ class _Checker:
     def __call__(self, config: dict, label: str) -> None:
         from jsonargparse import ArgumentError
 
-        from eofnn.evaluation.experiment import Experiment
+        from eofnn.evaluation.stages import plan_compare
 
         path = self.workdir / "point.yaml"
         path.write_text(to_yaml(config))
         try:
             cfg = self.parser.parse_args(["compare", "--config", str(path), "--out", str(self.workdir / "out")])
             init = self.parser.instantiate(cfg)["compare"]
-            Experiment(init.scenario, init.scenarios, init.predictors, init.evaluation, log=lambda message: None,
-                       trusted_networks=init.trusted_networks)
+            plan_compare(init.scenario, init.scenarios, init.predictors, init.evaluation, robustness=init.robustness,
+                         simulated_margins=init.simulated_margins, pareto=init.pareto, log=lambda message: None,
+                         trusted_networks=init.trusted_networks, allow_long=init.allow_long)
         except (ArgumentError, ConfigError, CheckpointError, TelemetryError, TypeError, ValueError) as err:
             # TypeError/ValueError: a value of the wrong type that reached a constructor unchecked.
             raise ConfigError(f"{label}: {one_line(err)}") from None

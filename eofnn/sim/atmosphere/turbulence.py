@@ -205,6 +205,7 @@ class Turbulence:
         stream: str = "test",
         n_realisations: int = 1,
         vibrations: Sequence[Vibration] = (),
+        sensor: str | None = None,
     ) -> None:
         check_value("frame_rate_hz", frame_rate_hz, POSITIVE)
         check_value("n_realisations", n_realisations, COUNT)
@@ -212,6 +213,8 @@ class Turbulence:
         self.grid = grid
         self.n_realisations = n_realisations
         self.frame_rate_hz = frame_rate_hz
+        #: The registered sensor (by name) that the loop measures this turbulence with; ``None``: the zonal sensor.
+        self.sensor = sensor
 
         prebuilt = _screens_side_by_side(atmosphere, grid, 1.0 / frame_rate_hz, seed, stream, n_realisations)
 

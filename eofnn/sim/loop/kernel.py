@@ -25,6 +25,7 @@ from typing import Protocol, runtime_checkable
 from eofnn.errors import ConfigError
 from eofnn.lazy import lazy_module
 from eofnn.sim.loop.plant import Plant, PlantModel
+from eofnn.sim.sensing.sensor import LOOP_SENSORS
 
 torch = lazy_module("torch")
 
@@ -147,15 +148,17 @@ class ZonalSensor:
 
 
 #: Sensors that read the turbulence on the actuator grid, by name: ``name -> factory(grid) -> LoopSensor``
-#: (:func:`register_sensor`). A sensor with a turbulence of its own (the Shack-Hartmann's fine grid) comes with its
-#: scenario's turbulence instead.
-SENSORS: dict = {"subaperture": lambda grid: ZonalSensor(grid.n_actuators)}
+#: (:func:`register_sensor`; the one registry, :data:`eofnn.sim.sensing.sensor.LOOP_SENSORS`, which a scenario's
+#: ``sensor.kind`` is checked against). A sensor with a turbulence of its own (the Shack-Hartmann's fine grid) comes
+#: with its scenario's turbulence instead.
+SENSORS = LOOP_SENSORS
+SENSORS["subaperture"] = lambda grid: ZonalSensor(grid.n_actuators)
 
 
 def register_sensor(name: str):
     """Register a class (or factory) building a :class:`LoopSensor` from an actuator grid under ``name``: every driver
     then runs it by that name (``run_loop(..., sensor=name)``, a rollout window's ``sensor``, and another simulator's
-    loop through :class:`eofnn.interop.native.NativeLoop`)."""
+    loop through :class:`eofnn.interop.native.NativeLoop`), and a scenario's ``sensor.kind`` may name it."""
     def add(factory):
         SENSORS[name] = factory
         return factory

@@ -73,7 +73,7 @@ from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.sim.loop.kernel import ZonalMeasurement, loop_sensor
+from eofnn.sim.loop.kernel import ZonalMeasurement, ZonalSensor, loop_sensor
 from eofnn.sim.loop.measurement import ShackHartmannMeasurement, nominal_dm, scaled_slope_noise
 from eofnn.sim.sensing.sensor import Sensor
 
@@ -428,18 +428,19 @@ def loop_measurement(turbulence, plant, dm_gain=None, wfs_gain=None):
     (a number, or ``(batch, 1)``, one per row)."""
     if isinstance(turbulence, ShackHartmannTurbulence):
         return turbulence.measurement(plant, dm_gain, wfs_gain)
-    return ZonalMeasurement(turbulence.grid.n_actuators, plant.wfs_noise_nm,
-                            plant.wfs_gain if wfs_gain is None else wfs_gain)
+    return (loop_sensor(getattr(turbulence, "sensor", None), turbulence.grid)  # a registered sensor (sensor.kind)
+            or ZonalSensor(turbulence.grid.n_actuators)).measurement(plant, dm_gain, wfs_gain)
 
 
 def loop_sensing(turbulence, model, slopes: bool = False, sensor=None):
     """The sensing ``run_loop`` uses for ``turbulence`` (a Shack-Hartmann's when it carries one); ``slopes``: record
     the Shack-Hartmann's slopes (one :class:`ConfigError` line for the zonal sensor, which has none); ``sensor``: a
     :class:`~eofnn.sim.loop.kernel.LoopSensor` (or a registered name, :func:`~eofnn.sim.loop.kernel.register_sensor`)
-    that measures a turbulence on the actuator grid in place of the zonal sensor."""
+    that measures a turbulence on the actuator grid in place of the scenario's (the zonal or its registered one)."""
     if isinstance(turbulence, ShackHartmannTurbulence):
         require(sensor is None, "sensor is invalid with a Shack-Hartmann scenario: its turbulence comes with its sensor")
         return turbulence.loop_sensing(model, slopes)
     require(not slopes, "record 'slopes' is invalid in this scenario: the zonal sensor (sensor.kind: subaperture) "
             "measures no slopes; record them with sensor.kind: shack_hartmann")
+    sensor = getattr(turbulence, "sensor", None) if sensor is None else sensor  # None: the scenario's sensor.kind
     return ZonalLoopSensing(turbulence, model, loop_sensor(sensor, turbulence.grid))

@@ -20,8 +20,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from eofnn.errors import ConfigError, require
 from eofnn.sim.grid import ActuatorGrid
@@ -36,10 +37,30 @@ from eofnn.sim.sensing.constants import (
 from eofnn.sim.sensing.detector import Detector
 from eofnn.validation import Constraint, OneOf, OrNone, from_mapping, validated
 
-__all__ = ["GEOMETRIES", "MECHANICAL_COUPLING", "PYRAMID_CONSTRAINTS", "SENSOR_KINDS", "Sensor", "build_sensor"]
+__all__ = ["GEOMETRIES", "LOOP_SENSORS", "MECHANICAL_COUPLING", "PYRAMID_CONSTRAINTS", "SENSOR_KINDS", "Sensor",
+           "build_sensor", "sensor_kinds"]
 
-#: Sensor kinds a scenario may have.
+#: eofnn's own sensor kinds.
 SENSOR_KINDS = ("subaperture", "shack_hartmann", "pyramid")
+#: Sensors that read the turbulence on the actuator grid, by name: ``name -> factory(grid) -> LoopSensor``, filled by
+#: :func:`eofnn.sim.loop.kernel.register_sensor`. A scenario's ``sensor.kind`` may name any of them.
+LOOP_SENSORS: dict[str, Callable] = {}
+
+
+def sensor_kinds() -> tuple[str, ...]:
+    """The kinds a scenario's ``sensor.kind`` may be: eofnn's own, then the registered sensors' names."""
+    return SENSOR_KINDS + tuple(sorted(set(LOOP_SENSORS) - set(SENSOR_KINDS)))
+
+
+@dataclass(frozen=True)
+class SensorKind(Constraint):
+    """One of :func:`sensor_kinds`, as they stand when a sensor is configured (registered sensors included)."""
+
+    def accepts(self, value: Any) -> bool:
+        return isinstance(value, str) and value in sensor_kinds()
+
+    def describe(self) -> str:
+        return "one of " + ", ".join(sensor_kinds())
 #: A Shack-Hartmann's reconstructors: truncated least squares, or noise-aware MMSE (:mod:`eofnn.sim.sensing.mmse`).
 RECONSTRUCTORS = ("least_squares", "mmse")
 #: The fields only a Shack-Hartmann has, and those only a pyramid has (the others they share).
@@ -56,11 +77,13 @@ class Sensor:
 
     Parameters
     ----------
-    kind : {"subaperture", "shack_hartmann", "pyramid"}
+    kind : {"subaperture", "shack_hartmann", "pyramid"} or a registered sensor's name
         ``subaperture`` (default): the zonal average at each actuator (the atmosphere's ``kernel``), plus the
         plant's ``wfs_noise_nm``. ``shack_hartmann``: slopes, reconstructor, photon noise (the fields below).
         ``pyramid``: a diffractive modulated pyramid (the last fields; ``mechanical_coupling``, ``relative_cut``,
-        ``pupil_diameter_m`` and ``detector`` as for the Shack-Hartmann).
+        ``pupil_diameter_m`` and ``detector`` as for the Shack-Hartmann). The name of a sensor registered with
+        :func:`~eofnn.sim.loop.kernel.register_sensor`: that sensor, on the actuator grid (it takes none of the fields
+        below).
     geometry, samples_per_subaperture, subapertures_across, mechanical_coupling, relative_cut
         The Shack-Hartmann and its reconstructor (:class:`~eofnn.sim.sensing.shack_hartmann.ShackHartmann`):
         ``fried`` (default) or ``cell`` subapertures; fine-grid intervals per subaperture side (4); subapertures across
@@ -98,19 +121,21 @@ class Sensor:
     pixels_across: int | None = None
     samples_per_pixel: int | None = None
 
+    _where: ClassVar[str] = "sensor."
     _constraints: ClassVar[dict[str, Constraint]] = {
-        "kind": OneOf(SENSOR_KINDS), **SHACK_HARTMANN_CONSTRAINTS, "reconstructor": OneOf(RECONSTRUCTORS),
+        "kind": SensorKind(), **SHACK_HARTMANN_CONSTRAINTS, "reconstructor": OneOf(RECONSTRUCTORS),
         **{name: OrNone(PYRAMID_CONSTRAINTS[name]) for name in PYRAMID_ONLY}}
 
     def __post_init__(self) -> None:
         if self.detector is not None:
             object.__setattr__(self, "detector", from_mapping(Detector, self.detector, "sensor.detector"))
-        if self.kind == "subaperture":
+        if self.kind not in ("shack_hartmann", "pyramid"):
             changed = [f.name for f in fields(self) if f.name != "kind" and getattr(self, f.name) != f.default]
             if changed:
+                what = ("the zonal average has no slopes, reconstructor or detector" if self.kind == "subaperture"
+                        else "a registered sensor takes none of the Shack-Hartmann's fields")
                 raise ConfigError(f"sensor.{changed[0]}={getattr(self, changed[0])!r} is invalid for sensor kind "
-                                  "'subaperture' (the zonal average has no slopes, reconstructor or detector): set "
-                                  "sensor.kind: shack_hartmann, or remove it")
+                                  f"{self.kind!r} ({what}): set sensor.kind: shack_hartmann, or remove it")
         foreign = {"shack_hartmann": PYRAMID_ONLY, "pyramid": SHACK_HARTMANN_ONLY}.get(self.kind, ())
         defaults = {f.name: f.default for f in fields(self)}
         for name in foreign:
@@ -138,6 +163,12 @@ class Sensor:
         band = "I" if self.detector is None else self.detector.band
         return Pyramid(**{**PYRAMID_DEFAULTS, **given}, band=band, mechanical_coupling=self.mechanical_coupling,
                        relative_cut=self.relative_cut, pupil_diameter_m=self.pupil_diameter_m)
+
+    @property
+    def registered(self) -> str | None:
+        """The registered sensor's name this kind names (it measures on the actuator grid), ``None`` for eofnn's own
+        kinds."""
+        return None if self.kind in SENSOR_KINDS else self.kind
 
     def shack_hartmann(self):  # -> ShackHartmann (not imported here: jsonargparse reads this module's types)
         """The Shack-Hartmann config of these fields."""
