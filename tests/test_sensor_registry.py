@@ -112,6 +112,7 @@ def _scenario_yaml(tmp_path, kind: str):
     return path
 
 
+@pytest.mark.cli
 def test_a_compare_runs_the_sensor_its_yaml_names(cli, tmp_path):
     import json
 
@@ -138,6 +139,7 @@ def test_a_compare_runs_the_sensor_its_yaml_names(cli, tmp_path):
     np.testing.assert_allclose(external.residual_rms_nm, seen.residual_rms_nm[0].numpy(), rtol=1e-12)
 
 
+@pytest.mark.cli
 def test_an_unknown_sensor_kind_is_one_line_naming_the_allowed_kinds(cli, tmp_path):
     with pytest.raises(ConfigError, match=r"^sensor.kind='nope' is invalid: it must be one of subaperture, "
                                           r"shack_hartmann, .*test_projection"):
