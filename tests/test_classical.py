@@ -373,3 +373,26 @@ def test_the_modal_gain_cap_is_chosen_in_closed_loop(lqg_model):
     finite = {m: v for m, v in scan.items() if v is not None}
     assert float(min(finite, key=finite.get)) == model.info["gain_margin"]
     assert float(model.gains.max()) <= model.info["critical_gain"] / model.info["gain_margin"] * (1 + 1e-12)
+
+
+def test_the_lqg_of_each_ar_order_and_the_modal_integrator_share_one_recording(small_scenario, monkeypatch):
+    """Equal scenario, data and DM model: the telemetry is recorded (and its modal statistics computed) once, and
+    each model is the one a fresh recording gives."""
+    from eofnn.control import modal
+
+    data = DataConfig(frames=1024, dither_nm=5.0)
+    modal._RECORDED.clear()
+    fresh = {order: build_lqg(small_scenario, data, 20, ar_order=order) for order in (1, 2)}
+    modal._RECORDED.clear()
+    calls = []
+    record = modal.record_pol_telemetry
+    monkeypatch.setattr(modal, "record_pol_telemetry", lambda *a, **k: calls.append(1) or record(*a, **k))
+    shared = {order: build_lqg(small_scenario, data, 20, ar_order=order) for order in (1, 2)}
+    integrator = modal.build_modal_integrator(small_scenario, data, 20)
+    assert len(calls) == 1
+    for order in (1, 2):
+        torch.testing.assert_close(shared[order].kalman_gain, fresh[order].kalman_gain, rtol=0, atol=0)
+        assert shared[order].info == fresh[order].info
+    torch.testing.assert_close(integrator.modes, shared[2].modes, rtol=0, atol=0)
+    build_lqg(small_scenario, DataConfig(frames=1024, dither_nm=6.0), 20)  # other data: recorded again
+    assert len(calls) == 2

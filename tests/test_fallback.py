@@ -146,3 +146,28 @@ def test_a_fallback_that_cannot_run_is_refused_in_one_line(fields, message):
 
 def test_the_default_guards_nothing():
     assert not PredictorConfig().fallback.active
+
+
+def test_a_guarded_copy_of_a_contender_is_trained_once_and_scores_what_a_separate_fit_would(small_scenario,
+                                                                                            tmp_path):
+    """Two contenders whose configs differ only in ``fallback`` share one training (its checkpoint written under both
+    names); the guarded one's predictor is the very fit a run without its twin trains."""
+    from eofnn.evaluation.config import EvaluationConfig
+    from eofnn.evaluation.experiment import Experiment
+
+    data = DataConfig(frames=600, val_frames=300, sequence_frames=600)
+    plain = PredictorConfig(history_length=2, data=data)
+    guarded = replace(plain, fallback=FallbackConfig(per="whole", gains=[0.3, 0.5], frames=300, realisations=1))
+    evaluation = EvaluationConfig(frames=300, settle_frames=100, analytic_stability=False, error_budget=False)
+    lines: list[str] = []
+    both = Experiment(small_scenario, {"nominal": {}}, {"eof": plain, "eof_guarded": guarded}, evaluation,
+                      checkpoint_dir=tmp_path, log=lines.append)
+    result = both.run()
+    alone = Experiment(small_scenario, {"nominal": {}}, {"eof_guarded": guarded}, evaluation, log=lambda _: None)
+    assert sum(line.startswith("training ") for line in lines) == 1
+    assert any("eof_guarded: trained as eof is" in line for line in lines)
+    assert both.predictor("eof_guarded", "nominal") is both.predictor("eof", "nominal")
+    torch.testing.assert_close(both.predictor("eof_guarded", "nominal").network.weight,
+                               alone.predictor("eof_guarded", "nominal").network.weight, rtol=0, atol=0)
+    assert (tmp_path / "eof_guarded__nominal.ckpt").read_bytes() == (tmp_path / "eof__nominal.ckpt").read_bytes()
+    assert set(result.metrics["nominal"]) == {"eof", "eof_guarded"}

@@ -13,8 +13,7 @@ What is estimated, and how (a telescope's telemetry: commands ``y`` and WFS read
    eigenvalue, so the eigenvectors are the turbulence's). Turbulence is statistically homogeneous, so the sample
    covariance is first averaged over all actuator pairs with the same separation on the grid: a few seconds of
    frozen flow span only a few independent pupils, and the eigenvectors of the raw sample covariance are then
-   specific to the record (their trailing modes carry far more variance on another stream than in the telemetry:
-   ``docs/findings.md``).
+   specific to the record (their trailing modes carry far more variance on another stream: ``docs/findings.md``).
 3. *Per mode*: the variance ``C(0)``, the structure function ``D(l) = <(x(n) - x(n - l))²>`` at lags 1 and 2 (on
    a common range: differences of slow, large modes are far better estimated this way than as differences of
    autocovariances) giving ``C(l) = C(0) - D(l) / 2``, a Welch PSD of the first difference ``x(n) - x(n-1)``
@@ -31,6 +30,7 @@ What is estimated, and how (a telescope's telemetry: commands ``y`` and WFS read
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import warnings
@@ -320,9 +320,8 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
     :data:`GAIN_MARGIN_CANDIDATES` closes the loop on a stream of its own (``data.frames`` frames, never the test
     stream) and the lowest median residual wins (``margin_scan`` in the model's info)."""
     data = _fitted_to_screen(scenario, data)
-    pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
+    pol, info, stats = _recorded(scenario, data, dm_gain_model, modes)
     dm_gain_model = info["dm_gain_model"]
-    stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
     delay = scenario.plant.delay_frames
     settle = min(500, data.frames // 2)
     scan, best = {}, None
@@ -352,20 +351,37 @@ def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model:
     AR(2) by default, AR(1) with ``a2 = 0``) and its stationary Kalman filter (:func:`kalman_gain`); modes past
     ``modes`` share one model fitted on their pooled statistics."""
     data = _fitted_to_screen(scenario, data)
-    pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
-    return lqg_from_pol(pol, scenario.plant.delay_frames, info["dm_gain_model"], ar_order, modes,
-                        torch.as_tensor(scenario.grid.indices), info)
+    pol, info, stats = _recorded(scenario, data, dm_gain_model, modes)
+    return lqg_from_pol(pol, scenario.plant.delay_frames, info["dm_gain_model"], ar_order, modes, info=info,
+                        stats=stats)
+
+
+#: The last two recordings (the LQG of each AR order and the modal integrator of a study share theirs).
+_RECORDED: dict[str, tuple] = {}
+
+
+def _recorded(scenario: Scenario, data, dm_gain_model: float | None, modes: int | None) -> tuple:
+    """``(pol, info, stats)`` of :func:`record_pol_telemetry` and :func:`modal_statistics`, once per arguments."""
+    key = repr((scenario, data, dm_gain_model, modes))
+    if key not in _RECORDED:
+        pol, info = record_pol_telemetry(scenario, data, dm_gain_model)
+        stats = modal_statistics(pol, modes, grid_indices=torch.as_tensor(scenario.grid.indices))
+        while len(_RECORDED) >= 2:
+            _RECORDED.pop(next(iter(_RECORDED)))
+        _RECORDED[key] = (pol, info, stats)
+    pol, info, stats = _RECORDED[key]
+    return pol, copy.deepcopy(info), stats
 
 
 def lqg_from_pol(pol: torch.Tensor, delay_frames: int | float, dm_gain_model: float, ar_order: int = 2,
-                 modes: int | None = None, grid_indices: torch.Tensor | None = None, info: dict | None = None
-                 ) -> ModalLQG:
+                 modes: int | None = None, grid_indices: torch.Tensor | None = None, info: dict | None = None,
+                 stats: ModalStatistics | None = None) -> ModalLQG:
     """The LQG of ``(realisations, frames, K)`` POL values (nm) reconstructed with ``dm_gain_model``: KL modes
     (homogenised over ``grid_indices``, the actuators' lattice rows and columns, where given), an AR(``ar_order``)
     per mode and its stationary Kalman filter, for a loop of ``delay_frames`` (:func:`build_lqg`, which records
-    the POL values in a scenario; another simulator's telemetry gives them as well)."""
+    the POL values in a scenario; another simulator's telemetry gives them as well; ``stats``: already computed)."""
     info = dict(info or {})
-    stats = modal_statistics(pol, modes, grid_indices=grid_indices)
+    stats = modal_statistics(pol, modes, grid_indices=grid_indices) if stats is None else stats
     ar, q = fit_ar(ar_order, stats.autocovariance, stats.noise_variance)
     r = stats.noise_variance
     gain, prior = kalman_gain(ar, q, r)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import shutil
 import time
 from collections.abc import Callable, Collection
 from dataclasses import replace
@@ -107,11 +108,20 @@ class Experiment:
         key = (name, train_in)
         if key not in self._trained:
             path = None if self.checkpoint_dir is None else self.checkpoint_dir / f"{name}__{train_in}.ckpt"
-            self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
-                     f"{cfg.optimization.fit_method}, {cfg.data.learns_from})")
-            result = fit_from_config(self.scenarios[train_in], cfg, FitOutput(path, True, bool(self.progress)))
-            self._trained[key] = result.predictor
-            searched = result.predictor.info.get("search")
+            same = next((other for other, where in self._trained if where == train_in and other not in self._loaded
+                         and _training(self.predictors[other]) == _training(cfg)), None)
+            if same is not None:  # the same training (a guarded copy of a contender): its result, not a refit
+                self.log(f"{train_in:>12s} {name:>18s}: trained as {same} is (the same config but its fallback)")
+                result = self._trained[(same, train_in)]
+                if path is not None and (self.checkpoint_dir / f"{same}__{train_in}.ckpt").exists():
+                    shutil.copyfile(self.checkpoint_dir / f"{same}__{train_in}.ckpt", path)
+            else:
+                self.log(f"training {name} in scenario {train_in} ({cfg.history}, p={cfg.history_length}, "
+                         f"{cfg.optimization.fit_method}, {cfg.data.learns_from})")
+                result = fit_from_config(self.scenarios[train_in], cfg,
+                                         FitOutput(path, True, bool(self.progress))).predictor
+            self._trained[key] = result
+            searched = result.info.get("search")
             if searched is not None:
                 self.searches[key] = searched
                 chosen, budget = searched["chosen"], searched["budget"]
@@ -119,7 +129,7 @@ class Experiment:
                          + ("" if chosen["width"] is None else f", width {chosen['width']}")
                          + f" chosen on validation data (best epoch {chosen['best_epoch']}); budget {budget['trials']} "
                          f"trials, {budget['epochs']} epochs, {budget['frames']} frames")
-            choice = result.predictor.info.get("alpha_choice")
+            choice = result.info.get("alpha_choice")
             if choice is not None:
                 self.alpha_choices[key] = choice
                 where = "" if "dm_gain_interval" not in choice else (
@@ -364,3 +374,8 @@ def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario | None = 
         root = margins["max_root_modulus"]
         text += f" (largest root {root:.5g}: {scenario.frame_rate_hz * math.log(root):+.3g}/s)"
     return text
+
+
+def _training(cfg: PredictorConfig) -> str:
+    """What trains ``cfg``'s predictor: its config but the fallback (which decides only where it is deployed)."""
+    return repr(replace(cfg, fallback=type(cfg.fallback)()))
