@@ -90,7 +90,7 @@ def extrapolator_filter(order: int, delay_frames: int | float, dm_gain_model: fl
     """The extrapolator as a shared open-loop :class:`LinearFilter` ``-w / g_model`` and the history it reads."""
     weights = extrapolation_weights(order, delay_frames, smoothing)
     taps = len(weights)
-    spec = HistorySpec("open_loop", taps, check_delay(delay_frames))
+    spec = HistorySpec("open_loop", taps, delay_frames)  # the spec checks the delay (2.0 -> 2)
     network = LinearFilter(1, taps, "shared")
     network.load_solution(-weights.unsqueeze(0) / dm_gain_model)
     return network.eval(), spec
