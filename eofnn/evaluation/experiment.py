@@ -26,7 +26,7 @@ from eofnn.evaluation.contenders import (
     scan_integrator_gains,
 )
 from eofnn.evaluation.contrast import scenario_contrast
-from eofnn.evaluation.fallback import FallbackDecision, decide_fallback, fallback_stability
+from eofnn.evaluation.fallback import FallbackDecision, decide_fallback
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
@@ -269,8 +269,8 @@ class Experiment:
         predictor = self.predictor_if_any(name, scenario_name)
         config, scenario = self.config(name, scenario_name), self.scenarios[scenario_name]
         try:
-            result = (fallback_stability(self.fallback(name, scenario_name), config, predictor, scenario)
-                      if config.fallback.active else controller_stability(config, predictor, scenario))
+            result = controller_stability(config, predictor, scenario,
+                                          self.fallback(name, scenario_name) if config.fallback.active else None)
         except CoupledAnalysisUnavailable as err:  # reported like a network's: no analytic margins
             self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
             return None
