@@ -1,12 +1,15 @@
-"""Stability of an experiment's linear controllers: which analysis applies to which controller, in one place."""
+"""Stability of an experiment's linear controllers: which analysis applies to which controller (and to what its
+fallback deploys), in one place."""
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import torch
 
+from eofnn.analysis.block import CoupledAnalysisUnavailable
 from eofnn.analysis.response import analyse_response
 from eofnn.analysis.stability import (
     LoopSetup,
@@ -15,7 +18,9 @@ from eofnn.analysis.stability import (
     analyse_filter,
     analyse_integrator,
     analyse_polynomials,
+    controller_polynomials,
     default_frequencies_hz,
+    integrator_weights,
 )
 from eofnn.control.classical import ModalLQG, extrapolator_filter
 from eofnn.control.fourier import FourierPredictor
@@ -29,11 +34,15 @@ SUMMARY_KEYS = ("kind", "structure", "history_length", "stable", "max_root_modul
                 "integer_delay_margin_frames", "analysis_seconds", "notes")
 
 
-def controller_stability(config: Any, predictor: Any, scenario: Scenario) -> StabilityResult | None:
+def controller_stability(config: Any, predictor: Any, scenario: Scenario, fallback: Any = None
+                         ) -> StabilityResult | None:
     """The analysis of a controller in ``scenario``: an integrator, a classical baseline (the extrapolator as its
     open-loop filter; the modal integrator and LQG, whose model is passed as ``predictor``, per mode), or a
     predictor whose network is a :class:`~eofnn.models.linear.LinearFilter`; ``None`` for anything else (no
-    linear model to analyse)."""
+    linear model to analyse). With ``fallback`` (the controller's fallback decision), what it deploys
+    (:func:`fallback_stability`)."""
+    if fallback is not None:
+        return fallback_stability(fallback, config, predictor, scenario)
     setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
     if config.controller == "integrator":
         return analyse_integrator(config.gain, config.leak, setup)
@@ -74,6 +83,52 @@ def modal_stability(model: Any, setup: LoopSetup) -> StabilityResult:
                                      history_length=length)
         result.notes.append("groups are the controller's modes")
     result.analysis_seconds = time.perf_counter() - start
+    return result
+
+
+def fallback_stability(decision: Any, config: Any, predictor: Any, scenario: Scenario) -> StabilityResult | None:
+    """The analytic stability of what ``decision`` deploys: the integrator's, the predictor's own (``None`` when it
+    has no linear model), or the composite's with its modes as groups, the predictor's filter on those it keeps and
+    the integrator's on the others. That split holds where the filter acts alike on every mode (a shared filter, on
+    any modes) or the modes are its own groups (a per-actuator filter, ``modes: actuators``); anything else is
+    coupled, and raises :class:`~eofnn.analysis.block.CoupledAnalysisUnavailable` (reported like a network's: no
+    analytic margins). ``decision`` is a :class:`~eofnn.evaluation.fallback.FallbackDecision`."""
+    if decision.deployed == "predictor":
+        return controller_stability(config, predictor, scenario)
+    setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
+    if decision.deployed == "integrator":
+        return analyse_integrator(decision.gain, 0.0, setup)
+    network, kept = getattr(predictor, "network", None), decision.kept
+    structure = getattr(network, "structure", None)
+    if not isinstance(network, LinearFilter) or structure not in ("shared", "per_actuator") or (
+            structure == "per_actuator" and kept.dim() == 2):
+        raise CoupledAnalysisUnavailable(
+            f"the per-mode fallback of a {structure or type(network).__name__} "
+            f"{'filter' if isinstance(network, LinearFilter) else 'network'} on {decision.report['modes']} modes "
+            "couples the modes (no linear model by groups; a shared filter, or modes: actuators with a per-actuator "
+            "filter, has one)")
+    spec = predictor.spec
+    if setup.controller_delay_frames is None:
+        setup = replace(setup, controller_delay_frames=spec.delay_frames)
+    d_p, n_p = controller_polynomials(network.weight.detach(), spec.kind, spec.history_length, setup.dm_gain_model,
+                                      setup.controller_delay)
+    d_i, n_i = controller_polynomials(integrator_weights(decision.gain), "closed_loop", 1)
+    if kept.dim() == 1:
+        mask = kept
+    else:  # a shared filter acts alike on every mode: M groups of its own, K - M of the integrator
+        mask = torch.arange(kept.shape[0]) < kept.shape[1]
+    k = mask.shape[0]
+
+    def stack(own: torch.Tensor, integrator: torch.Tensor) -> torch.Tensor:
+        length = max(own.shape[1], integrator.shape[1])
+        own = torch.nn.functional.pad(own, (0, length - own.shape[1])).expand(k, -1)
+        integrator = torch.nn.functional.pad(integrator, (0, length - integrator.shape[1])).expand(k, -1)
+        return torch.where(mask[:, None], own, integrator)
+
+    result = analyse_polynomials(stack(d_p, d_i), stack(n_p, n_i), setup, default_frequencies_hz(setup.frame_rate_hz),
+                                 kind=spec.kind, structure=structure, history_length=spec.history_length)
+    result.notes.append(f"groups are the fallback's modes: the predictor's filter on {int(mask.sum())}, the "
+                        f"integrator (gain {decision.gain:g}) on {k - int(mask.sum())}")
     return result
 
 

@@ -35,13 +35,11 @@ import torch
 
 from eofnn.analysis import polynomials as poly
 from eofnn.analysis.block import block_analysis
+from eofnn.analysis.checks import MAX_WEIGHT, STRUCTURES, check_filter, check_weights  # noqa: F401 (re-exported)
 from eofnn.control.adaptive import integrator_filter
-from eofnn.data.history import HISTORY_KINDS, HistorySpec
-from eofnn.errors import require
+from eofnn.data.history import HistorySpec
 from eofnn.models.linear import LinearFilter
 from eofnn.validation import FINITE, Constraint, Interval, OrNone, validated
-
-STRUCTURES = ("per_actuator", "shared", "neighbourhood", "modal")
 
 
 @dataclass(frozen=True)
@@ -230,40 +228,6 @@ def integrator_weights(gain: float, leak: float = 0.0) -> torch.Tensor:
     return integrator_filter(HistorySpec("closed_loop", 1), gain, leak)
 
 
-#: Largest filter weight (nm of command per nm of history) the analysis accepts.
-MAX_WEIGHT = 1e12
-
-
-def _check_weights(weights: torch.Tensor, kind: str, history_length: int, structure: str,
-                   neighbours: torch.Tensor | None) -> None:
-    require(kind in HISTORY_KINDS, f"history kind={kind!r} is invalid: allowed are {', '.join(HISTORY_KINDS)}")
-    require(structure in STRUCTURES, f"structure={structure!r} is invalid: allowed are {', '.join(STRUCTURES)}")
-    require(isinstance(history_length, int) and history_length >= 1,
-            f"history_length={history_length!r} is invalid: it must be an integer >= 1")
-    require(isinstance(weights, torch.Tensor) and weights.dim() == 2,
-            f"weights must be a 2-D tensor (groups, taps), got {getattr(weights, 'shape', type(weights).__name__)}")
-    taps = history_length * (2 if kind == "closed_loop" else 1)
-    shape = tuple(weights.shape)
-    finite = weights[weights.isfinite()]
-    require(finite.numel() == weights.numel(),
-            f"weights hold {weights.numel() - finite.numel()} non-finite value(s): no loop runs them")
-    largest = float(finite.abs().max()) if finite.numel() else 0.0
-    # A filter weight is nm of command per nm: beyond 1e12 it cannot be a predictor, and the polynomial roots
-    # of such weights overflow (reporting "stable, max root 0" for 1e150).
-    require(largest <= MAX_WEIGHT, f"weights reach {largest:.3g} (nm per nm): at most {MAX_WEIGHT:g} can be "
-            "analysed; such a filter is not a predictor")
-    if structure == "neighbourhood":
-        require(neighbours is not None and neighbours.dim() == 2 and neighbours.shape[0] == shape[0]
-                and shape[1] == neighbours.shape[1] * taps,
-                f"neighbourhood weights of shape {shape} do not fit neighbours of shape "
-                f"{None if neighbours is None else tuple(neighbours.shape)} and {taps} taps per actuator")
-    else:
-        require(shape[1] == taps and (structure in ("per_actuator", "modal") or shape[0] == 1),
-                f"weights of shape {shape} do not fit structure={structure!r} with {taps} taps per actuator "
-                f"({kind}, history_length={history_length}): expected ({'1' if structure == 'shared' else 'K'}, {taps})")
-    require(bool(torch.isfinite(weights).all()), "weights hold non-finite values")
-
-
 def default_frequencies_hz(frame_rate_hz: float, n: int = 256) -> torch.Tensor:
     """Log-spaced frequencies from ``frame_rate / 2000`` to Nyquist, Hz."""
     return torch.logspace(math.log10(frame_rate_hz / 2000), math.log10(frame_rate_hz / 2), n, dtype=poly.DTYPE)
@@ -293,8 +257,16 @@ def analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSe
     delay_margin : bool
         Whether to find the delay margins (``False``: NaN and -1, for a caller that wants the DM-gain interval only).
     """
+    check_weights(weights, kind, history_length, structure, neighbours)
+    return _analyse(weights, kind, history_length, setup, structure, neighbours, frequencies_hz, delay_margin)
+
+
+def _analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSetup | None, structure: str,
+             neighbours: torch.Tensor | None, frequencies_hz: torch.Tensor | None, delay_margin: bool = True
+             ) -> StabilityResult:
+    """:func:`analyse` of weights already checked (given weights by :func:`analyse`, a filter's by
+    :func:`analyse_filter`) or built here (:func:`analyse_integrator`'s)."""
     setup = setup or LoopSetup()
-    _check_weights(weights, kind, history_length, structure, neighbours)
     start = time.perf_counter()
     freqs = default_frequencies_hz(setup.frame_rate_hz) if frequencies_hz is None else frequencies_hz.to(poly.DTYPE)
     if structure == "neighbourhood":
@@ -313,19 +285,19 @@ def analyse(weights: torch.Tensor, kind: str, history_length: int, setup: LoopSe
 def analyse_filter(network: LinearFilter, spec: HistorySpec, setup: LoopSetup | None = None,
                    frequencies_hz: torch.Tensor | None = None) -> StabilityResult:
     """:func:`analyse` for a fitted :class:`~eofnn.models.linear.LinearFilter` reading ``spec`` histories."""
-    require(isinstance(network, LinearFilter), f"stability analysis needs a LinearFilter, got {type(network).__name__}")
-    require(network.n_taps == spec.n_taps, f"filter has {network.n_taps} taps but the history spec has {spec.n_taps}")
+    check_filter(network, spec)
     setup = setup or LoopSetup(delay_frames=spec.delay_frames)
     if setup.controller_delay_frames is None:
         setup = replace(setup, controller_delay_frames=spec.delay_frames)
     # The analysis reads the weights' values: no gradient flows through it (a float of a Parameter warns).
-    return analyse(network.weight.detach(), spec.kind, spec.history_length, setup, structure=network.structure,
-                   neighbours=getattr(network, "neighbours", None), frequencies_hz=frequencies_hz)
+    return _analyse(network.weight.detach(), spec.kind, spec.history_length, setup, network.structure,
+                    getattr(network, "neighbours", None), frequencies_hz)
 
 
 def analyse_integrator(gain: float, leak: float = 0.0, setup: LoopSetup | None = None) -> StabilityResult:
-    """The leaky integrator through the same analysis (its critical gain is ``gain * gain_margin[1]``)."""
-    return analyse(integrator_weights(gain, leak), "closed_loop", 1, setup, structure="shared")
+    """The leaky integrator through the same analysis (its critical gain is ``gain * gain_margin[1]``); ``gain`` and
+    ``leak`` as the controller's config has checked them."""
+    return _analyse(integrator_weights(gain, leak), "closed_loop", 1, setup, "shared", None, None)
 
 
 def analyse_polynomials(d_poly: torch.Tensor, n_poly: torch.Tensor, setup: LoopSetup, frequencies_hz: torch.Tensor,

@@ -46,10 +46,9 @@ def integrator_filter(spec: HistorySpec, gain: float, leak: float = 0.0) -> torc
 
     Closed loop: the leaky integrator ``y(n) = (1 - leak) y(n-1) - gain wfs(n-d)``. Open loop:
     ``y(n) = -gain s_hat(n-d)`` (the pseudo-open-loop integrator: with ``gain = 1``, perfect correction ``d`` frames
-    late; ``leak`` does not apply).
+    late; ``leak`` does not apply). ``gain >= 0`` and ``leak`` in [0, 1], as the controller's config (or the
+    adaptive controller's own arguments) checked them.
     """
-    check_value("gain", gain, NON_NEGATIVE, where="integrator ")
-    check_value("leak", leak, Interval(0, 1), where="integrator ")
     weights = torch.zeros(1, spec.n_taps, dtype=torch.float64)
     if spec.kind == "closed_loop":
         weights[0, 0], weights[0, spec.history_length] = 1.0 - leak, -gain

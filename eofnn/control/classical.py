@@ -25,7 +25,7 @@ import torch
 from eofnn.control.config import EXTRAPOLATION_ORDERS, MAX_EXTRAPOLATION_SMOOTHING
 from eofnn.control.predictive import PredictiveController
 from eofnn.data.history import HistorySpec
-from eofnn.delay import check_delay, split_delay
+from eofnn.delay import split_delay
 from eofnn.errors import ConfigError
 from eofnn.models.linear import LinearFilter
 from eofnn.sim.loop.runner import LoopInput
@@ -78,9 +78,10 @@ def extrapolation_weights(order: int, delay_frames: int | float, smoothing: int 
     degree ``<= order``. ``smoothing`` > 0 fits the polynomial by least squares to that many more POL values: still
     exact for polynomials of degree ``<= order``, but averaging the WFS noise down (order 1 at ``d = 2`` over 4
     values: ``[1.3, 0.6, -0.1, -0.8]``, noise gain 1.64 against 3.61) at the cost of lag on faster turbulence.
+    ``order``, ``smoothing`` and the delay are as the extrapolator's config, or :class:`Extrapolator`, and the plant
+    checked them (:func:`check_extrapolator`): they are not checked again here.
     """
-    check_extrapolator(order, smoothing)
-    d, f = split_delay(check_delay(delay_frames))
+    d, f = split_delay(delay_frames)
     weights = _polynomial_at(order, smoothing, d)
     return (1 - f) * weights + f * _polynomial_at(order, smoothing, d + 1) if f else weights
 
@@ -90,7 +91,7 @@ def extrapolator_filter(order: int, delay_frames: int | float, dm_gain_model: fl
     """The extrapolator as a shared open-loop :class:`LinearFilter` ``-w / g_model`` and the history it reads."""
     weights = extrapolation_weights(order, delay_frames, smoothing)
     taps = len(weights)
-    spec = HistorySpec("open_loop", taps, check_delay(delay_frames))
+    spec = HistorySpec("open_loop", taps, delay_frames)  # the spec checks the delay (2.0 -> 2)
     network = LinearFilter(1, taps, "shared")
     network.load_solution(-weights.unsqueeze(0) / dm_gain_model)
     return network.eval(), spec

@@ -96,9 +96,8 @@ def oracle_config(predictors: dict[str, PredictorConfig], scenario: Scenario) ->
 
 
 def build_scenarios(base: Scenario, scenarios: dict[str, dict[str, Any]]) -> dict[str, Scenario]:
-    """The base scenario with each entry's plant changes (``{}`` is the base plant)."""
-    require(isinstance(scenarios, dict) and len(scenarios) >= 1,
-            "scenarios is empty: give at least one, e.g. nominal: {}")
+    """The base scenario with each entry's plant changes (``{}`` is the base plant); ``scenarios`` holds at least
+    one, as :func:`~eofnn.evaluation.experiment.predictor_configs` has checked."""
     out = {}
     for name, changes in scenarios.items():
         if changes is not None and not isinstance(changes, dict):

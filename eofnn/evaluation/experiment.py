@@ -27,7 +27,7 @@ from eofnn.evaluation.contenders import (
     scan_integrator_gains,
 )
 from eofnn.evaluation.contrast import scenario_contrast
-from eofnn.evaluation.fallback import FallbackDecision, decide_fallback, fallback_stability
+from eofnn.evaluation.fallback import FallbackDecision, decide_fallback
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
@@ -36,6 +36,22 @@ from eofnn.resources import peak_resident_bytes
 from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.sim.scenario import Scenario
 from eofnn.training.fit import FitOutput, TrainedPredictor
+
+
+def predictor_configs(scenarios: dict[str, dict[str, Any]], predictors: dict[str, PredictorConfig | dict],
+                      evaluation: EvaluationConfig) -> dict[str, PredictorConfig]:
+    """The controllers' configs (mappings made :class:`PredictorConfig`), once what the experiment's names can
+    refuse is refused, each in one line: no controller, no scenario, or an ``oracle`` name that
+    ``evaluation.oracle`` would add a second time."""
+    configs = ({name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
+                for name, cfg in predictors.items()} if isinstance(predictors, dict) else predictors)
+    require(isinstance(configs, dict) and len(configs) >= 1, "predictors is empty: give at least one")
+    require(isinstance(scenarios, dict) and len(scenarios) >= 1, "scenarios is empty: give at least one, e.g. "
+            "nominal: {}")
+    require(not evaluation.oracle or "oracle" not in configs or any(cfg.oracle for cfg in configs.values()),
+            "evaluation.oracle: true adds a controller named 'oracle', and predictors already has one: rename it, or "
+            "mark it oracle: true")
+    return configs
 
 
 class Experiment:
@@ -66,13 +82,9 @@ class Experiment:
                  checkpoint_dir: str | Path | None = None, progress: bool | None = None,
                  log: Callable[[str], None] = print, trusted_networks: Collection[str] = (),
                  allow_long: bool = False) -> None:
-        require(isinstance(predictors, dict) and len(predictors) >= 1, "predictors is empty: give at least one")
+        self.predictors = predictor_configs(scenarios, predictors, evaluation)
         self.scenarios = build_scenarios(scenario, scenarios)
-        self.predictors = {name: cfg if isinstance(cfg, PredictorConfig) else PredictorConfig(**cfg)
-                           for name, cfg in predictors.items()}
         if evaluation.oracle and not any(cfg.oracle for cfg in self.predictors.values()):
-            require("oracle" not in self.predictors, "evaluation.oracle: true adds a controller named 'oracle', and "
-                    "predictors already has one: rename it, or mark it oracle: true")
             self.predictors["oracle"] = oracle_config(self.predictors, next(iter(self.scenarios.values())))
         self.evaluation = evaluation
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
@@ -267,8 +279,8 @@ class Experiment:
         predictor = self.predictor_if_any(name, scenario_name)
         config, scenario = self.config(name, scenario_name), self.scenarios[scenario_name]
         try:
-            result = (fallback_stability(self.fallback(name, scenario_name), config, predictor, scenario)
-                      if config.fallback.active else controller_stability(config, predictor, scenario))
+            result = controller_stability(config, predictor, scenario,
+                                          self.fallback(name, scenario_name) if config.fallback.active else None)
         except CoupledAnalysisUnavailable as err:  # reported like a network's: no analytic margins
             self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
             return None

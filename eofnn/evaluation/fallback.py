@@ -23,31 +23,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 
-from eofnn.analysis.block import CoupledAnalysisUnavailable
-from eofnn.analysis.linear import controller_stability
-from eofnn.analysis.stability import (
-    LoopSetup,
-    StabilityResult,
-    analyse_integrator,
-    analyse_polynomials,
-    controller_polynomials,
-    default_frequencies_hz,
-    integrator_weights,
-)
+# The stability of what a fallback deploys is the analysis floor's (:func:`eofnn.analysis.linear.controller_stability`
+# with ``fallback=``); re-exported here, where it was first written.
+from eofnn.analysis.linear import fallback_stability  # noqa: F401
 from eofnn.control.baselines import Integrator
 from eofnn.control.config import FallbackConfig
 from eofnn.control.fallback import ModalFallback
 from eofnn.control.modal import homogeneous_covariance
-from eofnn.control.registry import dm_gain_model_of
 from eofnn.data.config import DataConfig
 from eofnn.errors import ConfigError, DivergedError
 from eofnn.evaluation.config import PredictorConfig
 from eofnn.evaluation.contenders import scan_integrator_gains
-from eofnn.models.linear import LinearFilter
 from eofnn.seeding import int_seed
 from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.sim.scenario import Scenario
@@ -221,50 +211,3 @@ def _per_mode(integrator: _Run, predictor: _Run, cfg: FallbackConfig, scenario: 
     if not keep.any() or keep.all():
         return None
     return keep if basis is None else basis[:, keep]
-
-
-def fallback_stability(decision: FallbackDecision, config: PredictorConfig, predictor, scenario: Scenario
-                       ) -> StabilityResult | None:
-    """The analytic stability of what ``decision`` deploys: the integrator's, the predictor's own (``None`` when it
-    has no linear model), or the composite's with its modes as groups, the predictor's filter on those it keeps and
-    the integrator's on the others. That split holds where the filter acts alike on every mode (a shared filter, on
-    any modes) or the modes are its own groups (a per-actuator filter, ``modes: actuators``); anything else is
-    coupled, and raises :class:`~eofnn.analysis.block.CoupledAnalysisUnavailable` (reported like a network's: no
-    analytic margins)."""
-    setup = LoopSetup.from_plant(scenario.plant, scenario.frame_rate_hz, dm_gain_model_of(config, predictor))
-    if decision.deployed == "integrator":
-        return analyse_integrator(decision.gain, 0.0, setup)
-    if decision.deployed == "predictor":
-        return controller_stability(config, predictor, scenario)
-    network, kept = getattr(predictor, "network", None), decision.kept
-    structure = getattr(network, "structure", None)
-    if not isinstance(network, LinearFilter) or structure not in ("shared", "per_actuator") or (
-            structure == "per_actuator" and kept.dim() == 2):
-        raise CoupledAnalysisUnavailable(
-            f"the per-mode fallback of a {structure or type(network).__name__} "
-            f"{'filter' if isinstance(network, LinearFilter) else 'network'} on {decision.report['modes']} modes "
-            "couples the modes (no linear model by groups; a shared filter, or modes: actuators with a per-actuator "
-            "filter, has one)")
-    spec = predictor.spec
-    if setup.controller_delay_frames is None:
-        setup = replace(setup, controller_delay_frames=spec.delay_frames)
-    d_p, n_p = controller_polynomials(network.weight.detach(), spec.kind, spec.history_length, setup.dm_gain_model,
-                                      setup.controller_delay)
-    d_i, n_i = controller_polynomials(integrator_weights(decision.gain), "closed_loop", 1)
-    if kept.dim() == 1:
-        mask = kept
-    else:  # a shared filter acts alike on every mode: M groups of its own, K - M of the integrator
-        mask = torch.arange(kept.shape[0]) < kept.shape[1]
-    k = mask.shape[0]
-
-    def stack(own: torch.Tensor, integrator: torch.Tensor) -> torch.Tensor:
-        length = max(own.shape[1], integrator.shape[1])
-        own = torch.nn.functional.pad(own, (0, length - own.shape[1])).expand(k, -1)
-        integrator = torch.nn.functional.pad(integrator, (0, length - integrator.shape[1])).expand(k, -1)
-        return torch.where(mask[:, None], own, integrator)
-
-    result = analyse_polynomials(stack(d_p, d_i), stack(n_p, n_i), setup, default_frequencies_hz(setup.frame_rate_hz),
-                                 kind=spec.kind, structure=structure, history_length=spec.history_length)
-    result.notes.append(f"groups are the fallback's modes: the predictor's filter on {int(mask.sum())}, the "
-                        f"integrator (gain {decision.gain:g}) on {k - int(mask.sum())}")
-    return result

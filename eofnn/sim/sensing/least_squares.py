@@ -11,7 +11,6 @@ import scipy.sparse as sp
 from eofnn.errors import ConfigError
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.sensing.constants import MECHANICAL_COUPLING
-from eofnn.validation import Interval, check_value
 
 #: Influence functions are cut where they fall below this fraction of their peak (a radius of
 #: ``d sqrt(ln(1e-6) / ln(coupling))``: 3.6 pitches at coupling 0.35).
@@ -38,10 +37,8 @@ def influence_functions(grid: ActuatorGrid, points_m: np.ndarray,
     ``IF[p, k] = exp(-|x_p - a_k|² / (2 c²))`` with ``c = d / sqrt(2 ln(1 / coupling))`` (``d`` = pitch, m), i.e.
     ``coupling ** (|x_p - a_k|² / d²)``: 1 nm of surface at the actuator per nm of command, ``coupling`` at a
     neighbour (OOPAO's shape, ``DeformableMirror.modesComputation``; OOPAO's default coupling 0.35). Values below
-    :data:`INFLUENCE_FLOOR` are dropped.
+    :data:`INFLUENCE_FLOOR` are dropped. ``mechanical_coupling`` is in (0, 1), as the sensor's config has checked it.
     """
-    check_value("mechanical_coupling", mechanical_coupling,
-                Interval(0, 1, closed="neither", unit="influence at the neighbouring actuator"))
     from scipy.spatial import cKDTree
 
     d = grid.pitch_m
@@ -59,10 +56,9 @@ def least_squares_reconstructor(interaction_matrix: np.ndarray, relative_cut: fl
     """``(R, kept, singular_values)``: the truncated-SVD least-squares reconstructor of ``D``.
 
     ``D = U Σ V^T``; ``R = V_k Σ_k^-1 U_k^T`` over the ``kept`` singular values above ``relative_cut`` x the largest,
-    so ``R D`` is the projector on the kept command modes. A cut that keeps nothing is one :class:`ConfigError` line.
+    so ``R D`` is the projector on the kept command modes. ``relative_cut`` is in [0.001, 1], as the sensor's config
+    has checked it (or :func:`default_relative_cut`); a cut that keeps nothing is one :class:`ConfigError` line.
     """
-    check_value("relative_cut", relative_cut,
-                Interval(1e-3, 1, unit="fraction of the largest singular value"))
     d = np.asarray(interaction_matrix, dtype=np.float64)
     # D^T D = V Σ² V^T (a K x K eigenproblem, several times faster than the SVD of D); the cut is at least 1e-3
     # of the largest singular value, far above the rounding the squaring brings (1e-8 of it).

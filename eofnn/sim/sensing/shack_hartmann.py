@@ -69,11 +69,11 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from eofnn.errors import require
+from eofnn.errors import ConfigError, require
 from eofnn.sim.grid import MAX_N_ACROSS, ActuatorGrid
 from eofnn.sim.sensing.constants import GEOMETRIES, MECHANICAL_COUPLING, SHACK_HARTMANN_CONSTRAINTS  # noqa: F401 (GEOMETRIES: re-exported)
 from eofnn.sim.sensing.least_squares import default_relative_cut, influence_functions, least_squares_reconstructor
-from eofnn.sim.sensing.subapertures import check_pupil, edge_weights, lattice, lit_fractions, partly_lit_rows
+from eofnn.sim.sensing.subapertures import edge_weights, lattice, lit_fractions, partly_lit_rows
 from eofnn.validation import Constraint, Interval, check_value, validated
 
 
@@ -104,27 +104,18 @@ class SubapertureGeometry:
         ``S`` ``(2 n_sub, n_fine)``: fine-point OPD (nm) to slopes (nm of OPD difference across a subaperture).
     """
 
-    _constraints: ClassVar[dict[str, Constraint]] = {name: SHACK_HARTMANN_CONSTRAINTS[name]
-                                                      for name in ("geometry", "samples_per_subaperture")}
-
     def __init__(self, grid: ActuatorGrid, geometry: str = "fried", samples_per_subaperture: int = 4,
                  subapertures_across: int | None = None, pupil_diameter_m: float | None = None,
                  lit_fraction: float | None = None) -> None:
-        check_value("geometry", geometry, self._constraints["geometry"])
-        check_value("samples_per_subaperture", samples_per_subaperture, self._constraints["samples_per_subaperture"])
-        check_pupil(grid, pupil_diameter_m, lit_fraction)
+        # The arguments are a ShackHartmann config's, checked there once (its fields, and ShackHartmann.check_fits
+        # against the grid); what is refused here needs the geometry itself.
         self.pupil_diameter_m = grid.diameter_m if pupil_diameter_m is None else float(pupil_diameter_m)
         self.lit_fraction = lit_fraction
         n = grid.n_across
         if geometry == "fried":
-            require(subapertures_across in (None, n - 1),
-                    f"subapertures_across={subapertures_across!r} is invalid for geometry 'fried' on {n} actuators "
-                    f"across: it has {n - 1} (one between each pair of actuators); leave it unset")
             n_sub, sensor_m = n - 1, grid.diameter_m - grid.pitch_m
         else:
             n_sub = n if subapertures_across is None else subapertures_across
-            check_value("subapertures_across", n_sub,
-                        Interval(2, n, integer=True, unit=f"subapertures across; the grid has {n} actuators across"))
             sensor_m = grid.diameter_m
         m = samples_per_subaperture
         self.grid, self.geometry, self.samples_per_subaperture = grid, geometry, m
@@ -281,6 +272,23 @@ class ShackHartmann:
         """The sensor on ``grid``: geometry, slope operator, influence functions, ``D`` and ``R``."""
         return ShackHartmannSensor(grid, self)
 
+    def check_fits(self, grid: ActuatorGrid) -> None:
+        """Refuse, in one line, what these (already checked) fields cannot build on ``grid``: a lit pupil wider than
+        the grid, or subapertures across that the geometry cannot have there. The sensor is built past this check
+        without checking its arguments again."""
+        if self.pupil_diameter_m is not None:
+            check_value("sensor.pupil_diameter_m", self.pupil_diameter_m,
+                        Interval(0, grid.diameter_m, closed="right",
+                                 unit=f"m (the actuator grid is {grid.diameter_m:g} m across)"))
+        n = grid.n_across
+        if self.geometry == "cell":
+            check_value("subapertures_across", n if self.subapertures_across is None else self.subapertures_across,
+                        Interval(2, n, integer=True, unit=f"subapertures across; the grid has {n} actuators across"))
+        elif self.subapertures_across not in (None, n - 1):
+            raise ConfigError(f"subapertures_across={self.subapertures_across!r} is invalid for geometry 'fried' on "
+                              f"{n} actuators across: it has {n - 1} (one between each pair of actuators); leave it "
+                              "unset")
+
 
 class ShackHartmannSensor:
     """A built :class:`ShackHartmann` on an actuator grid (numpy and scipy inside, torch tensors at the boundary).
@@ -302,6 +310,7 @@ class ShackHartmannSensor:
     """
 
     def __init__(self, grid: ActuatorGrid, config: ShackHartmann = ShackHartmann()) -> None:
+        config.check_fits(grid)
         self.grid, self.config = grid, config
         self.geometry = SubapertureGeometry(grid, config.geometry, config.samples_per_subaperture,
                                             config.subapertures_across, config.pupil_diameter_m, config.lit_fraction)

@@ -14,17 +14,6 @@ from __future__ import annotations
 import numpy as np
 
 from eofnn.sim.grid import ActuatorGrid
-from eofnn.validation import Interval, check_value
-
-
-def check_pupil(grid: ActuatorGrid, pupil_diameter_m: float | None, lit_fraction: float | None) -> None:
-    """Refuse in one line a lit pupil larger than the grid or a lit fraction outside (0, 1]."""
-    if pupil_diameter_m is not None:
-        check_value("sensor.pupil_diameter_m", pupil_diameter_m,
-                    Interval(0, grid.diameter_m, closed="right", unit=f"m (the actuator grid is {grid.diameter_m:g} m "
-                             "across)"))
-    if lit_fraction is not None:
-        check_value("sensor.lit_fraction", lit_fraction, Interval(0, 1, closed="right", unit="of a subaperture's area"))
 
 
 def _in_pupil(x: np.ndarray, y: np.ndarray, pupil_m: float, obstruction_m: float) -> np.ndarray:
