@@ -35,7 +35,10 @@ $eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact
   --out $r/fair/paper_gap/exact --overwrite true
 $eofnn compare --config $x/fair/paper_gap.yaml --scenario.atmosphere.model exact \
   --out $r/fair/paper_gap/exact_subaperture --overwrite true
-# 2b. The main job through a Shack-Hartmann (photon noise, R = 8), beside the same job through the zonal sensor.
+# 2b. The flagship (the README's first command): extreme AO through eofnn's Shack-Hartmann, the tuned classical side
+#     (best-gain integrator, modal integrator, LQG with its AR order) against the anti-aliasing EOF and its guard.
+$eofnn compare --config configs/flagship_sh.yaml --out $r/flagship --overwrite true
+#     The main job through a Shack-Hartmann (photon noise, R = 8), beside the same job through the zonal sensor.
 $eofnn compare --config configs/realistic_small.yaml --out $r/realistic_small --overwrite true
 $eofnn compare --config configs/realistic_sh.yaml --out $r/realistic_sh --overwrite true
 #    Structure before nonlinearity through the Shack-Hartmann, the anti-aliasing predictors among the rows.

@@ -27,8 +27,8 @@ HERE = Path(__file__).parent
 RUNS = HERE / "runs"
 
 # Every ``eofnn compare`` output the pages read (experiments/<name> <- experiments/runs/<name>).
-COMPARES = ("paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy", "fair/paper_gap/exact",
-            "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
+COMPARES = ("flagship", "paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy",
+            "fair/paper_gap/exact", "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
             "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
             "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
             "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
@@ -53,6 +53,7 @@ METRICS = {
     "ridge_alphas": _PER({"alpha": True, "val_loss": True, "unregularised_val_loss": True, "path": {"alpha"}}),
     "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
     "classical_models": _PER({"frames", "modes", "gain_margin"}),
+    "fallback": _PER({"per", "integrator_gain", "modes", "n_modes", "predictor_modes"}),
     "classical_settings": _PER({"order", "smoothing", "ar_order", "pfc.alpha", "median_rms_nm"}),
     "verdict": True,
     "realisation_median_rms_nm": True,
