@@ -28,8 +28,8 @@ RUNS = HERE / "runs"
 
 # Every ``eofnn compare`` output the pages read (experiments/<name> <- experiments/runs/<name>).
 COMPARES = ("flagship", "paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy",
-            "fair/paper_gap/exact", "fair/paper_gap/exact_subaperture", "robustness_realistic", "robustness_realistic_misregistration",
-            "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
+            "fair/paper_gap/exact", "fair/paper_gap/exact_subaperture", "robustness_realistic",
+            "robustness_realistic_misregistration", "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
             "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
             "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
             "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc",
