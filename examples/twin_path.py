@@ -22,9 +22,9 @@ in eofnn's convention. Residuals of the replay are nm of OOPAO's commands (the r
     python examples/twin_path.py                                   # 10 x 10 on 2 m, 3000 frames (a few minutes)
     python examples/twin_path.py --n-subap 20 --diameter 4 --frames 4000 --wind 15 --direction 30 --seed 7
 
-``--wrong-direction DEG`` rotates the identified winds of twin.yaml by DEG before the fit (a twin deliberately
-wrong): the guard should then keep the integrator. The last line printed is the summary as JSON (``--out`` keeps
-every file; default a temporary folder).
+``--wrong-direction DEG`` turns the identified winds by DEG before the fit (``twin/twin_wrong.yaml``, a twin
+deliberately wrong; ``wrong_eof.ckpt``, ``guard_wrong/``): the guard should then keep the integrator. The last line
+printed is the summary as JSON (``--out`` keeps every file; default a temporary folder).
 """
 
 from __future__ import annotations
@@ -120,52 +120,71 @@ def cli(*argv) -> None:
         raise SystemExit(f"eofnn {argv[0]} exited with {code}")
 
 
-def rotate_winds(twin_yaml: Path, degrees: float) -> None:
-    """twin.yaml's layers' wind directions turned by ``degrees`` (a deliberately wrong twin)."""
+def rotated(twin_yaml: Path, degrees: float) -> Path:
+    """A copy of twin.yaml whose layers' wind directions are turned by ``degrees`` (a deliberately wrong twin)."""
     config = yaml.safe_load(twin_yaml.read_text())
     for layer in config["atmosphere"]["layers"]:
         layer["wind_direction_deg"] = float((layer["wind_direction_deg"] + degrees) % 360.0)
-    twin_yaml.write_text(yaml.safe_dump(config, sort_keys=False))
+    out = twin_yaml.with_name("twin_wrong.yaml")
+    out.write_text(yaml.safe_dump(config, sort_keys=False))
+    return out
 
 
-def run(args, folder: Path) -> dict:
+def identify(args, folder: Path) -> dict:
+    """Record in OOPAO, then ``eofnn twin`` on the files; OOPAO's truth (for the report only)."""
     folder.mkdir(parents=True, exist_ok=True)
     truth = record(args, folder)
     cli("twin", "--telemetry", folder / "loop.npz", "--interaction_matrix", folder / "im.npy",
         "--reconstructor", folder / "r.npy", "--command_unit", "peak", "--screen_frames", args.fit_frames + 1500,
         "--seed", args.seed, "--out", folder / "twin", "--overwrite", "true")
-    if args.wrong_direction:
-        rotate_winds(folder / "twin" / "twin.yaml", args.wrong_direction)
+    return truth
+
+
+def train_and_guard(args, folder: Path) -> dict:
+    """``eofnn fit`` in the twin (its winds turned by ``args.wrong_direction``), ``eofnn replay`` of it on the record
+    (the guard) and ``eofnn export`` if the guard deployed it; the replay's figures and the guard's decision."""
+    name = "wrong" if args.wrong_direction else "twin"
+    scenario = folder / "twin" / "twin.yaml"
+    scenario = rotated(scenario, args.wrong_direction) if args.wrong_direction else scenario
+    ckpt, guard_dir = folder / f"{name}_eof.ckpt", folder / ("guard_wrong" if args.wrong_direction else "guard")
     fit = {**FIT, "--predictor.data.frames": args.fit_frames, "--predictor.data.val_frames": args.fit_frames // 5,
            "--predictor.data.sequence_frames": args.fit_frames + args.fit_frames // 5}
-    cli("fit", "--scenario", folder / "twin" / "twin.yaml", "--predictor.data.target", args.target,
-        *[v for kv in fit.items() for v in kv], "--predictor.data.seed", args.seed, "--out", folder / "twin_eof.ckpt",
-        "--overwrite", "true")
+    cli("fit", "--scenario", scenario, "--predictor.data.target", args.target,
+        *[v for kv in fit.items() for v in kv], "--predictor.data.seed", args.seed, "--out", ckpt, "--overwrite", "true")
     start = min(1000, args.frames // 3)
-    cli("replay", "--checkpoint", folder / "twin_eof.ckpt", "--telemetry", folder / "loop.npz", "--start", start,
-        "--out", folder / "guard", "--overwrite", "true")
-    replayed = json.loads((folder / "guard" / "replay.json").read_text())
-    guard = replayed["guard"]
-    exported = None
+    cli("replay", "--checkpoint", ckpt, "--telemetry", folder / "loop.npz", "--start", start, "--out", guard_dir,
+        "--overwrite", "true")
+    replayed = json.loads((guard_dir / "replay.json").read_text())
+    guard, exported = replayed["guard"], None
     if guard["deployed"] == "predictor":
-        cli("export", "--checkpoint", folder / "twin_eof.ckpt", "--guard", folder / "guard" / "replay.json",
-            "--out", folder / "filter.fits", "--overwrite", "true")
-        exported = str(folder / "filter.fits")
-    found = json.loads((folder / "twin" / "identified.json").read_text())
-    q = found["quantities"]
-    return {"truth_simulator_knowledge": truth,
-            "identified": {"r0_m": [q["r0_m"]["value"], q["r0_m"]["uncertainty"]],
-                           "outer_scale_m": q["outer_scale_m"]["value"],
-                           "wfs_noise_nm": [q["wfs_noise_nm"]["value"], q["wfs_noise_nm"]["uncertainty"]],
-                           "dm_gain": q["dm_gain"]["value"],
-                           "layers": [{k: round(lay[k], 3) for k in ("speed_mps", "direction_deg", "weight")}
-                                      for lay in found["layers"]]},
-            "target": args.target, "wrong_direction_deg": args.wrong_direction,
+        exported = folder / ("filter_wrong.fits" if args.wrong_direction else "filter.fits")
+        cli("export", "--checkpoint", ckpt, "--guard", guard_dir / "replay.json", "--out", exported,
+            "--overwrite", "true")
+    return {"target": args.target, "wrong_direction_deg": args.wrong_direction, "checkpoint": str(ckpt),
+            "replay": str(guard_dir / "replay.json"),
             "replay_rms_nm_oopao_units": {"predictor": replayed["predictor"]["median_rms_nm"],
                                           "recording_integrator": replayed["own_controller"]["median_rms_nm"]},
             "replay_frames": [start, args.frames],
             "guard": {k: guard[k] for k in ("deployed", "gain_nm2", "scatter_nm2", "sigmas", "why")},
-            "exported": exported, "folder": str(folder)}
+            "exported": None if exported is None else str(exported)}
+
+
+def identified(folder: Path) -> dict:
+    """What ``eofnn twin`` found, from identified.json."""
+    found = json.loads((folder / "twin" / "identified.json").read_text())
+    q = found["quantities"]
+    return {"r0_m": [q["r0_m"]["value"], q["r0_m"]["uncertainty"]], "outer_scale_m": q["outer_scale_m"]["value"],
+            "wfs_noise_nm": [q["wfs_noise_nm"]["value"], q["wfs_noise_nm"]["uncertainty"]],
+            "dm_gain": q["dm_gain"]["value"],
+            "layers": [{k: round(lay[k], 3) for k in ("speed_mps", "direction_deg", "weight")}
+                       for lay in found["layers"]]}
+
+
+def run(args, folder: Path) -> dict:
+    """The whole path; the summary (``report`` prints it)."""
+    truth = identify(args, folder)
+    return {"truth_simulator_knowledge": truth, "identified": identified(folder), **train_and_guard(args, folder),
+            "folder": str(folder)}
 
 
 def report(summary: dict) -> str:

