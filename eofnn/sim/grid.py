@@ -192,3 +192,41 @@ def _pupil_mask(coords: np.ndarray, diameter_m: float, n_across: int, obstructio
     outer = diameter_m if active_diameter_m is None else active_diameter_m
     inside = (r <= outer / 2 + tol) & (r >= obstruction * diameter_m / 2 - tol)
     return inside.reshape(n_across, n_across)
+
+
+def grid_reaching(positions_m, diameter_m: float, n_across: int, obstruction: float = 0.0,
+                  tolerance: float = 1e-3) -> ActuatorGrid | None:
+    """The grid of ``n_across`` actuators across ``diameter_m`` whose active actuators are ``positions_m``
+    ``(K, 2)`` (m, in this class's order) with an ``active_diameter_m`` (a DM that reaches past the lattice's
+    inscribed circle, as OOPAO's Fried DM does): the active diameter halfway between the farthest position from the
+    centre and the next lattice radius out; ``None`` when no such grid lists the positions."""
+    pos = np.asarray(positions_m, dtype=np.float64)
+    centre = (pos.max(0) + pos.min(0)) / 2
+    reach = float(np.hypot(*(pos - centre).T).max())
+    radii = np.hypot(*_square_grid(diameter_m, n_across).T)
+    beyond = radii[radii > reach + 1e-6 * diameter_m]
+    active = float(f"{reach + (beyond.min() if beyond.size else reach + diameter_m / n_across):.6g}")
+    if active > diameter_m * 2 ** 0.5:
+        return None
+    grid = ActuatorGrid(diameter_m, n_across, obstruction, active_diameter_m=active)
+    if grid.n_actuators != len(pos) or np.abs(grid.positions_m - (pos - centre)).max() > tolerance * grid.pitch_m:
+        return None
+    return grid
+
+
+def nearest_grid(positions_m, pitch_m: float) -> tuple[dict, bool]:
+    """The fields of eofnn's grid nearest to actuators at ``positions_m`` ``(K, 2)`` (m) on a square lattice of pitch
+    ``pitch_m`` that :meth:`ActuatorGrid.from_positions` does not recognise: the lattice's extent and pitch, the
+    central obstruction from the innermost radius and, where one lists exactly these actuators in this class's order
+    (:func:`grid_reaching`: a DM that reaches past the lattice's inscribed circle), its active diameter; ``(fields,
+    whether the grid's actuators are the positions)``."""
+    positions = np.asarray(positions_m, dtype=np.float64)
+    radius = np.linalg.norm(positions - positions.mean(0), axis=1)
+    n_across = int(round(np.ptp(positions, axis=0).max() / pitch_m)) + 1
+    inner = float(radius.min()) - pitch_m / 2
+    obstruction = round(max(0.0, inner) / (n_across * pitch_m / 2), 3) if inner > pitch_m else 0.0
+    grid = {"diameter_m": round(n_across * pitch_m, 6), "n_across": n_across, "obstruction": obstruction}
+    reaching = grid_reaching(positions, grid["diameter_m"], n_across, obstruction)
+    if reaching is not None:
+        grid["active_diameter_m"] = reaching.active_diameter_m
+    return grid, reaching is not None

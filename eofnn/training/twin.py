@@ -234,7 +234,7 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     units); ``seed``: the reference streams'."""
     if command_unit not in COMMAND_UNITS:
         raise TelemetryError(f"command_unit={command_unit!r} is invalid: allowed are {', '.join(COMMAND_UNITS)}")
-    from eofnn.sim.grid import ActuatorGrid
+    from eofnn.sim.grid import ActuatorGrid, nearest_grid
     from eofnn.sim.layout import layout_from_positions
     from eofnn.training.identify import PlantNotIdentifiedWarning, identify_plant
 
@@ -266,14 +266,12 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
             result.grid["active_diameter_m"] = layout.active_diameter_m
         grid_method = "positions: eofnn's cell-centred grid recognised"
     else:
-        centre = positions.mean(0)
-        radius = np.linalg.norm(positions - centre, axis=1)
-        n_across = int(round(np.ptp(positions, axis=0).max() / pitch)) + 1
-        inner = float(radius.min()) - pitch / 2
-        obstruction = round(max(0.0, inner) / (n_across * pitch / 2), 3) if inner > pitch else 0.0
-        result.grid = {"diameter_m": round(n_across * pitch, 6), "n_across": n_across, "obstruction": obstruction}
-        grid_method = "positions: lattice extent and pitch (the nearest eofnn grid)"
-        result.warn(f"the actuators are not eofnn's grid: the twin uses {n_across} across at pitch {pitch:.4g} m")
+        result.grid, exact = nearest_grid(positions, pitch)
+        grid_method = "positions: lattice extent and pitch " + ("and the active diameter that lists the actuators"
+                                                                if exact else "(the nearest eofnn grid)")
+        if not exact:
+            result.warn(f"the actuators are not eofnn's grid: the twin uses {result.grid['n_across']} across at pitch "
+                        f"{pitch:.4g} m")
     e = result.estimates
     e["pupil"] = Estimate({"actuators": n_act, "pitch_m": pitch, **result.grid, **pupil}, None, "m",
                           grid_method + ("; interaction matrix: columns that move slopes, rows that respond"
