@@ -29,11 +29,11 @@ RUNS = HERE / "runs"
 # Every ``eofnn compare`` output the pages read (experiments/<name> <- experiments/runs/<name>).
 COMPARES = ("flagship", "paper", "realistic", "fair/alpha_auto", "fair/mlp_budget", "fair/paper_gap/hcipy",
             "fair/paper_gap/exact", "fair/paper_gap/exact_subaperture", "robustness_realistic",
-            "robustness_realistic_misregistration", "robustness_study", "vibrations", "adaptive/wind_speed", "adaptive/wind_turn", "adaptive/dm_gain_drift",
-            "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small", "realistic_sh",
-            "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
-            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc",
-            "where/check_space", "where/check_space_10um")
+            "robustness_realistic_misregistration", "robustness_study", "vibrations", "adaptive/wind_speed",
+            "adaptive/wind_turn", "adaptive/dm_gain_drift", "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small",
+            "realistic_sh", "fair/moonshot", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
+            "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc", "where/check_space",
+            "where/check_space_10um")
 PROFILED = ("where/check_space", "where/check_space_10um")  # compare runs whose contrast profiles the page integrates
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh
