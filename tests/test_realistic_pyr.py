@@ -62,3 +62,20 @@ def test_a_pyramid_compare_writes_the_integrators_optical_gains(cli, tmp_path):
     for value in (*gains["gains"], gains["low_order_mean"], gains["high_order_mean"]):
         assert 0 < value <= 1.2
     assert gains["residuals"] > 0 and gains["residual_rms_nm"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.cli
+def test_simulate_reports_the_integrators_optical_gains_in_a_pyramid_scenario(cli, tmp_path):
+    """``eofnn simulate`` of an integrator in a pyramid scenario (tests/conf/pyr_tiny.yaml's: 2 m, 10 across) puts
+    the optical gains on its residual in the summary line it prints."""
+    scenario = yaml.safe_load((ROOT / "tests" / "conf" / "pyr_tiny.yaml").read_text())["scenario"]
+    path = tmp_path / "pyr.yaml"
+    path.write_text(yaml.safe_dump(scenario))
+    code, err = cli("simulate", "--scenario", path, "--predictor.gain", "0.5", "--frames", "150",
+                    "--out", tmp_path / "run.fits")
+    assert code == 0, err
+    summary = json.loads(err.strip().splitlines()[-1])
+    gains = summary["optical_gains"]
+    assert len(gains["gains"]) == 50 and all(0 < g <= 1.2 for g in gains["gains"])
+    assert 0 < gains["high_order_mean"] <= 1.2
