@@ -32,7 +32,7 @@ from benchmarks.common import Series, Skipped, fmt_value
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_CONFIG = ROOT / "configs" / "reference.yaml"
 BENCHMARKS = ("turbulence", "exact", "loop", "fit", "stability", "end_to_end", "scaling", "stream", "startup",
-              "flagship")
+              "flagship", "pyramid")
 #: Benchmarks whose functions take a ``device``; the others are CPU code in eofnn (HCIPy, numpy, the loop).
 DEVICE_BENCHMARKS = ("loop", "fit")
 
@@ -54,6 +54,7 @@ FULL = {
     "stream": {"n_actuators": 5000, "big_frames": 50000, "small_frames": 4000, "batch_frames": 256, "repeat": 2},
     "startup": {"repeat": 7},
     "flagship": {"repeat": 1},
+    "pyramid": {"repeat": 1},
 }
 QUICK = {
     "turbulence": {"n_across": (8, 10), "chunk_frames": 100, "chunks_per_repeat": 2, "hcipy_frames": 50, "repeat": 2,
@@ -80,6 +81,7 @@ QUICK = {
                "contrast": False},
     "startup": {"repeat": 1, "warmup": 0},
     "flagship": {"repeat": 1, "quick": True},
+    "pyramid": {"repeat": 1, "quick": True},
 }
 
 
@@ -151,6 +153,10 @@ def run_benchmark(name: str, scenario, sizes: dict, device: str) -> tuple[list, 
         from benchmarks.bench_flagship import bench_flagship
 
         return bench_flagship(**sizes), []
+    if name == "pyramid":
+        from benchmarks.bench_pyramid import bench_pyramid
+
+        return bench_pyramid(**sizes), []
     raise ValueError(f"unknown benchmark {name!r}: allowed are {', '.join(BENCHMARKS)}")
 
 

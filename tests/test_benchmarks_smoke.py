@@ -34,6 +34,7 @@ EXPECTED_ROWS = {
     "stream": ("memory/", "fit_time/"),
     "startup": ("startup/help", "startup/unknown_key", "startup/out_of_range"),
     "flagship": ("flagship/compare",),
+    "pyramid": ("pyramid/compare",),
 }
 EXPECTED_SERIES = (
     "turbulence_vs_actuators", "turbulence_vs_frames", "turbulence_vs_call_frames", "step_vs_actuators",

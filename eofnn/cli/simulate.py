@@ -100,14 +100,21 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
                                                trusted_class_paths({"controller": p}, cfg.trusted_networks))
     # A Shack-Hartmann's slopes go beside wfs, with the matrices that make wfs of them: readers use wfs, and a copy
     # without it is read as anyone's slopes (docs/telemetry.md); telemetry.config["sensor"] says which sensor.
+    settle = min(EvaluationConfig().settle_frames, cfg.frames // 2)
+    probe = None  # a pyramid's optical gains on an integrator's closed-loop residual
+    if scenario.sensor.is_pyramid and p.controller == "integrator":
+        from eofnn.evaluation.optical_gains import OpticalGainProbe
+
+        probe = OpticalGainProbe(scenario, settle, cfg.frames)
     result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
                       build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress,
-                      record=("s", "y", "eps", "wfs", *(("slopes",) if slopes else ())))
+                      record=("s", "y", "eps", "wfs", *(("slopes",) if slopes else ())), on_chunk=probe)
     telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)
     telemetry.config.update({"eofnn": yaml.safe_load(config_yaml(cfg, config_dump)),
                              "diverged_frame": result.diverged_frame})
-    settle = min(EvaluationConfig().settle_frames, cfg.frames // 2)
     metrics = loop_metrics(result, settle, EvaluationConfig().strehl_wavelength_m)
+    if probe is not None and not result.diverged:
+        metrics.optical_gains = probe.result()
     with staged_file(out, cfg.overwrite) as partial:
         telemetry.save(partial, overwrite=True, dtype=cfg.dtype)
     with staged_file(plot, cfg.overwrite) as partial:

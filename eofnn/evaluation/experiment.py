@@ -30,6 +30,7 @@ from eofnn.evaluation.contrast import scenario_contrast
 from eofnn.evaluation.fallback import FallbackDecision, decide_fallback
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence
+from eofnn.evaluation.optical_gains import OpticalGainProbe
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
 from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
@@ -245,11 +246,15 @@ class Experiment:
         psd = WelchPSD(ev.psd_segment_frames_used, scenario.frame_rate_hz, ev.settle_frames)
         contrast = scenario_contrast(scenario, ev.strehl_wavelength_m, ev.settle_frames)
         growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
+        probe = (OpticalGainProbe(scenario, ev.settle_frames, ev.frames) if plant_scenario is None
+                 and scenario.sensor.is_pyramid and self.predictors[name].controller == "integrator" else None)
 
         def on_chunk(first: int, arrays: dict) -> None:
             psd(first, arrays)
             contrast(first, arrays)
             growth(first, arrays)
+            if probe is not None:  # a pyramid's optical gains on the (best-gain) integrator's residual
+                probe(first, arrays)
 
         result = run_loop(scenario.turbulence(ev.seed, "test", ev.realisations), scenario.plant, controller,
                           ev.frames, noise_seed=ev.seed, record=(), divergence_factor=ev.divergence_factor,
@@ -259,6 +264,8 @@ class Experiment:
         if not result.diverged:
             metrics.growth = growth.result()
             metrics.diverging = bool(metrics.growth and metrics.growth["diverging"])
+        if probe is not None and not result.diverged:
+            metrics.optical_gains = probe.result()
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()

@@ -165,6 +165,9 @@ class LoopMetrics:
     actuator_median_rms_nm: float | None = None
     #: The error budget (:mod:`eofnn.evaluation.budget`), when one was asked for or the scenario has a real sensor.
     error_budget: dict | None = None
+    #: A pyramid scenario's optical gains on an integrator's closed-loop residual, per Karhunen-Loeve mode and their
+    #: low- and high-order means (:mod:`eofnn.evaluation.optical_gains`).
+    optical_gains: dict | None = None
 
     def summary(self) -> dict:
         """The JSON-ready scalars (``fallback_frame`` only when an adaptive controller fell back, ``reconvergence``
@@ -185,6 +188,8 @@ class LoopMetrics:
             out["error_budget"] = self.error_budget
         if self.spatial_split_nm is not None:
             out["spatial_split_nm"] = self.spatial_split_nm
+        if self.optical_gains is not None:
+            out["optical_gains"] = self.optical_gains
         return out
 
 

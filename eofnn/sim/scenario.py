@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -19,6 +20,7 @@ from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.plant import Plant
 from eofnn.sim.loop.runner import Controller, run_loop
 from eofnn.sim.loop.sensing import ShackHartmannTurbulence, loop_operators
+from eofnn.sim.sensing.constants import PYRAMID_MIN_R0_SAMPLES
 from eofnn.sim.sensing.sensor import PYRAMID_ONLY, Sensor, build_sensor
 from eofnn.validation import Constraint, Interval, from_mapping, validated
 
@@ -133,7 +135,18 @@ class Scenario:
     def _check_pyramid(self) -> None:
         """Refuse, in one line each, what a pyramid scenario cannot run (its calibration waits for its first loop)."""
         self._check_phase_sampling()
-        self.turbulence_grid  # noqa: B018 (the pupil's checks: diameter, points across, modulation)
+        pupil = self.turbulence_grid  # the pupil's checks: diameter, points across, modulation
+        config = self.sensor.pyramid()
+        r0_m = self.atmosphere.r0_m * (config.wavelength_nm * 1e-9 / self.atmosphere.r0_wavelength_m) ** 1.2
+        if r0_m < PYRAMID_MIN_R0_SAMPLES * pupil.pitch_m:  # the focal plane (n lambda/D) holds 1.5 seeing widths
+            spp = config.samples_per_pixel
+            need = math.ceil(PYRAMID_MIN_R0_SAMPLES * pupil.pitch_m * spp / r0_m)
+            need += (need * pupil.n_across // spp) % 2  # pixels x samples even
+            raise ConfigError(
+                f"sensor.samples_per_pixel={spp} is invalid here: the pupil is sampled every {pupil.pitch_m:.3g} m "
+                f"against r0 = {r0_m:.3g} m at the sensing wavelength ({config.wavelength_nm:g} nm), and r0 must span "
+                f"at least {PYRAMID_MIN_R0_SAMPLES:g} samples (else the seeing halo wraps round the simulated focal "
+                f"plane and the loop does not close): raise samples_per_pixel to {need} or more")
 
     def _check_shack_hartmann(self) -> None:
         """Refuse, in one line each, what a Shack-Hartmann scenario cannot run."""

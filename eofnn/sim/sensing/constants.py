@@ -43,3 +43,7 @@ PYRAMID_CONSTRAINTS: dict[str, Constraint] = {
     "relative_cut": SHACK_HARTMANN_CONSTRAINTS["relative_cut"],
     "pupil_diameter_m": SHACK_HARTMANN_CONSTRAINTS["pupil_diameter_m"],
 }
+#: Pupil samples a pyramid scenario's r0 (at the sensing wavelength) must span at least: the simulated focal plane,
+#: ``n lambda / D`` across for ``n`` pupil points, then holds that many seeing widths ``lambda / r0``; fewer and the
+#: seeing halo wraps round it (docs/findings.md: the loop does not close).
+PYRAMID_MIN_R0_SAMPLES = 1.5
