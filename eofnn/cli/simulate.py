@@ -101,12 +101,12 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
     # A Shack-Hartmann's slopes go beside wfs, with the matrices that make wfs of them: readers use wfs, and a copy
     # without it is read as anyone's slopes (docs/telemetry.md); telemetry.config["sensor"] says which sensor.
     settle = min(EvaluationConfig().settle_frames, cfg.frames // 2)
-    probe = None  # a pyramid's optical gains on an integrator's closed-loop residual
-    if scenario.sensor.is_pyramid and p.controller == "integrator":
-        from eofnn.evaluation.optical_gains import OpticalGainProbe
+    turbulence, probe = scenario.turbulence(cfg.seed, "test", cfg.realisations), None
+    if scenario.sensor.is_pyramid and p.controller == "integrator":  # its optical gains on the closed-loop residual
+        from eofnn.sim.sensing.optical_gains import OpticalGainProbe
 
-        probe = OpticalGainProbe(scenario, settle, cfg.frames)
-    result = run_loop(scenario.turbulence(cfg.seed, "test", cfg.realisations), scenario.plant,
+        probe = OpticalGainProbe(turbulence.operators.sensor, settle, cfg.frames)
+    result = run_loop(turbulence, scenario.plant,
                       build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress,
                       record=("s", "y", "eps", "wfs", *(("slopes",) if slopes else ())), on_chunk=probe)
     telemetry = result.telemetry if cfg.realisations > 1 else result.telemetry.realisation(0)

@@ -30,7 +30,6 @@ from eofnn.evaluation.contrast import scenario_contrast
 from eofnn.evaluation.fallback import FallbackDecision, decide_fallback
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence
-from eofnn.evaluation.optical_gains import OpticalGainProbe
 from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
 from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
@@ -105,8 +104,7 @@ class Experiment:
         #: Classical models built from telemetry (modal integrator, LQG): (controller, scenario) -> model.
         self.classical_models: dict[tuple[str, str], Any] = {}
         self.checkpoints: dict[str, str] = {}
-        #: Fallbacks to the best-gain integrator (``fallback:``), decided on a stream of their own: (controller,
-        #: scenario) -> decision (what is deployed, which modes fell back and why).
+        #: Fallbacks to the best-gain integrator (``fallback:``): (controller, scenario) -> decision.
         self.fallbacks: dict[tuple[str, str], FallbackDecision] = {}
         self._loaded = check_experiment(self.scenarios, self.predictors, evaluation, trusted_networks, allow_long)
         if evaluation.psd_segment_note is not None:
@@ -246,8 +244,11 @@ class Experiment:
         psd = WelchPSD(ev.psd_segment_frames_used, scenario.frame_rate_hz, ev.settle_frames)
         contrast = scenario_contrast(scenario, ev.strehl_wavelength_m, ev.settle_frames)
         growth = GrowthMonitor(scenario.frame_rate_hz, ev.settle_frames)
-        probe = (OpticalGainProbe(scenario, ev.settle_frames, ev.frames) if plant_scenario is None
-                 and scenario.sensor.is_pyramid and self.predictors[name].controller == "integrator" else None)
+        turbulence, probe = scenario.turbulence(ev.seed, "test", ev.realisations), None
+        if plant_scenario is None and scenario.sensor.is_pyramid and self.predictors[name].controller == "integrator":
+            from eofnn.sim.sensing.optical_gains import OpticalGainProbe  # its optical gains on the residual
+
+            probe = OpticalGainProbe(turbulence.operators.sensor, ev.settle_frames, ev.frames)
 
         def on_chunk(first: int, arrays: dict) -> None:
             psd(first, arrays)
@@ -256,16 +257,16 @@ class Experiment:
             if probe is not None:  # a pyramid's optical gains on the (best-gain) integrator's residual
                 probe(first, arrays)
 
-        result = run_loop(scenario.turbulence(ev.seed, "test", ev.realisations), scenario.plant, controller,
+        result = run_loop(turbulence, scenario.plant, controller,
                           ev.frames, noise_seed=ev.seed, record=(), divergence_factor=ev.divergence_factor,
                           progress=self.progress, on_chunk=on_chunk)
+        optical = None if probe is None or result.diverged else probe.result()
         metrics = loop_metrics(result, ev.settle_frames, ev.strehl_wavelength_m, psd)
         metrics.fallback_frame = getattr(controller, "fallback_frame", None)
         if not result.diverged:
             metrics.growth = growth.result()
             metrics.diverging = bool(metrics.growth and metrics.growth["diverging"])
-        if probe is not None and not result.diverged:
-            metrics.optical_gains = probe.result()
+        metrics.optical_gains = optical
         if not result.diverged:
             metrics.contrast_separation_lod, metrics.contrast = contrast.profile()
             metrics.contrast_at = contrast.at()
@@ -395,6 +396,5 @@ def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario | None = 
     return text
 
 
-def _training(cfg: PredictorConfig) -> str:
-    """What trains ``cfg``'s predictor: its config but the fallback (which decides only where it is deployed)."""
+def _training(cfg: PredictorConfig) -> str:  # what trains cfg's predictor: its config but the fallback
     return repr(replace(cfg, fallback=type(cfg.fallback)()))

@@ -166,7 +166,7 @@ class LoopMetrics:
     #: The error budget (:mod:`eofnn.evaluation.budget`), when one was asked for or the scenario has a real sensor.
     error_budget: dict | None = None
     #: A pyramid scenario's optical gains on an integrator's closed-loop residual, per Karhunen-Loeve mode and their
-    #: low- and high-order means (:mod:`eofnn.evaluation.optical_gains`).
+    #: low- and high-order means (:class:`eofnn.sim.sensing.optical_gains.OpticalGainProbe`).
     optical_gains: dict | None = None
 
     def summary(self) -> dict:

@@ -6,6 +6,11 @@ to a small probe of mode ``m`` is smaller (the residual smears the PSF over the 
 the gain is the projection of the response about the residual on the response about a flat wavefront,
 ``<D_res m, D_0 m> / <D_0 m, D_0 m>`` (the convolutional model's and the gain-sensing camera's quantity:
 Chambouleyron et al. 2020, A&A 644, A6; Fauvarque et al. 2019, JATIS 5, 1).
+
+A loop measures them on its own residual with :class:`OpticalGainProbe` (``run_loop``'s ``on_chunk``): it keeps the
+residual over the pupil at a few settled frames and gives, about each, the optical gains of the first Karhunen-Loeve
+command modes: the mean over those residuals per mode, and the means over the low and the high orders (what a
+pyramid scenario's ``metrics.json`` and ``eofnn simulate``'s summary report).
 """
 
 from __future__ import annotations
@@ -24,6 +29,11 @@ def kl_modes(grid: ActuatorGrid, n_modes: int) -> np.ndarray:
     actuators, piston removed, in decreasing variance: the eigenvectors of ``-P S P / 2`` (``S`` the structure
     function ``|x_i - x_j|^(5/3)`` between actuators, ``P`` the piston-removing projector)."""
     check_value("n_modes", n_modes, Interval(1, grid.n_actuators - 1, integer=True, unit="modes"))
+    return _kl_basis(grid, n_modes)
+
+
+def _kl_basis(grid: ActuatorGrid, n_modes: int) -> np.ndarray:
+    """:func:`kl_modes` for ``n_modes`` already checked."""
     x = grid.positions_m
     structure = np.hypot(*(x[:, None, :] - x[None, :, :]).transpose(2, 0, 1)) ** (5 / 3)
     k = len(x)
@@ -57,3 +67,54 @@ def modal_optical_gains(sensor, residual_nm: torch.Tensor, n_modes: int,
     modes = kl_modes(sensor.grid, n_modes)
     shapes = sensor.dm_surface(torch.as_tensor(modes.T))
     return optical_gains(sensor, shapes, residual_nm, amplitude_nm).mean(0), modes
+
+
+#: Modes measured (at most the actuators less piston) and settled frames whose residual is probed.
+N_MODES, N_FRAMES = 50, 6
+
+
+class OpticalGainProbe:
+    """Collects a pyramid scenario's residual over the pupil at ``n_frames`` frames spread over the settled part of
+    a run (``on_chunk``), then :meth:`result` measures the optical gains about them.
+
+    Parameters
+    ----------
+    sensor : PyramidSensor
+        The loop's pyramid, calibrated (a pyramid scenario's turbulence's ``operators.sensor``).
+    settle_frames, frames : int
+        The run's settling frames and its length.
+    n_modes, n_frames : int
+        Karhunen-Loève modes measured; frames probed (each gives one residual per realisation).
+    """
+
+    def __init__(self, sensor, settle_frames: int, frames: int, n_modes: int = N_MODES,
+                 n_frames: int = N_FRAMES) -> None:
+        self.sensor = sensor
+        self.n_modes = min(n_modes, sensor.grid.n_actuators - 1)
+        span = max(frames - settle_frames, 1)
+        self.frames = sorted({settle_frames + (span * (2 * k + 1)) // (2 * n_frames) for k in range(n_frames)})
+        self.residuals: list[torch.Tensor] = []
+
+    def __call__(self, first: int, arrays: dict) -> None:
+        stop = first + arrays["s"].shape[1]
+        for frame in self.frames:
+            if first <= frame < stop:
+                self.residuals.append(arrays["pupil_residual"](frame))
+
+    def result(self) -> dict | None:
+        """``{"n_modes", "residuals", "residual_rms_nm", "gains", "low_orders", "low_order_mean", "high_orders",
+        "high_order_mean"}`` (orders 1-based, inclusive), or ``None`` when no frame was probed (a diverged run)."""
+        if not self.residuals:
+            return None
+        residuals = torch.cat(self.residuals)
+        shapes = self.sensor.dm_surface(torch.as_tensor(_kl_basis(self.sensor.grid, self.n_modes).T))
+        gains = optical_gains(self.sensor, shapes, residuals).mean(0)
+        gains = [float(g) for g in gains]
+        n = len(gains)
+        low, high = max(1, n // 5), n // 2
+        centred = residuals - residuals.mean(-1, keepdim=True)
+        return {"n_modes": n, "residuals": len(residuals),
+                "residual_rms_nm": float(centred.pow(2).mean(-1).sqrt().mean()),
+                "gains": gains,
+                "low_orders": [1, low], "low_order_mean": sum(gains[:low]) / low,
+                "high_orders": [high + 1, n], "high_order_mean": sum(gains[high:]) / (n - high)}
