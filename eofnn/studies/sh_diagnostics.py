@@ -143,11 +143,14 @@ def von_karman_structure_function(r_m: np.ndarray, r0_m: float, outer_scale_m: f
     """Von Karman's phase structure function ``D(r)`` as OPD (nm²), r0 at ``wavelength_m``."""
     from scipy.special import gamma, kv
 
-    c = (outer_scale_m / r0_m) ** (5 / 3) * 2 ** (1 / 6) * gamma(11 / 6) / math.pi ** (8 / 3) \
+    # The phase covariance B(r) = c u^(5/6) K_5/6(u), u = 2 pi r / L0 (Conan 2000; aotools' phase_covariance), whose
+    # limit at r = 0 is the variance 0.0863 (L0 / r0)^(5/3) rad², and D(r) = 2 (B(0) - B(r)) -> 6.88 (r / r0)^(5/3)
+    # for r << L0.
+    c = (outer_scale_m / r0_m) ** (5 / 3) * 2 ** (-5 / 6) * gamma(11 / 6) / math.pi ** (8 / 3) \
         * (24 / 5 * gamma(6 / 5)) ** (5 / 6)
     u = 2 * math.pi * np.asarray(r_m, dtype=np.float64) / outer_scale_m
-    covariance0 = c / 2 ** (5 / 6) * gamma(5 / 6) * 2 ** (-1 / 6)
-    covariance = c / 2 ** (5 / 6) * u ** (5 / 6) * kv(5 / 6, u)
+    covariance0 = c * gamma(5 / 6) * 2 ** (-1 / 6)
+    covariance = c * u ** (5 / 6) * kv(5 / 6, u)
     return 2 * (covariance0 - covariance) * (wavelength_m * 1e9 / (2 * math.pi)) ** 2
 
 
