@@ -141,15 +141,18 @@ def test_through_a_shack_hartmann_the_loss_is_the_residual_over_the_pupil_run_lo
 
 
 @pytest.mark.slow
-def test_trained_through_the_shack_hartmann_loop_it_is_not_worse_than_the_closed_form_fit():
+@pytest.mark.parametrize("reconstructor", ["least_squares", "mmse"])
+def test_trained_through_the_shack_hartmann_loop_it_is_not_worse_than_the_closed_form_fit(reconstructor):
     """fit_method: closed_loop in a Shack-Hartmann scenario trains through that sensor's loop (its windows carry it,
-    the loss is over the pupil) and, on a held-out stream, is not worse than the closed-form fit it starts from."""
-    scenario = replace(sh_scenario(), atmosphere=replace(sh_scenario().atmosphere, screen_frames=2000))
+    the MMSE computer's view of the turbulence included, the loss is over the pupil) and, on a held-out stream, is
+    not worse than the closed-form fit it starts from."""
+    scenario = replace(sh_scenario(reconstructor), atmosphere=replace(sh_scenario().atmosphere, screen_frames=2000))
     data = DataConfig(frames=1000, val_frames=500, sequence_frames=500, seed=3)
     spec = HistorySpec.from_scenario("open_loop", 4, scenario)
     windows = loop_data(LoopDataModule(scenario, spec, data, recording_controller(spec, data)), data,
                         OptimizationConfig(fit_method="closed_loop")).train.sequence(0)
     assert isinstance(windows.sensor, ShackHartmannTurbulence) and windows.pupil is not None
+    assert (windows.sensed is not None) == (reconstructor == "mmse")
     closed = fit_predictor(scenario, "open_loop", 4, data=data)
     looped = fit_predictor(scenario, "open_loop", 4, data=data,
                            optimization=OptimizationConfig(fit_method="closed_loop", epochs=1))
@@ -161,4 +164,5 @@ def test_trained_through_the_shack_hartmann_loop_it_is_not_worse_than_the_closed
         return scenario.median_residual_nm(fit.controller(), 1500, 11, "test", 200)
 
     closed_rms, looped_rms = held_out(closed), held_out(looped)
-    assert looped_rms <= closed_rms, (closed_rms, looped_rms)  # measured 99.1 -> 96.3 nm over the pupil
+    # Measured over the pupil: least squares 99.1 -> 96.3 nm, MMSE 116.8 -> 90.5 (docs/findings.md).
+    assert looped_rms <= closed_rms, (closed_rms, looped_rms)
