@@ -15,12 +15,13 @@ from eofnn.data.config import DataConfig
 from eofnn.data.history import HistorySpec
 from eofnn.data.stream import LoopDataModule
 from eofnn.seeding import torch_generator
+from eofnn.sim.loop.measurement import sensed_turbulence
 from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.loop.sensing import ShackHartmannTurbulence
 from eofnn.sim.scenario import Scenario
 from eofnn.training.config import OptimizationConfig
 from eofnn.training.fit import fit_predictor, recording_controller
-from eofnn.training.rollout import LoopWindow, loop_loss, rollout
+from eofnn.training.rollout import LoopWindow, loop_loss, merged, rollout
 from eofnn.training.through_loop import loop_data
 
 GRID = {"diameter_m": 2.0, "n_across": 10, "obstruction": 0.0}
@@ -101,6 +102,24 @@ def test_the_rollout_is_run_loop_through_the_mmse_reconstructor(kind, plant, mon
     reference = result.telemetry.eps
     assert (eps - reference).abs().max() <= 1e-9 * reference.abs().max()
     assert (least_squares - reference).abs().max() > 1e-3 * reference.abs().max()
+
+
+def test_mmse_windows_put_side_by_side_keep_their_view_of_the_turbulence():
+    """Windows merged into one rollout (plants that differ in their gains) carry their rows' R_mmse S phi along."""
+    scenario = sh_scenario("mmse")
+    turbulence = scenario.turbulence(4, "merge", 2)
+    spec = HistorySpec.from_scenario("open_loop", 3, scenario)
+    net = filter_for(spec, scenario.grid.n_actuators)
+    s = turbulence.frames(0, 80)
+    sensed = sensed_turbulence(turbulence.products(0, 80, slopes=True),
+                               turbulence.reconstructor(scenario.plant.wfs_noise_nm), turbulence.isolate)
+    windows = [LoopWindow(s[i:i + 1], None, scenario.plant.with_errors(dm_gain=g), scenario.grid, 10,
+                          sensor=turbulence, sensed=sensed[i:i + 1]) for i, g in enumerate((0.9, 1.1))]
+    (together,) = merged(windows, 10)
+    assert torch.equal(together.sensed, sensed)
+    with torch.no_grad():
+        torch.testing.assert_close(rollout(net, spec, together), torch.cat([rollout(net, spec, w) for w in windows]),
+                                   rtol=1e-12, atol=1e-9)
 
 
 def test_the_rollout_through_the_shack_hartmann_is_not_the_zonal_one():
