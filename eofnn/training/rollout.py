@@ -86,7 +86,8 @@ def rollout(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> torch.
 
     The loop is :class:`~eofnn.sim.loop.kernel.Loop`'s step, the one :func:`~eofnn.sim.loop.runner.run_loop` runs,
     out of place, through the window's sensor (its measurement, noise colour and what it reports in the modes it
-    cannot see: the Shack-Hartmann's ``(I - P) y``), with the network as a :class:`RolloutPredictor` (what
+    cannot see: the Shack-Hartmann's ``(I - P) y``; through its MMSE reconstructor, ``R_mmse`` applied to the
+    window's ``sensed`` turbulence and noise, as ``run_loop`` applies it), with the network as a :class:`RolloutPredictor` (what
     :class:`~eofnn.control.predictive.PredictiveController` computes): per frame ``n`` (after the reset at the
     window's first frame) the measurement ``wfs(n - d)`` enters the history, the network's ``y(n)`` goes through the
     DM (``(1 - f) DM(y(n)) + f DM(y(n - 1))`` for a fractional delay), ``eps(n) = s(n) + DM`` and the sensor measures
@@ -110,6 +111,7 @@ def closed_loop(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> tu
     noise = None
     if window.noise is not None and measurement.noisy:
         noise = measurement.noise(window.noise.to(device))  # the whole window's at once, as run_loop's chunk
+    sensed = None if window.sensed is None else window.sensed.to(device)  # an MMSE computer's view of s
     controller = RolloutPredictor(network, spec, window.dm_gain_model)
     loop = Loop(model, measurement, controller, dm_gain=None if is_one(dm_gain) else dm_gain, in_place=False)
     loop.reset(batch, n_act, s.dtype, device)
@@ -117,7 +119,8 @@ def closed_loop(network: nn.Module, spec: HistorySpec, window: LoopWindow) -> tu
     eps_out, dm_out = [], []
     for n in range(frames):
         with torch.set_grad_enabled(grad and n >= window.warmup):
-            step = loop.step(n, s[:, n], None if noise is None else noise[:, n])
+            step = loop.step(n, s[:, n], None if noise is None else noise[:, n],
+                             sensed=None if sensed is None else sensed[:, n])
             eps_out.append(step.eps)
             dm_out.append(step.dm)
     return torch.stack(eps_out, dim=1), torch.stack(dm_out, dim=1)

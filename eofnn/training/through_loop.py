@@ -9,7 +9,8 @@ mean squared residual ``eps(n) = s(n) + DM(y(n))`` of the predictor closing the 
 through windows of ``optimization.loop_window`` frames, each after ``optimization.loop_warmup`` frames of the loop run
 without gradients (truncated backpropagation). The loop is the scenario's, sensor included: in a Shack-Hartmann
 scenario the measurement is the sensor's (``R S phi``, its photon and read noise reconstructed, the fill of the modes
-the reconstructor cuts) and the loss is the residual over the pupil, piston removed, where the loop is scored.
+the reconstructor cuts; through ``sensor.reconstructor: mmse``, ``R_mmse`` applied to the slopes and their noise as
+``run_loop`` applies it) and the loss is the residual over the pupil, piston removed, where the loop is scored.
 
 Data budget: the same as the closed-form fit's. The windows are cut from the same training sequences (the same
 turbulence frames, ``data.frames`` of them, the same WFS-noise draws and, under ``data.plant_range``, the same range;

@@ -15,6 +15,7 @@ from eofnn.errors import require
 from eofnn.resources import require_memory
 from eofnn.seeding import torch_generator
 from eofnn.sim.grid import ActuatorGrid
+from eofnn.sim.loop.measurement import sensed_turbulence
 from eofnn.sim.loop.plant import Plant
 from eofnn.sim.loop.sensing import loop_measurement
 
@@ -45,6 +46,10 @@ class LoopWindow:
         What measures the loop: a :class:`~eofnn.sim.loop.kernel.LoopSensor` (a Shack-Hartmann scenario's turbulence,
         :class:`~eofnn.sim.loop.sensing.ShackHartmannTurbulence`) or a registered sensor's name
         (:func:`~eofnn.sim.loop.kernel.register_sensor`); ``None``: the zonal sensor.
+    sensed : Tensor, optional
+        ``(batch, warmup + frames, K)``: what the sensor reads of the turbulence where it is not the loop's truth
+        ``s``, the real-time computer's ``R_mmse S phi`` through a Shack-Hartmann's MMSE reconstructor
+        (:func:`~eofnn.sim.loop.measurement.sensed_turbulence`), as ``run_loop`` measures it; ``None``: ``s`` itself.
     pupil : dict of Tensor, optional
         Where the residual is scored over the pupil (a Shack-Hartmann scenario): the phase's ``z`` ``(batch, warmup +
         frames, K)``, ``sum`` and ``sumsq`` ``(batch, warmup + frames)``
@@ -62,6 +67,7 @@ class LoopWindow:
     wfs_gains: torch.Tensor | None = None
     sensor: object | None = None
     pupil: dict[str, torch.Tensor] | None = None
+    sensed: torch.Tensor | None = None
 
     @property
     def samples(self) -> int:
@@ -122,11 +128,13 @@ def merged(windows: list[LoopWindow], max_rows: int) -> list[LoopWindow]:
         s, dm_gains, wfs_gains = torch.cat([w.s for w in group]), joined(group, "dm_gain"), joined(group, "wfs_gain")
         noise = None if first.noise is None else torch.cat([w.noise for w in group])
         pupil = None if first.pupil is None else {k: torch.cat([w.pupil[k] for w in group]) for k in first.pupil}
+        sensed = None if first.sensed is None else torch.cat([w.sensed for w in group])
         for i in range(0, s.shape[0], max_rows):
             rows = slice(i, i + max_rows)
             out.append(LoopWindow(s[rows], None if noise is None else noise[rows], plant, first.grid, first.warmup,
                                   first.dm_gain_model, dm_gains[rows], wfs_gains[rows], first.sensor,
-                                  None if pupil is None else {k: v[rows] for k, v in pupil.items()}))
+                                  None if pupil is None else {k: v[rows] for k, v in pupil.items()},
+                                  None if sensed is None else sensed[rows]))
     return out
 
 
@@ -169,6 +177,7 @@ class LoopWindows(Dataset):
         noisy = telemetry.scenario.plant.wfs_noise_nm > 0 or sensor.detector is not None
         noise_values = 0 if not noisy else 2 * n_act if sensor.is_shack_hartmann else n_act  # per slope: about 2 K
         pupil_values = n_act + 2 if sensor.is_shack_hartmann else 0  # z, sum, sumsq
+        pupil_values += n_act if sensor.is_shack_hartmann and sensor.reconstructor == "mmse" else 0  # R_mmse S phi
         require_memory(2 * self.n_windows * span * (n_act + noise_values + pupil_values) * 8 + ROLLOUT_BYTES,
                        f"training through the loop: {self.n_windows} {telemetry.stream} windows of {span} frames and "
                        f"{n_act} actuators")
@@ -192,12 +201,14 @@ class LoopWindows(Dataset):
         shack_hartmann = hasattr(turbulence, "measurement")
         # A Shack-Hartmann's, a registered sensor's name (the scenario's sensor.kind), or None: the zonal one.
         sensor = turbulence if shack_hartmann else turbulence.sensor
-        pupil = None
-        if shack_hartmann:  # the residual over the pupil, as the loop is scored
-            products = turbulence.products(0, data.sequence_frames)
-            pupil = {k: products[k] for k in ("z", "sum", "sumsq")}
-            turbulence.release()
         plant = t.plant(index)
+        pupil = sensed = None
+        if shack_hartmann:  # the residual over the pupil, as the loop is scored; the MMSE computer's view of s
+            mmse = turbulence.reconstructor(plant.wfs_noise_nm)
+            products = turbulence.products(0, data.sequence_frames, slopes=mmse is not None)
+            pupil = {k: products[k] for k in ("z", "sum", "sumsq")}
+            sensed = sensed_turbulence(products, mmse, turbulence.isolate)
+            turbulence.release()
         measurement = loop_measurement(turbulence, plant)
         # The unit draws of the closed-form fit's open-loop noise (SimulatedTelemetry.telemetry): the same data.
         noise = (torch.randn((*s.shape[:2], measurement.noise_size), generator=torch_generator(data.seed, name, 1),
@@ -215,7 +226,8 @@ class LoopWindows(Dataset):
                 gains[f"{field}s"] = torch.tensor(drawn, dtype=s.dtype).repeat_interleave(data.realisations)[:, None]
         return LoopWindow(cut(s), None if noise is None else cut(noise), plant, t.scenario.grid, self.warmup,
                           t.dm_gain_model, **gains, sensor=sensor,
-                          pupil=None if pupil is None else {k: cut(v) for k, v in pupil.items()})
+                          pupil=None if pupil is None else {k: cut(v) for k, v in pupil.items()},
+                          sensed=None if sensed is None else cut(sensed))
 
     def batches(self) -> list[LoopBatch]:
         """The stream's batches (simulated once, then kept): every sequence's windows in one, or one per sequence,

@@ -30,16 +30,28 @@ def nominal_dm(plant, dm_gain, wfs_gain) -> bool:
             and plant.nonlinearity == "none" and plant.dm_gain_drift is None and is_one(wfs_gain))
 
 
+def sensed_turbulence(products: dict[str, torch.Tensor], reconstructor: torch.Tensor | None,
+                      isolate: str) -> torch.Tensor | None:
+    """What the computer reads of the turbulence where it is not the loop's truth ``s = R S phi``: ``R_mmse S phi``
+    ``(..., K)`` through an MMSE ``reconstructor`` (``products``' ``slopes``, ``S phi``); ``None`` for least squares
+    (``reconstructor`` ``None``: it reads ``s``) and for ``isolate: perfect`` (it reads the DM's fit, ``s`` too)."""
+    if reconstructor is None or isolate == "perfect":
+        return None
+    return products["slopes"] @ reconstructor.T
+
+
 class ShackHartmannMeasurement:
     """The real-time computer's measurement through the Shack-Hartmann (module docstring), a
-    :class:`~eofnn.sim.loop.kernel.Measurement`: ``wfs = wfs_gain (R S phi + P DM) + (I - P) y_sent + R n``.
+    :class:`~eofnn.sim.loop.kernel.Measurement`: ``wfs = wfs_gain (R S phi + P DM) + (I - P) y_sent + R n``, ``R``
+    the least-squares reconstructor or the MMSE one (then ``R S phi`` is the turbulence the loop is told it
+    ``sensed``, :func:`sensed_turbulence`, and ``P = R D`` is no projector).
 
     Parameters
     ----------
     operators : LoopOperators
-        The sensor's operators (``R``, the slopes' noise scale).
-    projector_t : Tensor
-        ``P^T`` ``(K, K)``, contiguous.
+        The sensor's operators (the least-squares ``R`` and ``P``, ``D``, the slopes' noise scale).
+    reconstructor : Tensor or None
+        The MMSE ``R`` ``(K, 2 n_sub)`` the computer applies (``P = R D``); ``None``: the least-squares one.
     sigma_nm : float
         RMS white noise per slope (nm).
     wfs_gain : float or Tensor
@@ -50,10 +62,11 @@ class ShackHartmannMeasurement:
         The DM applies the command as sent and the gain is 1 (:func:`nominal_dm`): ``wfs = R S phi + DM + R n``.
     """
 
-    def __init__(self, operators: LoopOperators, projector_t: torch.Tensor, sigma_nm: float, wfs_gain,
+    def __init__(self, operators: LoopOperators, reconstructor: torch.Tensor | None, sigma_nm: float, wfs_gain,
                  fraction: float, identity_dm: bool) -> None:
-        self.operators, self.projector_t, self.sigma_nm = operators, projector_t, sigma_nm
-        self.reconstructor_t = operators.reconstructor.T
+        projector = operators.projector if reconstructor is None else reconstructor @ operators.interaction_matrix
+        self.operators, self.projector_t, self.sigma_nm = operators, projector.T.contiguous(), sigma_nm
+        self.reconstructor_t = (operators.reconstructor if reconstructor is None else reconstructor).T
         self.gain, self.fraction, self.identity_dm = wfs_gain, fraction, identity_dm
         self.noise_size, self.noisy = operators.sensor.n_slopes, sigma_nm > 0
         self._y_previous = None
@@ -70,7 +83,8 @@ class ShackHartmannMeasurement:
         return self.slope_noise(unit) @ self.reconstructor_t
 
     def measure(self, s, eps, dm, y, noise):
-        """``wfs`` of ``s = R S phi`` (the sensed turbulence) and the DM term ``dm``; ``y`` fills the cut modes."""
+        """``wfs`` of ``s = R S phi`` (the sensed turbulence, ``R`` the computer's) and the DM term ``dm``; ``y``
+        fills the cut modes."""
         if self.identity_dm:  # dm is the command sent (averaged like it for a fractional delay)
             wfs = s + dm
             return wfs if noise is None else wfs + noise

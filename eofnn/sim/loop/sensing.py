@@ -74,7 +74,7 @@ from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.kernel import ZonalMeasurement, ZonalSensor, loop_sensor
-from eofnn.sim.loop.measurement import ShackHartmannMeasurement, nominal_dm, scaled_slope_noise
+from eofnn.sim.loop.measurement import ShackHartmannMeasurement, nominal_dm, scaled_slope_noise, sensed_turbulence
 from eofnn.sim.sensing.sensor import Sensor
 
 if TYPE_CHECKING:  # numpy, scipy and torch are imported when a Shack-Hartmann is built, not with the config
@@ -292,14 +292,14 @@ class ShackHartmannTurbulence:
         return ShackHartmannLoopSensing(self, model, slopes)
 
     def measurement(self, plant, dm_gain=None, wfs_gain=None) -> ShackHartmannMeasurement:
-        """The sensor's measurement in ``plant`` (:class:`ShackHartmannMeasurement`); ``dm_gain``, ``wfs_gain``: gains
-        in place of the plant's (a number, or ``(batch, 1)``, one per row), as the differentiable rollout's windows
-        carry them."""
-        ops = self.operators
+        """The sensor's measurement in ``plant`` (:class:`ShackHartmannMeasurement`, through :meth:`reconstructor`
+        when it is MMSE: run it with the frames' ``sensed`` turbulence); ``dm_gain``, ``wfs_gain``: gains in place of
+        the plant's (a number, or ``(batch, 1)``, one per row), as the differentiable rollout's windows carry them."""
         dm_gain = plant.dm_gain if dm_gain is None else dm_gain
         wfs_gain = plant.wfs_gain if wfs_gain is None else wfs_gain
-        return ShackHartmannMeasurement(ops, ops.projector.T.contiguous(), self.slope_noise_nm(plant.wfs_noise_nm),
-                                        wfs_gain, plant.delay_fraction, nominal_dm(plant, dm_gain, wfs_gain))
+        return ShackHartmannMeasurement(self.operators, self.reconstructor(plant.wfs_noise_nm),
+                                        self.slope_noise_nm(plant.wfs_noise_nm), wfs_gain, plant.delay_fraction,
+                                        nominal_dm(plant, dm_gain, wfs_gain))
 
 
 class ZonalLoopSensing:
@@ -351,8 +351,6 @@ class ShackHartmannLoopSensing:
         # The reconstructor the computer applies: least squares, or MMSE (then P = R D is no projector).
         self.mmse = turbulence.reconstructor(model.plant.wfs_noise_nm)
         self.reconstructor = ops.reconstructor if self.mmse is None else self.mmse
-        projector = ops.projector if self.mmse is None else self.mmse @ ops.interaction_matrix
-        self.projector_t = projector.T.contiguous()
         self.interaction_t = ops.interaction_matrix.T.contiguous() if slopes else None
         self.fraction = plant.delay_fraction
         # A DM that applies the command as sent: P DM(y) + (I - P) y is y itself (one K x K product a frame saved).
@@ -361,15 +359,14 @@ class ShackHartmannLoopSensing:
         self._noise = self._slope_noise = self._sensed = None
 
     def measurement(self) -> ShackHartmannMeasurement:
-        return ShackHartmannMeasurement(self.turbulence.operators, self.projector_t, self.sigma_nm, self.gain,
+        return ShackHartmannMeasurement(self.turbulence.operators, self.mmse, self.sigma_nm, self.gain,
                                         self.fraction, self.identity_dm)
 
     def chunks(self, n_frames: int, chunk: int, generator):
         mmse = self.mmse is not None
         for first in range(0, n_frames, chunk):
             out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes or mmse)
-            # The computer's MMSE view of the turbulence; s stays the truth.
-            self._sensed = out["slopes"] @ self.mmse.T if mmse and self.turbulence.isolate != "perfect" else None
+            self._sensed = sensed_turbulence(out, self.mmse, self.turbulence.isolate)  # s stays the truth
             self._chunk = out
             # R n from the very draws recorded slopes hold: the same draws, and numbers, as without them.
             n = self.turbulence.slope_noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
