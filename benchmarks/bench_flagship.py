@@ -15,14 +15,11 @@ the tiny variants instead (``tests/conf/flagship_tiny.yaml`` against ``tests/con
 from __future__ import annotations
 
 import argparse
-import resource
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from benchmarks.common import Row, Timing, fmt_seconds
+from benchmarks.common import Row, Timing, fmt_seconds, timed_compare
 
 ROOT = Path(__file__).resolve().parent.parent
 #: ``(flagship, baseline)`` configs of the full run and of ``--quick``.
@@ -32,28 +29,14 @@ GOAL_RATIO = 1 / 1.7
 WALL_GOAL_S = 90.0
 
 
-def _timed_compare(config: Path, out: Path) -> tuple[float, float, float]:
-    """``(wall s, CPU s, peak resident MB)`` of one fresh ``eofnn compare --config config`` process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "compare", "--config", str(config), "--out", str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=3600)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if proc.returncode != 0:
-        raise RuntimeError(f"eofnn compare --config {config} failed ({proc.returncode}): {proc.stderr[-2000:]}")
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu, after.ru_maxrss / 1024
-
-
 def bench_flagship(repeat: int = 1, quick: bool = False) -> list[Row]:
     """One row: the flagship's wall time against the zonal main job's, alternately, fresh processes."""
     flagship, baseline = CONFIGS[quick]
     times: dict[str, list[tuple[float, float, float]]] = {"flagship": [], "baseline": []}
     with tempfile.TemporaryDirectory(prefix="eofnn-bench-flagship-") as tmp:
         for r in range(repeat):
-            times["baseline"].append(_timed_compare(baseline, Path(tmp) / f"baseline{r}"))
-            times["flagship"].append(_timed_compare(flagship, Path(tmp) / f"flagship{r}"))
+            times["baseline"].append(timed_compare(baseline, Path(tmp) / f"baseline{r}"))
+            times["flagship"].append(timed_compare(flagship, Path(tmp) / f"flagship{r}"))
     wall = {k: [t[0] for t in v] for k, v in times.items()}
     info = {"flagship_config": str(flagship.relative_to(ROOT)), "baseline_config": str(baseline.relative_to(ROOT)),
             "flagship_cpu_s": [t[1] for t in times["flagship"]], "baseline_cpu_s": [t[1] for t in times["baseline"]],

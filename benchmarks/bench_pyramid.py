@@ -16,14 +16,11 @@ variant (``tests/conf/pyr_tiny.yaml``) and its twin.
 from __future__ import annotations
 
 import argparse
-import resource
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from benchmarks.common import Row, Timing, fmt_seconds
+from benchmarks.common import Row, Timing, fmt_seconds, timed_compare
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The pyramid's config of the full run and of ``--quick``; the Shack-Hartmann twin is the same with ``TWIN``.
@@ -32,28 +29,14 @@ TWIN = ("--scenario.sensor.kind", "shack_hartmann", "--scenario.sensor.samples_p
 GOAL_RATIO = 1 / 3
 
 
-def _timed_compare(config: Path, out: Path, extra: tuple[str, ...] = ()) -> tuple[float, float, float]:
-    """``(wall s, CPU s, peak resident MB)`` of one fresh ``eofnn compare --config config`` process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "compare", "--config", str(config), *extra,
-                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=3600)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if proc.returncode != 0:
-        raise RuntimeError(f"eofnn compare --config {config} failed ({proc.returncode}): {proc.stderr[-2000:]}")
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu, after.ru_maxrss / 1024
-
-
 def bench_pyramid(repeat: int = 1, quick: bool = False) -> list[Row]:
     """One row: the pyramid job's wall time against its Shack-Hartmann twin's, alternately, fresh processes."""
     config = CONFIGS[quick]
     times: dict[str, list[tuple[float, float, float]]] = {"pyramid": [], "twin": []}
     with tempfile.TemporaryDirectory(prefix="eofnn-bench-pyramid-") as tmp:
         for r in range(repeat):
-            times["twin"].append(_timed_compare(config, Path(tmp) / f"twin{r}", TWIN))
-            times["pyramid"].append(_timed_compare(config, Path(tmp) / f"pyramid{r}"))
+            times["twin"].append(timed_compare(config, Path(tmp) / f"twin{r}", TWIN))
+            times["pyramid"].append(timed_compare(config, Path(tmp) / f"pyramid{r}"))
     wall = {k: [t[0] for t in v] for k, v in times.items()}
     cpu = {k: [t[1] for t in v] for k, v in times.items()}
     info = {"config": str(config.relative_to(ROOT)), "twin_overrides": " ".join(TWIN),

@@ -12,9 +12,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import resource
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -271,3 +275,22 @@ def sized_main(argv: list[str] | None, doc: str, frames: int, run: Callable[[int
         print(describe(row))
     print(json.dumps(rows, indent=1))
     return rows
+
+
+#: The repository: where eofnn compare runs.
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def timed_compare(config: Path, out: Path, extra: tuple[str, ...] = ()) -> tuple[float, float, float]:
+    """``(wall s, CPU s, peak resident MB)`` of one fresh ``eofnn compare --config config`` process (``extra``: more
+    arguments), its CPU the user and system time of the process and its children."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "eofnn.cli.main", "compare", "--config", str(config), *extra,
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=3600)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise RuntimeError(f"eofnn compare --config {config} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, after.ru_maxrss / 1024
