@@ -63,14 +63,16 @@ def flagship_row() -> dict | None:
     spread = mine["variance_ratio_spread"]["per_realisation"]
     contrast = mine["raw_contrast"]["3"]
     guard = (result.get("fallback") or {}).get("nominal", {})
-    guarded = ", ".join(f"on {g['predictor_modes']} of {g['n_modes']} KL modes" for g in guard.values()
-                        if g.get("predictor_modes") is not None)
+    deployed = [g for g in guard.values() if g.get("deployed") in ("predictor", "composite")]
+    guarded = "" if not deployed else ("whole" if deployed[0]["deployed"] == "predictor" else
+                                       f"on {deployed[0]['predictor_modes']} of {deployed[0]['n_modes']} KL modes")
     classical = [n for n in result["scenarios"]["nominal"] if n not in ratios["predictors"]]
     scored = result["scenarios"]["nominal"]
     return {"section": "2b",
             "claim": f"**Flagship**: the extreme-AO Shack-Hartmann job (`flagship_sh`): the anti-aliasing EOF beats "
                      f"the best classical controller it was given, {NAMES.get(ratios['over'], ratios['over'])}"
-                     + (f"; the guard deploys it ({guarded})" if guarded else ""),
+                     + (f"; the guard deploys it {guarded}" if guarded else
+                        "; the guard keeps the integrator" if guard else ""),
             "number": f"{_x(mine['variance_ratio'])} ({rms(scored[ratios['over']]):.3g} against "
                       f"{rms(scored[best]):.3g} nm over the pupil; {_span(spread)} over {len(spread)} realisations); "
                       f"after the fitting error ({ratios['fitting_nm']:.3g} nm) {_x(mine['after_fitting_variance_ratio'])}"

@@ -53,7 +53,7 @@ METRICS = {
     "ridge_alphas": _PER({"alpha": True, "val_loss": True, "unregularised_val_loss": True, "path": {"alpha"}}),
     "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
     "classical_models": _PER({"frames", "modes", "gain_margin"}),
-    "fallback": _PER({"per", "integrator_gain", "modes", "n_modes", "predictor_modes"}),
+    "fallback": _PER({"per", "integrator_gain", "modes", "n_modes", "predictor_modes", "deployed"}),
     "classical_settings": _PER({"order", "smoothing", "ar_order", "pfc.alpha", "median_rms_nm"}),
     "verdict": True,
     "realisation_median_rms_nm": True,
