@@ -140,7 +140,16 @@ def ratios(r: dict, name: str) -> dict | None:
         plain = _summed(r["contenders"][base]["realisations_median_rms_nm"]) / _summed(
             r["contenders"][name]["realisations_median_rms_nm"])
     eta = None if not etas else (etas.get(name) or {}).get("eta")
-    return {"plain": plain, "after": g["variance_after_fitting"], "contrast": (g.get("contrast") or {}).get("3"),
+    mine, theirs, fit = (r["contenders"][name]["realisations_median_rms_nm"],
+                         r["contenders"][base]["realisations_median_rms_nm"], r["fitting_error_nm"])
+    against = (g.get("contrast_against") or {}).get("3", base)
+    each = [c.get("3") for c in r["contenders"][name].get("realisations_contrast") or []]
+    their = [c.get("3") for c in r["contenders"][against].get("realisations_contrast") or []]
+    spread = {"plain": [(t / m) ** 2 for t, m in zip(theirs, mine, strict=True)],
+              "after": [(t * t - f * f) / (m * m - f * f) for t, m, f in zip(theirs, mine, fit, strict=True)],
+              "contrast": [t / m for t, m in zip(their, each, strict=True) if t and m]}
+    return {"spread": spread, "plain": plain, "after": g["variance_after_fitting"],
+            "contrast": (g.get("contrast") or {}).get("3"),
             "contrast_against": (g.get("contrast_against") or {}).get("3", base), "eta": eta,
             "eta_per_realisation": None if not etas else (etas.get(name) or {}).get("per_realisation")}
 
@@ -176,13 +185,19 @@ def _ratio_rows(point: tuple, r: dict) -> list[str]:
         g = ratios(r, name) if name in r["contenders"] else None
         if g is None:
             continue
-        contrast = "—" if g["contrast"] is None else f"{g['contrast']:.2f}x ({AA_LABELS[g['contrast_against']]})"
+        def span(key: str, g: dict = g) -> str:
+            values = g["spread"][key]
+            return "" if len(values) < 2 else f" ({min(values):.2f}-{max(values):.2f})"
+
+        contrast = "—" if g["contrast"] is None else \
+            f"{g['contrast']:.2f}x{span('contrast')} ({AA_LABELS[g['contrast_against']]})"
         eta = ("the ceiling" if name == "oracle" else "no oracle") if g["eta"] is None and (
             name == "oracle" or "oracle" not in r["contenders"]) else (
             "undefined" if g["eta"] is None else f"{g['eta']:.2f} (" + ", ".join(
                 "n/a" if v is None else f"{v:.2f}" for v in g["eta_per_realisation"]) + ")")
-        rows.append(f"| {system} | {mag} | {direction}° | {AA_LABELS[name]} | {AA_LABELS[base]} | {g['plain']:.2f}x | "
-                    f"{g['after']:.2f}x | {contrast} | {eta} |")
+        rows.append(f"| {system} | {mag} | {direction}° | {AA_LABELS[name]} | {AA_LABELS[base]} | "
+                    f"{g['plain']:.2f}x{span('plain')} | "
+                    f"{g['after']:.2f}x{span('after')} | {contrast} | {eta} |")
     return rows
 
 
@@ -256,8 +271,9 @@ def antialias_text() -> str:
     figure = "" if "psd_frequency_hz" not in m8 else (
         "\n\n![temporal PSDs of the measured residual, 40 x 40, I = 8](interop/oopao_aa/m8/psd.png)")
     return "\n".join(lines) + "\n\nEach predictor over the strongest classical controller of its run (its residual over " \
-        "the predictor's: above 1, the predictor is better; variances are median RMS squared summed over the scored " \
-        "realisations, after fitting with each realisation's fitting error subtracted in quadrature; η = (σ² classical " \
+        "the predictor's: above 1, the predictor is better; in brackets the least and greatest over the realisations, " \
+        "paired; variances are median RMS squared summed over the scored realisations, after fitting with each " \
+        "realisation's fitting error subtracted in quadrature; η = (σ² classical " \
         "− σ² predictor) / (σ² classical − σ² oracle)):\n\n" + "\n".join(table) + figure + f"""
 
 At the issue's points (40 x 40, 20 m/s), against the strongest classical controller built from the same telemetry
