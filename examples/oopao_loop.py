@@ -25,7 +25,9 @@ what it cannot (fitting error, aliasing, noise).
 With ``--anti-aliasing`` it runs instead the study of :mod:`eofnn.studies.antialias`: the open-loop EOF (5 x 5
 neighbourhood) fitted on telemetry alone and the anti-aliasing EOF fitted on the same telemetry with OOPAO's truth
 (the DM's fit of the true phase) as its target, each run in OOPAO's loop against the best-gain integrator, scored in
-residual variance after fitting and raw contrast:
+residual variance after fitting and raw contrast; beside them the oracle (the same filter trained on OOPAO's truth
+with more taps, a wider neighbourhood and four times the recorded frames: simulator knowledge, a ceiling, not a
+contender; ``--no-oracle`` leaves it out), and each predictor's share of its gain (eta):
 
     python examples/oopao_loop.py --small --anti-aliasing --photon-noise --out DIR
 """
@@ -103,6 +105,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--radius", type=float, default=2.5,
                         help="with --anti-aliasing: the EOFs' neighbourhood in pitches (2.5: 5 x 5; 0.5: each "
                              "actuator's own history alone)")
+    parser.add_argument("--no-oracle", action="store_true",
+                        help="with --anti-aliasing: without the oracle (trained on OOPAO's truth, wider and longer than "
+                             "the EOFs, on four times the recorded frames): no eta")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
@@ -119,6 +124,8 @@ def main(argv: list[str] | None = None) -> dict:
                                     ("--twin-pupil", args.twin_pupil != "grid")) if on]
     if tweaks and not args.eofnn_trained:
         parser.error(f"{' and '.join(tweaks)} set the eofnn-trained predictor: give --eofnn-trained too")
+    if args.no_oracle and not args.anti_aliasing:
+        parser.error("--no-oracle leaves the oracle out of the anti-aliasing study: give --anti-aliasing too")
     if args.anti_aliasing and args.aliasing:
         parser.error("--anti-aliasing runs only the anti-aliasing study; --aliasing runs the decomposition: give "
                      "one of them")
@@ -150,7 +157,8 @@ def antialias(args, argv: list[str]) -> dict:
     """The anti-aliasing study at one point (``--frames`` per training sequence, 3 sequences)."""
     f = args.frames
     config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
-                             warmup_frames=f // 20, scored_realisations=args.realisations, radius=args.radius)
+                             warmup_frames=f // 20, scored_realisations=args.realisations, radius=args.radius,
+                             oracle=not args.no_oracle)
     if args.eofnn_trained:
         eofnn_direction(args.wind_direction)  # an unmapped wind is refused before anything is simulated
     sim = OopaoLoop(args.n_subapertures, args.diameter, photon_noise=args.photon_noise, magnitude=args.magnitude,
@@ -166,7 +174,8 @@ def antialias(args, argv: list[str]) -> dict:
         external = {name: eofnn_trained(27 * f, 27 * f // 5, match_noise=not args.own_noise,
                                         controlled=not args.all_modes, static_gain=args.static_gain, sequences=9,
                                         pupil=pupil) for name, pupil in pupils.items()}
-    metrics = run_antialias(sim, config, external)
+    metrics = run_antialias(sim, config, external,
+                            progress=lambda text: print(f"[{time.time() - started:.0f} s] {text}", flush=True))
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])
     text = antialias_markdown(metrics)

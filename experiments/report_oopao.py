@@ -92,13 +92,70 @@ ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_
                   "interop/oopao_aa/small_m8_dir30": ("20 x 20, 4 m", 8, 30),
                   "interop/oopao_aa/small_m8_dir0_own": ("20 x 20, 4 m, own history only", 8, 0),
                   "interop/oopao_aa/small_m8_dir0_twin_own": ("20 x 20, 4 m, twin at own noise, all modes", 8, 0)}
-AA_LABELS = {"integrator": "integrator", "lqg": "LQG", "pfc": "PFC", "eof_measured": "EOF from telemetry",
-             "eof_antialias": "anti-aliasing EOF", "eof_eofnn": "anti-aliasing EOF trained in eofnn",
-             "eof_eofnn_pupil": "anti-aliasing EOF trained in eofnn with OOPAO's pupil"}
+#: The 40 x 40 runs with the anti-aliasing EOF trained in eofnn's own simulation (``--eofnn-trained``), made before the
+#: modal integrator, PFC's noise coloured by the reconstructor and the oracle were in the study, on the same scored
+#: realisations as m8 and m10: the sections on the twin read them.
+TWIN_RUNS = {"interop/oopao_aa/m8_eofnn_trained": ("40 x 40, 8 m", 8, 0),
+             "interop/oopao_aa/m10_eofnn_trained": ("40 x 40, 8 m", 10, 0)}
+AA_LABELS = {"integrator": "integrator", "modal": "modal integrator", "lqg": "LQG", "pfc": "PFC",
+             "eof_measured": "EOF from telemetry", "eof_antialias": "anti-aliasing EOF",
+             "eof_eofnn": "anti-aliasing EOF trained in eofnn",
+             "eof_eofnn_pupil": "anti-aliasing EOF trained in eofnn with OOPAO's pupil", "oracle": "oracle",
+             "guarded": "guarded EOF"}
+CLASSICAL = ("integrator", "modal", "lqg", "pfc")
 
 
-def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
-    c, best = r["contenders"], r["best_classical"]
+def twin_run(magnitude: int) -> dict | None:
+    """The 40 x 40 run at ``magnitude`` with the eofnn-trained EOF (:data:`TWIN_RUNS`)."""
+    return load(f"interop/oopao_aa/m{magnitude}_eofnn_trained", "result")
+
+
+def strongest(r: dict) -> tuple[str, dict, dict | None, str]:
+    """The classical controller a run's predictors are rated against: the one of least residual on the scored
+    realisations where the run says it (``best_classical_on_scored``; where it is not the one chosen on the scan
+    realisation, the stronger baseline), else the one chosen on the scan. ``(name, gains over it, etas over it or
+    None, how it was chosen)``."""
+    scored, best = r.get("best_classical_on_scored"), r["best_classical"]
+    if scored is not None and scored != best:
+        return (scored, r["gains_over_best_classical_on_scored"], r.get("eta_over_best_classical_on_scored"),
+                "least residual on the scored realisations")
+    return best, r["gains_over_best_classical"], r.get("eta"), (
+        "chosen on the scan, and least residual on the scored realisations" if scored else "chosen on the scan")
+
+
+def _summed(values: list[float], minus: list[float] | None = None) -> float:
+    return sum(v * v - (f * f if minus else 0.0) for v, f in zip(values, minus or values, strict=True))
+
+
+def ratios(r: dict, name: str) -> dict | None:
+    """``name``'s ratios over :func:`strongest`'s controller, from the run's own gains: plain variance, variance after
+    fitting, raw contrast at 3 λ/D against the classical controller best in contrast there (named), and eta
+    (``None`` where no oracle ran); ``None`` if not run or diverged."""
+    base, gains, etas, _ = strongest(r)
+    g = gains.get(name)
+    if g is None:
+        return None
+    plain = g.get("variance")
+    if plain is None:  # a run before the plain ratio was written: the same sum of squared medians
+        plain = _summed(r["contenders"][base]["realisations_median_rms_nm"]) / _summed(
+            r["contenders"][name]["realisations_median_rms_nm"])
+    eta = None if not etas else (etas.get(name) or {}).get("eta")
+    mine, theirs, fit = (r["contenders"][name]["realisations_median_rms_nm"],
+                         r["contenders"][base]["realisations_median_rms_nm"], r["fitting_error_nm"])
+    against = (g.get("contrast_against") or {}).get("3", base)
+    each = [c.get("3") for c in r["contenders"][name].get("realisations_contrast") or []]
+    their = [c.get("3") for c in r["contenders"][against].get("realisations_contrast") or []]
+    spread = {"plain": [(t / m) ** 2 for t, m in zip(theirs, mine, strict=True)],
+              "after": [(t * t - f * f) / (m * m - f * f) for t, m, f in zip(theirs, mine, fit, strict=True)],
+              "contrast": [t / m for t, m in zip(their, each, strict=True) if t and m]}
+    return {"spread": spread, "plain": plain, "after": g["variance_after_fitting"],
+            "contrast": (g.get("contrast") or {}).get("3"),
+            "contrast_against": (g.get("contrast_against") or {}).get("3", base), "eta": eta,
+            "eta_per_realisation": None if not etas else (etas.get(name) or {}).get("per_realisation")}
+
+
+def _aa_row(point: tuple, r: dict) -> str:
+    c = r["contenders"]
     fit = r["fitting_error_nm"]
 
     def mean(name: str) -> str:
@@ -107,24 +164,56 @@ def _aa_row(point: tuple, r: dict) -> tuple[str, dict]:
         v = c[name]["mean_of_realisations_nm"]
         return "diverged" if v is None else f"{v:.1f}"
 
-    def contrast(name: str) -> str:
-        v = (c[name]["mean_contrast"] or {}).get("3")
-        return "—" if v is None else f"{v:.2e}"
-
-    g = r["gains_over_best_classical"]
-    tel, aa = g["eof_measured"] or {}, g["eof_antialias"] or {}
-    paired = ", ".join(f"{v:+.1f}" for v in aa.get("paired_difference_nm", []))
     system, mag, direction = point
     pfc = "" if "pfc_scan" not in r else " (" + (f"alpha {r['pfc_scan']['alpha']:g}, " if "alpha" in r["pfc_scan"]
-                                                 else "") + f"alias rings: {r['pfc_scan']['aliases']})"
-    row = (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
-           f"{r['integrator_scan']['gain']}) | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) | {mean('pfc')}{pfc} | "
-           f"{mean('eof_measured')} | "
-           f"{mean('eof_antialias')} | {AA_LABELS[best]} | {tel.get('variance_after_fitting', math.nan):.2f}x; "
-           f"{aa.get('variance_after_fitting', math.nan):.2f}x | {(tel.get('contrast') or {}).get('3', math.nan):.2f}x; "
-           f"{(aa.get('contrast') or {}).get('3', math.nan):.2f}x | {contrast(best)} / {contrast('eof_antialias')} | "
-           f"{paired} | {r['guard']['deployed']} |")
-    return row, {"tel": tel, "aa": aa, "eofnn": g.get("eof_eofnn") or {}}
+                                                 else "") + f"alias rings: {r['pfc_scan']['aliases']}" + (
+        ", noise coloured" if r["pfc_scan"].get("noise_covariance") == "reconstructor" else "") + ")"
+    modal = "" if "modal_scan" not in r else f" (margin {r['modal_scan']['gain_margin']:g})"
+    base, _, _, how = strongest(r)
+    return (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
+            f"{r['integrator_scan']['gain']}) | {mean('modal')}{modal} | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) "
+            f"| {mean('pfc')}{pfc} | {mean('eof_measured')} | {mean('eof_antialias')} | {mean('oracle')} | "
+            f"{AA_LABELS[base]} ({how}) | {r['guard']['deployed']} |")
+
+
+def _ratio_rows(point: tuple, r: dict) -> list[str]:
+    """The ratio table's rows of one run: each predictor (and the oracle) over the strongest classical controller."""
+    system, mag, direction = point
+    base = strongest(r)[0]
+    rows = []
+    for name in ("eof_measured", "eof_antialias", "oracle"):
+        g = ratios(r, name) if name in r["contenders"] else None
+        if g is None:
+            continue
+        def span(key: str, g: dict = g) -> str:
+            values = g["spread"][key]
+            return "" if len(values) < 2 else f" ({min(values):.2f}-{max(values):.2f})"
+
+        contrast = "—" if g["contrast"] is None else \
+            f"{g['contrast']:.2f}x{span('contrast')} ({AA_LABELS[g['contrast_against']]})"
+        eta = ("the ceiling" if name == "oracle" else "no oracle") if g["eta"] is None and (
+            name == "oracle" or "oracle" not in r["contenders"]) else (
+            "undefined" if g["eta"] is None else f"{g['eta']:.2f} (" + ", ".join(
+                "n/a" if v is None else f"{v:.2f}" for v in g["eta_per_realisation"]) + ")")
+        rows.append(f"| {system} | {mag} | {direction}° | {AA_LABELS[name]} | {AA_LABELS[base]} | "
+                    f"{g['plain']:.2f}x{span('plain')} | "
+                    f"{g['after']:.2f}x{span('after')} | {contrast} | {eta} |")
+    return rows
+
+
+def baseline_run(magnitude: int) -> dict | None:
+    """The run whose classical controllers the twin's filters (scored on :data:`TWIN_RUNS`' realisations) are rated
+    against: the table's 40 x 40 run at ``magnitude`` (the strongest classical side) where it scored the same
+    realisations, else the twin run itself."""
+    run, twin = load(f"interop/oopao_aa/m{magnitude}", "result"), twin_run(magnitude)
+    if run and twin and run["scored_seeds"] == twin["scored_seeds"]:
+        return run
+    return twin
+
+
+def twin_results() -> list[tuple[tuple, dict]]:
+    """``(point, result)`` of the runs with the eofnn-trained EOF: :data:`TWIN_RUNS`, then the table's runs."""
+    return [(point, r) for name, point in TWIN_RUNS.items() if (r := load(name, "result"))] + antialias_results()
 
 
 def antialias_results() -> list[tuple[tuple, dict]]:
@@ -133,51 +222,69 @@ def antialias_results() -> list[tuple[tuple, dict]]:
 
 
 def antialias_text() -> str:
-    """The EOFs against the best classical controller built from the same telemetry, in OOPAO's loop at the issue's
-    conditions (20 m/s, I = 8 and 10, 40 x 40) and the checks beside them."""
-    lines = ["| system | I mag | wind direction | fitting error (nm) | integrator (nm) | LQG (nm) | PFC (nm) | "
-             "EOF from telemetry (nm) | "
-             "anti-aliasing EOF (nm) | best classical (chosen on the scan) | variance gain after fitting: telemetry "
-             "EOF; anti-aliasing EOF | contrast gain at 3 λ/D: telemetry EOF; anti-aliasing EOF | raw contrast at 3 λ/D: "
-             "best classical / anti-aliasing EOF | best classical minus anti-aliasing EOF, per realisation (nm) | "
-             "guard deployed |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    """The EOFs and the oracle against the strongest classical controller built from the same telemetry, in OOPAO's
+    loop at the issue's conditions (20 m/s, I = 8 and 10, 40 x 40) and the checks beside them."""
+    lines = ["| system | I mag | wind direction | fitting error (nm) | integrator (nm) | modal integrator (nm) | LQG (nm) | "
+             "PFC (nm) | EOF from telemetry (nm) | anti-aliasing EOF (nm) | oracle (nm) | strongest classical | "
+             "guard deployed |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    table = ["| system | I mag | wind direction | predictor | against | plain variance ratio | variance ratio after "
+             "fitting | raw contrast ratio at 3 λ/D (against the classical controller best in contrast) | η (per "
+             "realisation) |", "|---|---|---|---|---|---|---|---|---|"]
     found, guarded_ok, goal = antialias_results(), [], []
     for point, r in found:
-        row, point_gains = _aa_row(point, r)
-        lines.append(row)
+        lines.append(_aa_row(point, r))
+        table += _ratio_rows(point, r)
         if point[0].startswith("40") and point[2] == 0:  # the issue's points
-            goal.append((point, point_gains))
+            goal.append((point, r))
         integ = r["contenders"]["integrator"]["realisations_median_rms_nm"]
         guarded = r["contenders"]["guarded"]["realisations_median_rms_nm"]
         guarded_ok.append(None not in guarded and all(a <= b for a, b in zip(guarded, integ, strict=True)))
     if not found:
         return "(the anti-aliasing study in OOPAO's loop, `bash experiments/interop/run.sh oopao_aa`, not run)"
 
-    def met(key: str, what: str, target: float) -> str:
+    def met(name: str, key: str, target: float | None) -> str:
         out = []
-        for (_, mag, _), g in goal:
-            if not g[key]:
+        for (_, mag, _), r in goal:
+            g = ratios(r, name) if name in r["contenders"] else None
+            if g is None or g[key] is None:
                 out.append(f"I = {mag}: not run")
                 continue
-            v = g[key].get("variance_after_fitting", math.nan) if what == "variance" else \
-                (g[key].get("contrast") or {}).get("3", math.nan)
-            out.append(f"I = {mag}: {v:.2f}x{' (met)' if v >= target else ''}")
+            text = f"{g[key]:.2f}" if key == "eta" else f"{g[key]:.2f}x"
+            out.append(f"I = {mag}: {text}" + ("" if target is None else " (met)" if g[key] >= target else
+                                               " (not met)"))
         return ", ".join(out)
 
+    bases = ", ".join(f"I = {mag}: the {AA_LABELS[strongest(r)[0]]} ({strongest(r)[3]})" for (_, mag, _), r in goal)
+    contrast_bases = ", ".join(
+        f"I = {mag}: the {AA_LABELS[(ratios(r, 'eof_measured') or {}).get('contrast_against', 'integrator')]}"
+        for (_, mag, _), r in goal)
+    oracle = ""
+    if any("oracle" in r["contenders"] for _, r in goal):
+        oracle = (f" The oracle (trained on OOPAO's truth, {goal[0][1]['fits']['oracle']['history_length']} taps, "
+                  f"radius {goal[0][1]['fits']['oracle']['radius']:g} pitches, "
+                  f"{goal[0][1]['fits']['oracle']['sequences']} recordings: simulator knowledge, a ceiling, not a "
+                  f"contender) reaches {met('oracle', 'plain', None)} in plain variance and "
+                  f"{met('oracle', 'contrast', None)} in contrast; the share of its variance gain each reaches, η: "
+                  f"the EOF from telemetry {met('eof_measured', 'eta', None)}, the anti-aliasing EOF "
+                  f"{met('eof_antialias', 'eta', None)}.")
     m8 = load("interop/oopao_aa/m8", "result") or {}
     figure = "" if "psd_frequency_hz" not in m8 else (
         "\n\n![temporal PSDs of the measured residual, 40 x 40, I = 8](interop/oopao_aa/m8/psd.png)")
-    return "\n".join(lines) + figure + f"""
+    return "\n".join(lines) + "\n\nEach predictor over the strongest classical controller of its run (its residual over " \
+        "the predictor's: above 1, the predictor is better; in brackets the least and greatest over the realisations, " \
+        "paired; variances are median RMS squared summed over the scored realisations, after fitting with each " \
+        "realisation's fitting error subtracted in quadrature; η = (σ² classical " \
+        "− σ² predictor) / (σ² classical − σ² oracle)):\n\n" + "\n".join(table) + figure + f"""
 
-At the issue's points (40 x 40, 20 m/s), against the best classical controller built from the same telemetry: in
-variance after fitting error (goal 1.5x) the EOF fitted on telemetry alone gives {met("tel", "variance", 1.5)}, the
-anti-aliasing EOF {met("aa", "variance", 1.5)}, the anti-aliasing EOF trained in eofnn's simulation
-{met("eofnn", "variance", 1.5)} with its twin's pupil the grid's and {_pupil_met("variance", 1.5)} with OOPAO's; in
-raw contrast at 3 λ/D (goal 2x) the EOF from telemetry gives {met("tel", "contrast", 2.0)}, the anti-aliasing EOF
-{met("aa", "contrast", 2.0)}, the one trained in eofnn's simulation {met("eofnn", "contrast", 2.0)} with the grid's
-pupil and {_pupil_met("contrast", 2.0)} with OOPAO's. The guarded EOF is at or below the
-best-gain integrator on every realisation at {sum(guarded_ok)} of {len(guarded_ok)} runs."""
+At the issue's points (40 x 40, 20 m/s), against the strongest classical controller built from the same telemetry
+({bases}): in plain variance over the pupil (goal 1.5x) the EOF fitted on telemetry alone gives
+{met("eof_measured", "plain", 1.5)}, the anti-aliasing EOF {met("eof_antialias", "plain", 1.5)}; after fitting error
+{met("eof_measured", "after", None)} and {met("eof_antialias", "after", None)}; in raw contrast at 3 λ/D against the
+classical controller best in contrast there ({contrast_bases}; goal 2x) the EOF from telemetry gives
+{met("eof_measured", "contrast", 2.0)}, the anti-aliasing EOF {met("eof_antialias", "contrast", 2.0)}.{oracle} The
+anti-aliasing EOF trained in eofnn's simulation with OOPAO's pupil in its twin (below; against the same baseline, after
+fitting / contrast) gives {_pupil_met("variance", 1.5)} / {_pupil_met("contrast", 2.0)}. The guarded EOF is at or below
+the best-gain integrator on every realisation at {sum(guarded_ok)} of {len(guarded_ok)} runs."""
 
 
 def oopao_reading() -> str:
@@ -185,7 +292,7 @@ def oopao_reading() -> str:
     found = antialias_results()
     if not found:
         return ""
-    lines, gaps, loops, lqg = [], [], [], []
+    lines, gaps, loops, lqg, modal = [], [], [], [], []
     for (system, mag, direction), r in found:
         if _is_ablation((system, mag, direction)):  # ablations: read in _own_history and transfer_text
             continue
@@ -193,6 +300,8 @@ def oopao_reading() -> str:
         tel, aa = c["eof_measured"]["mean_of_realisations_nm"], c["eof_antialias"]["mean_of_realisations_nm"]
         gaps.append(tel - aa)
         lqg.append(c["lqg"]["mean_of_realisations_nm"] - c["integrator"]["mean_of_realisations_nm"])
+        if (c.get("modal") or {}).get("mean_of_realisations_nm") is not None:
+            modal.append(c["modal"]["mean_of_realisations_nm"] - c["integrator"]["mean_of_realisations_nm"])
         lines.append(f"{system}, I = {mag}, {direction}°: {tel:.1f} nm from telemetry, {aa:.1f} nm with the truth "
                      f"(identified WFS noise {r['identified']['wfs_noise_nm']:.0f} nm per actuator and frame)")
         k = float(r["integrator_scan"]["gain"]) * r["identified"]["dm_gain"]
@@ -207,7 +316,10 @@ def oopao_reading() -> str:
             "the residual (the sum of the squared impulse response from measurement to command). The closed-loop, "
             "per-actuator EOF of the map below lost in the same loops" + _own_history()
             + ". The LQG (AR per KL mode of the pseudo-open loop) is "
-            f"{min(lqg):+.1f} to {max(lqg):+.1f} nm from the integrator. " + _pfc_reading(found) + _psd_reading(found)
+            f"{min(lqg):+.1f} to {max(lqg):+.1f} nm from the integrator"
+            + ("" if not modal else f"; the modal integrator with optimised gains (Gendron & Léna, one gain per KL mode "
+               f"from the telemetry's PSDs), where run, {min(modal):+.1f} to {max(modal):+.1f} nm") + ". "
+            + _pfc_reading(found) + _psd_reading(found)
             + " *Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames; the error budget of each "
             "contender in OOPAO's loop (aliasing, noise, temporal, each from its own run) was not run: the PSDs split "
             "the measured residual by frequency, not by cause.")
@@ -223,7 +335,8 @@ def _psd_reading(found: list) -> str:
     for (system, mag, direction), r in found:
         if not system.startswith("40") or _is_ablation((system, mag, direction)) or "psd_frequency_hz" not in r:
             continue
-        names = [n for n in ("integrator", "lqg", "pfc", "eof_measured", "eof_antialias", "eof_eofnn")
+        names = [n for n in ("integrator", "modal", "lqg", "pfc", "eof_measured", "eof_antialias", "eof_eofnn",
+                             "oracle")
                  if n in r["contenders"]]
         bands = {n: psd_bands(r, n) for n in names}
         if not all(bands.values()):
@@ -283,7 +396,7 @@ def _pfc_reading(found: list) -> str:
 def transfer_text() -> str:
     """The anti-aliasing EOF trained in eofnn's own simulation of OOPAO's system, in OOPAO's loop."""
     rows, plain, twin_frames, sequences = [], None, set(), set()
-    for point, r in antialias_results():
+    for point, r in twin_results():
         own = r["contenders"].get("eof_eofnn")
         if not own:
             continue
@@ -325,7 +438,11 @@ def transfer_text() -> str:
             "identified (in eofnn's command units: OOPAO's command is nm of influence-function peak, its Gaussian "
             "influence functions overlap, so it is 2.99 nm of eofnn's smooth surface), and its inputs and targets "
             "are projected onto the command modes OOPAO's reconstructor sees (without it, eofnn's fit of the true "
-            "phase keeps variance in modes OOPAO never sees, waffle most). " + "; ".join(rows) + "."
+            "phase keeps variance in modes OOPAO never sees, waffle most). At 40 x 40 these are the runs with "
+            "`--eofnn-trained` (`interop/oopao_aa/m8_eofnn_trained`, `interop/oopao_aa/m10_eofnn_trained`), made "
+            "before the modal integrator, "
+            "PFC's coloured noise and the oracle were in the study, on the same realisations as the table's; each "
+            "against that run's best classical controller. " + "; ".join(rows) + "."
             + ablation + " Each row is one training set of the twin (seed 0) and one ridge alpha chosen on its "
             "validation frames. " + _twin_seeds_text() + " Carried over, the filter keeps part "
             "of the gain of the same filter trained on OOPAO's own truth. What remains between the two is the "
@@ -341,7 +458,7 @@ def _transfer_psd() -> str:
     from eofnn.studies.report import psd_bands
 
     parts = []
-    for (system, mag, _direction), r in antialias_results():
+    for (system, mag, _direction), r in twin_results():
         c = r["contenders"]
         if not system.startswith("40") or "eof_eofnn" not in c or "psd_frequency_hz" not in r:
             continue
@@ -364,7 +481,7 @@ def _transfer_psd() -> str:
 def _rim_text() -> str:
     """Where the carried filter loses to the truth-trained one (experiments/interop/rim_diagnostic.py): the rim or
     the interior, offline on a held-out recording and in the loop with the two spliced; "" before it ran."""
-    rim, run = load("interop/rim", "result"), load("interop/oopao_aa/m8", "result")
+    rim, run = load("interop/rim", "result"), twin_run(8)
     if not rim or not run:
         return ""
     loop, fit = rim["loop_realisations_median_rms_nm"], run["fitting_error_nm"]
@@ -416,7 +533,7 @@ def _rim_text() -> str:
 def _twin_seeds_text() -> str:
     """The eofnn-trained EOF at 40 x 40, I = 8 over the twin's training seeds (experiments/interop/twin_seeds.py, the
     page's run as seed 0), each against that run's best classical controller on the same realisations."""
-    seeds, run = load("interop/twin_seeds", "result"), load("interop/oopao_aa/m8", "result")
+    seeds, run = load("interop/twin_seeds", "result"), twin_run(8)
     if not seeds or not run or "eof_eofnn" not in run["contenders"]:
         return "How much another training set of the twin moves it was not measured."
     best, fit = run["best_classical"], run["fitting_error_nm"]
@@ -437,10 +554,12 @@ def twin_pupil_gains(magnitude: int) -> dict[str, tuple[float, float, float]] | 
     """The eofnn-trained EOF with OOPAO's pupil in its twin at the 40 x 40 point of ``magnitude``
     (experiments/interop/twin_pupil.py), per twin seed: ``(mean residual nm, variance gain after fitting, contrast
     gain at 3 λ/D)`` over the run's best classical controller on the same realisations; None if not run."""
-    run, pupil = load(f"interop/oopao_aa/m{magnitude}", "result"), load(f"interop/twin_pupil/m{magnitude}", "result")
+    run, pupil = baseline_run(magnitude), load(f"interop/twin_pupil/m{magnitude}", "result")
     if not run or not pupil:
         return None
-    fit, base = run["fitting_error_nm"], run["contenders"][run["best_classical"]]
+    fit, base = run["fitting_error_nm"], run["contenders"][strongest(run)[0]]
+    in_contrast = min((n for n in CLASSICAL if (run["contenders"].get(n, {}).get("mean_contrast") or {}).get("3")),
+                      key=lambda n: run["contenders"][n]["mean_contrast"]["3"])
 
     def variance(rms: list) -> float:
         return sum(r * r - f * f for r, f in zip(rms, fit, strict=True))
@@ -451,7 +570,7 @@ def twin_pupil_gains(magnitude: int) -> dict[str, tuple[float, float, float]] | 
         rms = c["realisations_median_rms_nm"]
         out[seed] = (math.nan, math.nan, math.nan) if None in rms else (
             sum(rms) / len(rms), variance(base["realisations_median_rms_nm"]) / variance(rms),
-            base["mean_contrast"]["3"] / c["mean_contrast"]["3"])
+            run["contenders"][in_contrast]["mean_contrast"]["3"] / c["mean_contrast"]["3"])
     return out
 
 
@@ -476,7 +595,7 @@ def _twin_pupil_text() -> str:
     grid-pupil twin's filter and against the run's best classical controller."""
     parts = []
     for mag in (8, 10):
-        gains, run = twin_pupil_gains(mag), load(f"interop/oopao_aa/m{mag}", "result")
+        gains, run = twin_pupil_gains(mag), twin_run(mag)
         if not gains or not run:
             continue
         pupil = load(f"interop/twin_pupil/m{mag}", "result")
@@ -522,7 +641,8 @@ def _twin_pupil_text() -> str:
             "`grid.active_diameter_m`; its subapertures, valid when at least half lit, the partly lit ones measuring "
             "their lit area's mean gradient with 1 / lit the photon noise variance, `sensor.lit_fraction`), the "
             "training otherwise the same and nothing of OOPAO's truth in it; residual, then variance after fitting "
-            "and contrast at 3 λ/D over the run's best classical controller on the same realisations: "
+            "over the strongest classical controller of the table's run and contrast at 3 λ/D over the one best in "
+            "contrast, on the same realisations (the grid-pupil twin's ratios are over its own run's best): "
             + "; ".join(parts) + ".")
 
 

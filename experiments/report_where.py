@@ -184,10 +184,15 @@ untuned: 67 min); R = 6 and R = 12 were cut for time.
 OOPAO's 8 m, 40 x 40 Shack-Hartmann with photon noise, one frozen-flow layer at 20 m/s, a DM applying 2x the
 command). OOPAO's own loop, closed by a dithered integrator, is recorded on 3 realisations of 2000 frames with
 OOPAO's truth beside the telemetry: the DM's fit of the true phase. From those frames come every contender: the
-best-gain integrator (gain scanned in OOPAO's loop on a realisation of its own), the LQG (AR model per KL mode of
-the pseudo-open loop, AR order chosen on that realisation), the 5 x 5 open-loop EOF fitted on the telemetry alone
-(the measured pseudo-open-loop values, plant identified from the dither), and the anti-aliasing EOF: the same
-filter and histories, its targets OOPAO's truth. The guarded EOF is the anti-aliasing one where it beat the
+best-gain integrator (gain scanned in OOPAO's loop on a realisation of its own), the modal integrator with optimised
+gains (one gain per KL mode, the cap on them chosen on that realisation), the LQG (AR model per KL mode of
+the pseudo-open loop, AR order chosen on that realisation), predictive Fourier control (memory scanned past its
+grid's edge, alias rings and the reconstructor's coloured noise tried on that realisation), the 5 x 5 open-loop EOF
+fitted on the telemetry alone (the measured pseudo-open-loop values, plant identified from the dither), and the
+anti-aliasing EOF: the same filter and histories, its targets OOPAO's truth. Beside them, where the table says so,
+the oracle: the same open-loop filter trained on OOPAO's truth with 6 taps, a 7 x 7 neighbourhood and 12
+recordings (the reach eofnn's own contest gives its oracle): simulator knowledge, a ceiling, never a contender.
+The guarded EOF is the anti-aliasing one where it beat the
 integrator on the scan realisation, else the integrator. Each is scored on the same 3 further realisations of
 1000 frames (900 settled): the mean of their median residual OPD over OOPAO's pupil, the fitting error, and the
 raw contrast behind a perfect coronagraph at 1.65 µm from OOPAO's residual OPD every 10th frame.

@@ -20,7 +20,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-from report_oopao import ANTIALIAS_RUNS, OOPAO_POINTS
+from report_oopao import ANTIALIAS_RUNS, OOPAO_POINTS, TWIN_RUNS
 from report_where import plot, rows
 
 HERE = Path(__file__).parent
@@ -226,7 +226,7 @@ def antialias_summary(name: str) -> bool:
 
 
 #: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa).
-ANTIALIAS = tuple(ANTIALIAS_RUNS)
+ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS)
 
 #: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
 MAPS = ("where/sh", "where/space")  # where/space: check_space.yaml over the map's grid (the spatial split)

@@ -215,3 +215,62 @@ def test_a_diverged_recording_is_one_line_naming_the_gain_frame_and_simulator():
         require_recorded(record, 0.4, SimpleNamespace(name="oopao"))
     held = LoopRecord(empty, empty, np.zeros(0), np.zeros((3, 2)), 2, 1000.0)
     assert require_recorded(held, 0.4, SimpleNamespace(name="oopao")) is held
+
+
+def _run(medians, contrast):
+    return {"realisations_median_rms_nm": medians, "mean_of_realisations_nm": sum(medians) / len(medians),
+            "mean_contrast": {"3": contrast}}
+
+
+def test_eta_is_each_predictors_share_of_the_oracles_variance_gain_and_the_oracle_is_not_rated():
+    from eofnn.studies.antialias import etas
+
+    results = {"integrator": _run([100.0, 104.0], 6e-4), "pfc": _run([90.0, 92.0], 5e-4),
+               "eof_measured": _run([70.0, 72.0], 2e-4), "oracle": _run([60.0, 61.0], 1e-4),
+               "guarded": _run([95.0, 96.0], 4e-4)}
+    out = etas(results, "pfc")
+    assert set(out) == {"eof_measured", "guarded"}  # neither a classical controller nor the oracle is rated
+    best, mine, ceiling = 90 ** 2 + 92 ** 2, 70 ** 2 + 72 ** 2, 60 ** 2 + 61 ** 2
+    assert out["eof_measured"]["eta"] == pytest.approx((best - mine) / (best - ceiling))
+    assert out["eof_measured"]["per_realisation"] == pytest.approx(
+        [(90 ** 2 - 70 ** 2) / (90 ** 2 - 60 ** 2), (92 ** 2 - 72 ** 2) / (92 ** 2 - 61 ** 2)])
+    assert out["guarded"]["eta"] < 0 and out["eof_measured"]["against"] == "pfc"  # worse than the baseline: below 0
+    results["oracle"] = _run([95.0, 96.0], 1e-4)  # an oracle worse than the baseline gains nothing: eta undefined
+    assert etas(results, "pfc")["eof_measured"]["eta"] is None
+    del results["oracle"]
+    assert etas(results, "pfc") == {"eof_measured": None, "guarded": None}
+
+
+def test_the_oracle_reaches_further_than_the_eofs_as_eofnns_own_oracle_does():
+    from eofnn.evaluation.contenders import ORACLE_EXTRA_RADIUS, ORACLE_EXTRA_TAPS, ORACLE_FRAMES_FACTOR
+    from eofnn.studies.antialias import oracle_reach
+
+    config = AntiAliasConfig(train_frames=2000, val_frames=400, loop_frames=1000, settle_frames=200)
+    reach = oracle_reach(config)
+    assert reach == {"history_length": config.history_length + ORACLE_EXTRA_TAPS,
+                     "radius": config.radius + ORACLE_EXTRA_RADIUS,
+                     "sequences": ORACLE_FRAMES_FACTOR * config.train_sequences, "val_frames": 400}
+    assert oracle_reach(CONFIG)["sequences"] * CONFIG.train_frames >= 8000  # never fewer frames than eofnn's oracle
+    with pytest.raises(ConfigError, match="oracle"):
+        AntiAliasConfig(oracle="yes")
+
+
+@pytest.mark.slow
+def test_the_oracle_is_scored_beside_the_others_and_no_predictor_beats_it_beyond_the_scatter(study):
+    """The oracle (trained on OOPAO's truth, wider and longer): its row, its fit labelled as simulator knowledge, each
+    predictor's eta, and no predictor below it beyond the scatter of their paired differences."""
+    assert study["roles"]["oracle"] == "oracle" and study["guard"]["deployed"] != "oracle"
+    fit = study["fits"]["oracle"]
+    assert "simulator knowledge" in fit["knowledge"] and fit["target"] == "s"
+    assert fit["radius"] > CONFIG.radius and fit["history_length"] > CONFIG.history_length
+    oracle = study["contenders"]["oracle"]["realisations_median_rms_nm"]
+    for name in ("eof_measured", "eof_antialias", "guarded"):
+        mine = study["contenders"][name]["realisations_median_rms_nm"]
+        d = np.subtract(mine, oracle)  # above 0: the oracle is lower
+        assert d.mean() + 2 * d.std(ddof=1) >= 0, name
+        entry = study["eta"][name]
+        assert entry["against"] == study["best_classical"] and len(entry["per_realisation"]) == len(oracle)
+        assert entry["eta"] <= 1 + 2 * np.std(entry["per_realisation"], ddof=1), name
+    assert "oracle" in study["gains_over_best_classical"] and "oracle" not in study["eta"]
+    text = antialias_markdown(study)
+    assert "| oracle |" in text and "η (per realisation)" in text and "1 (the ceiling)" in text

@@ -24,6 +24,7 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
     (["--small", "--anti-aliasing", "--static-gain"], ("--static-gain", "give --eofnn-trained too")),
     (["--small", "--anti-aliasing", "--radius", "0.1"], ("radius=0.1 is invalid",)),
     (["--small", "--anti-aliasing", "--eofnn-trained", "--wind-direction", "30"], ("30.0 deg is not mapped",)),
+    (["--small", "--no-oracle"], ("--no-oracle", "give --anti-aliasing too")),
 ])
 def test_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):
     spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)

@@ -161,7 +161,7 @@ def _variance_ratio(best: float, mine: float) -> float | None:
     return (best / mine) ** 2 if mine else None
 
 
-def _eta(best: float, mine: float, oracle: float) -> float | None:
+def eta(best: float, mine: float, oracle: float) -> float | None:
     """``(best² - mine²) / (best² - oracle²)`` (RMS in, variances compared); ``None`` when the oracle gains nothing."""
     gain = best * best - oracle * oracle
     return (best * best - mine * mine) / gain if gain > 0 else None
@@ -241,10 +241,10 @@ def predictor_ratios(metrics: Mapping[str, LoopMetrics], predictors: list[str], 
                  "raw_contrast": _contrast_ratios(metrics, m, classical)}
         if oracle_m is not None:
             o = oracle_m.median_rms_nm
-            entry["eta"] = _eta(b, p, o)
+            entry["eta"] = eta(b, p, o)
             entry["eta_spread"] = _paired(
                 list(zip(base.realisation_median_rms_nm, oracle_m.realisation_median_rms_nm, strict=False)),
-                m.realisation_median_rms_nm, lambda bo, y: _eta(bo[0], y, bo[1]))
+                m.realisation_median_rms_nm, lambda bo, y: eta(bo[0], y, bo[1]))
         return entry
 
     out = {"over": best_classical, "variance_over": over,
@@ -341,5 +341,5 @@ def build_verdict(result: ExperimentResult, roles: Mapping[str, dict], realisati
     return out
 
 
-__all__ = ["FITTING_ESTIMATE", "ORACLE_KNOWLEDGE", "RATIO_SEPARATIONS", "build_verdict", "contender_roles",
+__all__ = ["FITTING_ESTIMATE", "ORACLE_KNOWLEDGE", "RATIO_SEPARATIONS", "build_verdict", "contender_roles", "eta",
            "predictor_ratios"]

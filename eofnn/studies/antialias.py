@@ -22,6 +22,14 @@ are the study's): the residual OPD (median RMS after ``settle_frames``), the fit
 and the raw contrast at ``separations_lod`` behind a perfect coronagraph (:class:`eofnn.evaluation.contrast.RawContrast`
 on the simulator's pupil pixels: fitting error and aliasing are in the speckles).
 
+Beside them (``oracle``, on by default) the oracle (:func:`fit_oracle`): the same open-loop filter trained on the
+simulator's truth with more taps, a wider neighbourhood and four times the recorded frames, as eofnn's own contest
+builds it (:func:`eofnn.evaluation.contenders.oracle_config`): simulator knowledge, a ceiling and never a contender.
+Every predictor is rated against the best classical controller in plain variance, RMS, variance after fitting and
+raw contrast against the classical controller best in contrast (:mod:`eofnn.studies.antialias_report`), and by
+``eta``, its share of the oracle's variance gain. The classical controllers are built and tuned by
+:mod:`eofnn.studies.loop_scans`.
+
 The adapter needs, beyond :class:`~eofnn.interop.loop.SimulatorAdapter`: ``turbulence_fit_nm()``,
 ``residual_opd_nm()``, ``pupil_mask``, ``dm_gain`` and ``settings["diameter_m"]`` / ``settings["n_subapertures"]``
 (:class:`eofnn.interop.oopao.OopaoLoop` has them).
@@ -30,16 +38,16 @@ The adapter needs, beyond :class:`~eofnn.interop.loop.SimulatorAdapter`: ``turbu
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
 
 import numpy as np
 import torch
 
-from eofnn.control.classical import ModalIntegrator
-from eofnn.control.modal import GAIN_MARGIN_CANDIDATES, lqg_from_pol, modal_statistics, optimal_gains
-from eofnn.data.history import HistorySpec, pseudo_open_loop
+from eofnn.data.history import MAX_HISTORY_LENGTH, HistorySpec, pseudo_open_loop
 from eofnn.errors import ConfigError
+from eofnn.evaluation.contenders import ORACLE_EXTRA_RADIUS, ORACLE_EXTRA_TAPS, ORACLE_FRAMES_FACTOR, ORACLE_MIN_RADIUS
 from eofnn.evaluation.contrast import RawContrast
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.interop.loop import (
@@ -51,18 +59,21 @@ from eofnn.interop.loop import (
     runtime_filter,
     scan_integrator,
 )
-from eofnn.sim.layout import ActuatorLayout, layout_from_positions
-from eofnn.studies.report import psd_bands_markdown
+from eofnn.studies.antialias_report import ORACLE, antialias_markdown, best_in_contrast, etas, gains
+from eofnn.studies.loop_scans import CLASSICAL, PFC_ALPHAS, scan_lqg, scan_modal, scan_pfc
 from eofnn.studies.study import ALPHA_PATH
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig
-from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, check_value, validated
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, check_value, validated
 
 #: What the adapter must offer beyond a SimulatorAdapter.
 NEEDED = ("turbulence_fit_nm", "residual_opd_nm", "pupil_mask", "dm_gain", "settings")
-CONTENDERS = ("integrator", "modal", "lqg", "pfc", "eof_measured", "eof_antialias")
-CLASSICAL = ("integrator", "modal", "lqg", "pfc")
+CONTENDERS = (*CLASSICAL, "eof_measured", "eof_antialias")
+
+#: The oracle's training frames at least (:data:`eofnn.evaluation.contenders.ORACLE_MIN_FRAMES`'s role, at the loop
+#: rate): :data:`ORACLE_FRAMES_FACTOR` times the EOFs' recorded frames, and never fewer than this.
+ORACLE_MIN_FRAMES = 8000
 
 
 @dataclass
@@ -72,7 +83,8 @@ class AntiAliasConfig:
 
     ``train_sequences`` recordings of ``train_frames`` (each its own realisation, the first ``settle_frames``
     dropped), the last ``val_frames`` of each held out to choose the ridge alpha; ``radius``: the EOFs'
-    neighbourhood (pitches; 2.5: 5 x 5); ``gains``: the integrator's scan.
+    neighbourhood (pitches; 2.5: 5 x 5); ``gains``: the integrator's scan; ``oracle``: also train and score the
+    oracle (:func:`fit_oracle`), the ceiling each predictor's ``eta`` is a share of.
     """
 
     train_sequences: int = 3
@@ -92,6 +104,7 @@ class AntiAliasConfig:
     contrast_every: int = 10
     psd_segment_frames: int = 128
     seed: int = 0
+    oracle: bool = True
 
     _constraints: ClassVar[dict[str, Constraint]] = {
         **dict.fromkeys(("train_sequences", "train_frames", "loop_frames", "history_length", "scored_realisations",
@@ -102,6 +115,7 @@ class AntiAliasConfig:
         "radius": Interval(0.5, 10, unit="pitches"),
         "wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
         "dither_nm": Interval(0, 1e5, closed="neither", unit="nm"),
+        "oracle": IsBool(),
     }
 
     def __post_init__(self) -> None:
@@ -143,11 +157,12 @@ class _PixelGrid:
     indices: np.ndarray
 
 
-def record_with_truth(sim, config: AntiAliasConfig) -> list:
-    """``train_sequences`` dithered-integrator recordings, each as telemetry with the simulator's truth as ``s``
-    (the first ``settle_frames`` dropped)."""
+def record_with_truth(sim, config: AntiAliasConfig, count: int | None = None, first: int = 0) -> list:
+    """``count`` (unset: ``train_sequences``) dithered-integrator recordings, each as telemetry with the simulator's
+    truth as ``s`` (the first ``settle_frames`` dropped); ``first``: the index of the first (its seeds follow on from
+    the ``first`` recordings made before)."""
     c, sequences = config, []
-    for i in range(c.train_sequences):
+    for i in range(first, first + (c.train_sequences if count is None else count)):
         truth: list[np.ndarray] = []
 
         def observe(n: int, simulator, truth=truth) -> None:
@@ -161,11 +176,13 @@ def record_with_truth(sim, config: AntiAliasConfig) -> list:
     return sequences
 
 
-def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | None = None) -> dict:
+def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | None = None,
+                  progress: Callable[[str], None] | None = None) -> dict:
     """Record with truth, fit the two EOFs, tune the integrator, guard, and score every contender in ``sim``'s loop
     (module docstring); returns the JSON of ``metrics.json``. ``external``: more predictors trained elsewhere, by
     name, each ``build(sim, plant) -> (PredictiveFilter, info)`` given the plant identified from the recording
-    (:mod:`eofnn.studies.transfer`: one trained in eofnn's own simulation), scored beside the others."""
+    (:mod:`eofnn.studies.transfer`: one trained in eofnn's own simulation), scored beside the others. ``progress``:
+    told each stage as it ends (a line of text), for a long run's log."""
     from eofnn.interop.oopao import fitting_error
 
     c = config or AntiAliasConfig()
@@ -173,10 +190,16 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     if missing:
         raise ConfigError(f"{type(sim).__name__} lacks {', '.join(missing)}: anti-aliasing training needs the "
                           "simulator's truth and pupil (eofnn.interop.oopao.OopaoLoop has them)")
+    say = progress or (lambda text: None)
     telemetry = record_with_truth(sim, c)
     plant = identify_plant(telemetry)
     plant.require_identified()
+    say(f"recorded {len(telemetry)} sequences, plant identified")
     filters, fits = fit_eofs(sim, telemetry, plant, c)
+    say("EOFs fitted")
+    if c.oracle:
+        filters[ORACLE], fits[ORACLE] = fit_oracle(sim, telemetry, plant, c)
+        say(f"oracle fitted on {fits[ORACLE]['sequences']} recordings")
     conditions = {}
     for name, build in (external or {}).items():
         filters[name], fits[name] = build(sim, plant)
@@ -186,7 +209,9 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     pol = torch.stack([pseudo_open_loop(seq.wfs, seq.y, plant.dm_gain) for seq in telemetry])
     modal = scan_modal(sim, pol, plant.dm_gain, c, scan_seed)
     lqg = scan_lqg(sim, pol, plant.dm_gain, c, scan_seed)
+    say("integrator, modal integrator and LQG tuned")
     pfc = scan_pfc(sim, pol, plant, c, scan_seed)
+    say("PFC tuned")
 
     def control(name: str):
         if name == "integrator":
@@ -203,13 +228,18 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
     deployed = "eof_antialias" if guard.median_rms_nm is not None and guard.median_rms_nm < scan["median_rms_nm"] \
         else "integrator"
     scored = [c.seed + 2, *(c.seed + 20 + i for i in range(c.scored_realisations - 1))]
-    results = {name: score(sim, control, name, scored, c) for name in (*CONTENDERS, *(external or {}))}
+    names = (*CONTENDERS, *(external or {}), *((ORACLE,) if c.oracle else ()))
+    results = {}
+    for name in names:
+        results[name] = score(sim, control, name, scored, c)
+        say(f"{name} scored: {results[name]['mean_of_realisations_nm']} nm")
     results["guarded"] = {**results[deployed], "deployed": deployed}
     fitting = [fitting_error(sim, c.loop_frames, seed, start=c.settle_frames)["median_rms_nm"] for seed in scored]
     # The best classical controller is chosen on the scan realisation, as each was tuned: not on the scored ones.
     on_scan = {"integrator": scan["median_rms_nm"], "modal": modal["median_rms_nm"], "lqg": lqg["median_rms_nm"],
                "pfc": pfc["median_rms_nm"]}
     best = min((name for name, v in on_scan.items() if v is not None), key=on_scan.get)
+    scored_best = _best_scored(results)  # the strongest on the realisations scored: the referee's baseline
     return {"simulator": sim.describe(), "config": asdict(c), "scored_seeds": scored,
             "identified": {"dm_gain": plant.dm_gain, "wfs_noise_nm": plant.wfs_noise_nm, "dm_gain_true": sim.dm_gain},
             "fits": fits, "integrator_scan": {"gain": scan["gain"], "scan": {str(g): v for g, v in scan["scan"].items()}},
@@ -221,11 +251,18 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
             "guard": {"scan_integrator_nm": scan["median_rms_nm"], "scan_eof_antialias_nm": guard.median_rms_nm,
                       "deployed": deployed},
             "fitting_error_nm": fitting, "contenders": results, "best_classical": best,
+            "roles": {name: "classical" if name in CLASSICAL else "oracle" if name == ORACLE else "predictor"
+                      for name in results},
             "psd_frequency_hz": np.fft.rfftfreq(c.psd_segment_frames, 1 / sim.frame_rate_hz).tolist(),
             "frozen_flow_hz": frozen_flow_hz(sim),
             "gains": gains(results, fitting, c.separations_lod, "integrator"),
             "gains_over_best_classical": gains(results, fitting, c.separations_lod, best,
-                                               best_in_contrast(results, c.separations_lod))}
+                                               best_in_contrast(results, c.separations_lod)),
+            "best_classical_on_scored": scored_best,
+            "gains_over_best_classical_on_scored": None if scored_best is None else gains(
+                results, fitting, c.separations_lod, scored_best, best_in_contrast(results, c.separations_lod)),
+            "eta": etas(results, best) if c.oracle else None,
+            "eta_over_best_classical_on_scored": etas(results, scored_best) if c.oracle and scored_best else None}
 
 
 def fit_eofs(sim, telemetry: list, plant, c: AntiAliasConfig) -> tuple[dict, dict]:
@@ -245,106 +282,55 @@ def fit_eofs(sim, telemetry: list, plant, c: AntiAliasConfig) -> tuple[dict, dic
     return filters, fits
 
 
-def _grid_indices(sim) -> torch.Tensor | None:
-    """``(K, 2)`` lattice rows and columns of ``sim``'s actuators (``None`` off a lattice): the KL modes' homogenised
-    covariance (:func:`eofnn.control.modal.modal_statistics`)."""
-    layout = layout_from_positions(sim.positions_m)
-    indices = layout.lattice_indices if isinstance(layout, ActuatorLayout) else layout.indices
-    return None if indices is None else torch.as_tensor(indices)
+def oracle_reach(c: AntiAliasConfig) -> dict:
+    """The oracle's reach beyond the anti-aliasing EOF's, as eofnn's own contest sets it
+    (:func:`eofnn.evaluation.contenders.oracle_config`): :data:`~eofnn.evaluation.contenders.ORACLE_EXTRA_TAPS` more
+    taps, a neighbourhood :data:`~eofnn.evaluation.contenders.ORACLE_EXTRA_RADIUS` pitch wider (at least
+    :data:`~eofnn.evaluation.contenders.ORACLE_MIN_RADIUS`), and :data:`ORACLE_FRAMES_FACTOR` times the recorded
+    frames (at least :data:`ORACLE_MIN_FRAMES`) in whole recordings of ``train_frames``, the EOFs' among them:
+    ``{"history_length", "radius", "sequences", "val_frames"}`` (``val_frames`` of each held out for its ridge alpha,
+    at least an eighth of what each keeps)."""
+    frames = max(ORACLE_FRAMES_FACTOR * c.train_sequences * c.train_frames, ORACLE_MIN_FRAMES)
+    kept = c.train_frames - c.settle_frames
+    return {"history_length": min(c.history_length + ORACLE_EXTRA_TAPS, MAX_HISTORY_LENGTH),
+            "radius": max(c.radius + ORACLE_EXTRA_RADIUS, ORACLE_MIN_RADIUS),
+            "sequences": max(math.ceil(frames / c.train_frames), c.train_sequences),
+            "val_frames": min(max(c.val_frames, kept // 8), kept - 1)}
 
 
-def scan_modal(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:
-    """The modal integrator with optimised gains (Gendron & Léna 1994, :func:`eofnn.control.modal.optimal_gains`)
-    built from the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain): KL modes, each
-    mode's temporal PSD and noise, one gain per mode minimising its predicted residual, and how near its critical gain
-    a mode may go (:data:`~eofnn.control.modal.GAIN_MARGIN_CANDIDATES`) chosen in the loop on the scan realisation
-    ``seed``, as eofnn's own loop chooses it: ``{"controller", "gain_margin", "median_rms_nm", "scan", "info"}``."""
-    stats = modal_statistics(pol, grid_indices=_grid_indices(sim))
-    built, critical = {}, None
-    for margin in GAIN_MARGIN_CANDIDATES:
-        gains, _, critical = optimal_gains(stats, sim.delay_frames, dm_gain, min_gain_margin=margin)
-        built[margin] = ModalIntegrator(stats.modes, gains, sim.delay_frames, dm_gain)
-    margin, rms, scan = _best_in_loop(sim, {m: TorchControl(ctrl, sim.delay_frames) for m, ctrl in built.items()},
-                                      c, seed, fallback=GAIN_MARGIN_CANDIDATES[-1])
-    gains = built[margin].gains
-    quantiles = gains.quantile(torch.tensor([0.0, 0.1, 0.5, 0.9, 1.0], dtype=gains.dtype))
-    return {"controller": built[margin], "gain_margin": margin, "median_rms_nm": rms, "scan": scan,
-            "info": {"critical_gain": critical, "gains_quantiles_0_10_50_90_100": [round(float(q), 4) for q in quantiles],
-                     "noise_rms_nm_median": float(stats.noise_variance.median().sqrt())}}
+def fit_oracle(sim, telemetry: list, plant, c: AntiAliasConfig) -> tuple:
+    """The oracle of :func:`run_antialias`: the least-squares open-loop filter fitted on the simulator's truth (the
+    DM's fit of the true phase, as ``eof_antialias``'s target) with more reach than any contender
+    (:func:`oracle_reach`): the recordings ``telemetry`` and as many more as it needs, recorded in the same loop on
+    realisations of their own. Its inputs are the measured POL histories through ``plant`` (identified from
+    ``telemetry``), as every contender's are. Knowledge no telescope has: a ceiling on linear prediction from these
+    inputs, never a contender. ``(runtime filter, {"alpha", "target", "knowledge", reach...})``."""
+    reach = oracle_reach(c)
+    more = record_with_truth(sim, c, count=reach["sequences"] - len(telemetry), first=len(telemetry))
+    spec = HistorySpec("open_loop", reach["history_length"], sim.delay_frames)
+    network = {"class_path": "eofnn.models.linear.LinearFilter",
+               "init_args": {"structure": "neighbourhood", "radius": reach["radius"]}}
+    # Batches of 256 frames: its normal equations and features are the largest of the study (7 x 7 x 6 at 40 x 40).
+    data = TelemetryDataConfig(batch_frames=256, val_frames=reach["val_frames"], seed=c.seed, target="s",
+                               target_dm_gain=sim.dm_gain)
+    fitted = fit_from_telemetry([*telemetry, *more], spec, network, plant=plant, data=data,
+                                optimization=OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH))
+    return runtime_filter(fitted.network, spec, plant.dm_gain), {
+        "alpha": fitted.info.get("alpha"), "target": "s", "knowledge": ORACLE_KNOWLEDGE, **reach,
+        "train_frames": reach["sequences"] * c.train_frames}
 
 
-def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c: AntiAliasConfig, seed: int) -> dict:
-    """The LQG (:func:`eofnn.control.modal.lqg_from_pol`: AR model per KL mode, stationary Kalman filter) built
-    from the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain), its AR order (1 or
-    2) chosen in the loop on the scan realisation ``seed``: ``{"controller", "ar_order", "median_rms_nm", "scan"}``."""
-    grid_indices = _grid_indices(sim)
-    built = {order: lqg_from_pol(pol, sim.delay_frames, dm_gain, order, grid_indices=grid_indices)
-             for order in (1, 2)}
-    order, rms, scan = _best_in_loop(sim, {order: TorchControl(lqg, sim.delay_frames) for order, lqg in built.items()},
-                                     c, seed, fallback=2)
-    return {"controller": built[order], "ar_order": order, "median_rms_nm": rms, "scan": scan}
+#: What the oracle knows that no telescope does (said beside its numbers).
+ORACLE_KNOWLEDGE = ("trained on the simulator's truth (the DM's least-squares fit of the true phase, the target the "
+                    "loop must cancel), on more recordings and with more taps and a wider neighbourhood than any "
+                    "contender: simulator knowledge, a ceiling on linear prediction from the measured POL histories, "
+                    "not a contender")
 
 
-#: The frozen-flow memories (:attr:`eofnn.control.config.PfcConfig.alpha`) predictive Fourier control's scan tries:
-#: new turbulence enters a finite pupil, so a Fourier mode forgets its past within about a pupil crossing (``D / v``:
-#: 100 frames for 2 m at 20 m/s and 1 kHz, 400 for 8 m), and the default 0.9999 trusts it far longer (the scan that
-#: chose this grid: ``docs/findings.md``).
-PFC_ALPHAS = (0.98, 0.99, 0.995, 0.998)
-
-
-def scan_pfc(sim, pol: torch.Tensor, plant, c: AntiAliasConfig, seed: int) -> dict:
-    """Predictive Fourier control (:func:`eofnn.studies.pfc.pfc_in_loop`: a Kalman filter per Fourier mode, the
-    winds, noise and per-mode variances from the recorded telemetry's ``(R, T, K)`` POL values) tuned in the loop on
-    the scan realisation ``seed``, as the integrator's gain and the LQG's AR order are: its memory ``alpha`` over
-    :data:`PFC_ALPHAS` without aliases in its state, on past the grid's edge while the best is there
-    (:func:`~eofnn.control.config.alpha_past_edge`), then one ring of aliases at the chosen alpha, then (where the
-    loop exposes its reconstructor) the noise coloured by it, ``R R^T``, at the chosen alpha and aliases:
-    ``{"controller", "alpha", "aliases", "noise_covariance", "median_rms_nm", "scan", "info"}``."""
-    from eofnn.control.config import PfcConfig, alpha_past_edge
-    from eofnn.studies.pfc import pfc_in_loop
-
-    def build(aliases: int, alpha: float, noise: str = "white"):
-        return pfc_in_loop(sim, pol, plant.dm_gain, plant.wfs_noise_nm,
-                           PfcConfig(aliases=aliases, alpha=alpha, noise_covariance=noise))
-
-    built = {alpha: build(0, alpha) for alpha in PFC_ALPHAS}
-    alpha, rms, scan = _best_in_loop(sim, built, c, seed, fallback=PFC_ALPHAS[-1])
-    tried = {float(key): v for key, v in scan.items()}
-    # On past the grid's edge while the best is there, as the integrator's gain scan climbs.
-    while (extra := alpha_past_edge(tried, len(tried) - len(PFC_ALPHAS))) is not None:
-        built[extra] = build(0, extra)
-        tried[extra] = run_closed_loop(sim, built[extra], c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
-        stable = {a: v for a, v in tried.items() if v is not None}
-        alpha = min(stable, key=stable.get) if stable else alpha
-        rms = stable.get(alpha)
-    scan = {f"aliases=0, alpha={key}": v for key, v in tried.items()}
-    with_ring = build(1, alpha)
-    ring = run_closed_loop(sim, with_ring, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
-    scan[f"aliases=1, alpha={alpha:g}"] = ring
-    aliases = 1 if ring is not None and (rms is None or ring < rms) else 0
-    controller, rms = (with_ring, ring) if aliases else (built[alpha], rms)
-    noise = "white"
-    if getattr(sim, "reconstructor", None) is not None:
-        coloured = build(aliases, alpha, "reconstructor")
-        coloured_rms = run_closed_loop(sim, coloured, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
-        scan[f"aliases={aliases}, alpha={alpha:g}, noise=reconstructor"] = coloured_rms
-        if coloured_rms is not None and (rms is None or coloured_rms < rms):
-            controller, rms, noise = coloured, coloured_rms, "reconstructor"
-    info = controller.controller.info or {}
-    return {"controller": controller, "alpha": alpha, "aliases": aliases, "noise_covariance": noise,
-            "median_rms_nm": rms, "scan": scan,
-            "info": {"layers": info.get("layers"), "noise_rms_nm": info.get("noise_rms_nm")}}
-
-
-def _best_in_loop(sim, controls: dict, c: AntiAliasConfig, seed: int, fallback):
-    """Each of ``controls`` (by setting) closed in ``sim``'s loop on the realisation ``seed``: ``(the setting with the
-    lowest median RMS, that RMS, {str(setting): RMS or None if it diverged})``; ``fallback`` and ``None`` when every
-    one diverged."""
-    scan = {setting: run_closed_loop(sim, control, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
-            for setting, control in controls.items()}
-    stable = {setting: v for setting, v in scan.items() if v is not None}
-    best = min(stable, key=stable.get) if stable else fallback
-    return best, stable.get(best), {str(setting): v for setting, v in scan.items()}
+def _best_scored(results: dict) -> str | None:
+    """The classical controller of least mean residual over the scored realisations (``None``: none held)."""
+    held = [n for n in CLASSICAL if n in results and results[n]["mean_of_realisations_nm"] is not None]
+    return min(held, key=lambda n: results[n]["mean_of_realisations_nm"]) if held else None
 
 
 def frozen_flow_hz(sim) -> float:
@@ -377,93 +363,8 @@ def score(sim, control, name: str, seeds: list[int], c: AntiAliasConfig) -> dict
                               for s in contrasts[0]} if finite else None}
 
 
-def best_in_contrast(results: dict, separations: tuple[float, ...]) -> dict[str, str | None]:
-    """Per separation (``"3"``), the classical controller of least mean raw contrast there (``None`` where none held
-    the loop with a contrast): the baseline a contrast gain is taken against, not the one best in variance."""
-    out = {}
-    for s in (f"{s:g}" for s in separations):
-        have = [n for n in CLASSICAL if n in results and (results[n]["mean_contrast"] or {}).get(s) is not None]
-        out[s] = min(have, key=lambda n: results[n]["mean_contrast"][s]) if have else None
-    return out
-
-
-def gains(results: dict, fitting: list[float], separations: tuple[float, ...], against: str,
-          contrast_against: dict[str, str | None] | None = None) -> dict:
-    """Each predictor against the classical controller ``against``: the plain variance (median RMS squared, summed
-    over realisations) and RMS ratios, the variance after fitting (each realisation's fitting error subtracted in
-    quadrature, summed over realisations) and mean raw contrast, as classical over predictor (above 1: the predictor
-    is better), and the paired RMS differences. ``contrast_against``: per separation, the controller the contrast is
-    compared with (:func:`best_in_contrast`; said in ``contrast_against``); unset, ``against``."""
-    out = {}
-    for name in (n for n in results if n not in CLASSICAL):
-        base, mine = results[against], results[name]
-        if mine["mean_of_realisations_nm"] is None or base["mean_of_realisations_nm"] is None:  # one diverged
-            out[name] = None
-            continue
-        var = [sum(r * r - f * f for r, f in zip(run["realisations_median_rms_nm"], fitting, strict=True))
-               for run in (base, mine)]
-        plain = [sum(r * r for r in run["realisations_median_rms_nm"]) for run in (base, mine)]
-        contrast, used = {}, {}
-        for s in (f"{s:g}" for s in separations):
-            other = results.get((contrast_against or {}).get(s) or against)
-            if other is None or other["mean_contrast"] is None or other["mean_contrast"].get(s) is None:
-                continue
-            contrast[s] = other["mean_contrast"][s] / mine["mean_contrast"][s]
-            used[s] = (contrast_against or {}).get(s) or against
-        out[name] = {"variance": plain[0] / plain[1],
-                     "rms": base["mean_of_realisations_nm"] / mine["mean_of_realisations_nm"],
-                     "variance_after_fitting": var[0] / var[1],
-                     "contrast": contrast, "contrast_against": used,
-                     "paired_difference_nm": [a - b for a, b in zip(base["realisations_median_rms_nm"],
-                                                                    mine["realisations_median_rms_nm"], strict=True)]}
-    return out
-
-
-def antialias_markdown(metrics: dict) -> str:
-    """``results.md`` of :func:`run_antialias`: per contender the residual per realisation, its mean and the raw
-    contrast, then the gains over the integrator."""
-    def nm(value):
-        return "diverged" if value is None else f"{value:.1f}"
-
-    seps = [f"{s:g}" for s in metrics["config"]["separations_lod"]]
-    fit = metrics["fitting_error_nm"]
-    lines = [f"# Anti-aliasing EOF inside {metrics['simulator']['simulator']}", "", f"`{metrics.get('command', '')}`", "",
-             f"Fitting error per realisation: {', '.join(f'{v:.1f}' for v in fit)} nm. Integrator gain "
-             f"{metrics['integrator_scan']['gain']} (scanned); deployed by the guard: {metrics['guard']['deployed']}.",
-             "", "| contender | residual per realisation (nm) | mean (nm) | "
-             + " | ".join(f"raw contrast at {s} λ/D" for s in seps) + " |", "|---|---|---|" + "---|" * len(seps)]
-    for name, run in metrics["contenders"].items():
-        contrast = run["mean_contrast"] or {}
-        lines.append(f"| {name} | {', '.join(nm(v) for v in run['realisations_median_rms_nm'])} | "
-                     f"{nm(run['mean_of_realisations_nm'])} | "
-                     + " | ".join("" if contrast.get(s) is None else f"{contrast[s]:.2e}" for s in seps) + " |")
-    lines += psd_bands_markdown(metrics)
-    lqg, pfc = metrics["lqg_scan"], metrics.get("pfc_scan")
-    winds = "" if not pfc else f" PFC: alpha {pfc.get('alpha', 0.9999):g}, {pfc['aliases']} ring(s) of aliases, " \
-        f"{pfc.get('noise_covariance', 'white')} noise " \
-        f"(scan: {pfc['scan']}), layers " + ", ".join(
-        f"{lay['speed_mps']:.1f} m/s at {lay['direction_deg']:.0f}° ({lay['weight']:.0%})"
-        for lay in pfc["identified"]["layers"] or []) + " identified from the telemetry."
-    modal = metrics.get("modal_scan")
-    gains_line = "" if not modal else f" Modal integrator (optimised gains): gain margin {modal['gain_margin']:g} " \
-        f"(scan: {modal['scan']}), gains {modal['info']['gains_quantiles_0_10_50_90_100']} (quantiles 0-10-50-90-100%)."
-    lines += ["", f"LQG: AR order {lqg['ar_order']} (scan: {lqg['scan']}).{winds}{gains_line} Best classical controller, "
-                  f"chosen on the scan realisation: {metrics['best_classical']}."]
-    against_best = () if metrics["best_classical"] == "integrator" else \
-        (("gains_over_best_classical", metrics["best_classical"]),)
-    for key, against in (("gains", "integrator"), *against_best):
-        lines += ["", f"Against the {against} (its residual over the predictor's: above 1, the predictor is better):",
-                  "", "| predictor | variance gain | RMS gain | variance gain after fitting (fitting error of each "
-                  "realisation subtracted in quadrature) | contrast gain (against the classical controller best in "
-                  "contrast at each separation) | paired differences (nm) |", "|---|---|---|---|---|---|"]
-        for name, gain in metrics[key].items():
-            if gain is None:
-                lines.append(f"| {name} | diverged | | | | |")
-                continue
-            against = gain.get("contrast_against", {})
-            lines.append(f"| {name} | {gain.get('variance', math.nan):.2f}x | {gain.get('rms', math.nan):.2f}x | "
-                         f"{gain['variance_after_fitting']:.2f}x | "
-                         + ", ".join(f"{v:.2f}x at {s}" + (f" ({against[s]})" if s in against else "")
-                                     for s, v in gain["contrast"].items()) + " | "
-                         + ", ".join(f"{v:+.1f}" for v in gain["paired_difference_nm"]) + " |")
-    return "\n".join(lines) + "\n"
+# The report's and the classical scans' names, where callers found them before the module was split.
+__all__ = ["CLASSICAL", "CONTENDERS", "NEEDED", "ORACLE", "ORACLE_KNOWLEDGE", "PFC_ALPHAS", "AntiAliasConfig",
+           "PupilContrast", "antialias_markdown", "best_in_contrast", "etas", "fit_eofs", "fit_oracle",
+           "frozen_flow_hz", "gains", "oracle_reach", "record_with_truth", "run_antialias", "scan_lqg", "scan_modal",
+           "scan_pfc", "score"]

@@ -7,9 +7,9 @@
 #   - oopao_aliasing: the error budget (perfect sensor, SH noise-free, SH with photon noise) at 20 x 20 on 4 m
 #     (about 9 min);
 #   - oopao_map: 20 x 20 on 4 m with photon noise only, at 10 and 20 m/s x I = 8 and 10 (four points);
-#   - oopao_aa: the EOF from telemetry and the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin)
-#     against the integrator, the LQG and predictive Fourier control at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
-#     checks beside them (about 4 h of CPU, one thread per run);
+#   - oopao_aa: the EOF from telemetry, the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin) and the oracle
+#     against the integrator, the modal integrator, the LQG and PFC at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
+#     checks beside them (about 5 h of CPU, one thread per run);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -40,9 +40,18 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # frames, every contender scored on 3 realisations of 1000 frames. About 50 min of CPU per 40 x 40 run.
     # One thread: OOPAO's numbers are bit-for-bit only at a fixed thread count, and these were made with one.
     aa() { OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 3 "$@"; }
-    # Both magnitudes also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained).
-    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --eofnn-trained --out experiments/runs/interop/oopao_aa/m8
-    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --eofnn-trained --out experiments/runs/interop/oopao_aa/m10
+    # Both magnitudes with the strengthened classical side (the modal integrator with optimised gains, PFC's memory
+    # scan past its grid's edge and its noise coloured by the reconstructor) and the oracle (trained on OOPAO's truth,
+    # 6 taps, 7 x 7, 12 recordings: about 25 min more per run); each predictor's eta.
+    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --out experiments/runs/interop/oopao_aa/m8
+    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --out experiments/runs/interop/oopao_aa/m10
+    # Both magnitudes also with the anti-aliasing EOF trained in eofnn's own simulation of the system (--eofnn-trained;
+    # the page's were run before the modal integrator, PFC's coloured noise and the oracle, all on the same
+    # realisations as m8 and m10; the twin sections read them).
+    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --eofnn-trained --no-oracle \
+        --out experiments/runs/interop/oopao_aa/m8_eofnn_trained
+    aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --eofnn-trained --no-oracle \
+        --out experiments/runs/interop/oopao_aa/m10_eofnn_trained
     aa --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --wind-direction 30 \
         --out experiments/runs/interop/oopao_aa/m8_dir30
     # At 0 degrees (the direction mapped onto eofnn's) also the anti-aliasing EOF trained in eofnn's own simulation,
@@ -59,7 +68,8 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
         --out experiments/runs/interop/oopao_aa/small_m8_dir0_twin_own
     # The eofnn-trained and the OOPAO-truth-trained filters side by side: their responses to static POL patterns.
     OMP_NUM_THREADS=1 $PY experiments/interop/transfer_diagnostic.py
-    # The eofnn-trained EOF at I = 8 with its twin trained at seeds 1 and 2 (the page's run is seed 0): reads m8's run.
+    # The eofnn-trained EOF at I = 8 with its twin trained at seeds 1 and 2 (the page's run is seed 0): reads m8's run
+    # (its integrator gain and scored realisations).
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_seeds.py 1 2
     # Where the eofnn-trained EOF loses at I = 8: the rim or the interior (offline, and in the loop spliced with the
     # truth-trained filter): reads m8's run.
