@@ -40,7 +40,27 @@ def sensed_turbulence(products: dict[str, torch.Tensor], reconstructor: torch.Te
     return products["slopes"] @ reconstructor.T
 
 
-class ShackHartmannMeasurement:
+class CommandsSent:
+    """The commands acting over a frame, ``y_sent``, as the DM averages them for a fractional delay (``fraction``):
+    what a real-time computer reports in the modes its reconstructor cuts (``(I - P) y_sent``). A measurement that
+    fills those modes derives from it and sets ``fraction``."""
+
+    fraction: float = 0.0
+    _y_previous = None
+
+    def reset(self) -> None:
+        self._y_previous = None
+
+    def sent(self, y: torch.Tensor) -> torch.Tensor:
+        """``y_sent`` of this frame's command ``y`` (the last frame's kept for the next)."""
+        if not self.fraction:
+            return y
+        previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
+        sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
+        return sent
+
+
+class ShackHartmannMeasurement(CommandsSent):
     """The real-time computer's measurement through the Shack-Hartmann (module docstring), a
     :class:`~eofnn.sim.loop.kernel.Measurement`: ``wfs = wfs_gain (R S phi + P DM) + (I - P) y_sent + R n``, ``R``
     the least-squares reconstructor or the MMSE one (then ``R S phi`` is the turbulence the loop is told it
@@ -69,10 +89,6 @@ class ShackHartmannMeasurement:
         self.reconstructor_t = (operators.reconstructor if reconstructor is None else reconstructor).T
         self.gain, self.fraction, self.identity_dm = wfs_gain, fraction, identity_dm
         self.noise_size, self.noisy = operators.sensor.n_slopes, sigma_nm > 0
-        self._y_previous = None
-
-    def reset(self) -> None:
-        self._y_previous = None
 
     def slope_noise(self, unit: torch.Tensor) -> torch.Tensor:
         """``n`` ``(..., 2 n_sub)`` of unit draws (:func:`scaled_slope_noise`)."""
@@ -91,10 +107,7 @@ class ShackHartmannMeasurement:
         wfs = s + dm @ self.projector_t
         if not is_one(self.gain):
             wfs = self.gain * wfs
-        sent = y
-        if self.fraction:  # the commands acting over the frame, as the DM averages them
-            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
-            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
+        sent = self.sent(y)
         wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
         return wfs if noise is None else wfs + noise
 

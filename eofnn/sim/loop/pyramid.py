@@ -32,6 +32,7 @@ from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Atmosphere
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.loop.kernel import is_one
+from eofnn.sim.loop.measurement import CommandsSent
 from eofnn.sim.loop.sensing import ShackHartmannTurbulence
 from eofnn.sim.sensing.sensor import Sensor
 
@@ -57,7 +58,7 @@ def pyramid_operators(grid: ActuatorGrid, config: Pyramid) -> PyramidLoopOperato
     return _OPERATORS[key]
 
 
-class PyramidMeasurement:
+class PyramidMeasurement(CommandsSent):
     """The real-time computer's measurement through the pyramid (module docstring), a
     :class:`~eofnn.sim.loop.kernel.Measurement` whose ``measure`` is given the frame's turbulent phase over the pupil
     ``(batch, n_pupil)`` where the Shack-Hartmann's is given ``s``.
@@ -87,10 +88,6 @@ class PyramidMeasurement:
         self.noisy = self.noise_size > 0
         self.reconstructor_t = operators.reconstructor.T.contiguous()
         self.projector_t = operators.projector.T.contiguous()
-        self._y_previous = None
-
-    def reset(self) -> None:
-        self._y_previous = None
 
     def noise(self, unit: torch.Tensor) -> torch.Tensor:
         """The unit draws themselves: the pixels' are scaled by their photons in :meth:`measure`."""
@@ -114,11 +111,8 @@ class PyramidMeasurement:
         wfs = signals @ self.reconstructor_t
         if not is_one(self.gain):
             wfs = self.gain * wfs
-        sent = y
-        if self.fraction:  # the commands acting over the frame, as the DM averages them
-            previous = torch.zeros_like(y) if self._y_previous is None else self._y_previous
-            sent, self._y_previous = (1 - self.fraction) * y + self.fraction * previous, y
-        wfs = wfs + sent - sent @ self.projector_t
+        sent = self.sent(y)
+        wfs = wfs + sent - sent @ self.projector_t  # the cut modes: what the computer sent there
         if self.sigma_nm > 0:
             wfs = wfs + self.sigma_nm * noise[:, self.n_pixels:]
         return wfs
