@@ -16,10 +16,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
-from benchmarks.common import Row, Timing, fmt_seconds, timed_compare
+from benchmarks.common import Row, Timing, alternate_compares, fmt_seconds
 
 ROOT = Path(__file__).resolve().parent.parent
 #: ``(flagship, baseline)`` configs of the full run and of ``--quick``.
@@ -32,11 +31,7 @@ WALL_GOAL_S = 90.0
 def bench_flagship(repeat: int = 1, quick: bool = False) -> list[Row]:
     """One row: the flagship's wall time against the zonal main job's, alternately, fresh processes."""
     flagship, baseline = CONFIGS[quick]
-    times: dict[str, list[tuple[float, float, float]]] = {"flagship": [], "baseline": []}
-    with tempfile.TemporaryDirectory(prefix="eofnn-bench-flagship-") as tmp:
-        for r in range(repeat):
-            times["baseline"].append(timed_compare(baseline, Path(tmp) / f"baseline{r}"))
-            times["flagship"].append(timed_compare(flagship, Path(tmp) / f"flagship{r}"))
+    times = alternate_compares({"baseline": (baseline, ()), "flagship": (flagship, ())}, repeat)
     wall = {k: [t[0] for t in v] for k, v in times.items()}
     info = {"flagship_config": str(flagship.relative_to(ROOT)), "baseline_config": str(baseline.relative_to(ROOT)),
             "flagship_cpu_s": [t[1] for t in times["flagship"]], "baseline_cpu_s": [t[1] for t in times["baseline"]],

@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
-from benchmarks.common import Row, Timing, fmt_seconds, timed_compare
+from benchmarks.common import Row, Timing, alternate_compares, fmt_seconds
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The pyramid's config of the full run and of ``--quick``; the Shack-Hartmann twin is the same with ``TWIN``.
@@ -32,11 +31,7 @@ GOAL_RATIO = 1 / 3
 def bench_pyramid(repeat: int = 1, quick: bool = False) -> list[Row]:
     """One row: the pyramid job's wall time against its Shack-Hartmann twin's, alternately, fresh processes."""
     config = CONFIGS[quick]
-    times: dict[str, list[tuple[float, float, float]]] = {"pyramid": [], "twin": []}
-    with tempfile.TemporaryDirectory(prefix="eofnn-bench-pyramid-") as tmp:
-        for r in range(repeat):
-            times["twin"].append(timed_compare(config, Path(tmp) / f"twin{r}", TWIN))
-            times["pyramid"].append(timed_compare(config, Path(tmp) / f"pyramid{r}"))
+    times = alternate_compares({"twin": (config, TWIN), "pyramid": (config, ())}, repeat)
     wall = {k: [t[0] for t in v] for k, v in times.items()}
     cpu = {k: [t[1] for t in v] for k, v in times.items()}
     info = {"config": str(config.relative_to(ROOT)), "twin_overrides": " ".join(TWIN),

@@ -15,6 +15,7 @@ import math
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -294,3 +295,14 @@ def timed_compare(config: Path, out: Path, extra: tuple[str, ...] = ()) -> tuple
         raise RuntimeError(f"eofnn compare --config {config} failed ({proc.returncode}): {proc.stderr[-2000:]}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, cpu, after.ru_maxrss / 1024
+
+
+def alternate_compares(jobs: dict[str, tuple[Path, tuple[str, ...]]], repeat: int) -> dict[str, list[tuple]]:
+    """``{name: [(wall s, CPU s, peak MB) per repeat]}`` of ``jobs`` (``name -> (config, extra arguments)``), each a
+    fresh :func:`timed_compare`, run in turn ``repeat`` times so that background load hits every job alike."""
+    times: dict[str, list[tuple]] = {name: [] for name in jobs}
+    with tempfile.TemporaryDirectory(prefix="eofnn-bench-compare-") as tmp:
+        for r in range(repeat):
+            for name, (config, extra) in jobs.items():
+                times[name].append(timed_compare(config, Path(tmp) / f"{name}{r}", extra))
+    return times
