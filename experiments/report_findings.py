@@ -80,7 +80,9 @@ def flagship_row() -> dict | None:
                       f"{contrast['against'].replace('_', ' ')}, best in contrast there",
             "conditions": "8 m, 40 x 40, r0 15 cm at 500 nm, I = 8, 1 kHz, delay 2, 10 and 20 m/s at 30° and 120°; "
                           f"classical side: {', '.join(NAMES.get(c, c) for c in classical)}, each tuned on a stream "
-                          "of its own (PFC left out: its cost at 40 across); no oracle (no η); "
+                          "of its own (PFC left out: its cost at 40 across); the EOFs learn in the very simulation they "
+                          "are scored in, on its true phase (simulator knowledge a telescope lacks: its twin is identified from "
+                          "telemetry, docs/twin.md); no oracle (no η); "
                           f"{len(spread)} realisations of {scored[best]['n_frames']} frames"}
 
 
