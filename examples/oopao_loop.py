@@ -22,6 +22,13 @@ what it cannot (fitting error, aliasing, noise).
     python examples/oopao_loop.py --small --photon-noise --magnitude 10 --wind 10   # photon noise only
     python examples/oopao_loop.py --n-subapertures 40 --diameter 8 --out experiments/runs/interop/oopao
 
+With ``--sensor pyramid`` the same chain runs with OOPAO's modulated pyramid in place of the Shack-Hartmann
+(``--modulation`` in lambda/D, 3 by default; :mod:`eofnn.interop.oopao_pyramid`), noise-free or with
+``--photon-noise``; the DM gain identified is then 2 x the pyramid's optical gain about the loop's residual. The
+studies built on the Shack-Hartmann (``--aliasing``, ``--anti-aliasing``) are refused with it:
+
+    python examples/oopao_loop.py --small --sensor pyramid --modulation 3 --out DIR
+
 With ``--anti-aliasing`` it runs instead the study of :mod:`eofnn.studies.antialias`: the open-loop EOF (5 x 5
 neighbourhood) fitted on telemetry alone and the anti-aliasing EOF fitted on the same telemetry with OOPAO's truth
 (the DM's fit of the true phase) as its target, each run in OOPAO's loop against the best-gain integrator, scored in
@@ -51,6 +58,7 @@ from eofnn.studies.transfer import eofnn_direction, eofnn_trained
 
 def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
     sim = OopaoLoop(args.n_subapertures, args.diameter, sensor=sensor, photon_noise=photon_noise,
+                    modulation_lambda_over_d=args.modulation,
                     magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
                     wind_direction_deg=args.wind_direction, rcond=args.rcond)
     started = time.time()
@@ -77,6 +85,10 @@ def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = example_parser(__doc__.splitlines()[0])
     parser.add_argument("--magnitude", type=float, default=8.0, help="guide star I magnitude (photon noise runs)")
+    parser.add_argument("--sensor", choices=("shack_hartmann", "pyramid"), default="shack_hartmann",
+                        help="OOPAO's diffractive Shack-Hartmann or its modulated pyramid")
+    parser.add_argument("--modulation", type=float, default=3.0,
+                        help="with --sensor pyramid: the modulation radius (lambda/D in I band)")
     parser.add_argument("--aliasing", action="store_true", help="also the perfect-sensor and photon-noise runs")
     parser.add_argument("--photon-noise", action="store_true",
                         help="only the Shack-Hartmann run with photon noise (a point of a wind x magnitude map)")
@@ -114,6 +126,15 @@ def main(argv: list[str] | None = None) -> dict:
                              "it down for larger systems (0.075 at 40 x 40 keeps what 0.15 keeps at 20 x 20)")
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_example(parser, argv)
+    if args.sensor == "pyramid":
+        for flag, on in (("--aliasing", args.aliasing), ("--anti-aliasing", args.anti_aliasing),
+                         ("--eofnn-trained", args.eofnn_trained)):
+            if on:
+                parser.error(f"{flag} is invalid with --sensor pyramid: that study is built on the Shack-Hartmann "
+                             "(its budget and its twin); with the pyramid, run the plain study or --photon-noise")
+    elif args.modulation != 3.0:
+        parser.error(f"--modulation {args.modulation:g} is invalid with --sensor shack_hartmann: only the pyramid is "
+                     "modulated (give --sensor pyramid)")
     if args.photon_noise and args.aliasing and not args.anti_aliasing:
         parser.error("--photon-noise runs only the photon-noise study; --aliasing runs it beside the others: "
                      "give one of them")
@@ -136,10 +157,13 @@ def main(argv: list[str] | None = None) -> dict:
                          scored_realisations=args.realisations)
     except ConfigError as err:
         parser.error(str(err))
-    if args.photon_noise:
-        runs = {"shack_hartmann_photon_noise": study("shack_hartmann", True, args, config)}
-    else:
-        runs = {"shack_hartmann": study("shack_hartmann", False, args, config)}
+    try:
+        if args.photon_noise:
+            runs = {f"{args.sensor}_photon_noise": study(args.sensor, True, args, config)}
+        else:
+            runs = {args.sensor: study(args.sensor, False, args, config)}
+    except ConfigError as err:  # e.g. a modulation the pupil's sampling cannot carry
+        parser.error(str(err))
     if args.aliasing:
         runs["perfect"] = study("perfect", False, args, config)
         runs["shack_hartmann_photon_noise"] = study("shack_hartmann", True, args, config)

@@ -1,4 +1,4 @@
-"""An OOPAO closed loop as an eofnn simulator adapter: Shack-Hartmann (or a perfect, non-aliasing sensor), Fried DM.
+"""An OOPAO closed loop as an eofnn simulator adapter: Shack-Hartmann or pyramid (or a perfect sensor), Fried DM.
 
 OOPAO (https://github.com/cheritie/OOPAO, ``pip install oopao``) is imported only when an :class:`OopaoLoop` is
 made, so ``import eofnn`` never needs it. The system is OOPAO's own objects, built as its tutorials do:
@@ -10,7 +10,9 @@ made, so ``import eofnn`` never needs it. The system is OOPAO's own objects, bui
   ``dm_gain * command`` (a DM that applies ``dm_gain`` times what the controller believes);
 - a diffractive ``ShackHartmann`` (OOPAO's default pixels per subaperture, centre of gravity), photon noise
   on or off; ``sensor="geometric"``: OOPAO's geometric Shack-Hartmann (the mean phase gradient over each lenslet's
-  lit pixels: aliasing without diffraction, pixels or noise); or ``sensor="perfect"``: the least-squares
+  lit pixels: aliasing without diffraction, pixels or noise); ``sensor="pyramid"``: OOPAO's diffractive modulated
+  ``Pyramid`` (``modulation_lambda_over_d``, slopes maps: :mod:`eofnn.interop.oopao_pyramid`), photon noise on or
+  off; or ``sensor="perfect"``: the least-squares
   projection of the residual OPD on the influence functions (no aliasing, no noise), for separating what aliasing
   costs.
 
@@ -21,8 +23,8 @@ atmospheres).
 
 The interaction matrix is OOPAO's (``InteractionMatrix``, one push per actuator), in slopes per nm of command;
 the loop's reconstructor is its truncated pseudo-inverse (singular values below ``rcond`` of the largest dropped:
-piston and waffle, which a Shack-Hartmann does not see), and commands are projected on the seen modes, as an RTC
-filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry records
+piston and waffle, which a Shack-Hartmann does not see; the pyramid's too), and commands are projected on the seen
+modes, as an RTC filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry records
 (``Telemetry.from_slopes(y, slopes, reconstructor=sim.reconstructor)`` forms the same from recorded slopes); the
 residual OPD RMS (nm, piston removed, over the pupil) is OOPAO's ``tel.OPD``.
 """
@@ -39,7 +41,9 @@ from eofnn.interop.loop import check_command
 from eofnn.sim.sensing.least_squares import MECHANICAL_COUPLING, surface_per_command
 from eofnn.validation import Interval, OneOf, check_value
 
-SENSORS = ("shack_hartmann", "geometric", "perfect")
+SENSORS = ("shack_hartmann", "geometric", "pyramid", "perfect")
+#: The sensors with a detector (photon noise) and an optical gain to measure.
+DIFFRACTIVE = ("shack_hartmann", "pyramid")
 
 
 def quiet():
@@ -54,12 +58,13 @@ def _import_oopao():
             from OOPAO.calibration.InteractionMatrix import InteractionMatrix
             from OOPAO.DeformableMirror import DeformableMirror
             from OOPAO.OPD_map import OPD_map
+            from OOPAO.Pyramid import Pyramid
             from OOPAO.ShackHartmann import ShackHartmann
             from OOPAO.Source import Source
             from OOPAO.Telescope import Telescope
     except ImportError as err:
         raise ConfigError(f"the OOPAO adapter needs OOPAO ({err}): pip install 'eofnn[interop]'") from None
-    return Atmosphere, InteractionMatrix, DeformableMirror, OPD_map, ShackHartmann, Source, Telescope
+    return Atmosphere, InteractionMatrix, DeformableMirror, OPD_map, (ShackHartmann, Pyramid), Source, Telescope
 
 
 class OopaoLoop:
@@ -68,16 +73,19 @@ class OopaoLoop:
     Parameters
     ----------
     n_subapertures : int
-        Shack-Hartmann subapertures across the pupil (the DM has one more actuator across).
+        Shack-Hartmann subapertures (the pyramid's pixels) across the pupil (the DM has one more actuator across).
     diameter_m : float
         Telescope diameter (m).
     pupil_pixels_per_subaperture : int
-        Pupil sampling: OPD pixels per subaperture (also the SH's pixels per subaperture, OOPAO's default).
-    sensor : {"shack_hartmann", "geometric", "perfect"}
-        OOPAO's diffractive Shack-Hartmann, its geometric one, or the least-squares projection of the residual on
-        the DM.
+        Pupil sampling: OPD pixels per subaperture (also the SH's pixels per subaperture, OOPAO's default; the
+        pyramid's pupil points per detector pixel).
+    sensor : {"shack_hartmann", "geometric", "pyramid", "perfect"}
+        OOPAO's diffractive Shack-Hartmann, its geometric one, its modulated pyramid, or the least-squares
+        projection of the residual on the DM.
+    modulation_lambda_over_d : float
+        The pyramid's modulation radius (``lambda / D`` in I band; ``sensor="pyramid"`` only).
     photon_noise : bool
-        Photon noise on the SH detector (flux from ``magnitude``; the diffractive SH only).
+        Photon noise on the detector (flux from ``magnitude``; the diffractive SH and the pyramid only).
     magnitude : float
         Guide star I magnitude.
     r0_m, outer_scale_m, wind_speed_mps, wind_direction_deg : float
@@ -98,26 +106,31 @@ class OopaoLoop:
     name = "oopao"
 
     def __init__(self, n_subapertures: int = 10, diameter_m: float = 2.0, *, pupil_pixels_per_subaperture: int = 4,
-                 sensor: str = "shack_hartmann", photon_noise: bool = False, magnitude: float = 8.0,
-                 r0_m: float = 0.15, outer_scale_m: float = 25.0, wind_speed_mps: float = 10.0,
+                 sensor: str = "shack_hartmann", modulation_lambda_over_d: float = 3.0, photon_noise: bool = False,
+                 magnitude: float = 8.0, r0_m: float = 0.15, outer_scale_m: float = 25.0, wind_speed_mps: float = 10.0,
                  wind_direction_deg: float = 0.0, frame_rate_hz: float = 1000.0, delay_frames: int = 2,
                  dm_gain: float = 1.0, rcond: float = 0.15, opd_source=None) -> None:
         check_value("n_subapertures", n_subapertures, Interval(2, 200, integer=True))
         check_value("diameter_m", diameter_m, Interval(0, 100, closed="right", unit="m"))
         check_value("pupil_pixels_per_subaperture", pupil_pixels_per_subaperture, Interval(2, 32, integer=True))
         check_value("sensor", sensor, OneOf(SENSORS))
+        if sensor == "pyramid":
+            check_value("modulation_lambda_over_d", modulation_lambda_over_d,
+                        Interval(0, pupil_pixels_per_subaperture * n_subapertures / 2 - 1, unit="lambda/D (at most "
+                                 "half the pupil's pixels across less one)"))
         check_value("delay_frames", delay_frames, Interval(1, 100, integer=True, unit="frames"))
         check_value("dm_gain", dm_gain, Interval(0, 100, closed="right"))
         check_value("rcond", rcond, Interval(0, 1, closed="neither"))
-        if photon_noise and sensor != "shack_hartmann":
+        if photon_noise and sensor not in DIFFRACTIVE:
             raise ConfigError(f"photon_noise=True is invalid with sensor={sensor!r}: only the diffractive "
-                              "Shack-Hartmann ('shack_hartmann') has a detector")
+                              "Shack-Hartmann ('shack_hartmann') and the pyramid ('pyramid') have a detector")
         if opd_source is not None and not callable(opd_source):
             raise ConfigError(f"opd_source={opd_source!r} is invalid: it must be a function of the seed that yields "
                               "OPD maps (nm), or None for OOPAO's atmosphere")
         self._opd_source, self._opd_frames, self._opd_nm = opd_source, None, None
         self.settings = {"n_subapertures": n_subapertures, "diameter_m": diameter_m,
                          "pupil_pixels_per_subaperture": pupil_pixels_per_subaperture, "sensor": sensor,
+                         **({"modulation_lambda_over_d": modulation_lambda_over_d} if sensor == "pyramid" else {}),
                          "photon_noise": bool(photon_noise), "magnitude": magnitude, "r0_m": r0_m,
                          "outer_scale_m": outer_scale_m, "wind_speed_mps": wind_speed_mps,
                          "wind_direction_deg": wind_direction_deg, "frame_rate_hz": frame_rate_hz,
@@ -127,8 +140,7 @@ class OopaoLoop:
         self._build(*_import_oopao())
         self._calibrate(rcond)
 
-    def _build(self, Atmosphere, InteractionMatrix, DeformableMirror, OPD_map, ShackHartmann, Source,
-               Telescope) -> None:
+    def _build(self, Atmosphere, InteractionMatrix, DeformableMirror, OPD_map, sensors, Source, Telescope) -> None:
         s, n = self.settings, self.settings["n_subapertures"]
         self._InteractionMatrix = InteractionMatrix
         with quiet():
@@ -141,8 +153,13 @@ class OopaoLoop:
                                   windDirection=[s["wind_direction_deg"]], altitude=[0.0])
             self.atm.initializeAtmosphere(self.tel)
             self.dm = DeformableMirror(telescope=self.tel, nSubap=n, mechCoupling=MECHANICAL_COUPLING, print_dm_properties=False)
-            self.wfs = ShackHartmann(nSubap=n, telescope=self.tel, lightRatio=0.5,
-                                     is_geometric=s["sensor"] == "geometric")
+            if s["sensor"] == "pyramid":
+                from eofnn.interop.oopao_pyramid import build_pyramid
+
+                self.wfs = build_pyramid(sensors[1], self.tel, n, s["modulation_lambda_over_d"])
+            else:
+                self.wfs = sensors[0](nSubap=n, telescope=self.tel, lightRatio=0.5,
+                                      is_geometric=s["sensor"] == "geometric")
             self.ngs * self.tel * self.wfs
         self._opd_map = OPD_map(np.zeros((self.tel.resolution, self.tel.resolution)))
         self.positions_m = np.asarray(self.dm.coordinates, dtype=np.float64)
@@ -195,11 +212,13 @@ class OopaoLoop:
         return None if self.photon_noise else 0.0
 
     @property
-    def n_pixels_per_subaperture(self) -> int:
-        return int(self.wfs.n_pix_subap)
+    def n_pixels_per_subaperture(self) -> int | None:
+        """The SH's detector pixels per subaperture across (``None`` for the pyramid: one pixel per subaperture)."""
+        return None if self.sensor == "pyramid" else int(self.wfs.n_pix_subap)
 
     def describe(self) -> dict:
-        kind = "geometric Shack-Hartmann" if self.sensor == "geometric" else "Shack-Hartmann"
+        kind = {"geometric": "geometric Shack-Hartmann", "pyramid": "modulated pyramid"}.get(self.sensor,
+                                                                                               "Shack-Hartmann")
         measured = (f"wfs = R @ slopes: OOPAO {kind} slopes through the truncated pseudo-inverse of OOPAO's "
                     f"interaction matrix ({self.n_seen} of {self.n_actuators} modes)" if self.sensor != "perfect"
                     else "wfs = least-squares projection of the residual OPD on the DM (no aliasing)")
@@ -264,7 +283,7 @@ class OopaoLoop:
         return self.reconstructor @ self.slopes(), residual
 
     def slopes(self) -> np.ndarray:
-        """The SH slopes of the last frame (OOPAO's ``wfs.signal``)."""
+        """The sensor's signals of the last frame (OOPAO's ``wfs.signal``: SH slopes, pyramid slopes maps)."""
         return np.asarray(self.wfs.signal, dtype=np.float64)
 
     def turbulence_opd_nm(self) -> np.ndarray:
@@ -290,7 +309,7 @@ class OopaoLoop:
         return self._pupil
 
     def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray) -> float:
-        """The Shack-Hartmann's optical gain on the current turbulence: the response ``R @ slopes`` to a small DM
+        """The sensor's optical gain on the current turbulence: the response ``R @ slopes`` to a small DM
         ``probe_nm`` added to ``command_nm`` (push-pull, same frame), projected on the probe; 1 for a linear
         sensor. Telemetry only ever sees ``dm_gain`` times this (:mod:`eofnn.training.identify`)."""
         probe = self.project(check_command(probe_nm, self.n_actuators, "probe"))
@@ -322,7 +341,7 @@ def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5, star
 
 def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *, dither_nm: float = 0.0,
                         probe_nm: float = 5.0, every: int = 10, settle_frames: int = 100) -> dict:
-    """The Shack-Hartmann's optical gain in ``sim``'s integrator loop (gain ``gain``, plus ``dither_nm`` of white
+    """The sensor's optical gain in ``sim``'s integrator loop (gain ``gain``, plus ``dither_nm`` of white
     dither as when recording telemetry, since the gain depends on the residual): every ``every`` frames after
     ``settle_frames``, a random probe of ``probe_nm`` RMS per actuator is pushed and pulled on that frame's
     residual. Returns ``{"mean", "se", "n_probes"}``: what the identified DM gain should equal, divided by

@@ -1,0 +1,82 @@
+"""OOPAO's pyramid through the adapter (``OopaoLoop(sensor="pyramid")``, eofnn/interop/oopao_pyramid.py) and against
+eofnn's pyramid on the same 8 x 8 system (eofnn/studies/pyramid_compare.py, experiments/pyramid/vs_oopao.py --loop)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("OOPAO")
+
+from eofnn.errors import ConfigError  # noqa: E402
+from eofnn.interop.loop import IntegratorControl, run_closed_loop  # noqa: E402
+from eofnn.studies.pyramid_compare import PyramidSystem, response_ratios, response_with_oopaos_dm  # noqa: E402
+
+SYSTEM = PyramidSystem(n_subapertures=8, diameter_m=2.0)
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
+
+
+@pytest.fixture(scope="module")
+def built():
+    sensor = SYSTEM.eofnn_scenario(200).turbulence(0, "test", 1).operators.sensor
+    return sensor, SYSTEM.oopao(200)
+
+
+def test_the_interaction_matrices_respond_alike_per_kl_mode(built):
+    """Per KL command mode, eofnn's pyramid responds as OOPAO's within 10% (median within 5%), and within 1% when
+    given OOPAO's own DM surfaces: what is left apart is the DM (OOPAO's influence functions on stretched pixels),
+    not the sensor or the units (both in signal per nm of command)."""
+    sensor, sim = built
+    response = response_ratios(sensor, sim, 100)
+    ratio = np.asarray(response["ratio"])
+    assert response["modes"] == sim.n_actuators - 1 == 68
+    assert response["valid_pixels"]["eofnn"] == response["valid_pixels"]["oopao"]
+    assert abs(np.median(ratio) - 1) < 0.05 and np.abs(ratio[:40] - 1).max() < 0.15
+    same_dm = np.asarray(response_with_oopaos_dm(sensor, sim, 100))
+    assert np.abs(same_dm - 1).max() < 0.01
+
+
+def test_oopaos_pyramid_closes_the_loop_through_the_adapter(built):
+    """The adapter's pyramid: slopes maps of OOPAO's Pyramid, a reconstructor that keeps what the relative cut
+    keeps, an integrator loop that corrects (its residual well below the turbulence's), and an optical gain
+    below 1 about the closed-loop residual."""
+    _, sim = built
+    described = sim.describe()
+    assert described["sensor"] == "pyramid" and described["modulation_lambda_over_d"] == 3.0
+    assert "modulated pyramid" in described["measurement"] and described["sh_pixels_per_subaperture"] is None
+    assert described["n_slopes"] == 2 * int(sim.wfs.validI4Q.sum())  # s_x and s_y on each valid pixel
+    record = run_closed_loop(sim, IntegratorControl(0.5), 150, 3)
+    assert record.metrics(60).median_rms_nm < 0.5 * record.residual_rms_nm[0]
+    gain = sim.sensor_gain(record.y[-1], 5.0 * np.random.default_rng(0).standard_normal(sim.n_actuators))
+    assert 0.3 < gain < 1.0
+
+
+def test_bad_pyramid_settings_are_refused_in_one_line():
+    from eofnn.interop.oopao import OopaoLoop
+
+    with pytest.raises(ConfigError, match=r"^modulation_lambda_over_d=9 is invalid: it must be .*7"):
+        OopaoLoop(8, 2.0, pupil_pixels_per_subaperture=2, sensor="pyramid", modulation_lambda_over_d=9)
+    with pytest.raises(ConfigError, match=r"photon_noise=True is invalid with sensor='geometric'.*'pyramid'"):
+        OopaoLoop(8, 2.0, sensor="geometric", photon_noise=True)
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("argv, said", [
+    (["--small", "--sensor", "pyramid", "--aliasing"], ("--aliasing is invalid with --sensor pyramid",)),
+    (["--small", "--sensor", "pyramid", "--anti-aliasing"], ("--anti-aliasing is invalid with --sensor pyramid",)),
+    (["--small", "--modulation", "4"], ("--modulation 4 is invalid with --sensor shack_hartmann",)),
+    (["--small", "--sensor", "pyramid", "--modulation", "30", "--frames", "1000"],
+     ("modulation_lambda_over_d=30.0 is invalid",)),
+])
+def test_the_examples_pyramid_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):
+    spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    with pytest.raises(SystemExit) as exit_:
+        example.main(argv)
+    assert exit_.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert all(part in error for part in said), error
