@@ -1,5 +1,13 @@
 """eofnn's pyramid (eofnn/sim/sensing/pyramid.py) against OOPAO's (``OOPAO.Pyramid``) on the same system.
 
+With ``--loop`` it compares instead the two closed loops on one system built alike (the interaction matrices per KL
+mode, the best-gain integrators, the optical gains on their residuals: experiments/pyramid/vs_oopao_loop.py)::
+
+    PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/vs_oopao.py --loop \
+        --out experiments/pyramid/vs_oopao.json --md experiments/pyramid/vs_oopao.md
+
+Without it, the same phase maps through both sensors:
+
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/vs_oopao.py --n-subapertures 20 \
         --residual-nm 50 100 200 --out experiments/runs/pyramid/vs_oopao.json --summary experiments/pyramid/summary.json
 
@@ -64,6 +72,12 @@ def oopao_signals(wfs, phase_rad: np.ndarray) -> np.ndarray:
 
 
 def main(argv=None) -> dict:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--loop" in argv:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from vs_oopao_loop import loop_main
+
+        return loop_main([a for a in argv if a != "--loop"])
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n-subapertures", type=int, default=16)
     parser.add_argument("--samples-per-pixel", type=int, default=2)
