@@ -13,6 +13,7 @@ pytest.importorskip("OOPAO")
 
 from eofnn.errors import ConfigError  # noqa: E402
 from eofnn.interop.loop import IntegratorControl, run_closed_loop  # noqa: E402
+from eofnn.interop.oopao_pyramid import gain_sensing_camera_gains, probe_optical_gains  # noqa: E402
 from eofnn.studies.pyramid_compare import PyramidSystem, response_ratios, response_with_oopaos_dm  # noqa: E402
 
 SYSTEM = PyramidSystem(n_subapertures=8, diameter_m=2.0)
@@ -41,17 +42,31 @@ def test_the_interaction_matrices_respond_alike_per_kl_mode(built):
 
 def test_oopaos_pyramid_closes_the_loop_through_the_adapter(built):
     """The adapter's pyramid: slopes maps of OOPAO's Pyramid, a reconstructor that keeps what the relative cut
-    keeps, an integrator loop that corrects (its residual well below the turbulence's), and an optical gain
-    below 1 about the closed-loop residual."""
+    keeps, an integrator loop that corrects (its residual well below the turbulence's), and optical gains below 1
+    about the closed-loop residual (of a random probe; per mode, probed and by OOPAO's gain-sensing camera)."""
     _, sim = built
     described = sim.describe()
     assert described["sensor"] == "pyramid" and described["modulation_lambda_over_d"] == 3.0
     assert "modulated pyramid" in described["measurement"] and described["sh_pixels_per_subaperture"] is None
     assert described["n_slopes"] == 2 * int(sim.wfs.validI4Q.sum())  # s_x and s_y on each valid pixel
-    record = run_closed_loop(sim, IntegratorControl(0.5), 150, 3)
+    maps = []
+
+    def keep(n, sim):
+        if n in (120, 149):
+            residual = np.zeros(sim.pupil_mask.shape)
+            residual[sim.pupil_mask] = sim.residual_opd_nm()
+            maps.append(residual)
+
+    record = run_closed_loop(sim, IntegratorControl(0.5), 150, 3, observers=(keep,))
     assert record.metrics(60).median_rms_nm < 0.5 * record.residual_rms_nm[0]
     gain = sim.sensor_gain(record.y[-1], 5.0 * np.random.default_rng(0).standard_normal(sim.n_actuators))
     assert 0.3 < gain < 1.0
+    # per mode about the residual maps: push-pull probes and OOPAO's gain-sensing camera (a model) agree
+    modes = sim.controlled_modes[:, :10]
+    probed = probe_optical_gains(sim, modes, np.asarray(maps)).mean(0)
+    modelled = gain_sensing_camera_gains(sim, modes, np.asarray(maps)).mean(0)
+    assert ((0.3 < probed) & (probed < 1.0)).all()
+    assert np.abs(modelled / probed - 1).max() < 0.1
 
 
 def test_bad_pyramid_settings_are_refused_in_one_line():

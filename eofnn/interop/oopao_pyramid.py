@@ -69,3 +69,32 @@ def probe_optical_gains(sim, commands: np.ndarray, residuals_nm: np.ndarray, amp
     finally:
         sim.wfs.cam.photonNoise = noise
     return np.asarray(gains)
+
+
+def gain_sensing_camera_gains(sim, commands: np.ndarray, residuals_nm: np.ndarray) -> np.ndarray:
+    """Optical gains ``(R, M)`` of the same modes by OOPAO's ``GainSensingCamera`` (the convolutional model of
+    Chambouleyron et al. 2021 on the modulated focal-plane image, not a push-pull): calibrated on the focal plane
+    about a flat wavefront, then read about each residual map (nm), as OOPAO's docstring does it, the light given
+    to the pyramid as a phase (``wfs_measure``)."""
+    from OOPAO.GainSensingCamera import GainSensingCamera
+
+    wfs, res = sim.wfs, sim.tel.resolution
+    to_rad = 2 * np.pi / (float(sim.ngs.wavelength) * 1e9)
+    influence = np.asarray(sim.dm.modes, dtype=np.float64)
+    basis = (influence @ np.asarray(commands, dtype=np.float64)).reshape(res, res, -1)
+    basis *= np.asarray(sim.tel.pupil, dtype=np.float64)[..., None]
+    noise, wfs.cam.photonNoise = wfs.cam.photonNoise, False
+    gains = []
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            wfs.compute_focal_plane = True
+            wfs.focal_plane_camera.resolution = wfs.nRes
+            camera = GainSensingCamera(wfs.mask, basis, n_jobs=1)
+            for phase in [np.zeros((res, res)), *(np.asarray(r, dtype=np.float64) * to_rad for r in residuals_nm)]:
+                wfs.wfs_measure(phase_in=phase)
+                wfs * wfs.focal_plane_camera
+                wfs.focal_plane_camera * camera  # the first: its calibration
+                gains.append(np.array(camera.og, dtype=np.float64))
+    finally:
+        wfs.cam.photonNoise = noise
+    return np.asarray(gains[1:])

@@ -24,7 +24,7 @@ over OOPAO's, the modes of :func:`~eofnn.sim.sensing.optical_gains.kl_modes` map
 by position), each best-gain integrator's median residual over its pupil, and the optical gains of the same modes
 about each loop's own residual (eofnn's :class:`~eofnn.sim.sensing.optical_gains.OpticalGainProbe`; OOPAO's pyramid
 probed by the same method, :func:`~eofnn.interop.oopao_pyramid.probe_optical_gains`) and, crossed, about the other
-loop's residual.
+loop's residual; beside them OOPAO's ``GainSensingCamera`` about OOPAO's residuals (its convolutional model).
 """
 
 from __future__ import annotations
@@ -213,7 +213,7 @@ def compare(system: PyramidSystem, gains, frames: int, settle_frames: int, reali
 
     from eofnn.control.baselines import Integrator
     from eofnn.interop.loop import IntegratorControl, run_closed_loop
-    from eofnn.interop.oopao_pyramid import probe_optical_gains
+    from eofnn.interop.oopao_pyramid import gain_sensing_camera_gains, probe_optical_gains
     from eofnn.sim.sensing.optical_gains import OpticalGainProbe, kl_modes, optical_gains
 
     started = time.time()
@@ -276,6 +276,7 @@ def compare(system: PyramidSystem, gains, frames: int, settle_frames: int, reali
         "eofnn_sensor_eofnn_loop": ours_own["gains"],
         "oopao_sensor_oopao_loop": probe_optical_gains(sim, modes[order], theirs_maps).mean(0).tolist(),
         "eofnn_sensor_oopao_loop": optical_gains(sensor, shapes, own_pupil).mean(0).tolist(),
-        "oopao_sensor_eofnn_loop": probe_optical_gains(sim, modes[order], full).mean(0).tolist()}
+        "oopao_sensor_eofnn_loop": probe_optical_gains(sim, modes[order], full).mean(0).tolist(),
+        "oopao_gain_sensing_camera_oopao_loop": gain_sensing_camera_gains(sim, modes[order], theirs_maps).mean(0).tolist()}
     out["seconds"] = round(time.time() - started, 1)
     return out

@@ -65,7 +65,7 @@ def summary(out: dict) -> dict:
     """The agreement against each goal."""
     ratio = np.asarray(out["response"]["ratio"])
     same_dm = np.asarray(out["response"]["ratio_with_oopaos_dm"])
-    og = {k: np.asarray(v) for k, v in out["optical_gains"].items() if k.endswith("_loop") and "sensor" in k}
+    og = {k: np.asarray(v) for k, v in out["optical_gains"].items() if k.endswith("_loop")}
     own = og["eofnn_sensor_eofnn_loop"] / og["oopao_sensor_oopao_loop"]
     same_residual = og["eofnn_sensor_oopao_loop"] / og["oopao_sensor_oopao_loop"]
     best = out["integrator"]["best"]
@@ -79,6 +79,9 @@ def summary(out: dict) -> dict:
         "optical_gain_ratio_own_loops_range": [float(own.min()), float(own.max())],
         "optical_gain_ratio_own_loops_median": float(np.median(own)),
         "optical_gain_ratio_same_residual_range": [float(same_residual.min()), float(same_residual.max())],
+        "optical_gain_ratio_eofnn_probe_over_oopao_gsc_range": [
+            float((v := og["eofnn_sensor_eofnn_loop"] / og["oopao_gain_sensing_camera_oopao_loop"]).min()),
+            float(v.max())],
         "residual_ratio": float(residual),
         "fitting_error_ratio": fit["eofnn"] / fit["oopao"],
         "goals_met": {"response": bool(np.abs(ratio - 1).max() <= GOALS["response"]),
@@ -119,6 +122,10 @@ def markdown(out: dict) -> str:
         f"| the same, both sensors about OOPAO's residuals | {means['eofnn_sensor_oopao_loop']:.3f} | "
         f"{means['oopao_sensor_oopao_loop']:.3f} | per mode {sm['optical_gain_ratio_same_residual_range'][0]:.3f}-"
         f"{sm['optical_gain_ratio_same_residual_range'][1]:.3f} | |",
+        f"| OOPAO's GainSensingCamera about OOPAO's residuals (eofnn: its probe about its own) | "
+        f"{means['eofnn_sensor_eofnn_loop']:.3f} | {means['oopao_gain_sensing_camera_oopao_loop']:.3f} | per mode "
+        f"{sm['optical_gain_ratio_eofnn_probe_over_oopao_gsc_range'][0]:.3f}-"
+        f"{sm['optical_gain_ratio_eofnn_probe_over_oopao_gsc_range'][1]:.3f} | |",
         f"| residual RMS of the probed frames (nm) | {og['residual_rms_nm']['eofnn_loop']:.1f} | "
         f"{og['residual_rms_nm']['oopao_loop']:.1f} | | |",
         f"| best-gain integrator, median residual over the pupil (nm; gain) | {best['eofnn']['median_rms_nm']:.1f} "
