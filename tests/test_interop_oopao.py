@@ -100,8 +100,9 @@ def test_mismatched_sizes_are_refused_with_one_line(sim):
     with pytest.raises(ConfigError, match="the filter has 50 actuators but the simulator has 101") as err:
         run_closed_loop(sim, FilterControl(small), 10, 0)
     assert "\n" not in str(err.value)
-    with pytest.raises(ConfigError, match="sensor='pyramid' is invalid"):
-        OopaoLoop(10, 2.0, sensor="pyramid")
+    with pytest.raises(ConfigError, match="sensor='curvature' is invalid: it must be one of shack_hartmann, geometric, "
+                                          "pyramid, perfect"):
+        OopaoLoop(10, 2.0, sensor="curvature")
 
 
 def test_a_diverging_integrator_is_cut_where_it_diverged(sim):
