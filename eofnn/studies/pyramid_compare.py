@@ -204,15 +204,16 @@ def _oopao_residuals(sim, frames: list[int]):
 def compare(system: PyramidSystem, gains, frames: int, settle_frames: int, realisations: int, seed: int,
             n_modes: int = 100, n_gain_modes: int = 50, probe_frames: int = 6, progress=print) -> dict:
     """Every number of the comparison (module docstring): the responses per mode, each loop's integrator at every
-    gain of ``gains`` on ``realisations`` realisations of ``frames`` (median residual over the pupil after
-    ``settle_frames``), and the optical gains of the first ``n_gain_modes`` KL modes about ``probe_frames`` settled
-    residuals of each best-gain loop, each sensor about its own loop's residuals and about the other's."""
+    gain of ``gains`` (and past its top, by the grid's last step, while the top is either loop's best) on
+    ``realisations`` realisations of ``frames`` (median residual over the pupil after ``settle_frames``), and the
+    optical gains of the first ``n_gain_modes`` KL modes about ``probe_frames`` settled residuals of each best-gain
+    loop, each sensor about its own loop's residuals and about the other's."""
     import time
 
     import torch
 
     from eofnn.control.baselines import Integrator
-    from eofnn.interop.loop import IntegratorControl, run_closed_loop
+    from eofnn.interop.loop import MAX_EXTRA_GAINS, IntegratorControl, run_closed_loop
     from eofnn.interop.oopao_pyramid import gain_sensing_camera_gains, probe_optical_gains
     from eofnn.sim.sensing.optical_gains import OpticalGainProbe, kl_modes, optical_gains
 
@@ -231,14 +232,24 @@ def compare(system: PyramidSystem, gains, frames: int, settle_frames: int, reali
     out["response"]["ratio_with_oopaos_dm"] = response_with_oopaos_dm(sensor, sim, n_modes)
     seeds = [seed + r for r in range(realisations)]
     scan = {"eofnn": {}, "oopao": {}}
-    for g in gains:
-        g = float(g)
+
+    def run(g: float) -> None:
         scan["eofnn"][g] = scenario.median_residual_nm(Integrator(g), frames, seed, "test", settle_frames,
                                                        realisations=realisations)
         medians = [run_closed_loop(sim, IntegratorControl(g), frames, s).metrics(settle_frames).median_rms_nm
                    for s in seeds]
         scan["oopao"][g] = None if None in medians else float(np.mean(medians))
         progress(f"[{time.time() - started:.0f} s] gain {g:g}: eofnn {scan['eofnn'][g]}, OOPAO {scan['oopao'][g]} nm")
+
+    for g in gains:
+        run(float(g))
+    step = sorted(scan["eofnn"])[-1] - sorted(scan["eofnn"])[-2] if len(gains) > 1 else 0.1
+    for _ in range(MAX_EXTRA_GAINS):  # climb past the grid's top while it is the best of either loop
+        top = max(scan["eofnn"])
+        if not any(values[top] is not None and values[top] == min(v for v in values.values() if v is not None)
+                   for values in scan.values()):
+            break
+        run(round(top + step, 6))
     best = {}
     for code, values in scan.items():
         stable = {g: v for g, v in values.items() if v is not None}
