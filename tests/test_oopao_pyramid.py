@@ -13,7 +13,7 @@ pytest.importorskip("OOPAO")
 
 from eofnn.errors import ConfigError  # noqa: E402
 from eofnn.interop.loop import IntegratorControl, run_closed_loop  # noqa: E402
-from eofnn.interop.oopao_pyramid import gain_sensing_camera_gains, probe_optical_gains  # noqa: E402
+from eofnn.interop.oopao_pyramid import gain_sensing_camera_gains, probe_optical_gains, pyramid_signals  # noqa: E402
 from eofnn.studies.pyramid_compare import PyramidSystem, response_ratios, response_with_oopaos_dm  # noqa: E402
 
 SYSTEM = PyramidSystem(n_subapertures=8, diameter_m=2.0)
@@ -67,6 +67,23 @@ def test_oopaos_pyramid_closes_the_loop_through_the_adapter(built):
     modelled = gain_sensing_camera_gains(sim, modes, np.asarray(maps)).mean(0)
     assert ((0.3 < probed) & (probed < 1.0)).all()
     assert np.abs(modelled / probed - 1).max() < 0.1
+
+
+def test_photon_noise_reaches_the_pyramids_detector(built):
+    """With the adapter's photon noise on (``reset`` sets the detector), two reads of the same phase differ; off,
+    they are the same."""
+    _, sim = built
+    flat = np.zeros((2, sim.tel.resolution, sim.tel.resolution))
+    try:
+        sim.photon_noise = True
+        sim.reset(1)
+        noisy = pyramid_signals(sim.wfs, flat)
+    finally:
+        sim.photon_noise = False
+        sim.reset(1)
+    quiet = pyramid_signals(sim.wfs, flat)
+    assert np.abs(noisy[0] - noisy[1]).max() > 1e-3
+    assert np.abs(quiet[0] - quiet[1]).max() < 1e-12
 
 
 def test_bad_pyramid_settings_are_refused_in_one_line():
