@@ -1,5 +1,6 @@
 """A pyramid's optical gains compensated per mode in the loop (``sensor.optical_gain_compensation``,
-:mod:`eofnn.sim.loop.optical_gain_compensation`), and the error budget through a pyramid (:mod:`eofnn.evaluation.budget`).
+:mod:`eofnn.sim.loop.optical_gain_compensation`), and the error budget through a pyramid
+(:mod:`eofnn.evaluation.budget`).
 
 A small, strongly non-linear case: 4 m, 10 actuators across, r0 = 15 cm at 500 nm, one 10 m/s layer, modulation
 2 lambda/D: about the integrator's residual (~190 nm over the pupil) the pyramid's optical gains are about 0.45.
@@ -69,7 +70,8 @@ def test_the_switch_round_trips_and_is_left_out_when_off():
 def test_compensation_restores_the_integrators_per_mode_gain_and_does_not_worsen_its_residual(runs):
     """Uncompensated, the integrator's effective gain per mode is the optical gain (measured 0.42 on average);
     compensated, the optical gains about its residual divided by those the loop divides by are 1 within 15% at low
-    and at high orders (measured 0.99, 1.00), and its residual is no worse (measured 188 nm against 191 nm)."""
+    and at high orders (measured 0.95, 0.97; calibrated gains 0.47 on average), and its residual is no worse
+    (measured 188 nm against 191 nm)."""
     off, on = runs["off"]["gains"], runs["on"]["gains"]
     assert off["low_order_mean"] < 0.8 and off["high_order_mean"] < 0.8
     assert "effective_gains" not in off

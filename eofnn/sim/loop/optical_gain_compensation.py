@@ -4,11 +4,11 @@ About a closed loop's residual the pyramid's response to mode ``m`` is ``g_m`` t
 wavefront (:mod:`eofnn.sim.sensing.optical_gains`): every controller sees a loop gain lowered per mode. The
 compensation measures the ``g_m`` once per scenario and plant, and divides the reconstruction by them:
 
-- **calibration**: a closed loop of its own (stream ``optical_gains``, one realisation, :data:`CALIBRATION_FRAMES`
-  frames) with a leak-free integrator of gain :data:`CALIBRATION_GAIN`, uncompensated, through the scenario's own
-  plant and pyramid (noise included); the residual over the pupil at :data:`CALIBRATION_PROBES` frames spread over
-  its second half; about each, the push-pull gains of the Karhunen-Loeve command modes (the first as many as the
-  reconstructor keeps modes: those it sees), averaged;
+- **calibration**: a closed loop of its own (stream ``optical_gains``, seed 0, one realisation,
+  :data:`CALIBRATION_FRAMES` frames) with a leak-free integrator of gain :data:`CALIBRATION_GAIN`, uncompensated,
+  through the scenario's own plant and pyramid (noise included); the residual over the pupil at
+  :data:`CALIBRATION_PROBES` frames spread over its second half; about each, the push-pull gains of the
+  Karhunen-Loeve command modes (the first as many as the reconstructor keeps modes: those it sees), averaged;
 - **compensation**: ``C = I + M diag(1 / g - 1) M^T`` (``M`` the orthonormal modes), the reconstructor becoming
   ``C R``: the measurement every controller reads in the loop's kernel is ``C R s(phi + IF u)``; the modes the
   reconstructor cuts are still reported by what the computer sent. A gain below :data:`MIN_GAIN` (a mode the pyramid
@@ -30,8 +30,9 @@ torch = lazy_module("torch")
 
 #: The calibrating loop: frames, integrator gain, frames probed (over its second half), smallest gain divided by.
 CALIBRATION_FRAMES, CALIBRATION_GAIN, CALIBRATION_PROBES, MIN_GAIN = 240, 0.5, 4, 0.1
-#: The stream the calibrating loop's turbulence is drawn from (independent of training and test).
-CALIBRATION_STREAM = "optical_gains"
+#: The stream and seed the calibrating loop's turbulence and noise are drawn from (independent of training and test,
+#: and the same whatever stream the compensated loop runs on: one calibration per scenario and plant).
+CALIBRATION_STREAM, CALIBRATION_SEED = "optical_gains", 0
 
 _CALIBRATIONS: dict = {}
 
@@ -78,7 +79,7 @@ class OpticalGainCompensation:
         return {"n_modes": len(self.gains), "gains": [float(g) for g in self.gains],
                 "mean_gain": float(np.mean(self.gains)), "residual_rms_nm": self.residual_rms_nm,
                 "calibration": {"frames": CALIBRATION_FRAMES, "integrator_gain": CALIBRATION_GAIN,
-                                "probes": CALIBRATION_PROBES, "stream": CALIBRATION_STREAM}}
+                                "probes": CALIBRATION_PROBES, "stream": CALIBRATION_STREAM, "seed": CALIBRATION_SEED}}
 
 
 def calibrate(turbulence, plant) -> OpticalGainCompensation:
@@ -89,15 +90,15 @@ def calibrate(turbulence, plant) -> OpticalGainCompensation:
 
     sensor = replace(turbulence.sensor, optical_gain_compensation=False)
     frames = min(CALIBRATION_FRAMES, turbulence.atmosphere.screen_frames)
-    key = (repr(turbulence.atmosphere), repr(turbulence.grid), turbulence.frame_rate_hz, turbulence.seed,
-           repr(sensor), repr(turbulence.vibrations), repr(plant), frames)
+    key = (repr(turbulence.atmosphere), repr(turbulence.grid), turbulence.frame_rate_hz, repr(sensor),
+           repr(turbulence.vibrations), repr(plant), frames)
     if key in _CALIBRATIONS:
         return _CALIBRATIONS[key]
     calibration = type(turbulence)(turbulence.atmosphere, turbulence.grid, turbulence.frame_rate_hz,
-                                    turbulence.seed, CALIBRATION_STREAM, 1, turbulence.vibrations, sensor)
+                                    CALIBRATION_SEED, CALIBRATION_STREAM, 1, turbulence.vibrations, sensor)
     pyramid = calibration.operators.sensor
     probe = OpticalGainProbe(pyramid, frames // 2, frames, n_frames=CALIBRATION_PROBES)
-    result = run_loop(calibration, plant, _Integrator(CALIBRATION_GAIN), frames, noise_seed=turbulence.seed,
+    result = run_loop(calibration, plant, _Integrator(CALIBRATION_GAIN), frames, noise_seed=CALIBRATION_SEED,
                       record=(), progress=False, on_chunk=probe)
     if result.diverged or not probe.residuals:
         from eofnn.errors import ConfigError

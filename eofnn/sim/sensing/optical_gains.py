@@ -112,8 +112,9 @@ class OpticalGainProbe:
     def result(self) -> dict | None:
         """``{"n_modes", "residuals", "residual_rms_nm", "gains", "low_orders", "low_order_mean", "high_orders",
         "high_order_mean"}`` (orders 1-based, inclusive), or ``None`` when no frame was probed (a diverged run);
-        with a compensation also ``"compensation"`` (its summary) and ``"effective_gains"``, ``"effective_low_order_mean"``,
-        ``"effective_high_order_mean"`` (the gains over those divided by: 1 where it compensates exactly)."""
+        with a compensation also ``"compensation"`` (its summary) and ``"effective_gains"``,
+        ``"effective_low_order_mean"``, ``"effective_high_order_mean"`` (the gains over those divided by: 1 where it
+        compensates exactly)."""
         if not self.residuals:
             return None
         residuals = torch.cat(self.residuals)
