@@ -53,7 +53,7 @@ def test_the_sensor_constants_are_declared_once():
     assert shack_hartmann.GEOMETRIES is sensor.GEOMETRIES
     assert least_squares.MECHANICAL_COUPLING is sensor.MECHANICAL_COUPLING
     assert shack_hartmann.ShackHartmann._constraints is sensor.SHACK_HARTMANN_CONSTRAINTS
-    own = ("kind", "reconstructor", *sensor.PYRAMID_ONLY)
+    own = ("kind", "reconstructor", "optical_gain_compensation", *sensor.PYRAMID_ONLY)
     assert {k: v for k, v in sensor.Sensor._constraints.items() if k not in own} == sensor.SHACK_HARTMANN_CONSTRAINTS
     # The pyramid's too: the config and the scenario's sensor share the very constraints.
     from eofnn.sim.sensing import pyramid

@@ -105,7 +105,7 @@ def _simulate(cfg: SimulateConfig, config_dump: str | None = None) -> None:
     if scenario.sensor.is_pyramid and p.controller == "integrator":  # its optical gains on the closed-loop residual
         from eofnn.sim.sensing.optical_gains import OpticalGainProbe
 
-        probe = OpticalGainProbe(turbulence.operators.sensor, settle, cfg.frames)
+        probe = OpticalGainProbe.of(turbulence, settle, cfg.frames, scenario.plant)
     result = run_loop(turbulence, scenario.plant,
                       build_controller(p, predictor), cfg.frames, noise_seed=cfg.seed, progress=cfg.progress,
                       record=("s", "y", "eps", "wfs", *(("slopes",) if slopes else ())), on_chunk=probe)

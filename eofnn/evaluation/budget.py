@@ -7,9 +7,11 @@ Every term is a median of per-frame residual RMS (after settling) on the same te
 - ``noise_free``: the same controller (built afresh), no sensor noise (photon, read and the plant's WFS noise);
 - ``perfect``: no noise, and the sensor reads the turbulence the DM can fit (``P F phi``) in place of the
   reconstructed slopes ``R S phi``: no aliasing (a Shack-Hartmann scenario only). A predictor trained on aliased
-  measurements meets unaliased ones there: its temporal term carries that shift;
+  measurements meets unaliased ones there: its temporal term carries that shift. A pyramid scenario's perfect sensor
+  reads ``P F phi`` of the residual linearly (:class:`~eofnn.sim.loop.pyramid.PyramidMeasurement`): its
+  ``aliasing`` term holds the pyramid's nonlinearity too (its optical gains below 1 about the residual);
 - ``fitting``: what no command can correct, the pupil's residual after the DM's least-squares fit on the modes the
-  sensor sees (a Shack-Hartmann scenario only: the zonal loop scores the actuators, where there is none).
+  sensor sees (a Shack-Hartmann or pyramid scenario: the zonal loop scores the actuators, where there is none).
 
 Then ``noise = sqrt(total² - noise_free²)``, ``aliasing = sqrt(noise_free² - perfect²)``,
 ``temporal = sqrt(perfect² - fitting²)``, ``fitting`` itself (the zonal sensor: ``temporal = noise_free``). A
@@ -37,7 +39,7 @@ def quadrature_difference(a: float | None, b: float | None) -> float | None:
 def fitting_nm(scenario, seed: int, stream: str, frames: int, settle_frames: int, realisations: int) -> float | None:
     """Median RMS over the pupil of the phase minus the DM's fit of it (``phi + IF u``, ``u = -P F phi``) on the frames
     after ``settle_frames``: the fitting error (``None`` for the zonal sensor)."""
-    if not scenario.sensor.is_shack_hartmann:
+    if not (scenario.sensor.is_shack_hartmann or scenario.sensor.is_pyramid):
         return None
     turbulence = scenario.turbulence(seed, stream, realisations)
     out = turbulence.products(settle_frames, frames)
@@ -85,10 +87,11 @@ def budget_runs(scenario, build_controller, evaluation, total: float | None, fit
     from eofnn.sim.loop.runner import run_loop
 
     ev = evaluation
+    on_pupil = scenario.sensor.is_shack_hartmann or scenario.sensor.is_pyramid
 
     def median(isolate: str) -> float | None:
         plant = scenario.plant.with_errors(wfs_noise_nm=0.0)
-        if scenario.sensor.is_shack_hartmann:
+        if on_pupil:
             turbulence = scenario.turbulence(ev.seed, "test", ev.realisations, isolate=isolate)
         else:
             turbulence = scenario.turbulence(ev.seed, "test", ev.realisations)
@@ -100,7 +103,7 @@ def budget_runs(scenario, build_controller, evaluation, total: float | None, fit
         return float(torch.quantile(rms[:, ev.settle_frames:].flatten(), 0.5))
 
     noise_free = median("noise_free")
-    perfect = median("perfect") if scenario.sensor.is_shack_hartmann else None
+    perfect = median("perfect") if on_pupil else None
     return error_budget(total, noise_free, perfect, fitting)
 
 

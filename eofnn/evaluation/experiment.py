@@ -248,7 +248,7 @@ class Experiment:
         if plant_scenario is None and scenario.sensor.is_pyramid and self.predictors[name].controller == "integrator":
             from eofnn.sim.sensing.optical_gains import OpticalGainProbe  # its optical gains on the residual
 
-            probe = OpticalGainProbe(turbulence.operators.sensor, ev.settle_frames, ev.frames)
+            probe = OpticalGainProbe.of(turbulence, ev.settle_frames, ev.frames, scenario.plant)
 
         def on_chunk(first: int, arrays: dict) -> None:
             psd(first, arrays)

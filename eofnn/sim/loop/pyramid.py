@@ -76,17 +76,24 @@ class PyramidMeasurement(CommandsSent):
         The sensor's gain (``(batch, 1)``: one per row).
     fraction : float
         The delay's fraction: the commands sent over a frame are averaged as the DM averages them.
+    compensation : Tensor or None
+        ``C`` ``(K, K)``: the optical gains' compensation, the reconstructor becoming ``C R``
+        (:mod:`eofnn.sim.loop.optical_gain_compensation`); ``None``: none.
+    perfect : bool
+        The error budget's perfect sensor: no pyramid, no noise, ``wfs = P F phi + P dm`` (the residual the DM can
+        fit, read linearly: no aliasing, no optical gain), the cut modes as above.
     """
 
     def __init__(self, operators: PyramidLoopOperators, photons: float | None, read_noise_e: float, sigma_nm: float,
-                 wfs_gain, fraction: float) -> None:
+                 wfs_gain, fraction: float, compensation: torch.Tensor | None = None, perfect: bool = False) -> None:
         self.operators, self.photons, self.read_noise_e, self.sigma_nm = operators, photons, read_noise_e, sigma_nm
-        self.gain, self.fraction = wfs_gain, fraction
+        self.gain, self.fraction, self.perfect = wfs_gain, fraction, perfect
         optics = operators.sensor.optics
         self.n_pixels = optics.detector_pixels ** 2 if photons is not None else 0
         self.noise_size = self.n_pixels + (operators.sensor.grid.n_actuators if sigma_nm > 0 else 0)
         self.noisy = self.noise_size > 0
-        self.reconstructor_t = operators.reconstructor.T.contiguous()
+        reconstructor = operators.reconstructor if compensation is None else compensation @ operators.reconstructor
+        self.reconstructor_t = reconstructor.T.contiguous()
         self.projector_t = operators.projector.T.contiguous()
 
     def noise(self, unit: torch.Tensor) -> torch.Tensor:
@@ -107,8 +114,12 @@ class PyramidMeasurement(CommandsSent):
     def measure(self, phase, eps, dm, y, noise):
         """``wfs`` of the frame's turbulent ``phase`` over the pupil and the DM term ``dm``; ``y`` fills the modes
         the reconstructor cuts."""
-        signals = self.operators.sensor.signals.process(self.frames(phase, dm, noise))
-        wfs = signals @ self.reconstructor_t
+        if self.perfect:  # the loop's truth s = eps - dm is P F phi already
+            require(eps is not None, "the pyramid's perfect sensor reads the loop's residual: run it in the loop")
+            wfs = eps - dm + dm @ self.projector_t
+        else:
+            signals = self.operators.sensor.signals.process(self.frames(phase, dm, noise))
+            wfs = signals @ self.reconstructor_t
         if not is_one(self.gain):
             wfs = self.gain * wfs
         sent = self.sent(y)
@@ -131,10 +142,11 @@ class PyramidTurbulence(ShackHartmannTurbulence):
 
     def __init__(self, atmosphere: Atmosphere, grid: ActuatorGrid, frame_rate_hz: float, seed: int, stream: str,
                  n_realisations: int, vibrations, sensor: Sensor, isolate: str = "none") -> None:
-        require(isolate in ("none", "noise_free"),
-                f"isolate={isolate!r} is invalid with sensor.kind pyramid: allowed are none, noise_free")
+        require(isolate in ("none", "noise_free", "perfect"),
+                f"isolate={isolate!r} is invalid with sensor.kind pyramid: allowed are none, noise_free, perfect")
         self.grid, self.frame_rate_hz, self.n_realisations = grid, frame_rate_hz, n_realisations
         self.atmosphere, self.sensor, self.isolate = atmosphere, sensor, isolate
+        self.seed, self.vibrations = seed, vibrations
         self.operators = pyramid_operators(grid, sensor.pyramid())
         self.fine_grid = self.operators.sensor.pupil_grid
         self._args = (replace(atmosphere, kernel="point"), self.fine_grid, frame_rate_hz, seed, stream,
@@ -166,12 +178,25 @@ class PyramidTurbulence(ShackHartmannTurbulence):
                  for index in range(start // step, -(-stop // step))]
         return torch.cat(parts, 1)
 
-    def loop_measurement(self, plant) -> PyramidMeasurement:
-        """The pyramid's measurement in ``plant`` (its detector's photons, the plant's white noise, gain, delay)."""
+    def compensation(self, plant):  # -> OpticalGainCompensation or None
+        """The optical gains' compensation in ``plant`` (``sensor.optical_gain_compensation``; calibrated on first
+        use, :mod:`eofnn.sim.loop.optical_gain_compensation`), or ``None`` without it."""
+        if not self.sensor.optical_gain_compensation:
+            return None
+        from eofnn.sim.loop.optical_gain_compensation import calibrate
+
+        return calibrate(self, plant)
+
+    def loop_measurement(self, plant, calibrated_in=None) -> PyramidMeasurement:
+        """The pyramid's measurement in ``plant`` (its detector's photons, the plant's white noise, gain, delay), its
+        optical gains compensated as calibrated in ``calibrated_in`` (``None``: ``plant``) where the sensor asks."""
         detector = self.sensor.detector
         read = 0.0 if detector is None else detector.read_noise_e
         sigma = plant.wfs_noise_nm if self.isolate == "none" else 0.0
-        return PyramidMeasurement(self.operators, self.photons(), read, sigma, plant.wfs_gain, plant.delay_fraction)
+        perfect = self.isolate == "perfect"  # reads linearly: nothing to compensate
+        compensation = None if perfect else self.compensation(plant if calibrated_in is None else calibrated_in)
+        return PyramidMeasurement(self.operators, self.photons(), read, sigma, plant.wfs_gain, plant.delay_fraction,
+                                  None if compensation is None else compensation.matrix, perfect)
 
     def loop_sensing(self, model, slopes: bool = False) -> PyramidLoopSensing:
         return PyramidLoopSensing(self, model, slopes)
@@ -186,7 +211,7 @@ class PyramidTurbulence(ShackHartmannTurbulence):
         s = self.products(start, stop)["s"]
         phase = self.phases(start, stop)
         self.release()
-        m = self.loop_measurement(replace(plant, wfs_gain=1.0))
+        m = self.loop_measurement(replace(plant, wfs_gain=1.0), plant)
         rows, frames = phase.shape[:2]
         flat_phase = phase.reshape(rows * frames, -1)
         unit = torch.randn((rows * frames, m.noise_size), generator=generator, dtype=s.dtype) if m.noisy else None

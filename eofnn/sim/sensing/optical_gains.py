@@ -85,15 +85,23 @@ class OpticalGainProbe:
         The run's settling frames and its length.
     n_modes, n_frames : int
         Karhunen-Loève modes measured; frames probed (each gives one residual per realisation).
+    compensation : OpticalGainCompensation or None
+        The loop's compensation of its optical gains (:mod:`eofnn.sim.loop.optical_gain_compensation`), if any: the
+        result then also gives the effective gains, the measured ones divided by those it divides by.
     """
 
     def __init__(self, sensor, settle_frames: int, frames: int, n_modes: int = N_MODES,
-                 n_frames: int = N_FRAMES) -> None:
-        self.sensor = sensor
+                 n_frames: int = N_FRAMES, compensation=None) -> None:
+        self.sensor, self.compensation = sensor, compensation
         self.n_modes = min(n_modes, sensor.grid.n_actuators - 1)
         span = max(frames - settle_frames, 1)
         self.frames = sorted({settle_frames + (span * (2 * k + 1)) // (2 * n_frames) for k in range(n_frames)})
         self.residuals: list[torch.Tensor] = []
+
+    @classmethod
+    def of(cls, turbulence, settle_frames: int, frames: int, plant) -> OpticalGainProbe:
+        """The probe of a pyramid scenario's ``turbulence`` run in ``plant`` (its compensation, if any, included)."""
+        return cls(turbulence.operators.sensor, settle_frames, frames, compensation=turbulence.compensation(plant))
 
     def __call__(self, first: int, arrays: dict) -> None:
         stop = first + arrays["s"].shape[1]
@@ -103,7 +111,10 @@ class OpticalGainProbe:
 
     def result(self) -> dict | None:
         """``{"n_modes", "residuals", "residual_rms_nm", "gains", "low_orders", "low_order_mean", "high_orders",
-        "high_order_mean"}`` (orders 1-based, inclusive), or ``None`` when no frame was probed (a diverged run)."""
+        "high_order_mean"}`` (orders 1-based, inclusive), or ``None`` when no frame was probed (a diverged run);
+        with a compensation also ``"compensation"`` (its summary) and ``"effective_gains"``,
+        ``"effective_low_order_mean"``, ``"effective_high_order_mean"`` (the gains over those divided by: 1 where it
+        compensates exactly)."""
         if not self.residuals:
             return None
         residuals = torch.cat(self.residuals)
@@ -113,8 +124,15 @@ class OpticalGainProbe:
         n = len(gains)
         low, high = max(1, n // 5), n // 2
         centred = residuals - residuals.mean(-1, keepdim=True)
-        return {"n_modes": n, "residuals": len(residuals),
-                "residual_rms_nm": float(centred.pow(2).mean(-1).sqrt().mean()),
-                "gains": gains,
-                "low_orders": [1, low], "low_order_mean": sum(gains[:low]) / low,
-                "high_orders": [high + 1, n], "high_order_mean": sum(gains[high:]) / (n - high)}
+        out = {"n_modes": n, "residuals": len(residuals),
+               "residual_rms_nm": float(centred.pow(2).mean(-1).sqrt().mean()),
+               "gains": gains,
+               "low_orders": [1, low], "low_order_mean": sum(gains[:low]) / low,
+               "high_orders": [high + 1, n], "high_order_mean": sum(gains[high:]) / (n - high)}
+        if self.compensation is not None:
+            divided = self.compensation.divided_by()
+            effective = [g / float(divided[m]) if m < len(divided) else g for m, g in enumerate(gains)]
+            out.update(compensation=self.compensation.summary(), effective_gains=effective,
+                       effective_low_order_mean=sum(effective[:low]) / low,
+                       effective_high_order_mean=sum(effective[high:]) / (n - high))
+        return out

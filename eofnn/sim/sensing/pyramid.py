@@ -14,7 +14,9 @@ on the device of the phase it is given (the calibration on the CPU in double pre
   against the one about a flat wavefront, per mode; in the loop: :mod:`eofnn.sim.loop.pyramid`.
 
 ``tests/test_pyramid.py`` checks it against theory (linearity range against modulation, sensitivity against
-spatial frequency, optical gains, flux, push-pull symmetry, noise), and ``experiments/pyramid/`` against OOPAO's.
+spatial frequency, optical gains, flux, push-pull symmetry, noise), ``tests/test_pyramid_theory.py`` the tip's
+linearity range and the photon-noise propagation per Fourier mode against modulation, and ``experiments/pyramid/``
+against OOPAO's.
 """
 
 

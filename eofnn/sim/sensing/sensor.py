@@ -35,7 +35,7 @@ from eofnn.sim.sensing.constants import (
     SHACK_HARTMANN_CONSTRAINTS,
 )
 from eofnn.sim.sensing.detector import Detector
-from eofnn.validation import Constraint, OneOf, OrNone, from_mapping, validated
+from eofnn.validation import Constraint, IsBool, OneOf, OrNone, from_mapping, validated
 
 __all__ = ["GEOMETRIES", "LOOP_SENSORS", "MECHANICAL_COUPLING", "PYRAMID_CONSTRAINTS", "SENSOR_KINDS", "Sensor",
            "build_sensor", "sensor_kinds"]
@@ -105,6 +105,10 @@ class Sensor:
         The pyramid's (:class:`~eofnn.sim.sensing.pyramid.Pyramid`): modulation radius (``lambda / D``; 3 if unset),
         detector pixels across a pupil image (``None``: one per actuator pitch across the pupil, the subapertures a
         Fried Shack-Hartmann has there), pupil points per pixel (2 if unset).
+    optical_gain_compensation : bool
+        A pyramid's only: measure its optical gains per Karhunen-Loeve mode on the residual of a short closed loop
+        of its own and divide every reconstruction by them, for every controller
+        (:mod:`eofnn.sim.loop.optical_gain_compensation`). ``False`` (the default): uncompensated.
     """
 
     kind: str = "subaperture"
@@ -120,15 +124,20 @@ class Sensor:
     modulation_lambda_over_d: float | None = None
     pixels_across: int | None = None
     samples_per_pixel: int | None = None
+    optical_gain_compensation: bool = False
 
     _where: ClassVar[str] = "sensor."
     _constraints: ClassVar[dict[str, Constraint]] = {
         "kind": SensorKind(), **SHACK_HARTMANN_CONSTRAINTS, "reconstructor": OneOf(RECONSTRUCTORS),
-        **{name: OrNone(PYRAMID_CONSTRAINTS[name]) for name in PYRAMID_ONLY}}
+        **{name: OrNone(PYRAMID_CONSTRAINTS[name]) for name in PYRAMID_ONLY},
+        "optical_gain_compensation": IsBool()}
 
     def __post_init__(self) -> None:
         if self.detector is not None:
             object.__setattr__(self, "detector", from_mapping(Detector, self.detector, "sensor.detector"))
+        if self.optical_gain_compensation and self.kind != "pyramid":
+            raise ConfigError(f"sensor.optical_gain_compensation=True is invalid for sensor kind {self.kind!r}: only a "
+                              "pyramid has optical gains to compensate; set sensor.kind: pyramid, or remove it")
         if self.kind not in ("shack_hartmann", "pyramid"):
             changed = [f.name for f in fields(self) if f.name != "kind" and getattr(self, f.name) != f.default]
             if changed:
@@ -213,6 +222,8 @@ class Sensor:
         for name in PYRAMID_ONLY:  # likewise before the pyramid existed
             if out[name] is None:
                 del out[name]
+        if not out["optical_gain_compensation"]:  # and before its compensation
+            del out["optical_gain_compensation"]
         return out
 
 
