@@ -123,7 +123,9 @@ def test_both_eofs_beat_the_best_gain_integrator_and_the_guard_deploys_the_antia
 @pytest.mark.slow
 def test_the_lqg_is_built_from_the_same_telemetry_and_the_best_classical_is_chosen_on_the_scan(study):
     scan = study["lqg_scan"]["scan"]
-    chosen = f"ar_order={study['lqg_scan']['ar_order']}, noise_scale={study['lqg_scan']['noise_scale']:g}"
+    lqg_scan = study["lqg_scan"]
+    chosen = f"ar_order={lqg_scan['ar_order']}, noise_scale={lqg_scan['noise_scale']:g}" + (
+        "" if lqg_scan["noise_covariance"] == "identified" else f", noise={lqg_scan['noise_covariance']}")
     assert chosen == min((k for k, v in scan.items() if v is not None), key=scan.get)
     assert any(key.startswith("ar_order=0,") for key in scan)  # the random walk (POL integrator) is a candidate
     lqg = study["contenders"]["lqg"]["realisations_median_rms_nm"]
