@@ -49,7 +49,7 @@ def test_the_scan_tries_every_model_with_every_scale_then_goes_past_the_edge_unt
             return None if scale < 0.1 else 80 + scale
         if order == 2:
             return 81 + abs(scale - 1)
-        return 90 - scale / 10
+        return 90 - scale / 100
 
     scanned = scan_lqg_settings(fake)
     grid = [(order, s) for order in (RANDOM_WALK, 1, 2) for s in LQG_NOISE_SCALES]
@@ -57,8 +57,8 @@ def test_the_scan_tries_every_model_with_every_scale_then_goes_past_the_edge_unt
     assert set(grid) <= set(scanned)
     assert [s for (o, s) in scanned if o == 1][len(LQG_NOISE_SCALES):] == [0.125, 0.0625]  # 0.0625 diverged
     assert [s for (o, s) in scanned if o == 2] == list(LQG_NOISE_SCALES)
-    assert [s for (o, s) in scanned if o == RANDOM_WALK][len(LQG_NOISE_SCALES):] == [8.0, 16.0, 32.0][
-        :MAX_EXTRA_NOISE_SCALES]
+    assert [s for (o, s) in scanned if o == RANDOM_WALK][len(LQG_NOISE_SCALES):] == [
+        max(LQG_NOISE_SCALES) * 2.0 ** (i + 1) for i in range(MAX_EXTRA_NOISE_SCALES)]
     assert min((k for k, v in scanned.items() if v is not None), key=scanned.get) == (1, 0.125)
     assert noise_scale_past_edge({1.0: 3.0}) is None  # one scale alone: no edge to go past
 

@@ -57,7 +57,7 @@ def alpha_past_edge(scanned: dict[float, float | None], extra_so_far: int = 0) -
 #: gain is the integrator's (a model fitted on POL values that carry aliasing is too confident in them).
 LQG_NOISE_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: The most noise scales a scan tries past its grid's edge (:func:`noise_scale_past_edge`), per model.
-MAX_EXTRA_NOISE_SCALES = 3
+MAX_EXTRA_NOISE_SCALES = 5
 
 
 def noise_scale_past_edge(scanned: dict[float, float | None], extra_so_far: int = 0) -> float | None:
