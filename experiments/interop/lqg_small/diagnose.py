@@ -6,7 +6,7 @@ at its best gain, the LQG of each AR order as built today, the same with the mea
 random-walk (POL integrator) model. Per KL mode group it prints the variance of the measured residual (``wfs``
 projected on the KL modes; the noise adds the same to every controller).
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python experiments/interop/lqg_small/diagnose.py OUT.json [RHOS [no-integrator]]
+    OMP_NUM_THREADS=1 PYTHONPATH=. python experiments/interop/lqg_small/diagnose.py OUT.json [RHOS [no-integrator] | dm-gain]
 """
 
 from __future__ import annotations
@@ -68,6 +68,14 @@ def run(name: str, control) -> None:
           flush=True)
 
 
+if len(sys.argv) > 2 and sys.argv[2] == "dm-gain":  # the LQG's sensitivity to its DM-gain model, x 0.95 and x 1.05
+    for order, rho in ((2, 1.0), (1, 0.125)):
+        for factor in (0.95, 1.05):
+            model = lqg(order, rho)
+            model.dm_gain_model = plant.dm_gain * factor
+            run(f"lqg {order} rho={rho} dm x {factor}", TorchControl(model, sim.delay_frames))
+    json.dump(out, open(sys.argv[1], "w"), indent=1)
+    sys.exit(0)
 RHOS = [float(v) for v in sys.argv[2].split(",")] if len(sys.argv) > 2 else [1.0, 4.0, 16.0]
 if len(sys.argv) <= 3:
     for g in (0.25, 0.3, 0.35):
