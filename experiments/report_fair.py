@@ -47,9 +47,12 @@ def tuning_text(result: dict, scenario: str, name: str) -> str:
 
 
 def setting_text(setting: dict) -> str:
-    """A classical controller's setting chosen on a stream of its own: ``order 2, smoothing 0`` or ``AR(2)``."""
+    """A classical controller's setting chosen on a stream of its own: ``order 2, smoothing 0``, ``AR(2)``,
+    ``AR(1), noise x 0.125`` or ``random walk, noise x 0.25``."""
     if "ar_order" in setting:
-        return f"AR({setting['ar_order']})"
+        model = "random walk" if setting["ar_order"] == 0 else f"AR({setting['ar_order']})"
+        scale = setting.get("noise_scale", 1)
+        return model + ("" if scale == 1 else f", noise x {scale:g}")
     return ", ".join(f"{k} {setting[k]}" for k in ("order", "smoothing") if k in setting)
 
 

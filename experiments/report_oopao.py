@@ -171,9 +171,18 @@ def _aa_row(point: tuple, r: dict) -> str:
     modal = "" if "modal_scan" not in r else f" (margin {r['modal_scan']['gain_margin']:g})"
     base, _, _, how = strongest(r)
     return (f"| {system} | {mag} | {direction}° | {sum(fit) / len(fit):.1f} | {mean('integrator')} (gain "
-            f"{r['integrator_scan']['gain']}) | {mean('modal')}{modal} | {mean('lqg')} (AR({r['lqg_scan']['ar_order']})) "
+            f"{r['integrator_scan']['gain']}) | {mean('modal')}{modal} | {mean('lqg')} ({lqg_setting(r['lqg_scan'])}) "
             f"| {mean('pfc')}{pfc} | {mean('eof_measured')} | {mean('eof_antialias')} | {mean('oracle')} | "
             f"{AA_LABELS[base]} ({how}) | {r['guard']['deployed']} |")
+
+
+def lqg_setting(scan: dict) -> str:
+    """The LQG's chosen model and noise scale: ``AR(2)``, ``AR(1), noise x 0.125``, ``random walk, noise x 0.25``
+    (a run made before the noise scale was scanned has none)."""
+    model = "random walk" if scan["ar_order"] == 0 else f"AR({scan['ar_order']})"
+    scale = scan.get("noise_scale", 1)
+    coloured = ", noise coloured" if scan.get("noise_covariance") == "reconstructor" else ""
+    return model + ("" if scale == 1 else f", noise x {scale:g}") + coloured
 
 
 def _ratio_rows(point: tuple, r: dict) -> list[str]:

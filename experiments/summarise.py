@@ -54,7 +54,7 @@ METRICS = {
     "searches": _PER({"chosen": {"lr", "best_epoch"}, "budget": {"max_epochs_per_trial"}}),
     "classical_models": _PER({"frames", "modes", "gain_margin"}),
     "fallback": _PER({"per", "integrator_gain", "modes", "n_modes", "predictor_modes", "deployed"}),
-    "classical_settings": _PER({"order", "smoothing", "ar_order", "pfc.alpha", "median_rms_nm"}),
+    "classical_settings": _PER({"order", "smoothing", "ar_order", "noise_scale", "pfc.alpha", "median_rms_nm"}),
     "verdict": True,
     "realisation_median_rms_nm": True,
     "timings_s": True,

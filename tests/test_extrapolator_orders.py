@@ -159,6 +159,6 @@ def test_the_fair_contest_asks_for_the_tuned_extrapolator(capsys):
     assert info.value.code == 0
     predictors = yaml.safe_load(capsys.readouterr().out)["predictors"]
     extrapolator = predictors["extrapolator"]
-    assert predictors["lqg"]["ar_orders"] == [1, 2]
+    assert predictors["lqg"]["ar_orders"] == [0, 1, 2]
     cfg = PredictorConfig(**{k: extrapolator[k] for k in ("controller", "orders", "smoothings", "data")})
     assert cfg.orders == [0, 1, 2] and {s["order"] for s in cfg.extrapolator_grid} == {0, 1, 2}

@@ -83,7 +83,7 @@ def test_compare_builds_and_runs_the_lqg_of_the_chosen_ar_order(small_scenario):
 
 
 @pytest.mark.parametrize("config, expected", [
-    ({"controller": "lqg", "ar_orders": [3]}, "ar_orders=[3] is invalid: 3 is not one of 1, 2"),
+    ({"controller": "lqg", "ar_orders": [3]}, "ar_orders=[3] is invalid: 3 is not one of 0, 1, 2"),
     ({"controller": "lqg", "ar_orders": []}, "ar_orders=[] is invalid: give a non-empty list"),
     ({"controller": "lqg", "ar_order": 3}, "ar_order=3 is invalid"),
     ({"controller": "extrapolator", "ar_orders": [1]}, "ar_orders=[1] is for controller: lqg, not 'extrapolator'"),

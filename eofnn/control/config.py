@@ -16,8 +16,11 @@ from eofnn.validation import COUNT, Constraint, Interval, OneOf, validated
 EXTRAPOLATION_ORDERS = (0, 1, 2)
 #: The most extra POL frames an extrapolator's least-squares fit may average over (``smoothing``).
 MAX_EXTRAPOLATION_SMOOTHING = 16
-#: Orders of the per-mode autoregressive model of an LQG controller (:mod:`eofnn.control.kalman`).
-AR_ORDERS = (1, 2)
+#: The ``ar_order`` of an LQG's per-mode random-walk model (:func:`eofnn.control.kalman.fit_random_walk`: ``a1 = 1``,
+#: the model whose Kalman filter is the pseudo-open-loop integrator).
+RANDOM_WALK = 0
+#: Orders of the per-mode autoregressive model of an LQG controller (:mod:`eofnn.control.kalman`); 0: the random walk.
+AR_ORDERS = (RANDOM_WALK, 1, 2)
 #: The most frozen-flow layers a predictive Fourier controller models.
 MAX_PFC_LAYERS = 4
 #: The noise covariances predictive Fourier control may assume (:attr:`PfcConfig.noise_covariance`).
@@ -47,6 +50,47 @@ def alpha_past_edge(scanned: dict[float, float | None], extra_so_far: int = 0) -
     else:
         return None
     return None if candidate in scanned or candidate >= 1 else candidate
+
+
+#: The scalars on an LQG's identified measurement-noise variance its scan tries with each model
+#: (:func:`eofnn.control.modal.lqg_from_pol`'s ``noise_scale``): the filter's bandwidth knob, as the integrator's
+#: gain is the integrator's (a model fitted on POL values that carry aliasing is too confident in them).
+LQG_NOISE_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
+#: The most noise scales a scan tries past its grid's edge (:func:`noise_scale_past_edge`), per model.
+MAX_EXTRA_NOISE_SCALES = 5
+
+
+def noise_scale_past_edge(scanned: dict[float, float | None], extra_so_far: int = 0) -> float | None:
+    """The next noise scale an LQG's scan tries past its grid's edge, or ``None``.
+
+    ``scanned`` maps each scale tried (one model) to its median residual (``None``: diverged). When the lowest
+    residual is at the largest scale tried, twice it; at the smallest, half of it; else, or after
+    :data:`MAX_EXTRA_NOISE_SCALES` extra scales, or once the next one would diverge (a diverged neighbour past the
+    best), ``None``: the choice is never the grid's edge unless it is the edge of what helps.
+    """
+    finite = {scale: rms for scale, rms in scanned.items() if rms is not None}
+    if not finite or extra_so_far >= MAX_EXTRA_NOISE_SCALES or len(scanned) < 2:
+        return None
+    best = min(finite, key=finite.get)
+    candidate = 2 * best if best == max(scanned) else best / 2 if best == min(scanned) else None
+    return None if candidate is None or candidate in scanned else float(f"{candidate:.8g}")
+
+
+def scan_lqg_settings(evaluate, orders=AR_ORDERS, scales=LQG_NOISE_SCALES) -> dict[tuple[int, float], float | None]:
+    """An LQG's model and noise scale tuned in the loop as an integrator's gain is: ``evaluate(ar_order,
+    noise_scale)`` (the median residual of that LQG on the scan realisation, ``None`` if it diverged) for every
+    order of ``orders`` with every scale of ``scales``, then, per order, on past the scales' edge while its best is
+    there (:func:`noise_scale_past_edge`). Returns ``{(ar_order, noise_scale): median or None}`` in the order tried;
+    with :data:`RANDOM_WALK` among the orders the pseudo-open-loop integrator is among the candidates."""
+    scanned: dict[tuple[int, float], float | None] = {}
+    for order in dict.fromkeys(orders):
+        for scale in dict.fromkeys(scales):
+            scanned[(order, float(scale))] = evaluate(order, float(scale))
+        extra = 0
+        while (scale := noise_scale_past_edge({s: v for (o, s), v in scanned.items() if o == order}, extra)) is not None:
+            scanned[(order, scale)] = evaluate(order, scale)
+            extra += 1
+    return scanned
 
 
 @dataclass
@@ -200,5 +244,6 @@ class FallbackConfig:
         return self.per != "none"
 
 
-__all__ = ["AR_ORDERS", "EXTRAPOLATION_ORDERS", "FALLBACK_MODES", "FALLBACK_PER", "MAX_EXTRAPOLATION_SMOOTHING",
-           "MAX_PFC_LAYERS", "FallbackConfig", "PfcConfig"]
+__all__ = ["AR_ORDERS", "EXTRAPOLATION_ORDERS", "FALLBACK_MODES", "FALLBACK_PER", "LQG_NOISE_SCALES",
+           "MAX_EXTRAPOLATION_SMOOTHING", "MAX_EXTRA_NOISE_SCALES", "MAX_PFC_LAYERS", "RANDOM_WALK", "FallbackConfig",
+           "PfcConfig", "alpha_past_edge", "noise_scale_past_edge", "scan_lqg_settings"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from eofnn.control.classical import DTYPE
-from eofnn.control.config import AR_ORDERS
+from eofnn.control.config import AR_ORDERS, RANDOM_WALK
 
 #: Largest modulus of an identified AR(2) root (an explosive or unit-root fit is pulled inside the unit circle).
 MAX_AR_ROOT = 0.99999
@@ -47,9 +47,6 @@ def fit_ar2(autocovariance: torch.Tensor, noise_variance: torch.Tensor,
     return torch.stack([a1, a2], 1), torch.where(ok, q, tiny).clamp(min=tiny)
 
 
-#: Orders of the per-mode autoregressive turbulence model an LQG can be built with (:func:`fit_ar`).
-
-
 def fit_ar1(autocovariance: torch.Tensor, noise_variance: torch.Tensor,
             max_root: float = MAX_AR_ROOT) -> tuple[torch.Tensor, torch.Tensor]:
     """Yule-Walker AR(1) ``x(n + 1) = a1 x(n) + e(n)``, as ``(a (K, 2), q (K,))`` with ``a2 = 0`` (the AR(2) state
@@ -70,11 +67,30 @@ def fit_ar1(autocovariance: torch.Tensor, noise_variance: torch.Tensor,
     return torch.stack([a1, torch.zeros_like(a1)], 1), torch.where(ok, q, tiny).clamp(min=tiny)
 
 
+def fit_random_walk(autocovariance: torch.Tensor, noise_variance: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The random walk ``x(n + 1) = x(n) + e(n)`` (``ar_order`` :data:`RANDOM_WALK`), as ``(a (K, 2), q (K,))`` with
+    ``a = (1, 0)`` and ``q`` the noise-free one-frame structure function ``D(1) - 2 sigma² = 2 (C0 - sigma² - C1)``.
+
+    Its Kalman filter is exponential smoothing of the POL measurements, ``x_hat <- x_hat + kf (z - x_hat)``, and its
+    command the last estimate: at a one-frame delay exactly the integrator of gain ``kf`` (the pseudo-open-loop
+    integrator at longer delays), so the integrator's model is inside the LQG's family.
+    """
+    c0, c1 = autocovariance[:, 0], autocovariance[:, 1]
+    tiny = 1e-12 * c0.abs().max().clamp(min=1e-300)
+    q = (2 * (c0 - noise_variance.clamp(max=c0 - c1.abs()) - c1)).clamp(min=tiny)
+    a = torch.zeros(len(c0), 2, dtype=c0.dtype)
+    a[:, 0] = 1.0
+    return a, q
+
+
 def fit_ar(order: int, autocovariance: torch.Tensor, noise_variance: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The AR(``order``) fit of :data:`AR_ORDERS`: :func:`fit_ar1` or :func:`fit_ar2` (both ``(a (K, 2), q (K,))``)."""
+    """The turbulence model of :data:`AR_ORDERS` (``(a (K, 2), q (K,))``): :func:`fit_ar1`, :func:`fit_ar2`, or for
+    :data:`RANDOM_WALK` (0) :func:`fit_random_walk`."""
     if order not in AR_ORDERS:
-        raise ValueError(f"ar_order={order!r} is invalid: it must be one of {', '.join(map(str, AR_ORDERS))}")
-    return (fit_ar1 if order == 1 else fit_ar2)(autocovariance, noise_variance)
+        raise ValueError(f"ar_order={order!r} is invalid: it must be one of {', '.join(map(str, AR_ORDERS))} "
+                         f"({RANDOM_WALK}: the random walk)")
+    fit = {RANDOM_WALK: fit_random_walk, 1: fit_ar1, 2: fit_ar2}[order]
+    return fit(autocovariance, noise_variance)
 
 
 def kalman_gain(ar: torch.Tensor, q: torch.Tensor, r: torch.Tensor,

@@ -230,8 +230,7 @@ def _characteristic(gains: torch.Tensor, delay_frames: float, dm_gain: float) ->
     """``(G, L)`` coefficients of ``1 - z^-1 + g k z^-d ((1 - f) + f z^-1)``: an integrator loop at gain ``k``."""
     response = dm_response_polynomial(delay_frames)
     out = dm_gain * gains.to(DTYPE).unsqueeze(1) * response
-    out[:, 0] += 1.0
-    out[:, 1] -= 1.0
+    out[:, 0], out[:, 1] = out[:, 0] + 1.0, out[:, 1] - 1.0
     return out
 
 
@@ -240,8 +239,7 @@ def _max_root(p: torch.Tensor) -> torch.Tensor:
     n = p.shape[-1] - 1
     companion = torch.zeros(p.shape[0], n, n, dtype=DTYPE)
     companion[:, 0] = -p[:, 1:]
-    if n > 1:
-        companion[:, 1:, :-1] = torch.eye(n - 1, dtype=DTYPE)
+    companion[:, 1:, :-1] = torch.eye(n - 1, dtype=DTYPE)
     return torch.linalg.eigvals(companion).abs().amax(-1)
 
 
@@ -346,14 +344,13 @@ def build_modal_integrator(scenario: Scenario, data, modes: int | None = None,
 
 
 def build_lqg(scenario: Scenario, data, modes: int | None = None, dm_gain_model: float | None = None,
-              ar_order: int = 2) -> ModalLQG:
-    """Record telemetry in ``scenario``, fit an AR(``ar_order``) per KL mode (:func:`~eofnn.control.kalman.fit_ar`:
-    AR(2) by default, AR(1) with ``a2 = 0``) and its stationary Kalman filter (:func:`kalman_gain`); modes past
-    ``modes`` share one model fitted on their pooled statistics."""
+              ar_order: int = 2, noise_scale: float = 1.0) -> ModalLQG:
+    """Record telemetry in ``scenario`` and build :func:`lqg_from_pol` from it; modes past ``modes`` share one
+    model fitted on their pooled statistics."""
     data = _fitted_to_screen(scenario, data)
     pol, info, stats = _recorded(scenario, data, dm_gain_model, modes)
     return lqg_from_pol(pol, scenario.plant.delay_frames, info["dm_gain_model"], ar_order, modes, info=info,
-                        stats=stats)
+                        stats=stats, noise_scale=noise_scale)
 
 
 #: The last two recordings (the LQG of each AR order and the modal integrator of a study share theirs).
@@ -375,23 +372,26 @@ def _recorded(scenario: Scenario, data, dm_gain_model: float | None, modes: int 
 
 def lqg_from_pol(pol: torch.Tensor, delay_frames: int | float, dm_gain_model: float, ar_order: int = 2,
                  modes: int | None = None, grid_indices: torch.Tensor | None = None, info: dict | None = None,
-                 stats: ModalStatistics | None = None) -> ModalLQG:
+                 stats: ModalStatistics | None = None, noise_scale: float = 1.0) -> ModalLQG:
     """The LQG of ``(realisations, frames, K)`` POL values (nm) reconstructed with ``dm_gain_model``: KL modes
     (homogenised over ``grid_indices``, the actuators' lattice rows and columns, where given), an AR(``ar_order``)
-    per mode and its stationary Kalman filter, for a loop of ``delay_frames`` (:func:`build_lqg`, which records
-    the POL values in a scenario; another simulator's telemetry gives them as well; ``stats``: already computed)."""
+    per mode (:func:`~eofnn.control.kalman.fit_ar`; 0: the random walk) and its stationary Kalman filter with the
+    identified noise variance times ``noise_scale`` (the filter's one knob, scanned in the loop like an integrator's
+    gain: :mod:`eofnn.control.lqg_tuning`), for a loop of ``delay_frames`` (:func:`build_lqg` records the POL
+    values in a scenario; another simulator's telemetry gives them as well; ``stats``: already computed)."""
     info = dict(info or {})
     stats = modal_statistics(pol, modes, grid_indices=grid_indices) if stats is None else stats
     ar, q = fit_ar(ar_order, stats.autocovariance, stats.noise_variance)
-    r = stats.noise_variance
+    r = noise_scale * stats.noise_variance
     gain, prior = kalman_gain(ar, q, r)
     d, f = split_delay(delay_frames)
     error = prediction_error_variance(ar, q, prior, gain, d)
     if f:
         error = (1 - f) * error + f * prediction_error_variance(ar, q, prior, gain, d + 1)
     info = _summary(stats, info)
-    if ar_order != 2:
-        info["ar_order"] = ar_order  # (AR(2), the default, is not said: metrics.json keeps the keys of before)
+    # (AR(2) and a noise scale of 1, the defaults, are not said: metrics.json keeps the keys of before)
+    info.update({key: v for key, v, default in (("ar_order", ar_order, 2), ("noise_scale", noise_scale, 1))
+                 if v != default})
     info.update({"ar1_quantiles_0_10_50_90_100": _quantiles(ar[:, 0]),
                  "ar2_quantiles_0_10_50_90_100": _quantiles(ar[:, 1]),
                  "first_ar": [[round(float(v), 6) for v in row] for row in ar[:5]],

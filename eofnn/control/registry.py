@@ -137,11 +137,12 @@ def _modal_integrator(config: Any, predictor: Any) -> Controller:
 
 
 def _lqg_from_telemetry(config: Any, scenario: Any) -> Any:
-    """The LQG model of :func:`_modal_from_telemetry`, with the config's ``ar_order`` (2 unless set)."""
+    """The LQG model of :func:`_modal_from_telemetry`, with the config's ``ar_order`` (2 unless set) and
+    ``noise_scale`` (1 unless set)."""
     from eofnn.control.modal import build_lqg
 
     return build_lqg(scenario, config.data, config.modes, getattr(config, "dm_gain_model", None),
-                     getattr(config, "ar_order", 2))
+                     getattr(config, "ar_order", 2), getattr(config, "noise_scale", 1.0))
 
 
 @register_controller("lqg", from_telemetry=_lqg_from_telemetry)

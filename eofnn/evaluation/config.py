@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from eofnn.control.adaptation import AdaptationConfig
@@ -18,10 +18,14 @@ from eofnn.control.registry import FROM_TELEMETRY, NEEDS_PREDICTOR, controller_n
 from eofnn.data.config import DataConfig
 from eofnn.data.history import HISTORY_KINDS, MAX_HISTORY_LENGTH
 from eofnn.errors import ConfigError
+from eofnn.evaluation.settings import setting_grid as _grid
+from eofnn.evaluation.settings import with_setting
 from eofnn.models.build import import_class
 from eofnn.training.config import OptimizationConfig
 from eofnn.validation import Constraint, Interval, IsBool, IsString, OneOf, OrNone, check_value, from_mapping, validated
 
+#: Largest scalar on an LQG's identified noise variance (``noise_scale``, ``noise_scales``).
+MAX_NOISE_SCALE = 1e4
 #: Most frames of one closed-loop evaluation (per realisation).
 MAX_EVALUATION_FRAMES = 10_000_000
 #: Segment length of the residual PSD when ``evaluation.psd_segment_frames`` is unset, frames (a shorter run takes the
@@ -98,12 +102,14 @@ class PredictorConfig:
         their own, the others share the one best for them together; unset, every mode has its own. Their model
         is built in each scenario from ``data.frames`` frames of telemetry recorded with an integrator
         (``data.integrator_gain``) plus ``data.dither_nm`` of dither, seed ``data.seed`` (never the test stream).
-    ar_order : int
-        ``controller: lqg``: order of each mode's autoregressive turbulence model, 2 (the default) or 1.
-    ar_orders : list of int, optional
-        ``controller: lqg``: AR orders to choose from, like the extrapolator's ``orders``: in each scenario an LQG is
-        built with each from the same telemetry, closes the loop on the scan stream (``data.frames`` frames, seed
-        ``data.seed``, never the test stream) and the lowest median residual wins (``classical_settings``).
+    ar_order, noise_scale : int, float
+        ``controller: lqg``: each mode's autoregressive model, order 2 (the default) or 1, or 0: the random walk (the
+        filter is then the pseudo-open-loop integrator); the scalar on the identified noise variance the filter uses.
+    ar_orders, noise_scales : list, optional
+        ``controller: lqg``: AR orders and noise scales to choose from (every combination, the scales on past the
+        grid's edge while a model's best is there: :func:`eofnn.control.config.scan_lqg_settings`): in each scenario
+        an LQG is built with each from the same telemetry, closes the loop on the scan stream (``data.frames``
+        frames, seed ``data.seed``, never the test stream) and the lowest median residual wins.
     pfc : PfcConfig
         ``controller: pfc`` (predictive Fourier control: a frozen-flow Kalman filter per spatial Fourier mode, built
         in each scenario from ``data.frames`` frames of dithered-integrator telemetry like the LQG): ``layers``
@@ -147,6 +153,8 @@ class PredictorConfig:
     modes: int | None = None
     ar_order: int = 2
     ar_orders: list[int] | None = None
+    noise_scale: float = 1.0
+    noise_scales: list[float] | None = None
     pfc: PfcConfig = field(default_factory=PfcConfig)
     pfc_alphas: list[float] | None = None
     fallback: FallbackConfig = field(default_factory=FallbackConfig)
@@ -164,6 +172,7 @@ class PredictorConfig:
         "smoothing": Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True, unit="frames"),
         "modes": OrNone(Interval(1, 1_000_000, integer=True)),
         "ar_order": OneOf(AR_ORDERS),
+        "noise_scale": Interval(0, MAX_NOISE_SCALE, closed="right"),
         "oracle": IsBool(),
     }
 
@@ -184,6 +193,8 @@ class PredictorConfig:
         if self.modes is not None and self.controller not in modal:
             raise ConfigError(f"modes={self.modes!r} is for controller: {' or '.join(modal)}, not "
                               f"{self.controller!r}")
+        if self.noise_scale != 1.0 and self.controller != "lqg":
+            raise ConfigError(f"noise_scale={self.noise_scale!r} is for controller: lqg, not {self.controller!r}")
         if self.controller != "pfc" and self.pfc != PfcConfig():
             raise ConfigError(f"pfc={vars(self.pfc)!r} is for controller: pfc, not {self.controller!r}")
         if self.gains is not None:
@@ -240,6 +251,8 @@ class PredictorConfig:
                    "smoothings": ("extrapolator", f"an integer from 0 to {MAX_EXTRAPOLATION_SMOOTHING}",
                                   Interval(0, MAX_EXTRAPOLATION_SMOOTHING, integer=True)),
                    "ar_orders": ("lqg", OneOf(AR_ORDERS).describe(), OneOf(AR_ORDERS)),
+                   "noise_scales": ("lqg", f"a number > 0 and <= {MAX_NOISE_SCALE:g}",
+                                    Interval(0, MAX_NOISE_SCALE, closed="right")),
                    "pfc_alphas": ("pfc", "a number from 0.5 to below 1", Interval(0.5, 1, closed="left"))}
         for name, (controller, what, constraint) in allowed.items():
             values = getattr(self, name)
@@ -259,21 +272,20 @@ class PredictorConfig:
         (``None`` when nothing is scanned: no ``orders`` or ``smoothings``)."""
         if self.orders is None and self.smoothings is None:
             return None
-        orders = self.orders if self.orders is not None else [self.order]
-        smoothings = self.smoothings if self.smoothings is not None else [self.smoothing]
-        grid = [{"order": int(order), "smoothing": int(smoothing)} for order in orders for smoothing in smoothings]
-        return [setting for i, setting in enumerate(grid) if setting not in grid[:i]]
+        return _grid(order=[int(v) for v in self.orders or [self.order]],
+                     smoothing=[int(v) for v in self.smoothings or [self.smoothing]])
 
     @property
     def setting_grid(self) -> list[dict[str, int]] | None:
         """The settings a classical controller's scan tries (:attr:`extrapolator_grid`, the LQG's
-        ``[{"ar_order": ...}, ...]`` or PFC's ``[{"pfc.alpha": ...}, ...]``: a dotted key is a field of a section,
-        :func:`with_setting`); ``None`` when nothing is scanned (the integrator's ``gains`` have a scan of their
-        own)."""
+        ``[{"ar_order": ..., "noise_scale": ...}, ...]`` or PFC's ``[{"pfc.alpha": ...}, ...]``: a dotted key is a
+        field of a section, :func:`with_setting`); ``None`` when nothing is scanned (the integrator's ``gains`` have
+        a scan of their own)."""
         if self.pfc_alphas is not None:
             return [{"pfc.alpha": float(a)} for a in dict.fromkeys(self.pfc_alphas)]
-        if self.ar_orders is not None:
-            return [{"ar_order": int(order)} for order in dict.fromkeys(self.ar_orders)]
+        if self.ar_orders is not None or self.noise_scales is not None:
+            return _grid(ar_order=[int(v) for v in self.ar_orders or [self.ar_order]],
+                         noise_scale=[float(v) for v in self.noise_scales or [self.noise_scale]])
         return self.extrapolator_grid
 
     @property
@@ -386,15 +398,3 @@ class EvaluationConfig:
 
 
 __all__ = ["DEFAULT_PSD_SEGMENT_FRAMES", "EvaluationConfig", "PredictorConfig", "with_setting"]
-
-
-def with_setting(cfg: PredictorConfig, setting: dict) -> PredictorConfig:
-    """``cfg`` with the fields of one scanned ``setting`` replaced; a dotted key (``"pfc.alpha"``) replaces a field
-    of that section (:attr:`PredictorConfig.setting_grid`)."""
-    plain = {key: value for key, value in setting.items() if "." not in key}
-    out = replace(cfg, **plain)
-    for key, value in setting.items():
-        if "." in key:
-            section, name = key.split(".", 1)
-            out = replace(out, **{section: replace(getattr(out, section), **{name: value})})
-    return out

@@ -15,7 +15,7 @@ from typing import Any
 from eofnn.analysis.linear import dm_gain_margin
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
 from eofnn.control.baselines import Integrator
-from eofnn.control.config import alpha_past_edge
+from eofnn.control.config import alpha_past_edge, scan_lqg_settings
 from eofnn.control.modal import require_telemetry, within_screen
 from eofnn.control.registry import FROM_TELEMETRY, build_controller
 from eofnn.data.history import HistorySpec
@@ -161,15 +161,16 @@ def scan_settings(cfg: PredictorConfig, settings: list[dict], scenario: Scenario
 
 
 #: The config fields that ask for a scan of a classical controller's settings (``setting_grid``).
-SCAN_FIELDS = ("orders", "smoothings", "ar_orders", "pfc_alphas")
+SCAN_FIELDS = ("orders", "smoothings", "ar_orders", "noise_scales", "pfc_alphas")
 
 
 def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_frames: int,
                             divergence_factor: float) -> tuple[dict, Any]:
     """A classical controller's settings tuned like the integrator's gain (the extrapolator's order and smoothing,
-    the LQG's AR order, PFC's memory): each of ``cfg.setting_grid`` closes the loop on the scan stream, and the lowest
-    median residual wins (the first tried on a tie); PFC's memory is scanned on past the grid's edge while the best is
-    there (:func:`~eofnn.control.config.alpha_past_edge`). A controller built from telemetry builds one model per setting, each
+    the LQG's AR order and noise scale, PFC's memory): each of ``cfg.setting_grid`` closes the loop on the scan stream,
+    and the lowest median residual wins (the first tried on a tie); PFC's memory and the LQG's noise scale are scanned
+    on past the grid's edge while the best is there (:func:`~eofnn.control.config.alpha_past_edge`,
+    :func:`~eofnn.control.config.scan_lqg_settings`). A controller built from telemetry builds one model per setting, each
     from the same telemetry (its own streams: neither the scan's nor the test's).
 
     Returns the scan, ``{**chosen setting, "median_rms_nm": its residual, "scanned": every setting tried with its
@@ -182,8 +183,18 @@ def scan_classical_settings(cfg: PredictorConfig, scenario: Scenario, settle_fra
         return models[-1]
 
     plain = replace(cfg, **dict.fromkeys(SCAN_FIELDS))
-    scanned = scan_settings(plain, cfg.setting_grid, scenario, settle_frames, divergence_factor,
-                            model_of if from_telemetry is not None else None)
+    if cfg.controller == "lqg":  # every model with every noise scale, the scales on past their edge
+        def evaluate(order: int, scale: float) -> float | None:
+            scanned.extend(scan_settings(plain, [{"ar_order": order, "noise_scale": scale}], scenario, settle_frames,
+                                         divergence_factor, model_of))
+            return scanned[-1]["median_rms_nm"]
+
+        scanned: list[dict] = []
+        grid = cfg.setting_grid
+        scan_lqg_settings(evaluate, [s["ar_order"] for s in grid], [s["noise_scale"] for s in grid])
+    else:
+        scanned = scan_settings(plain, cfg.setting_grid, scenario, settle_frames, divergence_factor,
+                                model_of if from_telemetry is not None else None)
     # PFC's memory, like the integrator's gain, goes on past the grid's edge while the residual still falls there.
     while cfg.pfc_alphas is not None and (alpha := alpha_past_edge(
             {e["pfc.alpha"]: e["median_rms_nm"] for e in scanned}, len(scanned) - len(cfg.setting_grid))) is not None:

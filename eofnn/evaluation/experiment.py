@@ -167,7 +167,7 @@ class Experiment:
 
     def config(self, name: str, scenario_name: str) -> PredictorConfig:
         """Controller ``name``'s config as it runs in ``scenario_name``: a best-gain integrator has its gain chosen, a
-        tuned extrapolator its order and smoothing, a tuned LQG its AR order."""
+        tuned extrapolator its order and smoothing, a tuned LQG its AR order and noise scale."""
         cfg = self.predictors[name]
         if cfg.setting_grid is not None:
             chosen = {key: value for key, value in self._tuned(name, scenario_name).items()

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eofnn.control.config import RANDOM_WALK
 from eofnn.evaluation.metrics import LoopMetrics
 
 
@@ -76,20 +77,24 @@ class ExperimentResult:
 
 
 #: How a setting of a classical controller reads in a line (``results.md``, progress).
-SETTING_LABELS = {"order": "order {}", "smoothing": "smoothing {}", "ar_order": "AR({})", "pfc.alpha": "alpha {}"}
+SETTING_LABELS = {"order": "order {}", "smoothing": "smoothing {}", "ar_order": "AR({})", "pfc.alpha": "alpha {}",
+                  "noise_scale": "noise x {:g}"}
+#: The value of a setting's later field that goes unsaid when every setting tried has it (0 unless listed).
+SETTING_DEFAULTS = {"noise_scale": 1.0}
 
 
 def describe_setting_scan(scan: dict) -> str:
     """``order 2 chosen (2.06 nm) over order 1 (3.86), order 0 (5.1)``: the choice, then the others from best to
-    worst (diverged last). The first field of a setting is always named; another (``smoothing``) when it varies
-    across the settings tried or is not 0."""
+    worst (diverged last). The first field of a setting is always named; another (``smoothing``, ``noise_scale``)
+    when some setting tried has it other than its default (:data:`SETTING_DEFAULTS`)."""
     entries = scan["scanned"]
     fields = [key for key in entries[0] if key != "median_rms_nm"]
     shown = [key for i, key in enumerate(fields)
-             if i == 0 or len({e[key] for e in entries}) > 1 or any(e[key] for e in entries)]
+             if i == 0 or any(e[key] != SETTING_DEFAULTS.get(key, 0) for e in entries)]
 
     def name(entry: dict) -> str:
-        return ", ".join(SETTING_LABELS.get(key, key + " {}").format(entry[key]) for key in shown)
+        return ", ".join("random walk" if key == "ar_order" and entry[key] == RANDOM_WALK else
+                         SETTING_LABELS.get(key, key + " {}").format(entry[key]) for key in shown)
 
     chosen = next(e for e in entries if all(e[key] == scan[key] for key in fields))
     others = sorted((e for e in entries if e is not chosen),

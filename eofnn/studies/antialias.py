@@ -244,7 +244,7 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
             "identified": {"dm_gain": plant.dm_gain, "wfs_noise_nm": plant.wfs_noise_nm, "dm_gain_true": sim.dm_gain},
             "fits": fits, "integrator_scan": {"gain": scan["gain"], "scan": {str(g): v for g, v in scan["scan"].items()}},
             "modal_scan": {key: modal[key] for key in ("gain_margin", "median_rms_nm", "scan", "info")},
-            "lqg_scan": {"ar_order": lqg["ar_order"], "scan": lqg["scan"]},
+            "lqg_scan": {key: lqg[key] for key in ("ar_order", "noise_scale", "noise_covariance", "median_rms_nm", "scan")},
             "pfc_scan": {"alpha": pfc["alpha"], "aliases": pfc["aliases"], "noise_covariance": pfc["noise_covariance"],
                          "median_rms_nm": pfc["median_rms_nm"],
                          "scan": pfc["scan"], "identified": pfc["info"]},

@@ -105,8 +105,8 @@ def antialias_markdown(metrics: dict) -> str:
     modal = metrics.get("modal_scan")
     gains_line = "" if not modal else f" Modal integrator (optimised gains): gain margin {modal['gain_margin']:g} " \
         f"(scan: {modal['scan']}), gains {modal['info']['gains_quantiles_0_10_50_90_100']} (quantiles 0-10-50-90-100%)."
-    lines += ["", f"LQG: AR order {lqg['ar_order']} (scan: {lqg['scan']}).{winds}{gains_line} Best classical controller, "
-                  f"chosen on the scan realisation: {metrics['best_classical']}."]
+    lines += ["", f"LQG: AR order {lqg['ar_order']}{_noise_scale(lqg)} (scan: {lqg['scan']}).{winds}{gains_line} "
+                  f"Best classical controller, chosen on the scan realisation: {metrics['best_classical']}."]
     oracle = metrics.get("fits", {}).get(ORACLE)
     if oracle is not None:
         lines += ["", f"Oracle ({ORACLE}): {oracle['knowledge']}. {oracle['history_length']} taps, neighbourhood radius "
@@ -154,3 +154,10 @@ def _eta_cell(name: str, etas_here: dict) -> str:
     if entry is None or entry["eta"] is None:
         return "" if entry is None else "undefined (the oracle gains nothing)"
     return f"{entry['eta']:.2f} (" + ", ".join("n/a" if v is None else f"{v:.2f}" for v in entry["per_realisation"]) + ")"
+
+
+def _noise_scale(lqg: dict) -> str:
+    """`` (the random walk), noise variance x 0.5``: what an LQG's scan chose besides its AR order (nothing for a run made
+    before the noise scale was scanned)."""
+    walk = " (the random walk)" if lqg["ar_order"] == 0 else ""
+    return walk + ("" if "noise_scale" not in lqg else f", noise variance x {lqg['noise_scale']:g}")

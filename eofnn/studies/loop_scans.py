@@ -9,9 +9,13 @@ them not scored), as :class:`eofnn.studies.antialias.AntiAliasConfig` has.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import numpy as np
 import torch
 
 from eofnn.control.classical import ModalIntegrator
+from eofnn.control.config import AR_ORDERS, LQG_NOISE_SCALES, scan_lqg_settings
 from eofnn.control.modal import GAIN_MARGIN_CANDIDATES, lqg_from_pol, modal_statistics, optimal_gains
 from eofnn.interop.loop import TorchControl, run_closed_loop
 from eofnn.sim.layout import ActuatorLayout, layout_from_positions
@@ -48,16 +52,45 @@ def scan_modal(sim, pol: torch.Tensor, dm_gain: float, c, seed: int) -> dict:
                      "noise_rms_nm_median": float(stats.noise_variance.median().sqrt())}}
 
 
-def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c, seed: int) -> dict:
-    """The LQG (:func:`eofnn.control.modal.lqg_from_pol`: AR model per KL mode, stationary Kalman filter) built
-    from the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain), its AR order (1 or
-    2) chosen in the loop on the scan realisation ``seed``: ``{"controller", "ar_order", "median_rms_nm", "scan"}``."""
-    grid_indices = _grid_indices(sim)
-    built = {order: lqg_from_pol(pol, sim.delay_frames, dm_gain, order, grid_indices=grid_indices)
-             for order in (1, 2)}
-    order, rms, scan = _best_in_loop(sim, {order: TorchControl(lqg, sim.delay_frames) for order, lqg in built.items()},
-                                     c, seed, fallback=2)
-    return {"controller": built[order], "ar_order": order, "median_rms_nm": rms, "scan": scan}
+def scan_lqg(sim, pol: torch.Tensor, dm_gain: float, c, seed: int, orders=AR_ORDERS,
+             scales=LQG_NOISE_SCALES, coloured: bool = True) -> dict:
+    """The LQG (:func:`eofnn.control.modal.lqg_from_pol`: a model per KL mode, stationary Kalman filter) built from
+    the recorded telemetry's ``(R, T, K)`` POL values (formed with the identified DM gain), its model (AR order 1 or
+    2, or 0: the random walk, whose filter is the pseudo-open-loop integrator) and the scalar on its identified noise
+    variance chosen in the loop on the scan realisation ``seed`` (:func:`~eofnn.control.config.scan_lqg_settings`,
+    as eofnn's own contest tunes it); then, where the loop exposes its reconstructor and ``coloured``, the chosen
+    setting once more with each mode's noise variance taken from the reconstructor's noise covariance ``R R^T``
+    projected on the KL modes (scaled to the identified noise's mean over the modes; the AR fit subtracts it too),
+    kept if better: ``{"controller", "ar_order", "noise_scale", "noise_covariance", "median_rms_nm", "scan"}``, the
+    scan keyed ``"ar_order=.., noise_scale=.."``."""
+    stats = modal_statistics(pol, grid_indices=_grid_indices(sim))
+    built = {}
+
+    def evaluate(order: int, scale: float, noise: str = "identified"):
+        model_stats = stats if noise == "identified" else coloured_stats
+        built[(order, scale, noise)] = lqg_from_pol(pol, sim.delay_frames, dm_gain, order, stats=model_stats,
+                                                    noise_scale=scale)
+        control = TorchControl(built[(order, scale, noise)], sim.delay_frames)
+        return run_closed_loop(sim, control, c.loop_frames, seed).metrics(c.settle_frames).median_rms_nm
+
+    scan = {(*key, "identified"): v for key, v in scan_lqg_settings(evaluate, orders, scales).items()}
+    stable = {key: v for key, v in scan.items() if v is not None}
+    best = min(stable, key=stable.get) if stable else (2, 1.0, "identified")
+    reconstructor = getattr(sim, "reconstructor", None)
+    if coloured and reconstructor is not None and stable:
+        r = torch.as_tensor(np.asarray(reconstructor, dtype=np.float64))
+        shape = ((r.T @ stats.modes).pow(2).sum(0))  # m_k^T R R^T m_k
+        coloured_stats = replace(stats, noise_variance=shape * stats.noise_variance.mean() / shape.mean())
+        key = (best[0], best[1], "reconstructor")
+        scan[key] = evaluate(*key)
+        if scan[key] is not None and scan[key] < stable[best]:
+            best, stable[key] = key, scan[key]
+    if best not in built:
+        built[best] = lqg_from_pol(pol, sim.delay_frames, dm_gain, best[0], stats=stats, noise_scale=best[1])
+    return {"controller": built[best], "ar_order": best[0], "noise_scale": best[1], "noise_covariance": best[2],
+            "median_rms_nm": stable.get(best),
+            "scan": {f"ar_order={o}, noise_scale={s:g}" + ("" if n == "identified" else f", noise={n}"): v
+                     for (o, s, n), v in scan.items()}}
 
 
 #: The frozen-flow memories (:attr:`eofnn.control.config.PfcConfig.alpha`) predictive Fourier control's scan tries:
