@@ -135,3 +135,23 @@ def test_pupil_and_layer_bookkeeping():
     # A block that finds one layer only: the weaker is not found again there.
     once = _with_errors(two, [[layer(10.0, 0.0, 1.0)]] + [[layer(10.0, 0.0, 0.6), layer(0.0, 5.0, 0.4)]] * 3)
     assert once[0]["found_again"] and not once[1]["found_again"]
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("files, expected", [
+    ({"interaction_matrix": (162, 81)}, "interaction_matrix has shape (162, 81)"),
+    ({"interaction_matrix": (162, 80), "reconstructor": (80, 160)}, "reconstructor has shape (80, 160): expected "
+                                                                      "(80, 2 n_sub) = (80, 162)"),
+    ({"reconstructor": (80, 161)}, "reconstructor has shape (80, 161): expected (80, 2 n_sub) = (80, 161)"),
+    ({"reconstructor": (80 * 162,)}, "reconstructor has dtype float64 and shape (12960,): it must be a real 2-d"),
+])
+def test_matrices_that_do_not_fit_the_telemetry_are_refused_in_one_line(cli_error, tmp_path, files, expected):
+    """An interaction matrix for other actuators, a reconstructor for other slopes than the interaction matrix's, an
+    odd number of slopes (x then y of each subaperture), a flat reconstructor: one line each, nothing written."""
+    assert GRID.n_actuators == 80
+    _random_telemetry(tmp_path / "ok.npz")
+    args = ["twin", "--telemetry", tmp_path / "ok.npz", "--out", tmp_path / "o"]
+    for name, shape in files.items():
+        np.save(tmp_path / f"{name}.npy", np.random.default_rng(2).normal(size=shape))
+        args[-2:-2] = [f"--{name}", tmp_path / f"{name}.npy"]
+    cli_error(args, expected, tmp_path / "o")
