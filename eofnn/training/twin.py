@@ -385,8 +385,8 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     e["wfs_noise_per_actuator_nm"] = Estimate(np.sqrt(per_act).round(4).tolist(), None, "nm", "diagonal of C_v")
     neighbours = layout.neighbours(1.0).numpy()
     corr = cv / np.sqrt(np.outer(per_act, per_act) + 1e-300)
-    nearest = [corr[k, j] for k in range(n_act) for j in neighbours[k, 1:] if j < n_act]
-    colour = {"nearest_neighbour_correlation": float(np.mean(nearest))}
+    nearest = [corr[k, j] for k in range(n_act) for j in neighbours[k, 1:] if j < n_act and per_act[k] * per_act[j] > 0]
+    colour = {"nearest_neighbour_correlation": float(np.mean(nearest)) if nearest else None}  # pairs with noise
     colour_method = "off-diagonal of C_v: the mean correlation of nearest neighbours' noise"
     if rec is not None:
         rr = rec @ rec.T
