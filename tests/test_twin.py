@@ -135,3 +135,56 @@ def test_pupil_and_layer_bookkeeping():
     # A block that finds one layer only: the weaker is not found again there.
     once = _with_errors(two, [[layer(10.0, 0.0, 1.0)]] + [[layer(10.0, 0.0, 0.6), layer(0.0, 5.0, 0.4)]] * 3)
     assert once[0]["found_again"] and not once[1]["found_again"]
+
+
+@pytest.mark.cli
+@pytest.mark.parametrize("files, expected", [
+    ({"interaction_matrix": (162, 81)}, "interaction_matrix has shape (162, 81)"),
+    ({"interaction_matrix": (162, 80), "reconstructor": (80, 160)}, "reconstructor has shape (80, 160): expected "
+                                                                      "(80, 2 n_sub) = (80, 162)"),
+    ({"reconstructor": (80, 161)}, "reconstructor has shape (80, 161): expected (80, 2 n_sub) = (80, 161)"),
+    ({"reconstructor": (80 * 162,)}, "reconstructor has dtype float64 and shape (12960,): it must be a real 2-d"),
+])
+def test_matrices_that_do_not_fit_the_telemetry_are_refused_in_one_line(cli_error, tmp_path, files, expected):
+    """An interaction matrix for other actuators, a reconstructor for other slopes than the interaction matrix's, an
+    odd number of slopes (x then y of each subaperture), a flat reconstructor: one line each, nothing written."""
+    assert GRID.n_actuators == 80
+    _random_telemetry(tmp_path / "ok.npz")
+    args = ["twin", "--telemetry", tmp_path / "ok.npz", "--out", tmp_path / "o"]
+    for name, shape in files.items():
+        np.save(tmp_path / f"{name}.npy", np.random.default_rng(2).normal(size=shape))
+        args[-2:-2] = [f"--{name}", tmp_path / f"{name}.npy"]
+    cli_error(args, expected, tmp_path / "o")
+
+
+def test_a_block_that_lands_one_component_on_noise_still_finds_the_second_layer_again(monkeypatch):
+    """The count's rule on each block of the record: a block's fit has one component more than the record's, so that
+    a block whose n-component fit put one component on noise (3.75 m/s where an 18 m/s layer was: seen on OOPAO's
+    two-layer records) still finds the real layer among its components; a spurious third component, which moves
+    from block to block, is still refused."""
+    from eofnn.training import twin_layers
+
+    def layer(speed, direction, weight):
+        a = math.radians(direction)
+        return {"vx_mps": speed * math.cos(a), "vy_mps": speed * math.sin(a), "speed_mps": speed,
+                "direction_deg": direction, "weight": weight}
+
+    slow, fast, ghost = layer(8.0, -10.0, 0.6), layer(18.0, -130.0, 0.4), layer(13.9, 0.0, 0.2)
+    extra = [[layer(3.75, -137.0, 0.2), layer(5.0, 90.0, 0.1)], [layer(2.0, 20.0, 0.2), layer(30.0, 45.0, 0.1)],
+             [layer(4.0, 170.0, 0.2), layer(25.0, -60.0, 0.1)], [layer(2.0, -100.0, 0.2), layer(28.0, 120.0, 0.1)]]
+    calls = []
+
+    def fit(x, lattice, period, n, bound, shift=None):
+        if len(x) == 4000:  # the whole record: its n strongest components
+            return [slow, fast, ghost][:n], 1.0, 1
+        block = len(calls) % 4
+        calls.append(n)
+        if block == 0:  # its two-component fit misses the fast layer, a third finds it
+            return [slow, extra[0][0], fast, extra[0][1]][:n], 1.0, 1
+        return [slow, fast, *extra[block]][:n], 1.0, 1
+
+    monkeypatch.setattr(twin_layers, "_layer_fit", fit)
+    lattice = type("L", (), {"order": np.arange(4), "n_across": 21})()
+    layers, info = twin_layers.identify_layers(np.zeros((4000, 4)), lattice, 1e-3, max_layers=3)
+    assert info["chosen"] == 2 and "3 layers rejected" in info["stopped"], info
+    assert [round(lay["speed_mps"]) for lay in layers] == [8, 18]

@@ -63,11 +63,19 @@ class TelemetryFiles:
         File of the (K, S) reconstructor, wfs = R @ slopes (used as given).
     modal_basis : str, optional
         File of the (actuators, M) modal basis when y and wfs are modal coefficients.
+    command_unit : str
+        What one unit of y is, converted to nm on reading: 'surface' (nm of smooth DM surface, eofnn's), 'nm' (the
+        same), 'peak' (nm at the peak of one actuator's influence function, OOPAO's: x 2.99 at coupling 0.35), 'um',
+        'm', or a positive number of nm per unit (e.g. nm per volt).
+    measurement_unit : str, optional
+        What one unit of wfs (or of R @ slopes) is, as command_unit; default the same as command_unit.
     """
 
     interaction_matrix: str | None = None
     reconstructor: str | None = None
     modal_basis: str | None = None
+    command_unit: str = "surface"
+    measurement_unit: str | None = None
 
 
 @dataclass(kw_only=True)

@@ -11,6 +11,7 @@ import eofnn
 from eofnn.cli.common import Output, TelemetryCommand, log
 from eofnn.errors import CheckpointError, ConfigError, TelemetryError
 from eofnn.outputs import check_output_file, check_output_folder, staged_folder
+from eofnn.telemetry.units import check_units
 from eofnn.training.conditions import plant_conditions, warn_shift
 from eofnn.validation import Interval, OrNone, check_value
 
@@ -99,11 +100,15 @@ def _files(value: str | list[str]) -> list[str]:
 def _load(cfg, streamed: bool = False) -> list[eofnn.data.targets.AnyTelemetry]:
     """Read the telemetry files (with matrices given beside them) and say how each residual was formed when it was
     not recorded as one. ``streamed``: open them for block reading (identification and fits never hold a file)."""
-    from eofnn.data.targets import load_telemetry
+    from eofnn.data.targets import in_nm, load_telemetry
 
     paths = cfg.telemetry
+    check_units(cfg.command_unit, cfg.measurement_unit)
     telemetry = load_telemetry(paths, {name: getattr(cfg, name, None) for name in MATRICES}, streamed=streamed)
-    for path, item in zip(_files(paths), telemetry, strict=True):
+    for index, (path, item) in enumerate(zip(_files(paths), telemetry, strict=True)):
+        telemetry[index], note = in_nm(item, cfg.command_unit, cfg.measurement_unit)
+        if note:
+            log(f"telemetry {path}: {note}")
         if item.measurement:
             log(f"telemetry {path}: {item.measurement}")
         if item.modal_basis is not None:
@@ -115,6 +120,7 @@ def _load(cfg, streamed: bool = False) -> list[eofnn.data.targets.AnyTelemetry]:
 def identify(cfg: IdentifyConfig, config_dump: str | None = None) -> dict:
     """Identify the plant from ``cfg.telemetry`` and write it to ``cfg.out``; returns the summary line."""
     check_value("batch_frames", cfg.batch_frames, Interval(1, 1_000_000, integer=True, unit="frames"))
+    check_units(cfg.command_unit, cfg.measurement_unit)
     out = check_output_file(cfg.out, cfg.overwrite)
     from eofnn.training.identify import identify_plant
 
@@ -188,6 +194,7 @@ def replay(cfg: ReplayConfig, config_dump: str | None = None) -> dict:
     returns the summary line."""
     check_value("start", cfg.start, Interval(0, 10**9, integer=True))
     check_value("settle_frames", cfg.settle_frames, Interval(0, 10**9, integer=True))
+    check_units(cfg.command_unit, cfg.measurement_unit)
     out = check_output_folder(cfg.out, cfg.overwrite)
     from eofnn.data.targets import telemetry_grid
     from eofnn.evaluation.replay import replay as replay_telemetry

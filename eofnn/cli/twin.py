@@ -11,7 +11,8 @@ import eofnn
 from eofnn.cli.common import Output, log
 from eofnn.errors import TelemetryError
 from eofnn.outputs import check_output_folder, staged_folder
-from eofnn.validation import Interval, OneOf, OrNone, check_value
+from eofnn.telemetry.units import check_units
+from eofnn.validation import Interval, OrNone, check_value
 
 # The identification imports torch, scipy and the simulator (seconds): imported in the function, so that the parser
 # and its config errors answer without them.
@@ -44,8 +45,11 @@ class TwinConfig(Output):
         The DM's Gaussian influence functions' value one pitch away, for a record of slopes (default 0.35, with a
         warning).
     command_unit : str
-        What one nm of y and wfs is: 'surface' (nm of smooth DM surface, eofnn's) or 'peak' (nm at the peak of one
-        actuator's influence function, OOPAO's): the twin is in eofnn's units either way.
+        What one unit of y is: 'surface' (nm of smooth DM surface, eofnn's), 'nm' (the same), 'peak' (nm at the peak
+        of one actuator's influence function, OOPAO's), 'um', 'm', or a positive number of nm per unit (e.g. nm per
+        volt): the twin is in eofnn's units whichever.
+    measurement_unit : str, optional
+        What one unit of wfs (or of R @ slopes) is, as command_unit; default the same as command_unit.
     max_layers : int
         Most frozen-flow layers fitted.
     max_speed_mps : float
@@ -63,6 +67,7 @@ class TwinConfig(Output):
     reconstructor: str | None = None
     mechanical_coupling: float | None = None
     command_unit: str = "surface"
+    measurement_unit: str | None = None
     max_layers: int = 3
     max_speed_mps: float = 40.0
     blocks: int = 4
@@ -74,7 +79,7 @@ def twin(cfg: TwinConfig, config_dump: str | None = None) -> dict:
     """Identify the twin of ``cfg.telemetry`` and write ``twin.yaml`` and ``identified.json`` into ``cfg.out``;
     returns the summary line."""
     check_value("mechanical_coupling", cfg.mechanical_coupling, OrNone(Interval(0, 1, closed="neither")))
-    check_value("command_unit", cfg.command_unit, OneOf(("surface", "peak")))
+    check_units(cfg.command_unit, cfg.measurement_unit)
     check_value("max_layers", cfg.max_layers, Interval(1, 3, integer=True))
     check_value("max_speed_mps", cfg.max_speed_mps, Interval(0, 200, closed="right", unit="m/s"))
     check_value("blocks", cfg.blocks, Interval(2, 100, integer=True))
@@ -111,7 +116,8 @@ def identify(cfg: TwinConfig) -> eofnn.training.twin.TwinIdentification:
     return identify_twin(telemetry, interaction_matrix=matrices.get("interaction_matrix"),
                          reconstructor=matrices.get("reconstructor"), max_layers=cfg.max_layers,
                          max_speed_mps=cfg.max_speed_mps, blocks=cfg.blocks,
-                         mechanical_coupling=cfg.mechanical_coupling, command_unit=cfg.command_unit, seed=cfg.seed)
+                         mechanical_coupling=cfg.mechanical_coupling, command_unit=cfg.command_unit,
+                         measurement_unit=cfg.measurement_unit, seed=cfg.seed)
 
 
 def _magnitude(result, screen_frames: int) -> float | None:

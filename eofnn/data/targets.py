@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -29,9 +30,12 @@ from eofnn.errors import TelemetryError
 from eofnn.resources import require_memory
 from eofnn.sim.grid import ActuatorGrid
 from eofnn.sim.layout import ActuatorLayout, layout_from_dict, layout_from_positions
+from eofnn.sim.sensing.constants import MECHANICAL_COUPLING
+from eofnn.sim.sensing.least_squares import surface_per_command
 from eofnn.telemetry.file import NotStreamableError, StreamedTelemetry
 from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
 from eofnn.telemetry.spaces import read_matrix
+from eofnn.telemetry.units import check_units, nm_per_unit
 
 #: One recording (in memory, or a file read in blocks of frames).
 AnyTelemetry = Telemetry | StreamedTelemetry
@@ -190,6 +194,26 @@ def load_telemetry(paths: str | Path | Sequence[str | Path], matrices: dict | No
     space = {name: read_matrix(value, name) if isinstance(value, (str, Path)) else value
              for name, value in (matrices or {}).items() if value is not None}
     return [_open(path, space) if streamed else _whole(path, space) for path in paths]
+
+
+def in_nm(telemetry: AnyTelemetry, command_unit="surface", measurement_unit=None,
+          mechanical_coupling: float | None = None) -> tuple[AnyTelemetry, str]:
+    """``telemetry`` with ``y`` in nm (from ``command_unit``) and ``wfs`` (and ``s``, ``eps``) in nm (from
+    ``measurement_unit``, default the commands' unit) (:mod:`eofnn.telemetry.units`; ``peak`` at
+    ``mechanical_coupling``, default OOPAO's), and one line saying what was converted ("" when nothing was)."""
+    measurement_unit = command_unit if measurement_unit is None else measurement_unit
+    check_units(command_unit, measurement_unit)
+    peak = surface_per_command(MECHANICAL_COUPLING if mechanical_coupling is None else mechanical_coupling)
+    command, measurement = nm_per_unit(command_unit, peak), nm_per_unit(measurement_unit, peak)
+    if command == 1.0 and measurement == 1.0:
+        return telemetry, ""
+    note = (f"y multiplied by {command:.6g} (command_unit {command_unit}) and wfs by {measurement:.6g} "
+            f"(measurement_unit {measurement_unit}): nm")
+    if isinstance(telemetry, StreamedTelemetry):
+        return telemetry.scaled(command, measurement), note
+    return replace(telemetry, y=telemetry.y * command, **{name: getattr(telemetry, name) * measurement
+                                                          for name in ("wfs", "s", "eps")
+                                                          if getattr(telemetry, name) is not None}), note
 
 
 def _whole(path, space: dict) -> Telemetry:

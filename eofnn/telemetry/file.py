@@ -45,12 +45,14 @@ class FrameArray:
 
     ``a[i]`` is recording ``i`` of a batched array (lazy); ``a[start:stop]`` of a 2-d one reads those frames and
     returns them as a float64 tensor ``(stop - start, K)``; ``a.narrow(0, start, length)`` is a lazy view.
-    ``columns`` (``(S, K)``) maps each block's ``S`` stored columns to the ``K`` returned (``slopes @ R.T``).
+    ``columns`` (``(S, K)``) maps each block's ``S`` stored columns to the ``K`` returned (``slopes @ R.T``);
+    ``factor`` multiplies every block (a record's unit converted to nm, :meth:`scaled`).
     """
 
     def __init__(self, reader, batch: int | None = None, start: int = 0, frames: int | None = None,
-                 columns: torch.Tensor | None = None) -> None:
+                 columns: torch.Tensor | None = None, factor: float = 1.0) -> None:
         self._reader, self._batch, self._start, self._columns = reader, batch, start, columns
+        self._factor = float(factor)
         stored = reader.shape
         self._frames = stored[-2] - start if frames is None else frames
         width = stored[-1] if columns is None else columns.shape[1]
@@ -72,7 +74,8 @@ class FrameArray:
         if self.ndim == 3:
             if not isinstance(key, (int, np.integer)) or not -self.shape[0] <= key < self.shape[0]:
                 raise IndexError(f"recording {key!r} of a batch of {self.shape[0]}")
-            return FrameArray(self._reader, int(key) % self.shape[0], self._start, self._frames, self._columns)
+            return FrameArray(self._reader, int(key) % self.shape[0], self._start, self._frames, self._columns,
+                              self._factor)
         if not isinstance(key, slice) or key.step not in (None, 1):
             raise TypeError("streamed telemetry reads contiguous frames only: index it with a[start:stop]")
         start, stop, _ = key.indices(self._frames)
@@ -82,14 +85,19 @@ class FrameArray:
         """Frames ``start .. start + length - 1`` as a lazy view (``torch.Tensor.narrow`` on dimension 0)."""
         if dim != 0 or self.ndim != 2 or start < 0 or length < 0 or start + length > self._frames:
             raise IndexError(f"narrow({dim}, {start}, {length}) of a {tuple(self.shape)} frame array")
-        return FrameArray(self._reader, self._batch, self._start + start, length, self._columns)
+        return FrameArray(self._reader, self._batch, self._start + start, length, self._columns, self._factor)
+
+    def scaled(self, factor: float) -> FrameArray:
+        """This array with every value multiplied by ``factor`` (lazy)."""
+        return FrameArray(self._reader, self._batch, self._start, self._frames, self._columns, self._factor * factor)
 
     def _read(self, start: int, stop: int) -> torch.Tensor:
         raw = self._reader.read(self._batch or 0, self._start + start, self._start + stop)
         block = torch.from_numpy(raw.astype(np.float64))
         if self._reader.scale is not None:
             block = block * self._reader.scale[0] + self._reader.scale[1]
-        return block if self._columns is None else block @ self._columns
+        block = block if self._columns is None else block @ self._columns
+        return block if self._factor == 1.0 else block * self._factor
 
     def blocks(self, block_frames: int = SCAN_FRAMES):
         """``(first frame, float64 block)`` over the whole (2-d) array."""
@@ -229,6 +237,13 @@ class StreamedTelemetry:
         if self._sequences is None:
             self._sequences = [self] if not self.batched else [self.realisation(i) for i in range(self.y.shape[0])]
         return self._sequences
+
+    def scaled(self, command: float, measurement: float) -> StreamedTelemetry:
+        """This file with ``y`` multiplied by ``command`` and ``wfs`` by ``measurement`` (lazy): a record's units
+        converted to nm (:mod:`eofnn.telemetry.units`)."""
+        one = StreamedTelemetry(self.path, self.y.scaled(command), self.wfs.scaled(measurement), self)
+        one._checked = self._checked
+        return one
 
     def shifted(self, lag: int) -> StreamedTelemetry:
         """This (2-d) recording with ``wfs`` ``lag`` frames earlier: ``y[:-lag]`` beside ``wfs[lag:]`` (lazy)."""

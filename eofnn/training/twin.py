@@ -56,6 +56,7 @@ import numpy as np
 
 from eofnn.errors import TelemetryError
 from eofnn.lazy import lazy_module
+from eofnn.telemetry.units import PEAK, check_units, nm_per_unit
 from eofnn.training.twin_layers import (
     MERGE_SPEED_MPS,
     MIN_EXTRA_WEIGHT,
@@ -82,8 +83,6 @@ torch = lazy_module("torch")
 DEFAULT_COUPLING = 0.35
 #: An interaction-matrix column (row) below this fraction of the median column (row) norm moves (answers) nothing.
 DEAD_FRACTION = 1e-3
-#: What one nm of command may be: of smooth DM surface (eofnn's) or at an influence function's peak (OOPAO's).
-COMMAND_UNITS = ("surface", "peak")
 #: Fewest frames from which a layer is identified.
 MIN_LAYER_FRAMES = 1000
 
@@ -222,18 +221,18 @@ def pupil_from_matrices(n_actuators: int, n_slopes: int | None, interaction_matr
 
 def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max_layers: int = 3,
                   max_speed_mps: float = 40.0, blocks: int = 4, mechanical_coupling: float | None = None,
-                  command_unit: str = "surface", seed: int = 0) -> TwinIdentification:
+                  command_unit="surface", measurement_unit=None, seed: int = 0) -> TwinIdentification:
     """Identify the twin of the system that recorded ``telemetry`` (a :class:`~eofnn.telemetry.record.Telemetry`
     with ``y``, ``wfs``, ``positions_m``, the delay and the frame rate; ``s``, ``eps`` and ``config`` are never read)
     (module docstring). ``interaction_matrix`` ``(S, K)`` and ``reconstructor`` ``(K, S)`` replace the file's;
     ``mechanical_coupling``: the DM's Gaussian influence functions' value one pitch away (a record of slopes without
-    it assumes :data:`DEFAULT_COUPLING`, in one line); ``command_unit``: what one nm of ``y`` and ``wfs`` is,
-    ``"surface"`` (nm of smooth DM surface, eofnn's) or ``"peak"`` (nm at the peak of one actuator's influence
-    function, OOPAO's and many RTCs': ``y`` and ``wfs`` are multiplied by the lattice sum of the influence
-    functions, :func:`~eofnn.sim.sensing.least_squares.surface_per_command`, and everything identified is in eofnn's
-    units); ``seed``: the reference streams'."""
-    if command_unit not in COMMAND_UNITS:
-        raise TelemetryError(f"command_unit={command_unit!r} is invalid: allowed are {', '.join(COMMAND_UNITS)}")
+    it assumes :data:`DEFAULT_COUPLING`, in one line); ``command_unit``: what one unit of ``y`` is
+    (:mod:`eofnn.telemetry.units`), e.g. ``"surface"`` (nm of smooth DM surface, eofnn's) or ``"peak"`` (nm at the
+    peak of one actuator's influence function, OOPAO's and many RTCs': multiplied by the lattice sum of the influence
+    functions, :func:`~eofnn.sim.sensing.least_squares.surface_per_command`); ``measurement_unit``: the same for
+    ``wfs`` (default ``command_unit``); everything identified is in eofnn's units; ``seed``: the reference streams'."""
+    measurement_unit = command_unit if measurement_unit is None else measurement_unit
+    check_units(command_unit, measurement_unit)
     from eofnn.sim.grid import ActuatorGrid, nearest_grid
     from eofnn.sim.layout import layout_from_positions
     from eofnn.training.identify import PlantNotIdentifiedWarning, identify_plant
@@ -289,14 +288,16 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                 result.lit_pupil_m = round(lit, 4)
                 e["pupil"].value["lit_diameter_m"] = result.lit_pupil_m
                 e["pupil"].method += "; lit diameter from the valid subapertures' area, pitch sqrt(4 n / pi)"
-    if command_unit == "peak":
-        from eofnn.sim.sensing.least_squares import surface_per_command
+    from eofnn.sim.sensing.least_squares import surface_per_command
 
-        scale = surface_per_command(result.mechanical_coupling)
-        y_all, wfs_all = y_all * scale, wfs_all * scale
-        rec = None if rec is None else rec * scale
+    peak = surface_per_command(result.mechanical_coupling)
+    scale, measured = nm_per_unit(command_unit, peak), nm_per_unit(measurement_unit, peak)
+    if scale != 1.0 or measured != 1.0:
+        y_all, wfs_all, rec = y_all * scale, wfs_all * measured, None if rec is None else rec * measured
         result.warn(f"commands in nm of influence-function peak: y and wfs multiplied by {scale:.4g} (nm of smooth "
-                    f"surface per nm of command at coupling {result.mechanical_coupling:g}); all values in eofnn's units")
+                    f"surface per nm of command at coupling {result.mechanical_coupling:g}); all values in eofnn's units"
+                    if command_unit == measurement_unit == PEAK else f"y multiplied by {scale:.6g} (command_unit "
+                    f"{command_unit}) and wfs by {measured:.6g} (measurement_unit {measurement_unit}): nm")
     if telemetry.frame_rate_hz is None:
         result.warn("telemetry has no frame rate (FRATE): 1000 Hz assumed, winds scale with it")
         e["frame_rate_hz"] = Estimate(1000.0, None, "Hz", "assumed", "no frame rate in the file")
@@ -384,8 +385,8 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     e["wfs_noise_per_actuator_nm"] = Estimate(np.sqrt(per_act).round(4).tolist(), None, "nm", "diagonal of C_v")
     neighbours = layout.neighbours(1.0).numpy()
     corr = cv / np.sqrt(np.outer(per_act, per_act) + 1e-300)
-    nearest = [corr[k, j] for k in range(n_act) for j in neighbours[k, 1:] if j < n_act]
-    colour = {"nearest_neighbour_correlation": float(np.mean(nearest))}
+    nearest = [corr[k, j] for k in range(n_act) for j in neighbours[k, 1:] if j < n_act and per_act[k] * per_act[j] > 0]
+    colour = {"nearest_neighbour_correlation": float(np.mean(nearest)) if nearest else None}  # pairs with noise
     colour_method = "off-diagonal of C_v: the mean correlation of nearest neighbours' noise"
     if rec is not None:
         rr = rec @ rec.T

@@ -170,7 +170,8 @@ def identify_layers(pol: np.ndarray, lattice: Lattice, period: float, *, max_lay
     ``n`` layers are accepted while every one of them is found again, with the same wind, in each block of the
     record (:func:`_consistent`) and each added layer carries at least :data:`MIN_EXTRA_WEIGHT` of the turbulence;
     a component that fails (an aliased mode's apparent motion, noise) stops the search at the last order whose
-    layers all passed."""
+    layers all passed. Each block is fitted with one component more than the record (``n + 1``): a block's greedy
+    search that put a component on noise (a shorter record) still has one left for the real layer."""
     from eofnn.control.wind import LONGEST_SHIFT_PITCHES
 
     x = pol[:, lattice.order]
@@ -185,7 +186,8 @@ def identify_layers(pol: np.ndarray, lattice: Lattice, period: float, *, max_lay
         scores[str(n)] = round(size * math.log(rss / size) + 3 * len(layers) * math.log(size), 1)
         if chosen is not None and len(layers) <= len(chosen):
             break  # merged back: no new layer
-        found = [_merged(_layer_fit(x[part], lattice, period, n, bound, shift)[0]) for part in record_blocks(len(x), blocks)]
+        found = [_merged(_layer_fit(x[part], lattice, period, n + 1, bound, shift)[0])
+                 for part in record_blocks(len(x), blocks)]
         layers = _with_errors(layers, found)
         if chosen is not None:
             weak = [lay for lay in layers if lay["weight"] < MIN_EXTRA_WEIGHT]
