@@ -224,9 +224,10 @@ def antialias(args, argv: list[str]) -> dict:
         if "eof_eofnn" in metrics["contenders"]:
             metrics["gap_closed"]["eof_eofnn"] = gap_closed(metrics, "eof_eofnn")
         for name, gap in metrics["gap_closed"].items():
-            print(f"{name}: share of the gap to eof_antialias closed, plain variance: "
-                  f"{gap['on_scan']['share']} (best classical on the scan: {gap['on_scan']['best_classical']}), "
-                  f"{gap['on_scored']['share']} (on the scored: {gap['on_scored']['best_classical']}); "
+            shares = [f"{gap[k]['share'] if gap[k]['share'] is not None else gap[k].get('why')} (best classical "
+                      f"{where}: {gap[k]['best_classical']})" for k, where in (("on_scan", "on the scan"),
+                                                                              ("on_scored", "on the scored"))]
+            print(f"{name}: share of the gap to eof_antialias closed, plain variance: {shares[0]}, {shares[1]}; "
                   f"variances {gap['variance_nm2']}")
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])

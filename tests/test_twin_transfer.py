@@ -58,6 +58,9 @@ def test_the_share_of_the_gap_is_in_plain_variance_against_the_best_classical_co
     assert gap["on_scan"]["share"] == pytest.approx((100 - 64) / (100 - 50))
     assert gap["on_scored"]["share"] == pytest.approx((101 - 64) / (101 - 50))
     assert gap_closed(metrics, "diverged")["on_scan"]["share"] is None
+    metrics["contenders"]["eof_antialias"]["realisations_median_rms_nm"] = [10.0, 11.0]  # truth loses to pfc
+    assert gap_closed(metrics, "twin")["on_scan"]["share"] is None
+    assert "no gap to close" in gap_closed(metrics, "twin")["on_scan"]["why"]
 
 
 def test_the_seen_modes_span_the_reconstructors_commands():

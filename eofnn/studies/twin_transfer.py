@@ -177,7 +177,8 @@ def gap_closed(metrics: dict, name: str, truth: str = "eof_antialias") -> dict:
     """The share of the gap between the best classical controller and ``truth`` (the same filter trained on the
     simulator's truth) that ``name`` closes, in plain variance over the scored realisations (the mean of the squared
     median RMS): ``(best - name) / (best - truth)``, with the best classical controller chosen on the scan realisation
-    (``on_scan``) and on the scored ones (``on_scored``). ``None`` where a contender diverged or is absent."""
+    (``on_scan``) and on the scored ones (``on_scored``). ``None``, with the reason in ``why``, where a contender
+    diverged or is absent, or where ``truth`` does not beat the best classical controller (no gap to close)."""
     results = metrics["contenders"]
 
     def variance(contender: str):
@@ -187,10 +188,14 @@ def gap_closed(metrics: dict, name: str, truth: str = "eof_antialias") -> dict:
     out = {"predictor": name, "truth": truth, "variance_nm2": {}}
     for key, best in (("on_scan", metrics.get("best_classical")), ("on_scored", metrics.get("best_classical_on_scored"))):
         values = [variance(best), variance(name), variance(truth)] if best else [None]
-        share = None
-        if None not in values and values[0] != values[2]:
+        share, why = None, ""
+        if None in values:
+            why = "a contender diverged or is absent"
+        elif values[2] >= values[0]:
+            why = f"{truth} does not beat {best}: there is no gap to close"
+        else:
             share = (values[0] - values[1]) / (values[0] - values[2])
-        out[key] = {"best_classical": best, "share": share}
+        out[key] = {"best_classical": best, "share": share, **({"why": why} if why else {})}
         if best:
             out["variance_nm2"][best] = values[0]
     out["variance_nm2"].update({name: variance(name), truth: variance(truth)})
