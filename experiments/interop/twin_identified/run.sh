@@ -29,3 +29,5 @@ if [ "$what" = all ] || [ "$what" = full ]; then
     run --n-subapertures 40 --diameter 8 --rcond 0.075 --frames 2000 \
         --out experiments/runs/interop/twin_identified/m8_2layers
 fi
+# After a run: python experiments/interop/twin_identified/gap.py small_m8_2layers m8_2layers (the gap shares from
+# metrics.json into experiments/interop/twin_identified/<run>/summary.json, results.md copied beside it).
