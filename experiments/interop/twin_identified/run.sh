@@ -19,13 +19,15 @@ cd "$(dirname "$0")/../../.."
 PY=${PYTHON:-.venv/bin/python}
 what=${1:-all}
 run() { OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --photon-noise --magnitude 8 --anti-aliasing --twin-identified \
-    --eofnn-trained --no-oracle --realisations 3 --layers 0.7:20:30,0.3:10:120 "$@"; }
+    --no-oracle --realisations 3 --layers 0.7:20:30,0.3:10:120 "$@"; }
 if [ "$what" = all ] || [ "$what" = small ]; then
     # 20 x 20 on 4 m (the OOPAO map's system), 1000 frames per recording.
-    run --n-subapertures 20 --diameter 4 --frames 1000 --out experiments/runs/interop/twin_identified/small_m8_2layers
+    run --n-subapertures 20 --diameter 4 --frames 1000 --eofnn-trained --out experiments/runs/interop/twin_identified/small_m8_2layers
 fi
 if [ "$what" = all ] || [ "$what" = full ]; then
-    # The issue's system: 8 m, 40 x 40, rcond 0.075, 2000 frames per recording.
+    # The issue's system: 8 m, 40 x 40, rcond 0.075, 2000 frames per recording. Without the settings twin
+    # (--eofnn-trained): with it, the first try (2026-12-06) stopped in that twin, whose two layers' exact screens
+    # (1.9 GiB each at 40 x 40) found too little memory free on the shared machine.
     run --n-subapertures 40 --diameter 8 --rcond 0.075 --frames 2000 \
         --out experiments/runs/interop/twin_identified/m8_2layers
 fi
