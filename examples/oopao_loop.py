@@ -37,6 +37,17 @@ with more taps, a wider neighbourhood and four times the recorded frames: simula
 contender; ``--no-oracle`` leaves it out), and each predictor's share of its gain (eta):
 
     python examples/oopao_loop.py --small --anti-aliasing --photon-noise --out DIR
+
+``--twin-identified`` adds ``eof_twin_identified``: the same anti-aliasing EOF trained in a twin that eofnn identifies
+from OOPAO's telemetry alone (a recording of its own dithered integrator, its interaction matrix and reconstructor:
+:mod:`eofnn.studies.twin_transfer`, the code of ``eofnn twin``), with the share of the gap between the best classical
+controller and ``eof_antialias`` (the same filter trained on OOPAO's truth) it closes, in plain variance.
+``--eofnn-trained`` (``eof_eofnn``) builds its twin from OOPAO's settings instead (r0, L0, every layer's wind):
+simulator knowledge, a labelled reference.
+``--layers F:V:DIR,...`` sets several frozen-flow layers (Cn2 fraction, m/s, degrees) in place of ``--wind`` and
+``--wind-direction``:
+
+    python examples/oopao_loop.py --small --anti-aliasing --photon-noise --twin-identified --layers 0.7:20:30,0.3:10:120
 """
 
 from __future__ import annotations
@@ -54,13 +65,14 @@ from eofnn.studies.antialias import AntiAliasConfig, antialias_markdown, run_ant
 from eofnn.studies.report import aliasing_budget, example_parser, parse_example, split_text, write_results
 from eofnn.studies.study import StudyConfig, run_study
 from eofnn.studies.transfer import eofnn_direction, eofnn_trained
+from eofnn.studies.twin_transfer import gap_closed, identified_trained
 
 
 def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
     sim = OopaoLoop(args.n_subapertures, args.diameter, sensor=sensor, photon_noise=photon_noise,
                     modulation_lambda_over_d=args.modulation,
                     magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
-                    wind_direction_deg=args.wind_direction, rcond=args.rcond)
+                    wind_direction_deg=args.wind_direction, rcond=args.rcond, layers=args.layers)
     started = time.time()
     result = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
     gain = measure_sensor_gain(sim, config.record_gain, min(config.record_frames, 1500), config.seed,
@@ -100,6 +112,16 @@ def main(argv: list[str] | None = None) -> dict:
                         help="with --anti-aliasing: also the anti-aliasing EOF trained in eofnn's own Shack-Hartmann "
                              "simulation of this system (eofnn.studies.transfer), on 27 x --frames frames in 9 "
                              "realisations (a fifth more to choose its ridge alpha)")
+    parser.add_argument("--twin-identified", action="store_true",
+                        help="with --anti-aliasing: also the anti-aliasing EOF trained in a twin identified from OOPAO's "
+                             "telemetry alone (eofnn.studies.twin_transfer), on 27 x --frames frames in 9 realisations "
+                             "of the twin, and the share of the gap to the OOPAO-truth filter it closes")
+    parser.add_argument("--twin-record-frames", type=int, default=4000,
+                        help="with --twin-identified: frames of OOPAO's dithered integrator recorded for the "
+                             "identification (default 4000, the first 200 dropped)")
+    parser.add_argument("--layers", type=layers_arg, default=None,
+                        help="frozen-flow layers FRACTION:SPEED:DIRECTION,... (Cn2 fractions summing to 1, m/s, "
+                             "degrees) in place of --wind and --wind-direction")
     parser.add_argument("--own-noise", action="store_true",
                         help="with --eofnn-trained: eofnn's simulation at its own photon noise for the guide star, "
                              "not at the WFS noise identified from OOPAO's telemetry")
@@ -138,8 +160,12 @@ def main(argv: list[str] | None = None) -> dict:
     if args.photon_noise and args.aliasing and not args.anti_aliasing:
         parser.error("--photon-noise runs only the photon-noise study; --aliasing runs it beside the others: "
                      "give one of them")
-    if args.eofnn_trained and not args.anti_aliasing:
-        parser.error("--eofnn-trained adds to the anti-aliasing study: give --anti-aliasing too")
+    for flag, on in (("--eofnn-trained", args.eofnn_trained), ("--twin-identified", args.twin_identified)):
+        if on and not args.anti_aliasing:
+            parser.error(f"{flag} adds to the anti-aliasing study: give --anti-aliasing too")
+    if args.twin_record_frames < 1200:
+        parser.error(f"--twin-record-frames={args.twin_record_frames} is invalid: at least 1200 (1000 after the "
+                     "200 dropped: the fewest a layer is identified from)")
     tweaks = [flag for flag, on in (("--own-noise", args.own_noise), ("--all-modes", args.all_modes),
                                     ("--static-gain", args.static_gain),
                                     ("--twin-pupil", args.twin_pupil != "grid")) if on]
@@ -177,19 +203,33 @@ def main(argv: list[str] | None = None) -> dict:
     return metrics
 
 
+def layers_arg(text: str) -> list[tuple[float, float, float]]:
+    """``--layers``: ``FRACTION:SPEED:DIRECTION`` separated by commas."""
+    import argparse
+
+    try:
+        layers = [tuple(float(v) for v in part.split(":")) for part in text.split(",")]
+    except ValueError:
+        layers = []
+    if not layers or any(len(layer) != 3 for layer in layers):
+        raise argparse.ArgumentTypeError(f"{text!r} is invalid: FRACTION:SPEED:DIRECTION for each layer, separated "
+                                         "by commas (e.g. 0.7:20:30,0.3:10:120)")
+    return layers
+
+
 def antialias(args, argv: list[str]) -> dict:
     """The anti-aliasing study at one point (``--frames`` per training sequence, 3 sequences)."""
     f = args.frames
     config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
                              warmup_frames=f // 20, scored_realisations=args.realisations, radius=args.radius,
                              oracle=not args.no_oracle)
-    if args.eofnn_trained:
-        eofnn_direction(args.wind_direction)  # an unmapped wind is refused before anything is simulated
+    for layer in args.layers or [(1.0, args.wind, args.wind_direction)]:
+        eofnn_direction(layer[2])  # a direction eofnn cannot map is refused before anything is simulated
     sim = OopaoLoop(args.n_subapertures, args.diameter, photon_noise=args.photon_noise, magnitude=args.magnitude,
                     dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
-                    rcond=args.rcond)
+                    rcond=args.rcond, layers=args.layers)
     started = time.time()
-    external = None
+    external = {}
     if args.eofnn_trained:
         # 27 x --frames of the twin in 9 sequences (and a fifth as much held out for the ridge alpha): at 40 x 40, I = 8,
         # 9 x in 3 sequences left 72.8 and 74.1 nm at twin seeds 0 and 1, 27 x in 9 left 72.4 and 72.9.
@@ -198,8 +238,21 @@ def antialias(args, argv: list[str]) -> dict:
         external = {name: eofnn_trained(27 * f, 27 * f // 5, match_noise=not args.own_noise,
                                         controlled=not args.all_modes, static_gain=args.static_gain, sequences=9,
                                         pupil=pupil) for name, pupil in pupils.items()}
-    metrics = run_antialias(sim, config, external,
+    if args.twin_identified:  # the same twin frames as --eofnn-trained's; seeds: eofnn.studies.twin_transfer
+        external["eof_twin_identified"] = identified_trained(args.twin_record_frames, 27 * f, 27 * f // 5, sequences=9,
+                                                             seed=config.seed, out=args.out and args.out / "twin")
+    metrics = run_antialias(sim, config, external or None,
                             progress=lambda text: print(f"[{time.time() - started:.0f} s] {text}", flush=True))
+    if args.twin_identified:
+        metrics["gap_closed"] = {"eof_twin_identified": gap_closed(metrics, "eof_twin_identified")}
+        if "eof_eofnn" in metrics["contenders"]:
+            metrics["gap_closed"]["eof_eofnn"] = gap_closed(metrics, "eof_eofnn")
+        for name, gap in metrics["gap_closed"].items():
+            shares = [f"{gap[k]['share'] if gap[k]['share'] is not None else gap[k].get('why')} (best classical "
+                      f"{where}: {gap[k]['best_classical']})" for k, where in (("on_scan", "on the scan"),
+                                                                              ("on_scored", "on the scored"))]
+            print(f"{name}: share of the gap to eof_antialias closed, plain variance: {shares[0]}, {shares[1]}; "
+                  f"variances {gap['variance_nm2']}")
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])
     text = antialias_markdown(metrics)

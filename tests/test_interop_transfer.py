@@ -55,7 +55,8 @@ def test_actuators_off_the_other_layout_and_unmapped_winds_are_refused_in_one_li
     with pytest.raises(ConfigError, match="not on the simulator's"):
         transfer_filter(network, HistorySpec("open_loop", 2, 2), ours, ours + 0.05, 2.0)
     with pytest.raises(ConfigError, match="not mapped"):
-        eofnn_direction(30.0)
+        eofnn_direction(float("nan"))
+    assert eofnn_direction(0.0) == 90.0 and eofnn_direction(30.0) == 60.0 and eofnn_direction(120.0) == 330.0
 
 
 @pytest.mark.slow

@@ -23,7 +23,12 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
                                                                        "give --eofnn-trained too")),
     (["--small", "--anti-aliasing", "--static-gain"], ("--static-gain", "give --eofnn-trained too")),
     (["--small", "--anti-aliasing", "--radius", "0.1"], ("radius=0.1 is invalid",)),
-    (["--small", "--anti-aliasing", "--eofnn-trained", "--wind-direction", "30"], ("30.0 deg is not mapped",)),
+    (["--small", "--anti-aliasing", "--eofnn-trained", "--wind-direction", "nan"], ("nan deg is not mapped",)),
+    (["--small", "--twin-identified"], ("--twin-identified", "give --anti-aliasing too")),
+    (["--small", "--anti-aliasing", "--twin-identified", "--twin-record-frames", "900"],
+     ("--twin-record-frames=900 is invalid", "at least 1200")),
+    (["--small", "--anti-aliasing", "--layers", "0.7:20"], ("'0.7:20' is invalid", "FRACTION:SPEED:DIRECTION")),
+    (["--small", "--anti-aliasing", "--layers", "0.7:20:30,0.7:10:0"], ("layers=", "sum to 1")),
     (["--small", "--no-oracle"], ("--no-oracle", "give --anti-aliasing too")),
 ])
 def test_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):

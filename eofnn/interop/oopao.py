@@ -90,6 +90,9 @@ class OopaoLoop:
         Guide star I magnitude.
     r0_m, outer_scale_m, wind_speed_mps, wind_direction_deg : float
         The single frozen-flow layer (r0 at 500 nm).
+    layers : sequence of (cn2_fraction, wind_speed_mps, wind_direction_deg), optional
+        Several frozen-flow layers at the ground in place of the single one (fractions summing to 1); the settings'
+        ``wind_speed_mps`` and ``wind_direction_deg`` are then the first layer's.
     frame_rate_hz : float
         Loop rate (Hz).
     delay_frames : int
@@ -109,7 +112,7 @@ class OopaoLoop:
                  sensor: str = "shack_hartmann", modulation_lambda_over_d: float = 3.0, photon_noise: bool = False,
                  magnitude: float = 8.0, r0_m: float = 0.15, outer_scale_m: float = 25.0, wind_speed_mps: float = 10.0,
                  wind_direction_deg: float = 0.0, frame_rate_hz: float = 1000.0, delay_frames: int = 2,
-                 dm_gain: float = 1.0, rcond: float = 0.15, opd_source=None) -> None:
+                 dm_gain: float = 1.0, rcond: float = 0.15, opd_source=None, layers=None) -> None:
         check_value("n_subapertures", n_subapertures, Interval(2, 200, integer=True))
         check_value("diameter_m", diameter_m, Interval(0, 100, closed="right", unit="m"))
         check_value("pupil_pixels_per_subaperture", pupil_pixels_per_subaperture, Interval(2, 32, integer=True))
@@ -128,13 +131,16 @@ class OopaoLoop:
             raise ConfigError(f"opd_source={opd_source!r} is invalid: it must be a function of the seed that yields "
                               "OPD maps (nm), or None for OOPAO's atmosphere")
         self._opd_source, self._opd_frames, self._opd_nm = opd_source, None, None
+        layers = _layers(layers, wind_speed_mps, wind_direction_deg)
+        wind_speed_mps, wind_direction_deg = layers[0][1], layers[0][2]
         self.settings = {"n_subapertures": n_subapertures, "diameter_m": diameter_m,
                          "pupil_pixels_per_subaperture": pupil_pixels_per_subaperture, "sensor": sensor,
                          **({"modulation_lambda_over_d": modulation_lambda_over_d} if sensor == "pyramid" else {}),
                          "photon_noise": bool(photon_noise), "magnitude": magnitude, "r0_m": r0_m,
                          "outer_scale_m": outer_scale_m, "wind_speed_mps": wind_speed_mps,
                          "wind_direction_deg": wind_direction_deg, "frame_rate_hz": frame_rate_hz,
-                         "delay_frames": delay_frames, "dm_gain": dm_gain, "rcond": rcond}
+                         "delay_frames": delay_frames, "dm_gain": dm_gain, "rcond": rcond,
+                         "layers": [list(layer) for layer in layers]}
         self.sensor, self.photon_noise, self.dm_gain = sensor, bool(photon_noise), float(dm_gain)
         self.delay_frames, self.frame_rate_hz = int(delay_frames), float(frame_rate_hz)
         self._build(*_import_oopao())
@@ -148,9 +154,9 @@ class OopaoLoop:
                                  samplingTime=1.0 / s["frame_rate_hz"], centralObstruction=0.0)
             self.ngs = Source(optBand="I", magnitude=s["magnitude"])
             self.ngs * self.tel
-            self.atm = Atmosphere(telescope=self.tel, r0=s["r0_m"], L0=s["outer_scale_m"],
-                                  windSpeed=[s["wind_speed_mps"]], fractionalR0=[1.0],
-                                  windDirection=[s["wind_direction_deg"]], altitude=[0.0])
+            fractions, speeds, directions = (list(v) for v in zip(*s["layers"], strict=True))
+            self.atm = Atmosphere(telescope=self.tel, r0=s["r0_m"], L0=s["outer_scale_m"], windSpeed=speeds,
+                                  fractionalR0=fractions, windDirection=directions, altitude=[0.0] * len(speeds))
             self.atm.initializeAtmosphere(self.tel)
             self.dm = DeformableMirror(telescope=self.tel, nSubap=n, mechCoupling=MECHANICAL_COUPLING, print_dm_properties=False)
             if s["sensor"] == "pyramid":
@@ -321,6 +327,23 @@ class OopaoLoop:
                 self.ngs * self.tel * self.dm * self.wfs
             response.append(self.reconstructor @ self.slopes())
         return float((response[0] - response[1]) @ probe / (2 * self.dm_gain * probe @ probe))
+
+
+def _layers(layers, wind_speed_mps: float, wind_direction_deg: float) -> list[tuple[float, float, float]]:
+    """``[(cn2_fraction, wind_speed_mps, wind_direction_deg)]``: ``layers`` checked, or the single layer."""
+    if layers is None:
+        return [(1.0, float(wind_speed_mps), float(wind_direction_deg))]
+    out = []
+    for i, layer in enumerate(layers):
+        if len(layer) != 3:
+            raise ConfigError(f"layers[{i}]={layer!r} is invalid: (cn2_fraction, wind_speed_mps, wind_direction_deg)")
+        fraction, speed, direction = (float(v) for v in layer)
+        check_value(f"layers[{i}] cn2_fraction", fraction, Interval(0, 1, closed="right"))
+        check_value(f"layers[{i}] wind_speed_mps", speed, Interval(0, 200, unit="m/s"))
+        out.append((fraction, speed, direction))
+    if not out or abs(sum(f for f, _, _ in out) - 1) > 1e-6:
+        raise ConfigError(f"layers={layers!r} is invalid: one or more layers whose cn2_fraction sum to 1")
+    return out
 
 
 def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5, start: int = 0) -> dict:

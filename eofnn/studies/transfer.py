@@ -43,7 +43,8 @@ from eofnn.validation import Interval, check_value
 
 #: eofnn's wind direction (degrees) whose turbulence moves over the actuators as OOPAO's at 0 degrees does (OOPAO's
 #: 0 degrees carries it along the second coordinate of its DM's positions, eofnn's 0 along the first;
-#: ``tests/test_interop_transfer.py`` measures it). Other OOPAO directions are not mapped.
+#: ``tests/test_interop_transfer.py`` measures it). The coordinates are swapped, so OOPAO's ``a`` is eofnn's
+#: ``90 - a`` (:func:`eofnn_direction`; eofnn's identification finds it from OOPAO's telemetry, examples/twin_path.py).
 EOFNN_DIRECTION_OF_OOPAO = {0.0: 90.0}
 
 
@@ -58,12 +59,13 @@ def eofnn_twin(sim, pupil: str = "grid") -> ShSystem:
 
 
 def eofnn_direction(oopao_direction_deg: float) -> float:
-    """eofnn's wind direction for OOPAO's, or one line saying which directions are mapped."""
-    direction = EOFNN_DIRECTION_OF_OOPAO.get(float(oopao_direction_deg))
-    if direction is None:
-        raise ConfigError(f"wind direction {oopao_direction_deg!r} deg is not mapped onto eofnn's: a predictor "
-                          f"trained in eofnn is carried into OOPAO's loop at {sorted(EOFNN_DIRECTION_OF_OOPAO)} deg")
-    return direction
+    """eofnn's wind direction for OOPAO's (``90 - a``, in [0, 360)), or one line naming a direction that is no
+    number of degrees."""
+    direction = float(oopao_direction_deg)
+    if not np.isfinite(direction):
+        raise ConfigError(f"wind direction {oopao_direction_deg!r} deg is not mapped onto eofnn's: a finite number of "
+                          "degrees is")
+    return EOFNN_DIRECTION_OF_OOPAO.get(direction, (90.0 - direction) % 360.0)
 
 
 def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None, pupil: str = "grid"):
@@ -76,7 +78,10 @@ def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None, pupil:
 
     magnitude = sim.settings["magnitude"] if sim.settings["photon_noise"] else None
     config = eofnn_twin(sim, pupil).eofnn_scenario(magnitude, screen_frames=screen_frames).to_dict()
-    config["atmosphere"]["layers"][0]["wind_direction_deg"] = eofnn_direction(sim.settings["wind_direction_deg"])
+    layers = sim.settings.get("layers") or [(1.0, sim.settings["wind_speed_mps"], sim.settings["wind_direction_deg"])]
+    config["atmosphere"]["layers"] = [{**config["atmosphere"]["layers"][0], "cn2_fraction": float(fraction),
+                                       "wind_speed_mps": float(speed), "wind_direction_deg": eofnn_direction(direction)}
+                                      for fraction, speed, direction in layers]
     scenario = Scenario.from_dict(config)
     if magnitude is None or not noise_nm:
         return scenario
@@ -85,12 +90,14 @@ def twin_scenario(sim, screen_frames: int, noise_nm: float | None = None, pupil:
     return Scenario.from_dict(config)
 
 
-def controlled_projector(sim, eofnn_positions_m, keep: float = 0.5) -> torch.Tensor:
-    """``(K_e, K_e)``: the projector onto the command modes ``sim``'s reconstructor sees (``sim.controlled_modes``),
-    on eofnn's actuators (those of ``sim``'s at the same positions): the modes restricted to them, orthonormalised,
-    the directions they keep less than ``keep`` of dropped (the rim actuators eofnn lacks carry the rest)."""
-    index = match_positions(eofnn_positions_m, sim.positions_m)
-    u, singular, _ = np.linalg.svd(np.asarray(sim.controlled_modes, dtype=np.float64)[index], full_matrices=False)
+def controlled_projector(sim, eofnn_positions_m, keep: float = 0.5, modes=None, positions_m=None) -> torch.Tensor:
+    """``(K_e, K_e)``: the projector onto the command modes ``sim``'s reconstructor sees (``sim.controlled_modes``, or
+    ``modes`` ``(K, n)`` orthonormal on the actuators at ``positions_m``), on eofnn's actuators (those of ``sim``'s at
+    the same positions): the modes restricted to them, orthonormalised, the directions they keep less than ``keep``
+    of dropped (the rim actuators eofnn lacks carry the rest)."""
+    modes = sim.controlled_modes if modes is None else modes
+    index = match_positions(eofnn_positions_m, sim.positions_m if positions_m is None else positions_m)
+    u, singular, _ = np.linalg.svd(np.asarray(modes, dtype=np.float64)[index], full_matrices=False)
     q = u[:, singular > keep]
     return torch.from_numpy(q @ q.T)
 
@@ -108,34 +115,46 @@ def train_in_eofnn(sim, *, frames: int = 6000, val_frames: int = 1200, history_l
     POL values, targets the DM's fit of the true phase. ``controlled``: both projected onto the command modes
     ``sim``'s reconstructor sees (:func:`controlled_projector`), the only ones its POL values hold and its DM is
     sent."""
+    sequence = -(-(frames + val_frames) // sequences)
+    scenario = twin_scenario(sim, sequence + 200, noise_nm, pupil)
+    positions = np.asarray(scenario.grid.positions_m, dtype=np.float64)
+    projector = controlled_projector(sim, positions) if controlled else None
+    fitted = fit_in_twin(scenario, projector, sim.delay_frames, sim.frame_rate_hz, frames=frames,
+                         val_frames=val_frames, history_length=history_length, radius=radius, seed=seed,
+                         sequences=sequences)
+    return fitted, scenario
+
+
+def fit_in_twin(scenario, projector, delay_frames: int, frame_rate_hz: float, *, frames: int, val_frames: int,
+                history_length: int = 4, radius: float = 2.5, seed: int = 0, sequences: int = 3):
+    """The open-loop neighbourhood EOF fitted in ``scenario`` (a twin: its ``atmosphere.screen_frames`` at least
+    ``(frames + val_frames) / sequences``) with the DM's fit of its true phase as target (:func:`train_in_eofnn`'s
+    fit, whatever made the twin); ``projector`` ``(K, K)`` or ``None``: inputs and targets projected on it."""
     from eofnn.data.stream import SimulatedTelemetry
     from eofnn.studies.study import ALPHA_PATH
     from eofnn.telemetry.record import Telemetry
     from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 
     sequence = -(-(frames + val_frames) // sequences)
-    scenario = twin_scenario(sim, sequence + 200, noise_nm, pupil)
-    spec = HistorySpec("open_loop", history_length, sim.delay_frames)
+    spec = HistorySpec("open_loop", history_length, delay_frames)
     stream = SimulatedTelemetry(scenario, spec, sequences * sequence, stream="twin",
                                 data=DataConfig(frames=sequences * sequence, sequence_frames=sequence, target="dm_fit",
                                                 seed=seed))
     positions = torch.as_tensor(np.asarray(scenario.grid.positions_m, dtype=np.float64))
-    projector = controlled_projector(sim, positions.numpy()) if controlled else None
     recorded = []
     for i in range(stream.n_sequences):
         arrays = stream.telemetry(i)
         s, pol = arrays["s"][0], arrays["s_hat"][0]
         if projector is not None:
             s, pol = s @ projector, pol @ projector
-        recorded.append(Telemetry(s=s, y=torch.zeros_like(pol), wfs=pol, delay_frames=sim.delay_frames,
-                                   positions_m=positions, frame_rate_hz=sim.frame_rate_hz))
+        recorded.append(Telemetry(s=s, y=torch.zeros_like(pol), wfs=pol, delay_frames=delay_frames,
+                                   positions_m=positions, frame_rate_hz=frame_rate_hz))
     network = {"class_path": "eofnn.models.linear.LinearFilter",
                "init_args": {"structure": "neighbourhood", "radius": radius}}
-    fitted = fit_from_telemetry(recorded, spec, network, plant={"dm_gain": 1.0},
-                                data=TelemetryDataConfig(val_frames=-(-val_frames // sequences), target="s",
-                                                         target_dm_gain=1.0, seed=seed),
-                                optimization=OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH))
-    return fitted, scenario
+    return fit_from_telemetry(recorded, spec, network, plant={"dm_gain": 1.0},
+                              data=TelemetryDataConfig(val_frames=-(-val_frames // sequences), target="s",
+                                                       target_dm_gain=1.0, seed=seed),
+                              optimization=OptimizationConfig(alpha="auto", alpha_path=ALPHA_PATH))
 
 
 def match_positions(eofnn_positions_m, positions_m, tolerance_m: float = 1e-6) -> np.ndarray:
