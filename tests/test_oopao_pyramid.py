@@ -86,6 +86,28 @@ def test_photon_noise_reaches_the_pyramids_detector(built):
     assert np.abs(quiet[0] - quiet[1]).max() < 1e-12
 
 
+def test_the_noise_free_probe_reads_the_optics_gain_under_photon_noise(built):
+    """With photon noise on, ``sensor_gain(noise_free=True)`` is the probe read with the detector's noise off (the
+    same value as with the loop's noise switched off by hand, twice the same), and the detector's noise is back on
+    after it; the noisy probe scatters about it (the example's reference optical gain was read that way)."""
+    _, sim = built
+    try:
+        sim.photon_noise = True
+        record = run_closed_loop(sim, IntegratorControl(0.5), 40, 3)
+        probe, command = 5.0 * np.random.default_rng(0).standard_normal(sim.n_actuators), record.y[-1]
+        clean = [sim.sensor_gain(command, probe, noise_free=True) for _ in range(2)]
+        assert sim.wfs.cam.photonNoise
+        noisy = [sim.sensor_gain(command, probe) for _ in range(3)]
+        sim.wfs.cam.photonNoise = False
+        by_hand = sim.sensor_gain(command, probe)
+    finally:
+        sim.photon_noise = False
+        sim.reset(1)
+    assert clean[0] == clean[1] == pytest.approx(by_hand, abs=1e-12)
+    assert 0.3 < clean[0] < 1.0
+    assert np.ptp(noisy) > 1e-3
+
+
 def test_bad_pyramid_settings_are_refused_in_one_line():
     from eofnn.interop.oopao import OopaoLoop
 

@@ -314,18 +314,29 @@ class OopaoLoop:
         """``(resolution, resolution)`` bool: the telescope's pupil pixels (pixel pitch ``diameter_m / resolution``)."""
         return self._pupil
 
-    def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray) -> float:
+    def sensor_gain(self, command_nm: np.ndarray, probe_nm: np.ndarray, *, noise_free: bool = False) -> float:
         """The sensor's optical gain on the current turbulence: the response ``R @ slopes`` to a small DM
         ``probe_nm`` added to ``command_nm`` (push-pull, same frame), projected on the probe; 1 for a linear
-        sensor. Telemetry only ever sees ``dm_gain`` times this (:mod:`eofnn.training.identify`)."""
+        sensor. Telemetry only ever sees ``dm_gain`` times this (:mod:`eofnn.training.identify`). With photon
+        noise on, each probe's value carries the detector's noise (unbiased, but far larger than the gain's
+        spread for a probe of a few nm); ``noise_free`` reads the two frames with the detector's noise off (the
+        optics' gain about this residual, as :func:`eofnn.interop.oopao_pyramid.probe_optical_gains` reads it)."""
         probe = self.project(check_command(probe_nm, self.n_actuators, "probe"))
         response = []
-        for sign in (1.0, -1.0):
-            self._restart_light()  # ``*`` alone would add the DM to what is there
-            with quiet():
-                self.dm.coefs = self.dm_gain * (command_nm + sign * probe) * 1e-9
-                self.ngs * self.tel * self.dm * self.wfs
-            response.append(self.reconstructor @ self.slopes())
+        camera = getattr(self.wfs, "cam", None)
+        noise = None if camera is None else camera.photonNoise
+        try:
+            if noise_free and camera is not None:
+                camera.photonNoise = False
+            for sign in (1.0, -1.0):
+                self._restart_light()  # ``*`` alone would add the DM to what is there
+                with quiet():
+                    self.dm.coefs = self.dm_gain * (command_nm + sign * probe) * 1e-9
+                    self.ngs * self.tel * self.dm * self.wfs
+                response.append(self.reconstructor @ self.slopes())
+        finally:
+            if camera is not None:
+                camera.photonNoise = noise
         return float((response[0] - response[1]) @ probe / (2 * self.dm_gain * probe @ probe))
 
 
@@ -363,11 +374,13 @@ def fitting_error(sim: OopaoLoop, n_frames: int, seed: int, every: int = 5, star
 
 
 def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *, dither_nm: float = 0.0,
-                        probe_nm: float = 5.0, every: int = 10, settle_frames: int = 100) -> dict:
+                        probe_nm: float = 5.0, every: int = 10, settle_frames: int = 100,
+                        noise_free: bool = False) -> dict:
     """The sensor's optical gain in ``sim``'s integrator loop (gain ``gain``, plus ``dither_nm`` of white
     dither as when recording telemetry, since the gain depends on the residual): every ``every`` frames after
     ``settle_frames``, a random probe of ``probe_nm`` RMS per actuator is pushed and pulled on that frame's
-    residual. Returns ``{"mean", "se", "n_probes"}``: what the identified DM gain should equal, divided by
+    residual (``noise_free``: read with the detector's noise off, :meth:`OopaoLoop.sensor_gain`; the loop itself
+    keeps its noise). Returns ``{"mean", "se", "n_probes"}``: what the identified DM gain should equal, divided by
     ``sim.dm_gain`` (a perfect sensor: 1)."""
     from eofnn.interop.loop import IntegratorControl
 
@@ -382,7 +395,7 @@ def measure_sensor_gain(sim: OopaoLoop, gain: float, n_frames: int, seed: int, *
         measurement, _ = sim.advance(command)
         pending.append(measurement)
         if n >= settle_frames and n % every == 0:
-            gains.append(sim.sensor_gain(command, probe_nm * rng.standard_normal(sim.n_actuators)))
+            gains.append(sim.sensor_gain(command, probe_nm * rng.standard_normal(sim.n_actuators), noise_free=noise_free))
     gains = np.asarray(gains)
     return {"mean": float(gains.mean()), "se": float(gains.std() / np.sqrt(max(len(gains), 1))),
             "n_probes": len(gains)}
