@@ -21,6 +21,8 @@ from eofnn.validation import Interval, check_value
 REPORTED_SEPARATIONS = (2.0, 3.0, 5.0, 10.0)
 #: Where :func:`halo` starts (lambda/D): the PSF's core is left out.
 HALO_FROM_LOD = 0.5
+#: Frames whose focal planes are computed together (:meth:`RawContrast._focal_planes`).
+_BLOCK_FRAMES = 8
 
 
 class RawContrast:
@@ -72,6 +74,7 @@ class RawContrast:
         #: Per turbulence realisation (the first axis of ``eps``): the sum of its frames' intensities, and their count.
         self._realisation_sums: torch.Tensor | None = None
         self._realisation_count = 0
+        self._planes: torch.Tensor | None = None  # the focal planes' buffer, reused call after call
 
     def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
         eps = arrays["eps"]
@@ -91,12 +94,10 @@ class RawContrast:
         ``realisations`` > 1: the frames are that many turbulence realisations' in turn (realisation-major, the same
         number each); each realisation's intensity is also kept on its own (:meth:`realisations_at`), the pooled sum
         being added exactly as with one."""
-        phase = torch.as_tensor(residual_nm, dtype=torch.float64) * (2 * math.pi * 1e-9 / self.wavelength_m)
-        field = torch.exp(1j * phase)
+        flat = torch.as_tensor(residual_nm, dtype=torch.float64)
+        field = torch.exp(1j * (flat * (2 * math.pi * 1e-9 / self.wavelength_m)))
         field = field - field.mean(-1, keepdim=True)  # the perfect coronagraph: no coherent part is left
-        pupil = torch.zeros(field.shape[0], self._size * self._size, dtype=torch.complex128)
-        pupil[:, self._index] = field
-        frames = torch.fft.fft2(pupil.view(-1, self._size, self._size)).abs().pow(2)
+        frames = self._focal_planes(field)
         intensity = frames.sum(0)
         self._sum = intensity if self._sum is None else self._sum + intensity
         per = frames.view(realisations, -1, self._size, self._size).sum(1)
@@ -106,12 +107,30 @@ class RawContrast:
         elif self._realisation_count >= 0:
             self._realisation_sums = per if self._realisation_sums is None else self._realisation_sums + per
             self._realisation_count += field.shape[0] // realisations
-        flat = torch.as_tensor(residual_nm, dtype=torch.float64)
-        flat = torch.zeros(flat.shape[0], self._size * self._size, dtype=torch.float64).index_copy_(
-            1, self._index, flat - flat.mean(-1, keepdim=True))
-        power = torch.fft.fft2(flat.view(-1, self._size, self._size)).abs().pow(2).sum(0)
+        power = self._focal_planes(flat - flat.mean(-1, keepdim=True)).sum(0)
         self._phase_power = power if self._phase_power is None else self._phase_power + power
         self._count += field.shape[0]
+
+    def _focal_planes(self, values: torch.Tensor) -> torch.Tensor:
+        """``|FFT2(pupil x values)|²`` of each ``(frames, points)`` row, zero padded: ``(frames, size, size)``.
+
+        A few frames are transformed at a time (every transform is computed on its own, so the numbers are those of
+        one transform of all of them), into one buffer of focal planes kept for the next call: fresh arrays of every
+        frame's padded pupil and spectrum (hundreds of MB on a Shack-Hartmann's fine grid) cost more in page faults
+        than the transforms themselves."""
+        rows, size = values.shape[0], self._size
+        if self._planes is None or self._planes.shape[0] < rows:
+            self._planes = torch.empty(rows, size, size, dtype=torch.float64)
+        out = self._planes[:rows]
+        pupil = torch.zeros(min(rows, _BLOCK_FRAMES), size * size, dtype=values.dtype)  # zero outside the points
+        spectrum = torch.empty(pupil.shape[0], size, size, dtype=torch.complex128)
+        for first in range(0, rows, _BLOCK_FRAMES):
+            block = values[first: first + _BLOCK_FRAMES]
+            n = block.shape[0]
+            pupil[:n, self._index] = block
+            torch.fft.fft2(pupil[:n].view(n, size, size), out=spectrum[:n])
+            torch.abs(spectrum[:n], out=out[first: first + n]).pow_(2)
+        return out
 
     def profile(self) -> tuple[list[float], list[float]]:
         """Separations (lambda/D, one per focal-plane pixel) and the azimuthally averaged raw contrast."""

