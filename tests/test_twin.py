@@ -188,3 +188,37 @@ def test_a_block_that_lands_one_component_on_noise_still_finds_the_second_layer_
     layers, info = twin_layers.identify_layers(np.zeros((4000, 4)), lattice, 1e-3, max_layers=3)
     assert info["chosen"] == 2 and "3 layers rejected" in info["stopped"], info
     assert [round(lay["speed_mps"]) for lay in layers] == [8, 18]
+
+
+@pytest.mark.cli
+def test_a_shack_hartmann_record_gives_r0_with_its_matrices_and_warns_without(cli, tmp_path):
+    """eofnn's own Shack-Hartmann record (y and wfs reconstructed in command units): with its interaction matrix the
+    twin's reference is the same sensor and r0 comes out right; y and wfs alone cannot tell the sensor, so the twin
+    says in one line that it assumes the subaperture average (whose view of the turbulence is several times smaller
+    in variance: r0 would come out less than half the truth, docs/twin.md)."""
+    import yaml
+
+    scenario = {"grid": {"diameter_m": 2.5, "n_across": 10, "obstruction": 0.0},
+                "atmosphere": {"r0_m": 0.12, "r0_wavelength_m": 5e-7, "outer_scale_m": 20.0, "model": "exact",
+                               "screen_frames": 1700, "remove_ptt": True,
+                               "layers": [{"cn2_fraction": 1.0, "wind_speed_mps": 12.0, "wind_direction_deg": 40.0}]},
+                "frame_rate_hz": 1000.0, "plant": {"delay_frames": 2},
+                "sensor": {"kind": "shack_hartmann", "detector": {"band": "R", "magnitude": 9.0}}}
+    (tmp_path / "sh.yaml").write_text(yaml.safe_dump(scenario))
+    code, err = cli("simulate", "--scenario", tmp_path / "sh.yaml", "--predictor.controller", "dithered_integrator",
+                    "--predictor.data.dither_nm", 10, "--frames", 1500, "--seed", 3, "--out", tmp_path / "full.fits")
+    assert code == 0, err
+    from eofnn.telemetry.record import TELEMETRY_REQUIRED
+    from eofnn.training.twin import identify_twin
+
+    full = Telemetry.load(tmp_path / "full.fits", required=TELEMETRY_REQUIRED)
+    record = Telemetry(y=full.y.reshape(-1, full.y.shape[-1]), wfs=full.wfs.reshape(-1, full.wfs.shape[-1]),
+                       delay_frames=2, frame_rate_hz=1000.0, positions_m=full.positions_m)
+    known = identify_twin(record, interaction_matrix=full.interaction_matrix.numpy(), max_layers=1)
+    assert known.sensor == "shack_hartmann"
+    assert known.value("r0_m") == pytest.approx(0.12, rel=0.15)
+    assert not any("subaperture average is assumed" in w for w in known.warnings)
+    alone = identify_twin(record, max_layers=1)
+    assert alone.sensor == "subaperture"
+    assert alone.value("r0_m") < 0.5 * 0.12  # the wrong sensor's reference: why the matrices are needed
+    assert any("subaperture average is assumed" in w and "interaction_matrix" in w for w in alone.warnings)

@@ -57,14 +57,7 @@ import numpy as np
 from eofnn.errors import TelemetryError
 from eofnn.lazy import lazy_module
 from eofnn.telemetry.units import PEAK, check_units, nm_per_unit
-from eofnn.training.twin_layers import (
-    MERGE_SPEED_MPS,
-    MIN_EXTRA_WEIGHT,
-    Lattice,
-    identify_layers,
-    record_blocks,
-    standard_error,
-)
+from eofnn.training.twin_layers import MERGE_SPEED_MPS, MIN_EXTRA_WEIGHT, Lattice, identify_layers, record_blocks, standard_error
 from eofnn.training.twin_seeing import (
     OUTER_SCALES_M,
     R0_REFERENCE_M,
@@ -288,6 +281,9 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                 result.lit_pupil_m = round(lit, 4)
                 e["pupil"].value["lit_diameter_m"] = result.lit_pupil_m
                 e["pupil"].method += "; lit diameter from the valid subapertures' area, pitch sqrt(4 n / pi)"
+    else:  # wfs alone cannot tell a Shack-Hartmann's reconstruction (in commands) from a subaperture average
+        result.warn("no slopes, interaction matrix or reconstructor: the subaperture average is assumed (a Shack-"
+                    "Hartmann's record without them gives r0 too small: give interaction_matrix or reconstructor)")
     from eofnn.sim.sensing.least_squares import surface_per_command
 
     peak = surface_per_command(result.mechanical_coupling)
