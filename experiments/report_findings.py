@@ -49,7 +49,7 @@ def _best(scenario: dict, names: tuple[str, ...]) -> str | None:
 
 
 #: How the rows name eofnn's controllers.
-NAMES = {"integrator": "the best-gain integrator", "lqg": "the LQG (AR order tuned)",
+NAMES = {"integrator": "the best-gain integrator", "lqg": "the LQG (model and noise scale tuned)",
          "modal_integrator": "the modal integrator (per-mode gains, margin tuned)"}
 
 

@@ -101,7 +101,7 @@ reconstructor's modes and, by construction of the computer's fill, on the modes 
 
 #: The flagship's contenders (configs/flagship_sh.yaml), by their names in its metrics.json.
 FLAGSHIP = {"integrator": "best-gain integrator", "modal_integrator": "modal integrator (margin tuned)",
-            "lqg": "LQG (AR order tuned)", "ol_eof_aa": "anti-aliasing EOF (5 x 5, DM fit)",
+            "lqg": "LQG (model and noise scale tuned)", "ol_eof_aa": "anti-aliasing EOF (5 x 5, DM fit)",
             "ol_eof_aa_guarded": "the same, guarded per KL mode"}
 
 

@@ -31,7 +31,8 @@ COMPARES = ("flagship", "paper", "realistic", "fair/alpha_auto", "fair/mlp_budge
             "fair/paper_gap/exact", "fair/paper_gap/exact_subaperture", "robustness_realistic",
             "robustness_realistic_misregistration", "robustness_study", "vibrations", "adaptive/wind_speed",
             "adaptive/wind_turn", "adaptive/dm_gain_drift", "adaptive/dm_gain_drift_2.0", "elt_small", "elt", "realistic_small",
-            "realistic_sh", "fair/moonshot", "fair/moonshot_oracle", "through_loop/noisy", "through_loop/noise_free", "fair/structure_sh",
+            "realistic_sh", "fair/moonshot", "fair/moonshot_oracle", "through_loop/noisy", "through_loop/noise_free",
+            "fair/structure_sh",
             "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc", "where/check_space",
             "where/check_space_10um")
 PROFILED = ("where/check_space", "where/check_space_10um")  # compare runs whose contrast profiles the page integrates
