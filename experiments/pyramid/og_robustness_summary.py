@@ -3,7 +3,7 @@ per contender its median residual over the pupil before the r0 change (settled f
 (from 50 ms after the ramp's end), its 95th percentile, and the optical gains the runs report.
 
     python experiments/pyramid/og_robustness_summary.py experiments/runs/pyramid/og_off experiments/runs/pyramid/og_on \
-        --out experiments/pyramid/og_robustness.json
+        --out experiments/pyramid/og_robustness/summary.json
 """
 
 from __future__ import annotations

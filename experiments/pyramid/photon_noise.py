@@ -17,7 +17,7 @@ the recorded loop's own residual maps (every ``--every`` frames after settling),
 Simulator knowledge (a diagnostic, not an eofnn input).
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/photon_noise.py --photon-noise \
-        --magnitude 10 --out experiments/pyramid/photon_noise.json
+        --magnitude 10 --out experiments/pyramid/photon_noise/summary.json
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ study's refit round, each run in OOPAO's loop on the study's scored realisation 
 the median residual of the last 200), beside the integrator at the recording's gain on the same realisation.
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/photon_noise_eof.py \
-        --alphas auto 0.1 1 10 --out experiments/pyramid/photon_noise_eof.json
+        --alphas auto 0.1 1 10 --out experiments/pyramid/photon_noise_eof/summary.json
 """
 
 from __future__ import annotations

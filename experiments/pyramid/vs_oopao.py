@@ -4,7 +4,7 @@ With ``--loop`` it compares instead the two closed loops on one system built ali
 mode, the best-gain integrators, the optical gains on their residuals: experiments/pyramid/vs_oopao_loop.py)::
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/vs_oopao.py --loop \
-        --out experiments/pyramid/vs_oopao.json --md experiments/pyramid/vs_oopao.md
+        --out experiments/pyramid/vs_oopao/summary.json --md experiments/pyramid/vs_oopao.md
 
 Without it, the same phase maps through both sensors:
 

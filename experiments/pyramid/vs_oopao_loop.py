@@ -2,7 +2,7 @@
 ``experiments/pyramid/vs_oopao.py --loop`` runs it.
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/vs_oopao.py --loop \\
-        --out experiments/pyramid/vs_oopao.json --md experiments/pyramid/vs_oopao.md
+        --out experiments/pyramid/vs_oopao/summary.json --md experiments/pyramid/vs_oopao.md
 
 Goals (the project's pyramid issue): the response per mode within 10%, the optical gains within 15%, the best-gain
 integrators' residuals within 20%.
