@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -88,7 +87,7 @@ def record_eofnn(name: str, folder: Path) -> tuple[Path, dict, list[str]]:
 
 def record_oopao(name: str, folder: Path) -> tuple[Path, dict, list[str]]:
     """OOPAO's loop at the case's conditions with white slope noise of known RMS; telemetry, truth, twin options."""
-    from eofnn.interop.loop import IntegratorControl, run_closed_loop
+    from eofnn.interop.loop import IntegratorControl, run_closed_loop, with_slope_noise
     from eofnn.interop.oopao import OopaoLoop
 
     case = OOPAO_CASES[name]
@@ -96,17 +95,9 @@ def record_oopao(name: str, folder: Path) -> tuple[Path, dict, list[str]]:
                     outer_scale_m=case["outer_scale"], wind_speed_mps=case["speed"],
                     wind_direction_deg=case["direction"], rcond=0.15)
     reconstructor = sim.reconstructor
-    sigma = OOPAO_NOISE_NM / math.sqrt(float(np.mean(np.diag(reconstructor @ reconstructor.T))))
     path = folder / f"{name}.npz"
     if not path.exists():
-        rng = np.random.default_rng(case["seed"] + 1000)
-        advance = sim.advance
-
-        def noisy(command):
-            measurement, rms = advance(command)
-            return measurement + reconstructor @ (sigma * rng.standard_normal(reconstructor.shape[1])), rms
-
-        sim.advance = noisy
+        with_slope_noise(sim, OOPAO_NOISE_NM, case["seed"] + 1000)
         rec = run_closed_loop(sim, IntegratorControl(0.4, dither_nm=10.0, seed=case["seed"]), FRAMES, seed=case["seed"])
         np.savez(path, y=rec.y, wfs=rec.wfs, positions_m=rec.positions_m, delay_frames=rec.delay_frames,
                  frame_rate_hz=rec.frame_rate_hz)

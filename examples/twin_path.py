@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import tempfile
 from pathlib import Path
@@ -79,7 +78,7 @@ def parse(argv=None) -> argparse.Namespace:
 
 def record(args, folder: Path) -> dict:
     """OOPAO's dithered integrator loop written as telemetry files; OOPAO's truth (for the report only)."""
-    from eofnn.interop.loop import IntegratorControl, require_recorded, run_closed_loop
+    from eofnn.interop.loop import IntegratorControl, require_recorded, run_closed_loop, with_slope_noise
     from eofnn.interop.oopao import OopaoLoop
 
     photon = args.magnitude is not None
@@ -89,14 +88,7 @@ def record(args, folder: Path) -> dict:
                     wind_direction_deg=args.direction, rcond=args.rcond)
     reconstructor = sim.reconstructor
     if not photon and args.noise_nm > 0:  # white slope noise of args.noise_nm per actuator after R
-        sigma = args.noise_nm / math.sqrt(float(np.mean(np.diag(reconstructor @ reconstructor.T))))
-        rng, advance = np.random.default_rng(args.seed + 1000), sim.advance
-
-        def noisy(command):
-            measurement, rms = advance(command)
-            return measurement + reconstructor @ (sigma * rng.standard_normal(reconstructor.shape[1])), rms
-
-        sim.advance = noisy
+        with_slope_noise(sim, args.noise_nm, args.seed + 1000)
     rec = require_recorded(run_closed_loop(sim, IntegratorControl(RECORD_GAIN, dither_nm=DITHER_NM, seed=args.seed),
                                            args.frames, seed=args.seed), RECORD_GAIN, sim)
     np.savez(folder / "loop.npz", y=rec.y, wfs=rec.wfs, positions_m=rec.positions_m, delay_frames=rec.delay_frames,

@@ -30,6 +30,11 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
     (["--small", "--anti-aliasing", "--layers", "0.7:20"], ("'0.7:20' is invalid", "FRACTION:SPEED:DIRECTION")),
     (["--small", "--anti-aliasing", "--layers", "0.7:20:30,0.7:10:0"], ("layers=", "sum to 1")),
     (["--small", "--no-oracle"], ("--no-oracle", "give --anti-aliasing too")),
+    (["--small", "--sensor", "pyramid", "--aliasing"], ("--aliasing is invalid with --sensor pyramid",)),
+    (["--small", "--sensor", "pyramid", "--anti-aliasing"], ("--anti-aliasing is invalid with --sensor pyramid",)),
+    (["--small", "--modulation", "4"], ("--modulation 4 is invalid with --sensor shack_hartmann",)),
+    (["--small", "--sensor", "pyramid", "--modulation", "30", "--frames", "1000"],
+     ("modulation_lambda_over_d=30.0 is invalid",)),
 ])
 def test_options_that_cannot_run_are_refused_in_one_line(capsys, argv, said):
     spec = importlib.util.spec_from_file_location("oopao_loop", EXAMPLE)

@@ -57,7 +57,7 @@ from eofnn.validation import COUNT, check_value
 #: The controllers, with the loop (:mod:`eofnn.interop.controls` holds them).
 __all__ = ["DIVERGENCE_FACTOR", "MAX_EXTRA_GAINS", "FilterControl", "IntegratorControl", "LoopRecord", "NumpyController",
            "SimulatorAdapter", "SplitControl", "TorchControl", "check_command", "loop_controller", "pol_modes",
-           "require_recorded", "run_closed_loop", "runtime_filter", "scan_integrator"]
+           "require_recorded", "run_closed_loop", "runtime_filter", "scan_integrator", "with_slope_noise"]
 
 #: A loop whose residual exceeds this times its first frames' turbulence RMS (or is not finite) has diverged.
 DIVERGENCE_FACTOR = 10.0
@@ -226,3 +226,19 @@ def scan_integrator(sim: SimulatorAdapter, gains, n_frames: int, seed: int, sett
         stable = {g: v for g, v in scan.items() if v is not None}
     best = min(stable, key=stable.get)
     return {"gain": best, "median_rms_nm": stable[best], "scan": scan}
+
+
+def with_slope_noise(sim: SimulatorAdapter, noise_nm: float, seed: int) -> SimulatorAdapter:
+    """``sim`` with white slope noise added to every measurement after its reconstructor ``sim.reconstructor``
+    (``(actuators, slopes)``), scaled so that it leaves ``noise_nm`` RMS per actuator on average; drawn from
+    ``numpy.random.default_rng(seed)``. Wraps ``sim.advance`` in place and returns ``sim``."""
+    reconstructor = sim.reconstructor
+    sigma = noise_nm / float(np.sqrt(np.mean(np.diag(reconstructor @ reconstructor.T))))
+    rng, advance = np.random.default_rng(seed), sim.advance
+
+    def noisy(command):
+        measurement, rms = advance(command)
+        return measurement + reconstructor @ (sigma * rng.standard_normal(reconstructor.shape[1])), rms
+
+    sim.advance = noisy
+    return sim

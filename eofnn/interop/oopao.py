@@ -12,9 +12,8 @@ made, so ``import eofnn`` never needs it. The system is OOPAO's own objects, bui
   on or off; ``sensor="geometric"``: OOPAO's geometric Shack-Hartmann (the mean phase gradient over each lenslet's
   lit pixels: aliasing without diffraction, pixels or noise); ``sensor="pyramid"``: OOPAO's diffractive modulated
   ``Pyramid`` (``modulation_lambda_over_d``, slopes maps: :mod:`eofnn.interop.oopao_pyramid`), photon noise on or
-  off; or ``sensor="perfect"``: the least-squares
-  projection of the residual OPD on the influence functions (no aliasing, no noise), for separating what aliasing
-  costs.
+  off; or ``sensor="perfect"``: the least-squares projection of the residual OPD on the influence functions (no
+  aliasing, no noise), for separating what aliasing costs.
 
 ``opd_source`` replaces OOPAO's atmosphere by another turbulence: a function of the seed that yields one OPD map
 (nm, ``(resolution, resolution)`` on the telescope's pixels) per frame, which the light crosses before the DM
@@ -24,8 +23,8 @@ atmospheres).
 The interaction matrix is OOPAO's (``InteractionMatrix``, one push per actuator), in slopes per nm of command;
 the loop's reconstructor is its truncated pseudo-inverse (singular values below ``rcond`` of the largest dropped:
 piston and waffle, which a Shack-Hartmann does not see; the pyramid's too), and commands are projected on the seen
-modes, as an RTC filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry records
-(``Telemetry.from_slopes(y, slopes, reconstructor=sim.reconstructor)`` forms the same from recorded slopes); the
+modes, as an RTC filters them. The measurement ``wfs(n) = R @ slopes(n)`` (nm on the actuators) is what the telemetry
+records (``Telemetry.from_slopes(y, slopes, reconstructor=sim.reconstructor)`` forms the same from recorded slopes); the
 residual OPD RMS (nm, piston removed, over the pupil) is OOPAO's ``tel.OPD``.
 """
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -71,7 +70,7 @@ def _multilayer_loop(case: dict):
 
 def record(name: str) -> tuple[Path, dict, list[str]]:
     """The case's telemetry (cached), its truth in eofnn's units and directions, and the twin's options."""
-    from eofnn.interop.loop import IntegratorControl, run_closed_loop
+    from eofnn.interop.loop import IntegratorControl, run_closed_loop, with_slope_noise
     from eofnn.sim.sensing.least_squares import MECHANICAL_COUPLING, surface_per_command
 
     case = CASES[name]
@@ -79,15 +78,7 @@ def record(name: str) -> tuple[Path, dict, list[str]]:
     if not path.exists():
         sim = _multilayer_loop(case)
         reconstructor = sim.reconstructor
-        sigma = case["noise"] / math.sqrt(float(np.mean(np.diag(reconstructor @ reconstructor.T))))
-        rng = np.random.default_rng(case["seed"] + 1000)
-        advance = sim.advance
-
-        def noisy(command):
-            measurement, rms = advance(command)
-            return measurement + reconstructor @ (sigma * rng.standard_normal(reconstructor.shape[1])), rms
-
-        sim.advance = noisy
+        with_slope_noise(sim, case["noise"], case["seed"] + 1000)
         rec = run_closed_loop(sim, IntegratorControl(0.4, dither_nm=10.0, seed=case["seed"]), FRAMES,
                               seed=case["seed"])
         if rec.diverged_frame is not None:
