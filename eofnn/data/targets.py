@@ -35,7 +35,7 @@ from eofnn.sim.sensing.least_squares import surface_per_command
 from eofnn.telemetry.file import NotStreamableError, StreamedTelemetry
 from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
 from eofnn.telemetry.spaces import read_matrix
-from eofnn.telemetry.units import check_units, nm_per_unit
+from eofnn.telemetry.units import conversion
 
 #: One recording (in memory, or a file read in blocks of frames).
 AnyTelemetry = Telemetry | StreamedTelemetry
@@ -201,14 +201,10 @@ def in_nm(telemetry: AnyTelemetry, command_unit="surface", measurement_unit=None
     """``telemetry`` with ``y`` in nm (from ``command_unit``) and ``wfs`` (and ``s``, ``eps``) in nm (from
     ``measurement_unit``, default the commands' unit) (:mod:`eofnn.telemetry.units`; ``peak`` at
     ``mechanical_coupling``, default OOPAO's), and one line saying what was converted ("" when nothing was)."""
-    measurement_unit = command_unit if measurement_unit is None else measurement_unit
-    check_units(command_unit, measurement_unit)
     peak = surface_per_command(MECHANICAL_COUPLING if mechanical_coupling is None else mechanical_coupling)
-    command, measurement = nm_per_unit(command_unit, peak), nm_per_unit(measurement_unit, peak)
-    if command == 1.0 and measurement == 1.0:
+    command, measurement, note = conversion(command_unit, measurement_unit, peak)
+    if not note:
         return telemetry, ""
-    note = (f"y multiplied by {command:.6g} (command_unit {command_unit}) and wfs by {measurement:.6g} "
-            f"(measurement_unit {measurement_unit}): nm")
     if isinstance(telemetry, StreamedTelemetry):
         return telemetry.scaled(command, measurement), note
     return replace(telemetry, y=telemetry.y * command, **{name: getattr(telemetry, name) * measurement

@@ -58,3 +58,15 @@ def nm_per_unit(unit: Any, surface_per_peak: float) -> float:
     if isinstance(unit, str) and unit in UNITS:
         return float(surface_per_peak) if unit == PEAK else NM_PER_UNIT[unit]
     return float(_number(unit))
+
+
+def conversion(command_unit: Any, measurement_unit: Any, surface_per_peak: float) -> tuple[float, float, str]:
+    """``(nm per unit of y, nm per unit of wfs, one line saying so)`` (checked; ``measurement_unit`` None: the
+    commands' unit; the line is "" when both are nm already)."""
+    measurement_unit = command_unit if measurement_unit is None else measurement_unit
+    check_units(command_unit, measurement_unit)
+    command, measurement = nm_per_unit(command_unit, surface_per_peak), nm_per_unit(measurement_unit, surface_per_peak)
+    if command == 1.0 and measurement == 1.0:
+        return command, measurement, ""
+    return command, measurement, (f"y multiplied by {command:.6g} (command_unit {command_unit}) and wfs by "
+                                  f"{measurement:.6g} (measurement_unit {measurement_unit}): nm")

@@ -56,7 +56,7 @@ import numpy as np
 
 from eofnn.errors import TelemetryError
 from eofnn.lazy import lazy_module
-from eofnn.telemetry.units import PEAK, check_units, nm_per_unit
+from eofnn.telemetry.units import PEAK, check_units, conversion
 from eofnn.training.twin_layers import MERGE_SPEED_MPS, MIN_EXTRA_WEIGHT, Lattice, identify_layers, record_blocks, standard_error
 from eofnn.training.twin_seeing import (
     OUTER_SCALES_M,
@@ -287,13 +287,12 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     from eofnn.sim.sensing.least_squares import surface_per_command
 
     peak = surface_per_command(result.mechanical_coupling)
-    scale, measured = nm_per_unit(command_unit, peak), nm_per_unit(measurement_unit, peak)
-    if scale != 1.0 or measured != 1.0:
+    scale, measured, note = conversion(command_unit, measurement_unit, peak)
+    if note:
         y_all, wfs_all, rec = y_all * scale, wfs_all * measured, None if rec is None else rec * measured
         result.warn(f"commands in nm of influence-function peak: y and wfs multiplied by {scale:.4g} (nm of smooth "
                     f"surface per nm of command at coupling {result.mechanical_coupling:g}); all values in eofnn's units"
-                    if command_unit == measurement_unit == PEAK else f"y multiplied by {scale:.6g} (command_unit "
-                    f"{command_unit}) and wfs by {measured:.6g} (measurement_unit {measurement_unit}): nm")
+                    if command_unit == measurement_unit == PEAK else note)
     if telemetry.frame_rate_hz is None:
         result.warn("telemetry has no frame rate (FRATE): 1000 Hz assumed, winds scale with it")
         e["frame_rate_hz"] = Estimate(1000.0, None, "Hz", "assumed", "no frame rate in the file")
