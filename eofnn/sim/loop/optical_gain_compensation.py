@@ -86,7 +86,7 @@ def calibrate(turbulence, plant) -> OpticalGainCompensation:
     """The compensation of ``turbulence`` (a pyramid scenario's :class:`~eofnn.sim.loop.pyramid.PyramidTurbulence`)
     in ``plant``, measured on a closed loop of its own (module docstring); kept per scenario and plant."""
     from eofnn.sim.loop.runner import run_loop
-    from eofnn.sim.sensing.optical_gains import OpticalGainProbe, kl_modes, optical_gains
+    from eofnn.sim.sensing.optical_gains import OpticalGainProbe, modal_optical_gains
 
     sensor = replace(turbulence.sensor, optical_gain_compensation=False)
     frames = min(CALIBRATION_FRAMES, turbulence.atmosphere.screen_frames)
@@ -107,9 +107,8 @@ def calibrate(turbulence, plant) -> OpticalGainCompensation:
                           f"calibrating integrator (gain {CALIBRATION_GAIN}) diverged; remove it")
     residuals = torch.cat(probe.residuals)
     n_modes = min(pyramid.kept_modes, pyramid.grid.n_actuators - 1)
-    modes = kl_modes(pyramid.grid, n_modes)
-    shapes = pyramid.dm_surface(torch.as_tensor(modes.T))
-    gains = optical_gains(pyramid, shapes, residuals).mean(0).numpy()
+    gains, modes = modal_optical_gains(pyramid, residuals, n_modes)
+    gains = gains.numpy()
     centred = residuals - residuals.mean(-1, keepdim=True)
     out = OpticalGainCompensation(gains, modes, float(centred.pow(2).mean(-1).sqrt().mean()))
     if len(_CALIBRATIONS) >= 4:
