@@ -57,7 +57,7 @@ import sys
 import time
 from dataclasses import replace
 
-from eofnn.errors import ConfigError
+from eofnn.errors import ConfigError, TelemetryError
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
 from eofnn.outputs import write_text_atomic
 from eofnn.reporting.interop import antialias_psd_figure
@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> dict:
             return antialias(args, argv)
         config = replace(StudyConfig.from_frames(args.frames, gains=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4)),
                          scored_realisations=args.realisations)
-    except ConfigError as err:
+    except (ConfigError, TelemetryError) as err:  # TelemetryError: a twin the loop's telemetry cannot give
         parser.error(str(err))
     try:
         if args.photon_noise:

@@ -153,10 +153,9 @@ def test_export_of_the_guarded_filter_reproduces_the_checkpoint(twin_trained, cl
 
 def test_a_shack_hartmann_twin_without_identified_noise_is_refused_in_one_line():
     """A bright guide star's noise estimate can be all aliasing: 0 nm identified gives one line, not a traceback."""
-    from eofnn.cli.twin import _magnitude
     from eofnn.errors import TelemetryError
     from eofnn.training.twin import Estimate, TwinIdentification
 
     result = TwinIdentification(sensor="shack_hartmann", estimates={"wfs_noise_nm": Estimate(0.0, None, "nm", "C_v")})
     with pytest.raises(TelemetryError, match="identified as 0 nm"):
-        _magnitude(result, 1000)
+        result.twin_config(1000)

@@ -9,7 +9,6 @@ import yaml
 
 import eofnn
 from eofnn.cli.common import Output, log
-from eofnn.errors import TelemetryError
 from eofnn.outputs import check_output_folder, staged_folder
 from eofnn.telemetry.units import check_units
 from eofnn.validation import Interval, OrNone, check_value
@@ -86,7 +85,7 @@ def twin(cfg: TwinConfig, config_dump: str | None = None) -> dict:
     check_value("screen_frames", cfg.screen_frames, Interval(100, 10**7, integer=True, unit="frames"))
     out = check_output_folder(cfg.out, cfg.overwrite)
     result = identify(cfg)
-    config = result.scenario_config(cfg.screen_frames, noise_magnitude=_magnitude(result, cfg.screen_frames))
+    config = result.twin_config(cfg.screen_frames)
     with staged_folder(out, cfg.overwrite) as folder:
         (folder / "twin.yaml").write_text(
             f"# eofnn twin of {cfg.telemetry}, identified from its telemetry alone (identified.json: values, "
@@ -118,16 +117,3 @@ def identify(cfg: TwinConfig) -> eofnn.training.twin.TwinIdentification:
                          max_speed_mps=cfg.max_speed_mps, blocks=cfg.blocks,
                          mechanical_coupling=cfg.mechanical_coupling, command_unit=cfg.command_unit,
                          measurement_unit=cfg.measurement_unit, seed=cfg.seed)
-
-
-def _magnitude(result, screen_frames: int) -> float | None:
-    """A Shack-Hartmann twin's guide star, set so that its noise per actuator is the one identified."""
-    from eofnn.training.twin import twin_magnitude
-
-    if result.sensor != "shack_hartmann":
-        return None
-    noise = result.value("wfs_noise_nm")
-    if not noise > 0:
-        raise TelemetryError(f"the WFS noise per actuator is identified as {noise:g} nm (the aliasing correction took "
-                             "all of the noise estimate): a Shack-Hartmann twin's guide star cannot be set for it")
-    return twin_magnitude(result.scenario_config(screen_frames, noise_magnitude=8.0), result.value("wfs_noise_nm"))

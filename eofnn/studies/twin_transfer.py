@@ -23,7 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from eofnn.errors import ConfigError
 from eofnn.validation import COUNT, Interval, check_value
 
 #: Seeds of the twin path (stated before any run): the recorded realisation and its dither are offset from the
@@ -94,18 +93,11 @@ def identify_from_record(telemetry, interaction_matrix, reconstructor, screen_fr
     """``(identification, scenario config)``: the twin of the loop that recorded ``telemetry`` from the record and
     its two matrices alone, as ``eofnn twin`` identifies it and writes ``twin.yaml`` (a Shack-Hartmann twin's guide
     star set to the identified noise)."""
-    from eofnn.training.twin import identify_twin, twin_magnitude
+    from eofnn.training.twin import identify_twin
 
     found = identify_twin(telemetry, interaction_matrix=interaction_matrix, reconstructor=reconstructor,
                           command_unit=command_unit, seed=seed)
-    magnitude = None
-    if found.sensor == "shack_hartmann":
-        noise = found.value("wfs_noise_nm")
-        if not noise > 0:
-            raise ConfigError(f"the WFS noise per actuator is identified as {noise:g} nm: a Shack-Hartmann twin's "
-                              "guide star cannot be set for it")
-        magnitude = twin_magnitude(found.scenario_config(screen_frames, noise_magnitude=8.0), noise)
-    return found, found.scenario_config(screen_frames, noise_magnitude=magnitude)
+    return found, found.twin_config(screen_frames)
 
 
 def seen_modes(reconstructor, relative: float = 1e-8) -> np.ndarray:

@@ -152,6 +152,15 @@ class TwinIdentification:
             config["plant"]["wfs_noise_nm"] = 0.0 if noise is None else round(float(noise.value), 4)
         return config
 
+    def twin_config(self, screen_frames: int = 10000) -> dict:
+        """``twin.yaml``: :meth:`scenario_config`, a Shack-Hartmann twin's guide star giving the noise identified."""
+        noise = self.value("wfs_noise_nm") if self.sensor == "shack_hartmann" else None
+        if noise is not None and not noise > 0:
+            raise TelemetryError(f"the WFS noise per actuator is identified as {noise:g} nm (the aliasing correction "
+                                 "took all of the noise estimate): a Shack-Hartmann twin's guide star cannot be set for it")
+        magnitude = None if noise is None else twin_magnitude(self.scenario_config(screen_frames, 8.0), noise)
+        return self.scenario_config(screen_frames, noise_magnitude=magnitude)
+
 
 def twin_magnitude(config: dict, noise_nm: float, start: float = 8.0) -> float:
     """The R magnitude of a Shack-Hartmann twin's guide star whose photon noise per actuator is ``noise_nm``
