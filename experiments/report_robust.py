@@ -152,7 +152,9 @@ def ceiling() -> str:
             f"{fmt(best_c['median_rms_nm'])} nm. The oracle (simulator knowledge: trained on the true turbulence, "
             f"wider and longer than any contender; a bound, not a contender) leaves {fmt(oracle['median_rms_nm'])} nm: "
             f"**{oracle['variance_ratio']:.2f}x in variance, {rms_ratio:.2f}x in RMS** over the best classical "
-            f"controller. The robust predictors: {'; '.join(parts)}. The moonshot's goal, 2x in RMS, is "
+            f"controller. The robust predictors, as in the moonshot, learn from the simulator's true turbulence "
+            f"(`data.truth`: simulator knowledge a telescope lacks), so the oracle differs from them in reach (taps, "
+            f"radius, frames), not in knowledge: {'; '.join(parts)}. The moonshot's goal, 2x in RMS, is "
             f"{'within' if rms_ratio >= 2 else 'beyond'} what the oracle reaches ({rms_ratio:.2f}x): "
             f"{'not shown impossible' if rms_ratio >= 2 else OUT_OF_REACH}; in variance the "
             f"best robust predictor, {LABELS.get(best, best)}, reaches {robust[best]['variance_ratio']:.2f}x.")
