@@ -197,7 +197,10 @@ def oopao_row() -> dict | None:
     plain, after, contrast, eta, bases = [], [], [], [], []
     for mag, r in runs.items():
         g = ratios(r, "eof_measured") or {}
-        plain.append(f"{_x(g.get('plain', math.nan))} (I = {mag})")
+        spread = (g.get("spread") or {}).get("plain") or []
+        plain.append(f"{_x(g.get('plain', math.nan))} (I = {mag}"
+                     + (f"; {_x(min(spread))}-{_x(max(spread))} over the realisations" if len(spread) > 1 else "")
+                     + ")")
         after.append(_x(g.get("after", math.nan)))
         contrast.append(_x(g.get("contrast") or math.nan) + f" (against the {AA_LABELS[g['contrast_against']]})"
                         if g.get("contrast_against") else _x(math.nan))
@@ -214,7 +217,13 @@ def oopao_row() -> dict | None:
             "conditions": f"OOPAO's 8 m, 40 x 40 Shack-Hartmann loop, photon noise, one 20 m/s layer, r0 = 15 cm; "
                           f"integrator, modal integrator, LQG and PFC each tuned in the loop (strongest: "
                           f"{', '.join(bases)})" + ("; η against an oracle trained on OOPAO's truth" if oracle else "")
-                          + f"; {n} realisations"}
+                          + f"; {n} realisations of {_scored_frames(r)} scored frames"}
+
+
+def _scored_frames(result: dict) -> int:
+    """Frames scored per realisation of an OOPAO study: its loop's frames less those it settles on."""
+    config = result.get("config", {})
+    return int(config.get("loop_frames", 0)) - int(config.get("settle_frames", 0))
 
 
 def twin_row() -> dict | None:

@@ -210,6 +210,17 @@ def _ratio_rows(point: tuple, r: dict) -> list[str]:
     return rows
 
 
+def _verdict(value: float, spread: list | None, target: float) -> str:
+    """Whether a goal is met, as strongly as the realisations support: on every realisation, on the whole only (the
+    least realisation below the goal: the claim rests on too few), or not."""
+    if value < target:
+        return " (not met)"
+    if spread and min(spread) < target:
+        return (f" (met on the whole, not on every realisation: {min(spread):.2f}x-{max(spread):.2f}x, "
+                f"{sum(v < target for v in spread)} of {len(spread)} below; more realisations needed to claim it)")
+    return " (met on every realisation)" if spread and len(spread) > 1 else " (met)"
+
+
 def baseline_run(magnitude: int) -> dict | None:
     """The run whose classical controllers the twin's filters (scored on :data:`TWIN_RUNS`' realisations) are rated
     against: the table's 40 x 40 run at ``magnitude`` (the strongest classical side) where it scored the same
@@ -259,8 +270,7 @@ def antialias_text() -> str:
                 out.append(f"I = {mag}: not run")
                 continue
             text = f"{g[key]:.2f}" if key == "eta" else f"{g[key]:.2f}x"
-            out.append(f"I = {mag}: {text}" + ("" if target is None else " (met)" if g[key] >= target else
-                                               " (not met)"))
+            out.append(f"I = {mag}: {text}" + ("" if target is None else _verdict(g[key], g["spread"].get(key), target)))
         return ", ".join(out)
 
     bases = ", ".join(f"I = {mag}: the {AA_LABELS[strongest(r)[0]]} ({strongest(r)[3]})" for (_, mag, _), r in goal)

@@ -75,3 +75,16 @@ def test_the_readme_is_short_and_opens_with_what_and_how_to_install():
     first_screen = "\n".join(lines[:40])
     assert "## Install" in first_screen and "pip install" in first_screen and "bash scripts/setup.sh" in first_screen
     assert not re.search(r"\b[0-9a-f]{7,40}\b", README), "no commit hashes in the README"
+
+
+@pytest.mark.cli
+def test_a_goal_is_met_only_as_strongly_as_the_realisations_say():
+    code = ("from report_oopao import _verdict; "
+            "print(_verdict(1.55, [1.48, 1.61, 1.56], 1.5)); print(_verdict(1.8, [1.78, 1.82], 1.5)); "
+            "print(_verdict(1.4, [1.3, 1.5], 1.5))")
+    done = subprocess.run([sys.executable, "-c", code], cwd=EXPERIMENTS, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    thin, every, missed = done.stdout.strip().splitlines()
+    assert "not on every realisation" in thin and "1 of 3 below" in thin
+    assert every.strip() == "(met on every realisation)"
+    assert missed.strip() == "(not met)"
