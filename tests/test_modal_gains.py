@@ -43,6 +43,11 @@ def test_a_modal_dither_gives_each_modes_gain_with_an_honest_error(dithered):
         assert 0 < se < 0.05 and abs(gain - 2.0) < 4 * se + 0.01  # the DM gain, every mode (a linear sensor)
         assert excitation == pytest.approx(10.0, rel=0.1)
     assert found["mean_gain"] == pytest.approx(2.0, abs=0.05)
+    # A wfs recorded a frame late, realigned by the lag identify_plant finds: the same gains.
+    late = Telemetry(y=dithered.y[1:], wfs=dithered.wfs[:-1], delay_frames=2, positions_m=dithered.positions_m)
+    again = identify_modal_gains(late, ORDERS, lag_frames=1)
+    assert again["gains"] == pytest.approx(found["gains"], abs=0.005)  # one frame fewer
+    assert all(abs(g - 2.0) > 1.0 for g in identify_modal_gains(late, ORDERS)["gains"])  # not realigned: wrong
 
 
 def test_an_undithered_or_too_weakly_dithered_mode_is_refused_in_one_line(dithered):
@@ -56,6 +61,9 @@ def test_an_undithered_or_too_weakly_dithered_mode_is_refused_in_one_line(dither
     for bad in ([], [0], [1, 1], [112], [1.5]):
         with pytest.raises(ConfigError, match="optical_gain_modes=.* is invalid: it must be distinct"):
             identify_modal_gains(dithered, bad)
+    with pytest.raises(TelemetryError, match="telemetry has 150 frames: optical-gain identification needs at least"):
+        identify_modal_gains(Telemetry(y=dithered.y[:150], wfs=dithered.wfs[:150], delay_frames=2,
+                                       positions_m=dithered.positions_m), ORDERS)
     bare = Telemetry(y=dithered.y, wfs=dithered.wfs, delay_frames=2)
     with pytest.raises(TelemetryError, match="need actuator-space telemetry with positions"):
         identify_modal_gains(bare, ORDERS)

@@ -33,7 +33,7 @@ import torch
 from eofnn.data.targets import AnyTelemetry, check_sequences, telemetry_grid, telemetry_items
 from eofnn.errors import TelemetryError, require
 from eofnn.sim.sensing.optical_gains import kl_modes
-from eofnn.training.identify import _batches, _innovation, _Regressors, _solve, _whiten
+from eofnn.training.identify import _batches, _innovation, _realigned, _Regressors, _solve, _whiten
 from eofnn.training.ridge import NormalEquations
 
 __all__ = ["MAX_RELATIVE_SE", "identify_modal_gains"]
@@ -56,22 +56,11 @@ class _Projected:
 
 
 class _ModalSequence:
+    """A sequence's ``y`` and ``wfs`` projected on modes, ``wfs`` realigned by ``lag`` frames first."""
+
     def __init__(self, seq, modes: torch.Tensor, lag: int) -> None:
-        y, wfs = (seq.y, seq.wfs) if lag == 0 else (_Shifted(seq.y, 0, lag), _Shifted(seq.wfs, lag, 0))
-        self.y, self.wfs = _Projected(y, modes), _Projected(wfs, modes)
-
-
-class _Shifted:
-    """``array[start : frames - stop]`` without reading it (a recorded ``wfs`` realigned by ``lag`` frames)."""
-
-    def __init__(self, array, start: int, stop: int) -> None:
-        self.array, self.start = array, start
-        self.shape = (array.shape[0] - start - stop, *array.shape[1:])
-
-    def __getitem__(self, index: slice):
-        require(isinstance(index, slice) and index.step is None, "only frame ranges are read")
-        a, b, _ = index.indices(self.shape[0])
-        return self.array[self.start + a: self.start + b]
+        seq = seq if lag == 0 else _realigned(seq, lag)
+        self.y, self.wfs = _Projected(seq.y, modes), _Projected(seq.wfs, modes)
 
 
 def identify_modal_gains(telemetry: AnyTelemetry | Sequence[AnyTelemetry], orders: Sequence[int], grid=None, *,
@@ -96,9 +85,12 @@ def identify_modal_gains(telemetry: AnyTelemetry | Sequence[AnyTelemetry], order
                                     for o in orders) and len(set(orders)) == len(orders),
             f"optical_gain_modes={orders!r} is invalid: it must be distinct Karhunen-Loeve mode orders from 1 to "
             f"{n_act - 1} (1: the first mode after piston)")
+    p, first = nuisance_lags, nuisance_lags + 2
+    short = min(seq.y.shape[0] for seq in sequences) - lag_frames
+    if short < first + 200:
+        raise TelemetryError(f"telemetry has {short} frames: optical-gain identification needs at least {first + 200}")
     modes = torch.as_tensor(kl_modes(grid, max(orders))[:, [o - 1 for o in orders]], dtype=torch.float64)
     modal = [_ModalSequence(seq, modes, lag_frames) for seq in sequences]
-    p, first = nuisance_lags, nuisance_lags + 2
     beta = _whiten(modal, p, first, batch_frames)
     n_modes = len(orders)
     power, raw = torch.zeros(n_modes, dtype=torch.float64), torch.zeros(n_modes, dtype=torch.float64)
