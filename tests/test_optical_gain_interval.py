@@ -11,6 +11,7 @@ import yaml
 
 from eofnn.analysis.linear import optical_gain_interval, summary
 from eofnn.analysis.stability import LoopSetup, analyse_integrator
+from eofnn.cli.main import main
 from eofnn.reporting.verdict import _optical_gain_text
 from eofnn.sim.loop.plant import Plant
 
@@ -65,3 +66,25 @@ def test_a_pyramid_compare_states_each_margin_in_optical_gain(cli, tmp_path):
     verdict = (tmp_path / "o" / "results.md").read_text()
     assert (f"integrator: 0 to 2 (linear analysis); optical gain 0 to 2 times the gain the compensation divides each "
             f"mode by ({low:.3g} to {high:.3g}; at their mean {og['assumed']:.3g}: 0 to ") in verdict
+
+
+@pytest.mark.cli
+def test_eofnn_stability_states_a_pyramids_optical_gain_interval(tmp_path, capsys):
+    """``eofnn stability`` of an integrator (gain 0.5) in tests/conf/pyr_tiny.yaml's pyramid scenario, uncompensated:
+    the optical gain may range over the DM-gain interval, 0 to 2; a Shack-Hartmann scenario has no such interval."""
+    scenario = yaml.safe_load((ROOT / "tests" / "conf" / "pyr_tiny.yaml").read_text())["scenario"]
+    scenario["atmosphere"]["screen_frames"] = 5000  # the command's evaluation frames (no screen is drawn)
+    path = tmp_path / "pyr.yaml"
+    path.write_text(yaml.safe_dump(scenario))
+    assert main(["stability", "--scenario", str(path), "--controller", "{controller: integrator, gain: 0.5}",
+                 "--out", str(tmp_path / "s")]) == 0
+    line = json.loads(capsys.readouterr().err.strip().splitlines()[-1])
+    assert line["optical_gain"]["interval"][1] == pytest.approx(2.0, rel=1e-6)
+    assert "compensation_range" not in line["optical_gain"]
+    saved = json.loads((tmp_path / "s" / "stability.json").read_text())
+    assert saved["optical_gain"] == line["optical_gain"] and saved["dm_gain_interval"][1] == pytest.approx(2.0)
+    scenario["sensor"] = {"kind": "shack_hartmann", "samples_per_subaperture": 2}
+    path.write_text(yaml.safe_dump(scenario))
+    assert main(["stability", "--scenario", str(path), "--controller", "{controller: integrator, gain: 0.5}",
+                 "--out", str(tmp_path / "sh")]) == 0
+    assert "optical_gain" not in json.loads(capsys.readouterr().err.strip().splitlines()[-1])

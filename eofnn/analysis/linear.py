@@ -138,7 +138,8 @@ def summary(result: StabilityResult, scenario: Scenario | None = None) -> dict:
     full = result.to_dict()
     out = {key: full[key] for key in SUMMARY_KEYS if key in full}
     if scenario is not None and scenario.sensor.is_pyramid:  # its optical gain multiplies the plant as a DM gain
-        compensation = scenario.turbulence(0, "test").compensation(scenario.plant)  # calibrated on a stream of its own
+        compensation = None if not scenario.sensor.optical_gain_compensation else (  # calibrated on its own stream
+            scenario.turbulence(0, "test").compensation(scenario.plant))
         interval = optical_gain_interval(out, float(scenario.plant.dm_gain),
                                          None if compensation is None else compensation.divided_by())
         if interval is not None:
