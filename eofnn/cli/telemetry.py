@@ -21,8 +21,9 @@ from eofnn.validation import Interval, OrNone, check_value
 # runs a config module's TYPE_CHECKING imports when it reads the config's types, which would import torch & co.
 
 IDENTIFY = ("Identify the plant from dithered closed-loop telemetry (FITS/npz with y and wfs, docs/telemetry.md): DM "
-            "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise, each with a "
-            "standard error, into plant.json.")
+            "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise (with "
+            "--optical_gain_modes: per-mode gains, a pyramid's optical gains), each with a standard error, into "
+            "plant.json.")
 REPLAY = ("Replay a checkpoint on held-out telemetry: its prediction error against what the telemetry later shows "
           "was needed (RMS per frame, map per actuator, temporal PSD), beside the telemetry's own controller, into "
           "DIR/replay.json and DIR/replay.png.")
