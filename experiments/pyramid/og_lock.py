@@ -2,12 +2,13 @@
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python experiments/pyramid/og_lock.py VARIANT [GAIN [FRAMES]]
 
-VARIANT: ``change`` (the experiment's scenario: r0 0.15 -> 0.105 m at 1.1 s), ``strong`` (no change, r0 = 0.105 m
-from the start), ``strong_spp3`` / ``strong_spp4`` (that, with 3 or 4 pupil samples per pixel instead of 2),
-``compensated`` (the change, optical gains compensated). Integrator gain GAIN (0.65: the uncompensated scan's
-choice), FRAMES frames (2000), test stream of seed 1, uncompensated unless asked. Prints the median residual over
-the pupil per 100 frames and per 10 frames over 1400-1600, and the optical gains (KL modes 1-8 and 21-40, and the
-least of 40) about the residual at 10 frames spread over the run.
+VARIANT: ``change`` (the experiment's scenario: r0 0.15 -> 0.105 m at 1.1 s), ``change_spp3`` (that at 3 pupil
+samples per pixel instead of 2), ``strong`` (no change, r0 = 0.105 m from the start), ``strong_spp3`` /
+``strong_spp4`` (that at 3 or 4 samples per pixel), ``compensated`` (the change, optical gains compensated).
+Integrator gain GAIN (0.65: the uncompensated scan's choice), FRAMES frames (2000), test stream of seed 1,
+uncompensated unless asked. Prints the median residual over the pupil per 100 frames and per 10 frames over
+1400-1600 (with a change: before it and after it, as og_robustness_summary.py splits them), and the optical gains
+(KL modes 1-8 and 21-40, and the least of 40) about the residual at 10 frames spread over the run.
 """
 
 from __future__ import annotations
@@ -35,9 +36,11 @@ def scenario(variant: str) -> Scenario:
             cfg["sensor"]["samples_per_pixel"] = int(variant[-1])
     elif variant == "compensated":
         cfg["sensor"]["optical_gain_compensation"] = True
+    elif variant == "change_spp3":
+        cfg["sensor"]["samples_per_pixel"] = 3
     elif variant != "change":
-        raise SystemExit(f"variant {variant!r} is invalid: allowed are change, strong, strong_spp3, strong_spp4, "
-                         "compensated")
+        raise SystemExit(f"variant {variant!r} is invalid: allowed are change, change_spp3, strong, strong_spp3, "
+                         "strong_spp4, compensated")
     return Scenario.from_dict(cfg)
 
 
@@ -54,6 +57,11 @@ def main(argv: list[str]) -> None:
     r = result.pupil_residual_rms_nm[0]
     print(f"{variant}, gain {gain}: diverged at {result.diverged_frame}")
     print("median per 100 frames (nm):", [round(float(r[i:i + 100].median())) for i in range(0, len(r), 100)])
+    if sc.atmosphere.changes:  # og_robustness_summary.py's split: settled frames to the change, 50 ms after its ramp
+        start = round(sc.atmosphere.changes[0].at_s * 1000.0)
+        after = round((sc.atmosphere.changes[0].at_s + sc.atmosphere.changes[0].ramp_s + 0.05) * 1000.0)
+        print(f"median before the change {float(r[200:start].median()):.1f} nm, after {float(r[after:].median()):.1f} "
+              f"nm, p95 {float(r[200:].quantile(0.95)):.1f} nm")
     print("median per 10 frames over 1400-1600 (nm):",
           [round(float(r[i:i + 10].median())) for i in range(1400, min(1600, len(r)), 10)])
     shapes = sensor.dm_surface(torch.as_tensor(kl_modes(sensor.grid, 40).T))
