@@ -9,6 +9,8 @@ import torch
 
 from eofnn.control.baselines import Integrator
 from eofnn.errors import ConfigError
+from eofnn.sim.atmosphere.changes import build_changes, strongest_cn2_scale
+from eofnn.sim.atmosphere.turbulence import Layer
 from eofnn.sim.loop.pyramid import PyramidTurbulence
 from eofnn.sim.loop.runner import run_loop
 from eofnn.sim.scenario import Scenario
@@ -127,6 +129,27 @@ def test_an_undersampled_pyramid_is_refused_up_front_with_the_samples_it_needs()
     Scenario.from_dict({"grid": GRID, "atmosphere": sky, "sensor": {**PYRAMID, "samples_per_pixel": 4}})
     # The same sky on a finer DM (20 across, one 0.2 m pixel each) passes at the default 2 (0.1 m apart).
     Scenario.from_dict({"grid": {**GRID, "n_across": 20}, "atmosphere": sky, "sensor": {"kind": "pyramid"}})
+
+
+def test_the_sampling_is_checked_at_the_runs_smallest_r0_after_its_changes():
+    """The Cn2 doubled mid-run shrinks r0 by 2^(-3/5) = 0.66: 1.87 samples become 1.23, refused; a change that
+    weakens the seeing does not count, and the strongest of several (two layers, one strengthened then restored)
+    is the one checked."""
+    sky = {**ATMOSPHERE, "r0_m": 0.15}
+    sensor = {**PYRAMID, "samples_per_pixel": 4}
+    stronger = {**sky, "changes": [{"at_s": 0.1, "layer": 0, "ramp_s": 0.05, "cn2_scale": 2.0}]}
+    with pytest.raises(ConfigError, match=r"samples_per_pixel=4 is invalid here: .* against r0 = 0.123 m .*after "
+                                          r"atmosphere.changes scale the Cn2 by 2\), .*raise samples_per_pixel") as err:
+        Scenario.from_dict({"grid": GRID, "atmosphere": stronger, "sensor": sensor})
+    assert "\n" not in str(err.value)
+    weaker = {**sky, "changes": [{"at_s": 0.1, "layer": 0, "cn2_scale": 0.5}]}
+    Scenario.from_dict({"grid": GRID, "atmosphere": weaker, "sensor": sensor})
+    layers = [Layer(0.6, 10.0, 0.0), Layer(0.4, 20.0, 0.0)]
+    changes = build_changes([{"at_s": 0.1, "layer": 0, "ramp_s": 0.1, "cn2_scale": 2.0},
+                             {"at_s": 0.3, "layer": 0, "cn2_scale": 1.0},
+                             {"at_s": 0.25, "layer": 1, "cn2_scale": 1.5}], layers)
+    assert strongest_cn2_scale(layers, changes) == pytest.approx(0.6 * 2 + 0.4 * 1.5)
+    assert strongest_cn2_scale(layers, []) == 1.0
 
 
 @pytest.mark.physics

@@ -132,10 +132,19 @@ def fallback_stability(decision: Any, config: Any, predictor: Any, scenario: Sce
     return result
 
 
-def summary(result: StabilityResult) -> dict:
-    """The scalars of a stability result (stable, DM gain interval, delay margin, ...), for ``metrics`` files."""
+def summary(result: StabilityResult, scenario: Scenario | None = None) -> dict:
+    """The scalars of a stability result (stable, DM gain interval, delay margin, ...), for ``metrics`` files; in a
+    pyramid ``scenario`` also the stable optical-gain interval (``"optical_gain"``, :func:`optical_gain_interval`)."""
     full = result.to_dict()
-    return {key: full[key] for key in SUMMARY_KEYS if key in full}
+    out = {key: full[key] for key in SUMMARY_KEYS if key in full}
+    if scenario is not None and scenario.sensor.is_pyramid:  # its optical gain multiplies the plant as a DM gain
+        compensation = None if not scenario.sensor.optical_gain_compensation else (  # calibrated on its own stream
+            scenario.turbulence(0, "test").compensation(scenario.plant))
+        interval = optical_gain_interval(out, float(scenario.plant.dm_gain),
+                                         None if compensation is None else compensation.divided_by())
+        if interval is not None:
+            out["optical_gain"] = interval
+    return out
 
 
 def dm_gain_margin(frame_rate_hz: float = 1000.0):
@@ -153,3 +162,32 @@ def dm_gain_margin(frame_rate_hz: float = 1000.0):
         low, high = result.gain_margin
         return low / plant_dm_gain, high / plant_dm_gain
     return margin
+
+
+def optical_gain_interval(summary: dict, dm_gain: float, compensation_gains=None) -> dict | None:
+    """A pyramid's stable optical-gain interval from a stability ``summary``'s DM-gain interval (``None`` when the
+    loop is unstable).
+
+    The analysis models the sensor as linear about a flat wavefront (the reconstructor's calibration): about the
+    loop's residual the pyramid's response to mode ``m`` is ``og_m`` times that, and a compensation
+    (``compensation_gains``: the ``c_m`` it divides each mode's reconstruction by) divides it by ``c_m``. The loop
+    gain of mode ``m`` is then ``g og_m / c_m`` (``c_m = 1`` uncompensated) for a DM gain ``g``: the optical gain
+    multiplies the plant as the DM gain does. At the scenario's DM gain ``g0`` (``dm_gain``) and a stable DM-gain
+    interval ``[g_lo, g_hi]``, mode ``m`` is stable for ``og_m / c_m`` in ``[g_lo / g0, g_hi / g0]``
+    (``"relative_interval"``; every mode is assumed to share the analysed groups' interval). ``"interval"`` is that
+    times the assumed gain (``"assumed"``: 1 uncompensated; the compensation's mean gain, ``"compensation_range"``
+    the least and greatest ``c_m``), ``None`` for an unbounded end."""
+    if not summary.get("stable") or summary.get("dm_gain_interval") is None or dm_gain <= 0:
+        return None
+    low, high = summary["dm_gain_interval"]
+    relative = [max(low or 0.0, 0.0) / dm_gain, None if high is None else high / dm_gain]
+    out = {"relative_interval": relative, "assumed": 1.0,
+           "assumed_is": "the pyramid's response about a flat wavefront (uncompensated): 1"}
+    if compensation_gains is not None:
+        gains = [float(c) for c in compensation_gains]
+        out["assumed"] = sum(gains) / len(gains)
+        out["compensation_range"] = [min(gains), max(gains)]
+        out["assumed_is"] = ("the mean of the gains the compensation divides each mode by (mode m: its own gain c_m "
+                             "times relative_interval)")
+    out["interval"] = [relative[0] * out["assumed"], None if high is None else relative[1] * out["assumed"]]
+    return out

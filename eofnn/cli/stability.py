@@ -64,12 +64,16 @@ def stability(cfg: StabilityConfig, config_dump: str | None = None) -> dict:
                               "stability analysis needs a linear filter (eofnn.models.linear.LinearFilter)")
     else:
         result, what = classical_stability(cfg.controller, cfg.scenario, cfg.dm_gain_model), cfg.controller.controller
+    line = summary(result, cfg.scenario)  # a pyramid's: with the stable optical-gain interval
+    full = result.to_dict()
+    if "optical_gain" in line:
+        full["optical_gain"] = line["optical_gain"]
     with staged_folder(out, cfg.overwrite) as staging:
-        (staging / "stability.json").write_text(result.to_json())
+        (staging / "stability.json").write_text(json.dumps(full, indent=1))
         (staging / "config.yaml").write_text(config_yaml(cfg, config_dump))
         plot_stability(result, staging / "stability.png", f"{what}")
-    line = summary(result)
-    log(json.dumps({k: line[k] for k in ("stable", "dm_gain_interval", "delay_margin_frames", "max_root_modulus")}))
+    keys = ("stable", "dm_gain_interval", "delay_margin_frames", "max_root_modulus", "optical_gain")
+    log(json.dumps({k: line[k] for k in keys if k in line}))
     return line
 
 

@@ -21,8 +21,9 @@ from eofnn.validation import Interval, OrNone, check_value
 # runs a config module's TYPE_CHECKING imports when it reads the config's types, which would import torch & co.
 
 IDENTIFY = ("Identify the plant from dithered closed-loop telemetry (FITS/npz with y and wfs, docs/telemetry.md): DM "
-            "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise, each with a "
-            "standard error, into plant.json.")
+            "gain, per-actuator gains, misregistration and neighbour coupling, WFS lag and noise (with "
+            "--optical_gain_modes: per-mode gains, a pyramid's optical gains), each with a standard error, into "
+            "plant.json.")
 REPLAY = ("Replay a checkpoint on held-out telemetry: its prediction error against what the telemetry later shows "
           "was needed (RMS per frame, map per actuator, temporal PSD), beside the telemetry's own controller, into "
           "DIR/replay.json and DIR/replay.png.")
@@ -85,12 +86,16 @@ class IdentifyConfig(TelemetryCommand):
     batch_frames : int
         Frames read and regressed at a time (memory: about 8 bytes x actuators x batch_frames x (neighbours + 2
         nuisance_lags + 8), whatever the length of the file).
+    optical_gain_modes : list of int
+        Karhunen-Loeve command modes (1-based orders) whose gains (the DM gain times the sensor's optical gain, a
+        pyramid's optical gains) are identified from a dither on them, each with a standard error (docs/telemetry.md).
     """
 
     radius: float = 1.5
     nuisance_lags: int = 2
     max_lag: int | None = None
     batch_frames: int = 1024
+    optical_gain_modes: list[int] = field(default_factory=list)
 
 
 def _files(value: str | list[str]) -> list[str]:
@@ -122,17 +127,30 @@ def identify(cfg: IdentifyConfig, config_dump: str | None = None) -> dict:
     check_value("batch_frames", cfg.batch_frames, Interval(1, 1_000_000, integer=True, unit="frames"))
     check_units(cfg.command_unit, cfg.measurement_unit)
     out = check_output_file(cfg.out, cfg.overwrite)
-    from eofnn.training.identify import identify_plant
+    from eofnn.training.identify import IdentifiedPlant, identify_plant
 
     telemetry = _load(cfg, streamed=True)
-    plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag,
-                           batch_frames=cfg.batch_frames)
+    try:
+        plant = identify_plant(telemetry, radius=cfg.radius, nuisance_lags=cfg.nuisance_lags, max_lag=cfg.max_lag,
+                               batch_frames=cfg.batch_frames)
+    except TelemetryError as err:  # a dither on a few modes only: their gains, not the DM response, are identified
+        if not cfg.optical_gain_modes:
+            raise
+        plant = IdentifiedPlant(False, telemetry[0].delay_frames, {}, n_frames=sum(t.y.shape[0] for t in telemetry),
+                                warnings=[f"the DM response was not identified ({err})"])
+    if cfg.optical_gain_modes:
+        from eofnn.training.modal_gains import identify_modal_gains
+
+        plant.optical_gains = identify_modal_gains(telemetry, cfg.optical_gain_modes, lag_frames=plant.lag_frames or 0,
+                                                   nuisance_lags=cfg.nuisance_lags, batch_frames=cfg.batch_frames)
     plant.settings["telemetry"] = _files(cfg.telemetry)
     plant.to_json(out, overwrite=cfg.overwrite)
     keys = ("identified", "dm_gain", "dm_gain_se", "misregistration_x", "misregistration_x_se", "misregistration_y",
             "misregistration_y_se", "lag_frames", "wfs_noise_nm", "wfs_noise_nm_se")
     summary = {"plant": str(out), **{k: getattr(plant, k) for k in keys}}
-    for warning in plant.warnings if plant.identified else []:  # an undithered file has warned already
+    if plant.optical_gains:
+        summary["optical_gains"] = {k: plant.optical_gains[k] for k in ("orders", "gains", "gains_se")}
+    for warning in plant.warnings if plant.identified or plant.optical_gains else []:  # undithered: warned already
         log(f"identify: {warning}")
     log(json.dumps(summary))
     return summary

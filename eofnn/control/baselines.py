@@ -76,12 +76,18 @@ class Dithered:
     """Adds white dither of ``amplitude_nm`` RMS to another controller's commands (persistent excitation).
 
     The dither is part of ``y`` as the DM receives it, so telemetry records it; it also enters the wrapped
-    controller's own state only through the measured residuals, as on a real system.
+    controller's own state only through the measured residuals, as on a real system. With ``modes`` (``(K, M)``
+    orthonormal command modes, e.g. Karhunen-Loeve modes) the dither is white on those modes alone,
+    ``amplitude_nm`` RMS per mode and frame: a modal dither, from which per-mode gains are identified
+    (:mod:`eofnn.training.modal_gains`).
     """
 
-    def __init__(self, controller, amplitude_nm: float, seed: int = 0) -> None:
+    def __init__(self, controller, amplitude_nm: float, seed: int = 0, modes=None) -> None:
         check_value("dither amplitude_nm", amplitude_nm, Interval(0, 1e5, unit="nm"))
         self.controller, self.amplitude_nm, self.seed = controller, amplitude_nm, seed
+        self.modes = None if modes is None else torch.as_tensor(modes, dtype=torch.float64)
+        require(self.modes is None or self.modes.ndim == 2,
+                "dither modes must be a (actuators, modes) matrix of command modes")
 
     def reseed(self, seed: int) -> None:
         """Draw the dither from another seed from the next reset on (one per recorded sequence)."""
@@ -91,12 +97,18 @@ class Dithered:
         self.controller.reset(batch, n_actuators, delay_frames, dtype)
         self._gen = torch_generator(self.seed, "dither")
         self._shape, self._dtype = (batch, n_actuators), dtype
+        require(self.modes is None or self.modes.shape[0] == n_actuators,
+                f"dither modes have {0 if self.modes is None else self.modes.shape[0]} actuators but the loop has "
+                f"{n_actuators}")
 
     def step(self, inp: LoopInput) -> torch.Tensor:
         y = self.controller.step(inp)
         if self.amplitude_nm == 0:
             return y
-        return y + self.amplitude_nm * torch.randn(self._shape, generator=self._gen, dtype=self._dtype)
+        if self.modes is None:
+            return y + self.amplitude_nm * torch.randn(self._shape, generator=self._gen, dtype=self._dtype)
+        coefficients = torch.randn(self._shape[0], self.modes.shape[1], generator=self._gen, dtype=self._dtype)
+        return y + self.amplitude_nm * coefficients @ self.modes.T.to(self._dtype)
 
 
 def record_dithered(scenario: Scenario, data, n_frames: int, streams: tuple[str, str, str], realisations: int = 1, *,

@@ -292,7 +292,7 @@ class Experiment:
         except CoupledAnalysisUnavailable as err:  # reported like a network's: no analytic margins
             self.log(f"{scenario_name:>12s} {name:>18s}: no analytic stability: {err}")
             return None
-        return None if result is None else stability_summary(result)
+        return None if result is None else stability_summary(result, scenario)
 
     def nominal_filter_stability(self, name: str, scenario_name: str) -> dict | None:
         """The analytic stability, in ``scenario_name``'s plant, of predictor ``name`` as trained in the first
@@ -312,7 +312,7 @@ class Experiment:
             result = controller_stability(self.config(name, scenario_name), trained, self.scenarios[scenario_name])
         except CoupledAnalysisUnavailable:
             return None
-        return None if result is None else stability_summary(result)
+        return None if result is None else stability_summary(result, self.scenarios[scenario_name])
 
     def verdict(self, result: ExperimentResult) -> dict:
         """The verdict of ``result`` per scenario (:func:`eofnn.evaluation.verdict.build_verdict`)."""

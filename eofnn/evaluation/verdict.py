@@ -93,10 +93,13 @@ def _stability(result: ExperimentResult, scenario: str, name: str) -> dict | Non
     """The stable DM-gain interval of ``name`` in ``scenario``: analytic (linear), by simulation, or ``None``."""
     analytic = result.stability.get(scenario, {}).get(name)
     if analytic is not None:
-        return {"source": "linear analysis", "stable": bool(analytic["stable"]),
-                "dm_gain_interval": analytic["dm_gain_interval"] if analytic["stable"] else None,
-                "gain_margin_db": analytic.get("gain_margin_db"),
-                "delay_margin_frames": analytic.get("delay_margin_frames")}
+        out = {"source": "linear analysis", "stable": bool(analytic["stable"]),
+               "dm_gain_interval": analytic["dm_gain_interval"] if analytic["stable"] else None,
+               "gain_margin_db": analytic.get("gain_margin_db"),
+               "delay_margin_frames": analytic.get("delay_margin_frames")}
+        if analytic.get("optical_gain") is not None:  # a pyramid: the same interval in optical gain
+            out["optical_gain"] = analytic["optical_gain"]
+        return out
     simulated = result.simulated_stability.get(scenario, {}).get(name)
     if simulated is not None:
         interval = simulated["dm_gain_interval"]

@@ -112,6 +112,8 @@ def _stability_text(entry: dict, dm_gain: float | None) -> str:
     high = "beyond 8" if stability["source"] == "simulation" and interval[1] is None else None
     text = (f"{interval[0]:.3g} to {high}" if high else dm_gain_interval_text(interval))
     text = f"{entry['name']}: {text} ({stability['source']})"
+    if stability.get("optical_gain") is not None:
+        text += f"; {_optical_gain_text(stability['optical_gain'])}"
     if entry.get("near_instability"):
         close = "close to its critical gain" if "gain" in entry else "close to instability"
         text += (f": {close} (gain margin {stability['gain_margin_db']:.2g} dB, delay margin "
@@ -120,6 +122,17 @@ def _stability_text(entry: dict, dm_gain: float | None) -> str:
         text += (f" (gain margin {stability['gain_margin_db']:.2g} dB, delay margin "
                  f"{stability['delay_margin_frames']:.2g} frame)")
     return text
+
+
+def _optical_gain_text(og: dict) -> str:
+    """``optical gain 0.2 to 1.6 (the pyramid's about a flat wavefront is 1)``: a pyramid's stable optical gains."""
+    if "compensation_range" not in og:
+        return (f"optical gain {dm_gain_interval_text(og['interval'])} (uncompensated: relative to the pyramid's "
+                "response about a flat wavefront)")
+    low, high = og["compensation_range"]
+    return (f"optical gain {dm_gain_interval_text(og['relative_interval'])} times the gain the compensation divides "
+            f"each mode by ({low:.3g} to {high:.3g}; at their mean {og['assumed']:.3g}: "
+            f"{dm_gain_interval_text(og['interval'])})")
 
 
 def _training_text(entry: dict, dm_gain: float | None) -> str | None:

@@ -13,7 +13,7 @@ from eofnn.errors import ConfigError
 from eofnn.resources import require_memory
 from eofnn.seeding import int_seed
 from eofnn.sim.atmosphere.anywind import screen_bytes
-from eofnn.sim.atmosphere.changes import layer_winds
+from eofnn.sim.atmosphere.changes import layer_winds, strongest_cn2_scale
 from eofnn.sim.atmosphere.disturbances import Vibration, build_vibrations
 from eofnn.sim.atmosphere.turbulence import Atmosphere, Turbulence
 from eofnn.sim.grid import ActuatorGrid
@@ -137,14 +137,17 @@ class Scenario:
         self._check_phase_sampling()
         pupil = self.turbulence_grid  # the pupil's checks: diameter, points across, modulation
         config = self.sensor.pyramid()
-        r0_m = self.atmosphere.r0_m * (config.wavelength_nm * 1e-9 / self.atmosphere.r0_wavelength_m) ** 1.2
+        atm = self.atmosphere  # r0 at its smallest over the run: after the changes that strengthen the Cn2 most
+        strongest = strongest_cn2_scale(atm.layers, atm.changes)
+        r0_m = atm.r0_m * strongest ** (-3 / 5) * (config.wavelength_nm * 1e-9 / atm.r0_wavelength_m) ** 1.2
         if r0_m < PYRAMID_MIN_R0_SAMPLES * pupil.pitch_m:  # the focal plane (n lambda/D) holds 1.5 seeing widths
             spp = config.samples_per_pixel
             need = math.ceil(PYRAMID_MIN_R0_SAMPLES * pupil.pitch_m * spp / r0_m)
             need += (need * pupil.n_across // spp) % 2  # pixels x samples even
             raise ConfigError(
                 f"sensor.samples_per_pixel={spp} is invalid here: the pupil is sampled every {pupil.pitch_m:.3g} m "
-                f"against r0 = {r0_m:.3g} m at the sensing wavelength ({config.wavelength_nm:g} nm), and r0 must span "
+                f"against r0 = {r0_m:.3g} m at the sensing wavelength ({config.wavelength_nm:g} nm"
+                f"{'' if strongest <= 1 else f', after atmosphere.changes scale the Cn2 by {strongest:.3g}'}), and r0 must span "
                 f"at least {PYRAMID_MIN_R0_SAMPLES:g} samples (else the seeing halo wraps round the simulated focal "
                 f"plane and the loop does not close): raise samples_per_pixel to {need} or more")
 

@@ -33,6 +33,8 @@ class IdentifiedPlant:
     that slot's (row, column) = (y, x) offset in pitches when every actuator's slot ``m`` is the same offset (a
     lattice), else empty. ``grid`` is the layout (:func:`eofnn.sim.layout.layout_from_dict`), ``{}`` without
     positions; misregistrations are None where no shift model was possible (``warnings`` says why).
+    ``optical_gains`` holds the per-mode gains of a modal dither when asked for
+    (:func:`eofnn.training.modal_gains.identify_modal_gains`), ``{}`` otherwise.
     """
 
     identified: bool
@@ -60,6 +62,7 @@ class IdentifiedPlant:
     n_sequences: int = 0
     settings: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    optical_gains: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -152,6 +152,21 @@ def layer_winds(layer: Any, changes: Sequence[AtmosphereChange]) -> list[Any]:
     return out
 
 
+def strongest_cn2_scale(layers: Sequence[Any], changes: Sequence[AtmosphereChange]) -> float:
+    """The largest total Cn² over a run relative to the configured one, ``max_t sum_i f_i c_i(t) / sum_i f_i``
+    (``f_i`` the layers' ``cn2_fraction``, ``c_i(t)`` their ``cn2_scale`` at ``t``): r0 is smallest, by that to the
+    power ``-3/5``, when it peaks. A ramp moves each scale monotonically between two values, so the peak is at a time
+    every ramp has ended or not begun: the start and the end of each ramp."""
+    total = sum(lay.cn2_fraction for lay in layers)
+    times = sorted({0.0} | {c.at_s + c.ramp_s for c in changes})
+
+    def scale(index: int, t: float) -> float:
+        done = [c.cn2_scale for c in changes if c.layer == index and c.cn2_scale is not None and c.at_s + c.ramp_s <= t]
+        return done[-1] if done else 1.0
+
+    return max(sum(lay.cn2_fraction * scale(i, t) for i, lay in enumerate(layers)) for t in times) / total
+
+
 class ChangingLayer:
     """One realisation of one layer whose wind and strength change (:class:`AtmosphereChange`).
 
