@@ -15,6 +15,14 @@ class WelchPSD:
 
     The PSD is one-sided, in nm²/Hz, averaged over actuators, realisations and segments; frames before
     ``settle_frames`` are skipped. Feed it through :func:`eofnn.sim.run_loop`'s ``on_chunk``.
+
+    Which residual (:attr:`residual`): the zonal loop's ``eps = s + DM(y)`` at the actuators (``"eps"``). Where the
+    chunks carry ``fit`` (a Shack-Hartmann or pyramid loop, scored over the pupil) it is ``fit + DM(y) = eps - s +
+    fit`` (``"dm_fit"``): the command-space residual against the DM's fit of the true phase ``P F phi``, the part of
+    the pupil's residual a controller can act on (no fitting error, no aliasing). Not ``eps``: there ``s = R S phi``
+    is the sensor's reconstruction, aliasing included, whose slow large-scale difference from ``P F phi`` at the
+    pupil's edge an anti-aliasing predictor (``data.target: dm_fit``) rightly leaves alone, and ``eps`` would show it
+    as that predictor's own low-frequency residual (``docs/findings.md``). Piston is in both, as in every contender.
     """
 
     def __init__(self, segment_frames: int, frame_rate_hz: float, settle_frames: int = 0) -> None:
@@ -26,9 +34,12 @@ class WelchPSD:
         window = torch.hann_window(segment_frames, periodic=False, dtype=torch.float64)
         self._window = window.view(1, -1, 1)
         self._norm = float(frame_rate_hz * window.pow(2).sum())
+        self.residual = "eps"
 
     def __call__(self, first_frame: int, arrays: dict[str, torch.Tensor]) -> None:
         eps = arrays["eps"]
+        if "fit" in arrays:  # against the DM's fit of the true phase (class docstring)
+            eps, self.residual = eps - arrays["s"] + arrays["fit"], "dm_fit"
         skip = max(0, self.settle - first_frame)
         if skip >= eps.shape[1]:
             return
@@ -135,6 +146,9 @@ class LoopMetrics:
     rms_nm: list[float] = field(default_factory=list, repr=False)
     psd_freq_hz: list[float] = field(default_factory=list, repr=False)
     psd_nm2_per_hz: list[float] = field(default_factory=list, repr=False)
+    #: The residual the PSD is of (:attr:`WelchPSD.residual`): ``"eps"`` (``s + DM(y)`` at the actuators) or
+    #: ``"dm_fit"`` (``P F phi + DM(y)``, against the DM's fit of the true phase: a scenario scored over the pupil).
+    psd_residual: str = "eps"
     #: First frame at which an adaptive controller fell back to its integrator (``None``: it never did, or n/a).
     fallback_frame: int | None = None
     #: Raw contrast behind a perfect coronagraph (at ``strehl_wavelength_m``): separations in lambda/D, the profile,
@@ -208,6 +222,8 @@ def loop_metrics(result: LoopResult, settle_frames: int, strehl_wavelength_m: fl
     rms = series[:, settle_frames:]
     n_frames = series.shape[1]
     freqs, power = psd.result() if psd is not None else ([], [])
+    if psd is not None:
+        extra["psd_residual"] = psd.residual
     if result.diverged or rms.numel() == 0:
         return LoopMetrics(None, None, None, None, result.diverged, result.diverged_frame, settle_frames, n_frames,
                            series.mean(0).tolist(), freqs, power, **extra)

@@ -169,10 +169,14 @@ def _curves_figure(result: ExperimentResult, path: Path, x: str, y: str, floor: 
 
 
 def plot_psds(result: ExperimentResult, path: Path) -> None:
-    """Temporal PSD of the residual (mean over actuators), one panel per scenario."""
+    """Temporal PSD of the residual (mean over actuators), one panel per scenario; the title says which residual
+    (:attr:`~eofnn.evaluation.metrics.LoopMetrics.psd_residual`)."""
+    kinds = {getattr(m, "psd_residual", "eps") for preds in result.metrics.values() for m in preds.values()}
+    which = ("against the DM's fit of the true phase, P F phi + DM(y)" if kinds == {"dm_fit"} else
+             "s + DM(y)" if kinds == {"eps"} else "s + DM(y), or P F phi + DM(y) where scored over the pupil")
     _curves_figure(result, path, "psd_freq_hz", "psd_nm2_per_hz", 1e-30, True, 0.8,
-                   "Temporal power spectrum of the residual (mean over actuators, after settling)", "frequency (Hz)",
-                   "PSD (nm²/Hz)", "PSD (run shorter than one segment)")
+                   f"Temporal power spectrum of the residual {which} (mean over actuators, piston included, after "
+                   "settling)", "frequency (Hz)", "PSD (nm²/Hz)", "PSD (run shorter than one segment)")
 
 
 def plot_contrast(result: ExperimentResult, path: Path, wavelength_m: float | None) -> None:

@@ -246,6 +246,10 @@ class PyramidLoopSensing:
                 self.turbulence.release()
             yield first, self._chunk["s"]
 
+    def fit(self) -> torch.Tensor:
+        """``(R, frames, K)``: the chunk's ``P F phi`` (the loop's truth ``s`` itself for the pyramid)."""
+        return self._chunk["fit"]
+
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
         """Unit draws of frame ``i``: the detector's pixels, then the actuators' white noise (drawn now)."""
         m = self._measurement

@@ -88,6 +88,11 @@ class ShackHartmannLoopSensing:
                 self.turbulence.release()
             yield first, out["s"]
 
+    def fit(self) -> torch.Tensor:
+        """``(R, frames, K)``: the chunk's ``P F phi``, the DM's least-squares fit of the true phase on the modes the
+        sensor sees (no aliasing; ``s`` itself for ``isolate: perfect``)."""
+        return self._chunk["fit"]
+
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
         """``R n`` of frame ``i`` of the chunk (drawn with the chunk)."""
         return None if self._noise is None else self._noise[:, i]

@@ -103,8 +103,9 @@ def run_loop(
         Show a progress bar; ``None`` shows it only when stderr is a terminal.
     on_chunk : callable, optional
         Called as ``on_chunk(first_frame, arrays)`` after each chunk with all four arrays of that chunk; in a
-        Shack-Hartmann scenario ``arrays["pupil_residual"](frame)`` also gives the residual over the pupil's fine
-        points at a frame of the chunk that is a multiple of :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`.
+        Shack-Hartmann (or pyramid) scenario ``arrays["fit"]`` is also the chunk's ``P F phi``, the DM's fit of the
+        true phase on the modes the sensor sees, and ``arrays["pupil_residual"](frame)`` gives the residual over the
+        pupil's fine points at a frame of the chunk that is a multiple of :data:`~eofnn.sim.loop.sensing.PHASE_EVERY`.
     sensor : LoopSensor or str, optional
         A sensor of the actuator-grid turbulence in place of the zonal one: a
         :class:`~eofnn.sim.loop.kernel.LoopSensor`, or the name it was registered under
@@ -146,6 +147,8 @@ def run_loop(
                 arrays["eps"] = eps_scratch[:, :t]
             y_out, eps_out, wfs_out, slopes_out = arrays.get("y"), arrays["eps"], arrays.get("wfs"), arrays.get("slopes")
             arrays["s"] = s_chunk
+            if sensing.pupil:  # P F phi beside s: the residual against the DM's fit of the true phase is eps - s + fit
+                arrays["fit"] = sensing.fit()
             for i in range(t):
                 s_n = s_chunk[:, i]
                 step = loop.step(first + i, s_n, sensing.noise(i, s_n, generator), out=eps_out[:, i],
