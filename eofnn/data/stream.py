@@ -61,8 +61,8 @@ def open_loop_recorded(scenario: Scenario, data: DataConfig) -> bool:
     """Whether open-loop (POL) training data is recorded in the closed loop, by the dithered integrator, rather than
     read from the turbulence with no correction: with ``data.plant_range`` (the drawn plant's mismatch) and with a
     pyramid, whose reading is not linear in the phase. About the uncorrected turbulence its optical gains are far
-    below those about a closed loop's residual (0.59 against about 0.75 on ``configs/realistic_pyr.yaml``), so a
-    filter fitted to open-loop readings would scale its prediction up by their ratio in the loop, whose POL values
+    below those about a closed loop's residual (docs/findings.md), so a filter fitted to open-loop readings would
+    scale its prediction up by their ratio in the loop, whose POL values
     ``wfs + y`` are mostly the commands it sent; recorded in the loop, compensated as the loop compensates, they are
     the POL values the filter reads there."""
     return bool(data.plant_range) or scenario.sensor.is_pyramid
