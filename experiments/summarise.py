@@ -34,7 +34,9 @@ COMPARES = ("flagship", "paper", "realistic", "fair/alpha_auto", "fair/mlp_budge
             "realistic_sh", "fair/moonshot", "fair/moonshot_oracle", "through_loop/noisy", "through_loop/noise_free",
             "fair/structure_sh",
             "where/check_v5", "where/check_v20_m8", "where/check_v20_m10", "where/check_pfc", "where/check_space",
-            "where/check_space_10um")
+            "where/check_space_10um", "pyramid/contest_m8", "pyramid/contest_m10",
+            "pyramid/contest_quick_m8", "pyramid/contest_quick_m10", "pyramid/realistic_pyr_eof",
+            "pyramid/realistic_pyr_eof_og")
 PROFILED = ("where/check_space", "where/check_space_10um")  # compare runs whose contrast profiles the page integrates
 SWEEPS = ("alpha", "history", "frames", "realistic_cl_eof", "realistic_ol_eof")  # experiments/sweeps/<name>
 INTEROP = ("hcipy", "oopao", "oopao_aliasing",  # experiments/interop/<name>, written by experiments/interop/run.sh

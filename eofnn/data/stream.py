@@ -57,6 +57,17 @@ def require_target(scenario: Scenario, data: DataConfig) -> None:
             "sensor has no aliasing, its s is already what the DM can fit; use data.target: measured")
 
 
+def open_loop_recorded(scenario: Scenario, data: DataConfig) -> bool:
+    """Whether open-loop (POL) training data is recorded in the closed loop, by the dithered integrator, rather than
+    read from the turbulence with no correction: with ``data.plant_range`` (the drawn plant's mismatch) and with a
+    pyramid, whose reading is not linear in the phase. About the uncorrected turbulence its optical gains are far
+    below those about a closed loop's residual (docs/findings.md), so a filter fitted to open-loop readings would
+    scale its prediction up by their ratio in the loop, whose POL values
+    ``wfs + y`` are mostly the commands it sent; recorded in the loop, compensated as the loop compensates, they are
+    the POL values the filter reads there."""
+    return bool(data.plant_range) or scenario.sensor.is_pyramid
+
+
 def sequence_plant(plant: Plant, data: DataConfig, name: str) -> Plant:
     """The plant sequence ``name`` (``"<stream>:<index>"``) is simulated in: ``plant`` itself without
     ``data.plant_range``, else ``plant`` with each ranged field drawn uniformly from its interval, from a generator
@@ -76,7 +87,8 @@ class SimulatedTelemetry(IterableDataset):
     of ``W`` takes the sequences ``i = w, w + W, ...``: two workers never produce the same frames.
 
     Open-loop data is the turbulence as a perfect pseudo-open-loop reconstruction would give it, plus the WFS
-    noise of the scenario. Closed-loop data is recorded by running ``data_controller`` in the scenario's plant.
+    noise of the scenario; through a pyramid it is recorded in the loop by ``data_controller`` and reconstructed
+    (:func:`open_loop_recorded`). Closed-loop data is recorded by running ``data_controller`` in the scenario's plant.
 
     With ``data.plant_range`` each sequence has its own plant (:func:`sequence_plant`): closed-loop data is recorded
     in it, and so is open-loop data (by ``data_controller``), whose POL values are then reconstructed with the DM gain
@@ -119,9 +131,9 @@ class SimulatedTelemetry(IterableDataset):
                 f"{spec.first_frame + spec.target_lead}")
         if spec.kind == "closed_loop":
             require(data_controller is not None, "closed-loop data needs a data_controller")
-        elif data.plant_range:
-            require(data_controller is not None, "open-loop data with data.plant_range needs a data_controller (the "
-                                                 "loop whose POL values carry the drawn plant's mismatch)")
+        elif open_loop_recorded(scenario, data):
+            require(data_controller is not None, "open-loop data with data.plant_range or a pyramid needs a "
+                                                 "data_controller (the loop that records its POL values)")
         require_training_memory(scenario, spec, data)
         require_target(scenario, data)
         self.scenario, self.spec, self.stream, self.data = scenario, spec, stream, data
@@ -151,7 +163,7 @@ class SimulatedTelemetry(IterableDataset):
         """What :meth:`telemetry` holds before ``data.target`` picks the turbulence of the targets."""
         name, seed = f"{self.stream}:{index}", self.data.seed
         plant = self.plant(index)
-        if self.spec.kind == "open_loop" and not self.data.plant_range:
+        if self.spec.kind == "open_loop" and not open_loop_recorded(self.scenario, self.data):
             if hasattr(turbulence, "open_loop"):  # a Shack-Hartmann's: reconstructed slopes, aliasing and noise
                 s, s_hat = turbulence.open_loop(0, self.data.sequence_frames, plant, torch_generator(seed, name, 1))
                 return {"s": s, "s_hat": s_hat}

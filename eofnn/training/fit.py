@@ -32,7 +32,7 @@ from torch.utils.data import DataLoader
 from eofnn.control.baselines import Dithered, Integrator
 from eofnn.control.predictive import PredictiveController, believed_dm_gain
 from eofnn.data.history import HistorySpec
-from eofnn.data.stream import DataConfig, LoopDataModule
+from eofnn.data.stream import DataConfig, LoopDataModule, open_loop_recorded
 from eofnn.errors import CheckpointError, CollinearityWarning, ConfigError, DivergedError
 from eofnn.outputs import check_output_file, staged_file
 from eofnn.sim.layout import layout_to_dict
@@ -145,10 +145,12 @@ class FitData:
     loop: LoopData | None = None
 
 
-def recording_controller(spec: HistorySpec, data: DataConfig) -> Controller | None:
+def recording_controller(spec: HistorySpec, data: DataConfig, scenario: Scenario | None = None) -> Controller | None:
     """The controller that records closed-loop training data, and open-loop data in the plants of a
-    ``data.plant_range``: an integrator plus white dither (none for other open-loop data)."""
-    if spec.kind != "closed_loop" and not data.plant_range:
+    ``data.plant_range`` or through ``scenario``'s pyramid (:func:`~eofnn.data.stream.open_loop_recorded`): an
+    integrator plus white dither (none for other open-loop data)."""
+    recorded = data.plant_range if scenario is None else open_loop_recorded(scenario, data)
+    if spec.kind != "closed_loop" and not recorded:
         return None
     if data.dither_nm == 0:
         warnings.warn("closed-loop data recorded without excitation (data.dither_nm = 0): the controller law ties y "
@@ -205,7 +207,7 @@ def fit_predictor(
                     optimization, info, data.seed)
     # The loop the filter is made for: closed-loop EOF learns this plant's DM; open-loop EOF believes 1.
     plant_gain = scenario.plant.dm_gain if spec.kind == "closed_loop" else 1.0
-    data_controller = recording_controller(spec, data)
+    data_controller = recording_controller(spec, data, scenario)
     rounds = []
     for round_index in range(data.refit_rounds + 1):
         if round_index > 0:

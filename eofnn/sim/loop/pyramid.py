@@ -207,7 +207,8 @@ class PyramidTurbulence(ShackHartmannTurbulence):
 
     def open_loop(self, start: int, stop: int, plant, generator) -> tuple[torch.Tensor, torch.Tensor]:
         """``(s, s_hat)`` of frames ``start..stop-1`` with no correction: the truth and the pyramid's noisy reading of
-        it with the gain divided out."""
+        it with the gain divided out. Not the POL values a loop reads: about the uncorrected turbulence the optical
+        gains are lower, so open-loop training data are recorded in the loop (:func:`eofnn.data.stream.open_loop_recorded`)."""
         s = self.products(start, stop)["s"]
         phase = self.phases(start, stop)
         self.release()
