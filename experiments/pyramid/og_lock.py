@@ -8,11 +8,13 @@ samples per pixel instead of 2), ``strong`` (no change, r0 = 0.105 m from the st
 Integrator gain GAIN (0.65: the uncompensated scan's choice), FRAMES frames (2000), test stream of seed 1,
 uncompensated unless asked. Prints the median residual over the pupil per 100 frames and per 10 frames over
 1400-1600 (with a change: before it and after it, as og_robustness_summary.py splits them), and the optical gains
-(KL modes 1-8 and 21-40, and the least of 40) about the residual at 10 frames spread over the run.
+(KL modes 1-8 and 21-40, and the least of 40) about the residual at 10 frames spread over the run. The same lines
+go into ``og_lock/summary.json`` under the variant's name (``--out FILE`` elsewhere; other variants kept).
 """
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -45,6 +47,22 @@ def scenario(variant: str) -> Scenario:
 
 
 def main(argv: list[str]) -> None:
+    out = Path(__file__).with_name("og_lock") / "summary.json"
+    if "--out" in argv:
+        i = argv.index("--out")
+        if i + 1 >= len(argv):
+            raise SystemExit("--out needs a file name")
+        out = Path(argv[i + 1])
+        argv = argv[:i] + argv[i + 2:]
+    if not argv:
+        raise SystemExit("give a VARIANT: change, change_spp3, strong, strong_spp3, strong_spp4 or compensated")
+    lines: list[str] = []
+
+    def print(text: str, *values) -> None:  # noqa: A001 - the printed lines, kept for the summary
+        line = " ".join([text, *map(str, values)])
+        lines.append(line)
+        sys.stdout.write(line + "\n")
+
     variant = argv[0]
     gain = float(argv[1]) if len(argv) > 1 else 0.65
     frames = int(argv[2]) if len(argv) > 2 else 2000
@@ -69,6 +87,12 @@ def main(argv: list[str]) -> None:
         g = optical_gains(sensor, shapes, residual)[0]
         print(f"frame {frame}: optical gains low {float(g[:8].mean()):.3f}, high {float(g[20:].mean()):.3f}, "
               f"least {float(g.min()):.3f}")
+    record = json.loads(out.read_text()) if out.exists() else {}
+    record[f"{variant} gain {gain} frames {frames}" if (gain, frames) != (0.65, 2000) else variant] = lines
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(dict(sorted(record.items())), indent=1) + "\n")
+    tmp.replace(out)
 
 
 if __name__ == "__main__":
