@@ -361,3 +361,14 @@ def test_the_committed_pages_say_the_verdict_their_summaries_hold_with_its_digit
     assert checked >= 3
     twin = (experiments / "realistic_sh" / "results.md").read_text()
     assert "the predictor loses: 1.04x higher in variance, 1.02x in RMS" in twin and " 1x " not in twin
+
+
+def test_a_pupil_scored_loop_without_a_budget_says_why_it_has_no_after_fitting_ratio():
+    """Over the pupil there is a fitting error; without an error budget there is no estimate of it (not 'none')."""
+    r = result()
+    for m in r.metrics["nominal"].values():
+        m.residual_over = "pupil"
+    ratios = build_verdict(r, contender_roles(PREDICTORS), 1)["scenarios"]["nominal"]["ratios"]
+    assert ratios["fitting_nm"] is None and "no error budget was asked" in ratios["after_fitting_how"]
+    zonal = build_verdict(result(), contender_roles(PREDICTORS), 1)["scenarios"]["nominal"]["ratios"]
+    assert "the zonal sensor scores the residual at the actuators" in zonal["after_fitting_how"]

@@ -253,8 +253,7 @@ def predictor_ratios(metrics: Mapping[str, LoopMetrics], predictors: list[str], 
     out = {"over": best_classical, "variance_over": over,
            "variance": "median RMS squared (per-frame spatial RMS, median over the scored frames)",
            "fitting_nm": fitting,
-           "after_fitting_how": FITTING_ESTIMATE if fitting is not None else
-           "no fitting error: the zonal sensor scores the residual at the actuators, where there is none",
+           "after_fitting_how": FITTING_ESTIMATE if fitting is not None else NO_FITTING[over],
            "predictors": {name: one(name) for name in predictors}, "oracle": None}
     if oracle_m is not None:
         oracle_entry = one(oracle)
@@ -262,6 +261,12 @@ def predictor_ratios(metrics: Mapping[str, LoopMetrics], predictors: list[str], 
         oracle_entry.pop("eta_spread", None)
         out["oracle"] = {"name": oracle, "knowledge": ORACLE_KNOWLEDGE, **oracle_entry}
     return out
+
+
+#: Why a verdict has no after-fitting ratio, by where the residual is scored.
+NO_FITTING = {"actuators": "no fitting error: the zonal sensor scores the residual at the actuators, where there is none",
+              "pupil": "no fitting error estimate: the residual is scored over the pupil, but no error budget was "
+                       "asked (evaluation.error_budget: false), so no after-fitting ratio"}
 
 
 #: What an oracle knows that a real user would not (said wherever its numbers are).
