@@ -124,7 +124,8 @@ class ShackHartmannLoopSensing:
     def chunks(self, n_frames: int, chunk: int, generator):
         mmse = self.mmse is not None
         for first in range(0, n_frames, chunk):
-            out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes or mmse)
+            self._range = (first, min(first + chunk, n_frames))
+            out = self.turbulence.products(*self._range, self.record_slopes or mmse, fit=False)
             self._sensed = sensed_turbulence(out, self.mmse, self.turbulence.isolate)  # s stays the truth
             self._chunk = out
             shape = tuple(out["s"].shape[:2])
@@ -140,7 +141,9 @@ class ShackHartmannLoopSensing:
 
     def fit(self) -> torch.Tensor:
         """``(R, frames, K)``: the chunk's ``P F phi``, the DM's least-squares fit of the true phase on the modes the
-        sensor sees (no aliasing; ``s`` itself for ``isolate: perfect``)."""
+        sensor sees (no aliasing; ``s`` itself for ``isolate: perfect``), made when first asked for."""
+        if "fit" not in self._chunk:
+            self._chunk["fit"] = self.turbulence.fit_frames(*self._range)
         return self._chunk["fit"]
 
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:
