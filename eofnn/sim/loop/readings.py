@@ -43,7 +43,7 @@ def reconstructed_noise(turbulence, shape: tuple[int, int], sigma_nm: float, rec
         return None
     ops = turbulence.operators
     key = (generator.get_state().numpy().tobytes(), tuple(shape), float(sigma_nm), id(ops), id(reconstructor))
-    entry = _NOISE.get(key)
+    entry = _NOISE.get(key) if NOISE_CACHE_BYTES > 0 else None  # a budget of 0: nothing kept, nothing found
     if entry is not None and entry["operators"] is ops and entry["reconstructor"] is reconstructor:
         _NOISE.move_to_end(key)
         generator.set_state(entry["after"])
