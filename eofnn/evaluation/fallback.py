@@ -4,7 +4,8 @@ on, the integrator's command (``fallback:`` of a controller, :class:`~eofnn.cont
 :func:`decide_fallback`, in a scenario, before the test stream is touched:
 
 1. the best-gain integrator: ``fallback.gains`` scanned and refined on the gain-scan stream of seed ``fallback.seed``
-   (:func:`~eofnn.evaluation.contenders.scan_integrator_gains`);
+   (:func:`~eofnn.evaluation.contenders.scan_integrator_gains`; an experiment hands over its best-gain
+   integrator's scan where it is the same scan, :mod:`eofnn.evaluation.sharing`);
 2. the predictor and that integrator close the loop on the validation stream (:data:`FALLBACK_STREAM`,
    ``fallback.realisations`` realisations of ``fallback.frames``, the same turbulence and noise for both); the
    settled frames of each realisation are cut into ``fallback.blocks`` blocks;

@@ -52,7 +52,10 @@ Two sensings share one interface (:func:`loop_sensing`):
   subaperture: ``slopes = wfs_gain (S phi + D DM(y)) + n`` with ``D`` in the loop's command units (``R D = P``) and
   the very draws ``n`` whose ``R n`` the measurement holds, so ``R slopes + (I - P) y = wfs`` to rounding. ``S phi`` is
   kept in the chunk only when slopes are recorded (a chunk cached without it is synthesised again), and the noise is
-  drawn as always, then multiplied by ``R^T``: a loop that records no slopes costs and draws what it did before.
+  drawn as always, then multiplied by ``R^T``. A loop that records no slopes gets the very same ``R n``, kept between
+  loops (:func:`~eofnn.sim.loop.readings.reconstructed_noise`): the loops of a scan, or every contender's on the test
+  stream, draw the same noise, and only the first draws it. Its fit ``P F phi`` is made when a metric first asks for
+  it (:attr:`ShackHartmannTurbulence.lazy_fit`).
 
   The fine-grid phase is what costs (16 points per actuator at 4 samples per subaperture). Everything the loop
   needs of it, ``s``, ``R S phi`` and the pupil's numbers (:mod:`eofnn.sim.sensing.pupil`), is computed a chunk of
