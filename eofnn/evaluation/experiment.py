@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import shutil
 import time
 from collections.abc import Callable, Collection
@@ -27,10 +26,11 @@ from eofnn.evaluation.contenders import (
     scan_integrator_gains,
 )
 from eofnn.evaluation.contrast import scenario_contrast
-from eofnn.evaluation.fallback import FallbackDecision, decide_fallback
+from eofnn.evaluation.fallback import FallbackDecision, decide_fallback, fallback_scan_config
 from eofnn.evaluation.metrics import GrowthMonitor, LoopMetrics, WelchPSD, loop_metrics
 from eofnn.evaluation.nonstationary import reconvergence
-from eofnn.evaluation.results import ExperimentResult, describe_setting_scan
+from eofnn.evaluation.results import ExperimentResult, by_scenario, describe_run, describe_setting_scan
+from eofnn.evaluation.sharing import LoopSharing, loop_key
 from eofnn.evaluation.verdict import build_verdict, contender_roles
 from eofnn.resources import peak_resident_bytes
 from eofnn.sim.loop.runner import Controller, run_loop
@@ -75,13 +75,15 @@ class Experiment:
         Where progress lines go.
     trusted_networks : collection of str
         Network class paths, beyond eofnn's own, that checkpoints may name.
+    share_loops : bool
+        Close a loop once where contenders run the same one (:mod:`eofnn.evaluation.sharing`; the same numbers).
     """
 
     def __init__(self, scenario: Scenario, scenarios: dict[str, dict[str, Any]],
                  predictors: dict[str, PredictorConfig], evaluation: EvaluationConfig,
                  checkpoint_dir: str | Path | None = None, progress: bool | None = None,
                  log: Callable[[str], None] = print, trusted_networks: Collection[str] = (),
-                 allow_long: bool = False) -> None:
+                 allow_long: bool = False, share_loops: bool = True) -> None:
         self.predictors = predictor_configs(scenarios, predictors, evaluation)
         self.scenarios = build_scenarios(scenario, scenarios)
         if evaluation.oracle and not any(cfg.oracle for cfg in self.predictors.values()):
@@ -106,6 +108,8 @@ class Experiment:
         self.checkpoints: dict[str, str] = {}
         #: Fallbacks to the best-gain integrator (``fallback:``): (controller, scenario) -> decision.
         self.fallbacks: dict[tuple[str, str], FallbackDecision] = {}
+        #: Gain scans, scored loops and fitting errors that contenders share (:mod:`eofnn.evaluation.sharing`).
+        self.sharing = LoopSharing(share_loops)
         self._loaded = check_experiment(self.scenarios, self.predictors, evaluation, trusted_networks, allow_long)
         if evaluation.psd_segment_note is not None:
             self.log(evaluation.psd_segment_note)
@@ -177,9 +181,7 @@ class Experiment:
             return cfg
         key = (name, scenario_name)
         if key not in self.gain_scans:
-            self.gain_scans[key] = scan_integrator_gains(cfg, self.scenarios[scenario_name],
-                                                         self.evaluation.settle_frames,
-                                                         self.evaluation.divergence_factor)
+            self.gain_scans[key] = self._integrator_scan(cfg, scenario_name)
             scan = self.gain_scans[key]
             edge = (f" — at the edge of the gains tried (critical gain {scan['critical_gain']:.3g}): extend gains"
                     if scan["at_edge"] else "")
@@ -189,6 +191,12 @@ class Experiment:
                      f"{', '.join(f'{g:g}' for g in cfg.gains)}, refined with {', '.join(f'{g:g}' for g in scan['refined'])}"
                      f"{edge}")
         return replace(cfg, gains=None, gain=self.gain_scans[key]["gain"])
+
+    def _integrator_scan(self, cfg: PredictorConfig, scenario_name: str) -> dict:
+        """The best-gain integrator scan of ``cfg`` in ``scenario_name`` (a guard's too), shared by every scan alike."""
+        ev = self.evaluation
+        return self.sharing.scan(cfg, scenario_name, ev.settle_frames, ev.divergence_factor, lambda: scan_integrator_gains(
+            cfg, self.scenarios[scenario_name], ev.settle_frames, ev.divergence_factor))
 
     def _tuned(self, name: str, scenario_name: str) -> dict:
         """The scan of classical controller ``name``'s settings in ``scenario_name`` (run on first use, on a stream of
@@ -222,7 +230,8 @@ class Experiment:
             config = self.config(name, scenario_name)
             decision = decide_fallback(lambda: build_controller(config, predictor), config.fallback,
                                        self.scenarios[scenario_name], self.evaluation.divergence_factor,
-                                       self.evaluation.settle_frames)
+                                       self.evaluation.settle_frames,
+                                       self._integrator_scan(fallback_scan_config(config.fallback), scenario_name))
             self.fallbacks[key] = decision
             report = decision.report
             modes = "" if "n_modes" not in report else (
@@ -233,11 +242,28 @@ class Experiment:
         return self.fallbacks[key]
 
     def evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
-        """Closed-loop metrics of controller ``name`` as made for ``scenario_name``, on the test stream.
+        """Closed-loop metrics of controller ``name`` as made for ``scenario_name``, on the test stream (those of a
+        contender that ran the same loops, :mod:`eofnn.evaluation.sharing`).
 
         ``plant_scenario`` runs that same controller in another plant (a robustness map); by default it runs in
         the scenario it was made for.
         """
+        if plant_scenario is not None:
+            return self._evaluate(name, scenario_name, plant_scenario)
+        predictor = self.predictor_if_any(name, scenario_name)  # in the order controller() makes them
+        config = self.config(name, scenario_name)
+        deployed = self.fallback(name, scenario_name).deployed if config.fallback.active else None
+
+        def note(other: str, metrics: LoopMetrics) -> None:
+            self.log(f"{scenario_name:>12s} {name:>18s}: the loops {other} closed (the same controller, plant and "
+                     "streams): not closed again")
+            if metrics.error_budget is not None:
+                self.log(f"{scenario_name:>12s} {name:>18s}: {budget_line(metrics.error_budget)}")
+
+        return self.sharing.scored(loop_key(config, predictor, scenario_name, deployed), predictor, name,
+                                   lambda: self._evaluate(name, scenario_name), note)
+
+    def _evaluate(self, name: str, scenario_name: str, plant_scenario: Scenario | None = None) -> LoopMetrics:
         ev = self.evaluation
         scenario = plant_scenario if plant_scenario is not None else self.scenarios[scenario_name]
         controller = self.controller(name, scenario_name)
@@ -274,7 +300,9 @@ class Experiment:
             metrics.spatial_split_nm = contrast.spatial_split()
         wanted = ev.error_budget if ev.error_budget is not None else scenario.sensor.is_shack_hartmann
         if plant_scenario is None and wanted and not result.diverged:  # a diverged run has no budget to split
-            fitting = fitting_nm(scenario, ev.seed, "test", ev.frames, ev.settle_frames, ev.realisations)
+            fitting = self.sharing.fitting((scenario_name, ev.seed, "test", ev.frames, ev.settle_frames,
+                                            ev.realisations), lambda: fitting_nm(scenario, ev.seed, "test", ev.frames,
+                                                                                 ev.settle_frames, ev.realisations))
             metrics.error_budget = budget_runs(scenario, lambda: self.controller(name, scenario_name), ev,
                                                metrics.median_rms_nm, fitting)
             self.log(f"{scenario_name:>12s} {name:>18s}: {budget_line(metrics.error_budget)}")
@@ -341,7 +369,7 @@ class Experiment:
                     gain = self.config(name, scenario_name).gain
                     gains_used[(name, scenario_name)] = {"gain": gain, "scanned": scanned}
                     gain_note = f"; gain {gain:g} ({'best of the scan' if scanned else 'fixed, not tuned'})"
-                self.log(f"{scenario_name:>12s} {name:>18s}: {_describe(m, margins, self.scenarios[scenario_name])}"
+                self.log(f"{scenario_name:>12s} {name:>18s}: {describe_run(m, margins, self.scenarios[scenario_name])}"
                          f"{gain_note}")
             changes = self.scenarios[scenario_name].changes()
             if changes:
@@ -350,50 +378,17 @@ class Experiment:
                 for name, entries in reconvergence(runs, changes, rate).items():
                     metrics[scenario_name][name].reconvergence = entries
         models = {key: model.info for key, model in self.classical_models.items()}
-        result = ExperimentResult(metrics, dict(self.checkpoints), timings, stability, _by_scenario(self.gain_scans),
-                                  _by_scenario(self.alpha_choices), _by_scenario(self.searches),
-                                  classical_models=_by_scenario(models), peak_memory_bytes=peaks,
+        result = ExperimentResult(metrics, dict(self.checkpoints), timings, stability, by_scenario(self.gain_scans),
+                                  by_scenario(self.alpha_choices), by_scenario(self.searches),
+                                  classical_models=by_scenario(models), peak_memory_bytes=peaks,
                                   scenario_dm_gains={name: float(sc.plant.dm_gain)
                                                      for name, sc in self.scenarios.items()},
-                                  integrator_gain_used=_by_scenario(gains_used),
-                                  classical_settings=_by_scenario(self.setting_scans),
-                                  fallbacks=_by_scenario({key: decision.report
+                                  integrator_gain_used=by_scenario(gains_used),
+                                  classical_settings=by_scenario(self.setting_scans),
+                                  fallbacks=by_scenario({key: decision.report
                                                           for key, decision in self.fallbacks.items()}))
         result.verdict = self.verdict(result)
         return result
-
-
-def _by_scenario(per_controller: dict[tuple[str, str], dict]) -> dict[str, dict[str, dict]]:
-    """``{(controller, scenario): value}`` regrouped as ``{scenario: {controller: value}}``, as result files hold it."""
-    out: dict[str, dict[str, dict]] = {}
-    for (name, scenario_name), value in per_controller.items():
-        out.setdefault(scenario_name, {})[name] = value
-    return out
-
-
-def _describe(m: LoopMetrics, margins: dict | None, scenario: Scenario | None = None) -> str:
-    """One progress line: the median RMS (or where it diverged, or that it is diverging) and, for a linear
-    controller, its analytic DM gain margin (with the growth rate its largest root implies when it is unstable).
-
-    The margins come from the linear loop model (DM gain, delay, misregistration; no saturation or other
-    nonlinearity): the line says "linear analysis", so a nonlinear plant diverging where it says stable reads right.
-    """
-    if m.diverged:
-        text = f"median RMS diverged at frame {m.diverged_frame}"
-    else:
-        text = f"median RMS {m.median_rms_nm:.4g} nm"
-        if m.diverging:
-            text += f", diverging (amplitude grows {m.growth['growth_rate_per_s']:+.3g}/s)"
-    if margins is None:
-        return text
-    low, high = margins["dm_gain_interval"]
-    text += "; linear analysis: " + ("stable" if margins["stable"] else "unstable")
-    if margins["stable"] and low is not None and high is not None:
-        text += f" for DM gain {max(low, 0.0) + 0.0:.3g} to {high:.3g}"
-    elif not margins["stable"] and scenario is not None:
-        root = margins["max_root_modulus"]
-        text += f" (largest root {root:.5g}: {scenario.frame_rate_hz * math.log(root):+.3g}/s)"
-    return text
 
 
 def _training(cfg: PredictorConfig) -> str:  # what trains cfg's predictor: its config but the fallback

@@ -4,7 +4,8 @@ on, the integrator's command (``fallback:`` of a controller, :class:`~eofnn.cont
 :func:`decide_fallback`, in a scenario, before the test stream is touched:
 
 1. the best-gain integrator: ``fallback.gains`` scanned and refined on the gain-scan stream of seed ``fallback.seed``
-   (:func:`~eofnn.evaluation.contenders.scan_integrator_gains`);
+   (:func:`~eofnn.evaluation.contenders.scan_integrator_gains`; an experiment hands over its best-gain
+   integrator's scan where it is the same scan, :mod:`eofnn.evaluation.sharing`);
 2. the predictor and that integrator close the loop on the validation stream (:data:`FALLBACK_STREAM`,
    ``fallback.realisations`` realisations of ``fallback.frames``, the same turbulence and noise for both); the
    settled frames of each realisation are cut into ``fallback.blocks`` blocks;
@@ -113,17 +114,26 @@ def kl_modes(s: torch.Tensor, scenario: Scenario) -> torch.Tensor:
     return modes.flip(1)
 
 
+def fallback_scan_config(cfg: FallbackConfig) -> PredictorConfig:
+    """The best-gain integrator whose gain scan a fallback runs: ``cfg.gains`` on ``cfg.frames`` frames of the
+    gain-scan stream of seed ``cfg.seed``, the integrator's defaults otherwise (no leak, its refinement)."""
+    return PredictorConfig(controller="integrator", gains=list(cfg.gains),
+                           data=DataConfig(frames=cfg.frames, seed=cfg.seed))
+
+
 def decide_fallback(make_predictor: Callable[[], Controller], cfg: FallbackConfig, scenario: Scenario,
-                    divergence_factor: float = 10.0, scan_settle_frames: int | None = None) -> FallbackDecision:
+                    divergence_factor: float = 10.0, scan_settle_frames: int | None = None,
+                    scan: dict | None = None) -> FallbackDecision:
     """Whether, and where, the predictor ``make_predictor()`` beats the best-gain integrator (module docstring).
 
     ``scan_settle_frames`` (default ``cfg.settle_frames``): the frames the gain scan leaves out, as an experiment's
     best-gain integrator does (its ``evaluation.settle_frames``): with the same ``gains``, ``frames`` and seed as
-    that integrator's ``gains``, ``data.frames`` and ``data.seed``, the scan is the same, and so is the gain."""
-    scan_cfg = PredictorConfig(controller="integrator", gains=list(cfg.gains),
-                               data=DataConfig(frames=cfg.frames, seed=cfg.seed))
-    settle = cfg.settle_frames if scan_settle_frames is None else scan_settle_frames
-    scan = scan_integrator_gains(scan_cfg, scenario, settle, divergence_factor)
+    that integrator's ``gains``, ``data.frames`` and ``data.seed``, the scan is the same, and so is the gain.
+    ``scan``: that scan (:func:`~eofnn.evaluation.contenders.scan_integrator_gains` of :func:`fallback_scan_config`
+    with those settle frames), already run; ``None``: run here."""
+    if scan is None:
+        settle = cfg.settle_frames if scan_settle_frames is None else scan_settle_frames
+        scan = scan_integrator_gains(fallback_scan_config(cfg), scenario, settle, divergence_factor)
     gain = scan["gain"]
     report = {"per": cfg.per, "integrator_gain": gain, "gain_scan": scan["scanned"], "sigmas": cfg.sigmas,
               "stream": {"name": FALLBACK_STREAM, "seed": cfg.seed, "frames": cfg.frames,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -123,3 +124,36 @@ def save_timeseries(result: ExperimentResult, path: Path) -> None:
             data[f"{s}/{p}/contrast_separation_lod"] = np.asarray(m.contrast_separation_lod, dtype=np.float64)
             data[f"{s}/{p}/raw_contrast"] = np.asarray(m.contrast, dtype=np.float64)
     np.savez_compressed(path, **data)
+
+
+def describe_run(m: LoopMetrics, margins: dict | None, scenario=None) -> str:
+    """One progress line: the median RMS (or where it diverged, or that it is diverging) and, for a linear
+    controller, its analytic DM gain margin (with the growth rate its largest root implies when it is unstable).
+
+    The margins come from the linear loop model (DM gain, delay, misregistration; no saturation or other
+    nonlinearity): the line says "linear analysis", so a nonlinear plant diverging where it says stable reads right.
+    """
+    if m.diverged:
+        text = f"median RMS diverged at frame {m.diverged_frame}"
+    else:
+        text = f"median RMS {m.median_rms_nm:.4g} nm"
+        if m.diverging:
+            text += f", diverging (amplitude grows {m.growth['growth_rate_per_s']:+.3g}/s)"
+    if margins is None:
+        return text
+    low, high = margins["dm_gain_interval"]
+    text += "; linear analysis: " + ("stable" if margins["stable"] else "unstable")
+    if margins["stable"] and low is not None and high is not None:
+        text += f" for DM gain {max(low, 0.0) + 0.0:.3g} to {high:.3g}"
+    elif not margins["stable"] and scenario is not None:
+        root = margins["max_root_modulus"]
+        text += f" (largest root {root:.5g}: {scenario.frame_rate_hz * math.log(root):+.3g}/s)"
+    return text
+
+
+def by_scenario(per_controller: dict[tuple[str, str], dict]) -> dict[str, dict[str, dict]]:
+    """``{(controller, scenario): value}`` regrouped as ``{scenario: {controller: value}}``, as result files hold it."""
+    out: dict[str, dict[str, dict]] = {}
+    for (name, scenario_name), value in per_controller.items():
+        out.setdefault(scenario_name, {})[name] = value
+    return out

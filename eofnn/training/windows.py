@@ -205,7 +205,7 @@ class LoopWindows(Dataset):
         pupil = sensed = None
         if shack_hartmann:  # the residual over the pupil, as the loop is scored; the MMSE computer's view of s
             mmse = turbulence.reconstructor(plant.wfs_noise_nm)
-            products = turbulence.products(0, data.sequence_frames, slopes=mmse is not None)
+            products = turbulence.products(0, data.sequence_frames, slopes=mmse is not None, fit=False)
             pupil = {k: products[k] for k in ("z", "sum", "sumsq")}
             sensed = sensed_turbulence(products, mmse, turbulence.isolate)
             turbulence.release()

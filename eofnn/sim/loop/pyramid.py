@@ -139,6 +139,7 @@ class PyramidTurbulence(ShackHartmannTurbulence):
     Shack-Hartmann's fine-grid phase (every frame's phase kept), with ``s = P F phi``."""
 
     phase_every = 1
+    lazy_fit = False  # its operators make the fit with the chunk: the loop reads it
 
     def __init__(self, atmosphere: Atmosphere, grid: ActuatorGrid, frame_rate_hz: float, seed: int, stream: str,
                  n_realisations: int, vibrations, sensor: Sensor, isolate: str = "none") -> None:

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 from eofnn.errors import require
 from eofnn.lazy import lazy_module
 from eofnn.sim.atmosphere.turbulence import Turbulence
@@ -12,6 +14,51 @@ from eofnn.sim.loop.measurement import ShackHartmannMeasurement, nominal_dm, sen
 torch = lazy_module("torch")
 
 __all__ = ["ShackHartmannLoopSensing", "ZonalLoopSensing"]
+
+#: The budget (bytes) of the reconstructed slope noise kept between loops (:func:`reconstructed_noise`).
+NOISE_CACHE_BYTES = 2 ** 28
+#: Generator state before a chunk's draws, shape, RMS and operators -> that chunk's ``R n`` and the state after.
+_NOISE: OrderedDict = OrderedDict()
+#: How many chunks of noise were drawn and how many were found (what tests count).
+NOISE_STATS = {"drawn": 0, "reused": 0}
+
+
+def clear_noise_cache() -> None:
+    """Forget the kept noise (and its counts)."""
+    _NOISE.clear()
+    NOISE_STATS.update(drawn=0, reused=0)
+
+
+def reconstructed_noise(turbulence, shape: tuple[int, int], sigma_nm: float, reconstructor: torch.Tensor,
+                        generator) -> torch.Tensor | None:
+    """``R n`` of a chunk of ``shape`` ``(R, frames)``: the white slope noise ``turbulence.slope_noise`` draws from
+    ``generator`` (``None`` when ``sigma_nm`` is 0), times ``reconstructor.T``.
+
+    Every loop on a stream draws its noise from a generator seeded alike (``run_loop``'s ``noise_seed``): a scan's
+    loops, or every contender's on the test stream, draw the very same numbers. They are kept (least recently used
+    leave first, :data:`NOISE_CACHE_BYTES` in all) by the generator's state before the draw, the shape, the RMS and
+    the operators; a loop that finds them sets the generator to the state the draw left, so what it draws next is
+    what it would have drawn. The same draws times the same matrix: the same numbers, bit for bit."""
+    if sigma_nm <= 0:
+        return None
+    ops = turbulence.operators
+    key = (generator.get_state().numpy().tobytes(), tuple(shape), float(sigma_nm), id(ops), id(reconstructor))
+    entry = _NOISE.get(key) if NOISE_CACHE_BYTES > 0 else None  # a budget of 0: nothing kept, nothing found
+    if entry is not None and entry["operators"] is ops and entry["reconstructor"] is reconstructor:
+        _NOISE.move_to_end(key)
+        generator.set_state(entry["after"])
+        NOISE_STATS["reused"] += 1
+        return entry["noise"]
+    noise = turbulence.slope_noise(tuple(shape), sigma_nm, generator) @ reconstructor.T
+    NOISE_STATS["drawn"] += 1
+    size = noise.numel() * noise.element_size()
+    if size <= NOISE_CACHE_BYTES:
+        while _NOISE and sum(e["bytes"] for e in _NOISE.values()) + size > NOISE_CACHE_BYTES:
+            _NOISE.popitem(last=False)
+        # The operators and reconstructor are held, so their ids name them while the entry lives.
+        _NOISE[key] = {"noise": noise, "after": generator.get_state(), "operators": ops,
+                       "reconstructor": reconstructor, "bytes": size}
+    return noise
 
 
 class ZonalLoopSensing:
@@ -77,20 +124,26 @@ class ShackHartmannLoopSensing:
     def chunks(self, n_frames: int, chunk: int, generator):
         mmse = self.mmse is not None
         for first in range(0, n_frames, chunk):
-            out = self.turbulence.products(first, min(first + chunk, n_frames), self.record_slopes or mmse)
+            self._range = (first, min(first + chunk, n_frames))
+            out = self.turbulence.products(*self._range, self.record_slopes or mmse, fit=False)
             self._sensed = sensed_turbulence(out, self.mmse, self.turbulence.isolate)  # s stays the truth
             self._chunk = out
-            # R n from the very draws recorded slopes hold: the same draws, and numbers, as without them.
-            n = self.turbulence.slope_noise(tuple(out["s"].shape[:2]), self.sigma_nm, generator)
-            self._slope_noise = n if self.record_slopes else None
-            self._noise = None if n is None else n @ self.reconstructor.T
+            shape = tuple(out["s"].shape[:2])
+            if self.record_slopes:  # R n from the very draws recorded slopes hold: the same draws, and numbers
+                n = self.turbulence.slope_noise(shape, self.sigma_nm, generator)
+                self._slope_noise = n
+                self._noise = None if n is None else n @ self.reconstructor.T
+            else:  # the same draws as another loop's on this stream: kept, not drawn again
+                self._noise = reconstructed_noise(self.turbulence, shape, self.sigma_nm, self.reconstructor, generator)
             if first + chunk >= n_frames:
                 self.turbulence.release()
             yield first, out["s"]
 
     def fit(self) -> torch.Tensor:
         """``(R, frames, K)``: the chunk's ``P F phi``, the DM's least-squares fit of the true phase on the modes the
-        sensor sees (no aliasing; ``s`` itself for ``isolate: perfect``)."""
+        sensor sees (no aliasing; ``s`` itself for ``isolate: perfect``), made when first asked for."""
+        if "fit" not in self._chunk:
+            self._chunk["fit"] = self.turbulence.fit_frames(*self._range)
         return self._chunk["fit"]
 
     def noise(self, i: int, s: torch.Tensor, generator) -> torch.Tensor | None:

@@ -147,7 +147,8 @@ def run_loop(
                 arrays["eps"] = eps_scratch[:, :t]
             y_out, eps_out, wfs_out, slopes_out = arrays.get("y"), arrays["eps"], arrays.get("wfs"), arrays.get("slopes")
             arrays["s"] = s_chunk
-            if sensing.pupil:  # P F phi beside s: the residual against the DM's fit of the true phase is eps - s + fit
+            if sensing.pupil and on_chunk is not None:  # P F phi beside s for on_chunk: the residual against the
+                # DM's fit of the true phase is eps - s + fit
                 arrays["fit"] = sensing.fit()
             for i in range(t):
                 s_n = s_chunk[:, i]

@@ -52,7 +52,10 @@ Two sensings share one interface (:func:`loop_sensing`):
   subaperture: ``slopes = wfs_gain (S phi + D DM(y)) + n`` with ``D`` in the loop's command units (``R D = P``) and
   the very draws ``n`` whose ``R n`` the measurement holds, so ``R slopes + (I - P) y = wfs`` to rounding. ``S phi`` is
   kept in the chunk only when slopes are recorded (a chunk cached without it is synthesised again), and the noise is
-  drawn as always, then multiplied by ``R^T``: a loop that records no slopes costs and draws what it did before.
+  drawn as always, then multiplied by ``R^T``. A loop that records no slopes gets the very same ``R n``, kept between
+  loops (:func:`~eofnn.sim.loop.readings.reconstructed_noise`): the loops of a scan, or every contender's on the test
+  stream, draw the same noise, and only the first draws it. Its fit ``P F phi`` is made when a metric first asks for
+  it (:attr:`ShackHartmannTurbulence.lazy_fit`).
 
   The fine-grid phase is what costs (16 points per actuator at 4 samples per subaperture). Everything the loop
   needs of it, ``s``, ``R S phi`` and the pupil's numbers (:mod:`eofnn.sim.sensing.pupil`), is computed a chunk of
@@ -123,6 +126,9 @@ class ShackHartmannTurbulence:
 
     #: The fine-grid phase is kept at frames that are multiples of this (a pyramid's loop keeps every frame's).
     phase_every = PHASE_EVERY
+    #: The DM's fit of a chunk is made when first asked for (:meth:`products`' ``fit``): streams no metric scores
+    #: against it (a gain scan's, a recording's) never make it. A pyramid's loop reads it: made with the chunk.
+    lazy_fit = True
 
     def __init__(self, atmosphere: Atmosphere, grid: ActuatorGrid, frame_rate_hz: float, seed: int, stream: str,
                  n_realisations: int, vibrations, sensor: Sensor, isolate: str = "none") -> None:
@@ -200,7 +206,9 @@ class ShackHartmannTurbulence:
         phase = self.fine.frames(start, stop)  # (R, t, n_fine)
         flat = phase.reshape(-1, phase.shape[-1]).numpy()
         shape = phase.shape[:2]
-        out = {k: v.reshape(*shape, *v.shape[1:]) for k, v in self.operators.products(flat, slopes).items()}
+        made = self.operators.products(flat, slopes, with_fit=False) if self.lazy_fit else \
+            self.operators.products(flat, slopes)
+        out = {k: v.reshape(*shape, *v.shape[1:]) for k, v in made.items()}
         every = self.phase_every
         out["phase"] = phase[:, (-start) % every::every].clone()
         size = sum(v.numel() * v.element_size() for v in out.values())
@@ -210,23 +218,41 @@ class ShackHartmannTurbulence:
         _CACHE[key] = out
         return out
 
-    def products(self, start: int, stop: int, slopes: bool = False) -> dict[str, torch.Tensor]:
+    def _fitted(self, chunk: dict) -> dict:
+        """``chunk`` with its ``fit`` (made now if not yet, of the whole chunk's ``z`` at once, as with the chunk)."""
+        if "fit" not in chunk:
+            z = chunk["z"]
+            chunk["fit"] = self.operators.fit(z.reshape(-1, z.shape[-1])).reshape(z.shape)
+            chunk["bytes"] += chunk["fit"].numel() * chunk["fit"].element_size()
+        return chunk
+
+    def products(self, start: int, stop: int, slopes: bool = False, fit: bool = True) -> dict[str, torch.Tensor]:
         """``s, sensed, fit, z, sum, sumsq`` of frames ``start..stop-1`` (``(R, frames, ...)``), from the cached chunks;
-        ``s`` is ``sensed`` (``R S phi``; ``fit = P F phi`` for ``isolate: perfect``); ``slopes`` adds ``S phi``."""
+        ``s`` is ``sensed`` (``R S phi``; ``fit = P F phi`` for ``isolate: perfect``); ``slopes`` adds ``S phi``;
+        ``fit=False`` leaves ``fit`` out where ``s`` is not it (:meth:`fit_frames` gives it later)."""
         require(0 <= start <= stop <= self.atmosphere.screen_frames,
                 f"frame range [{start}, {stop}) is invalid: need 0 <= start <= stop <= atmosphere.screen_frames="
                 f"{self.atmosphere.screen_frames}")
         step = self.chunk_frames
         parts = []
-        skip = ("phase", "bytes") if slopes else ("phase", "bytes", "slopes")
+        fit = fit or self.isolate == "perfect"
+        skip = ("phase", "bytes") + (() if slopes else ("slopes",)) + (() if fit else ("fit",))
         for index in range(start // step, -(-stop // step)):
             chunk, lo = self._chunk(index, slopes), index * step
+            if fit:
+                self._fitted(chunk)
             parts.append({k: v[:, max(start - lo, 0): stop - lo] for k, v in chunk.items() if k not in skip})
         out = {k: torch.cat([p[k] for p in parts], 1) for k in parts[0]}
         if self.isolate == "perfect":
             out["sensed"] = out["fit"]
         out["s"] = out["sensed"]
         return out
+
+    def fit_frames(self, start: int, stop: int) -> torch.Tensor:
+        """``fit`` ``(R, frames, K)`` of frames ``start..stop-1`` (:meth:`products`)."""
+        step = self.chunk_frames
+        return torch.cat([self._fitted(self._chunk(index))["fit"][:, max(start - index * step, 0): stop - index * step]
+                          for index in range(start // step, -(-stop // step))], 1)
 
     def phase_at(self, frame: int) -> torch.Tensor:
         """The fine-grid phase ``(R, n_fine)`` of ``frame``, a multiple of :data:`PHASE_EVERY`."""
@@ -250,7 +276,7 @@ class ShackHartmannTurbulence:
 
     def frames(self, start: int, stop: int) -> torch.Tensor:
         """``s`` of frames ``start..stop-1``: ``(R, frames, K)`` nm."""
-        return self.products(start, stop)["s"]
+        return self.products(start, stop, fit=False)["s"]
 
     def chunks(self, n_frames: int, chunk: int = 1024, start: int = 0):
         """Yield ``(first_frame, s)`` over ``n_frames`` frames, ``chunk`` frames at a time."""
@@ -262,7 +288,7 @@ class ShackHartmannTurbulence:
         with the gain divided out, ``R S phi + R n / wfs_gain`` (what pseudo-open-loop data is; through the MMSE
         reconstructor ``R_mmse (S phi + n / wfs_gain)`` when the sensor has one)."""
         mmse = self.reconstructor(plant.wfs_noise_nm)
-        out = self.products(start, stop, slopes=mmse is not None)
+        out = self.products(start, stop, slopes=mmse is not None, fit=False)
         self.release()
         s, s_hat = out["s"], out["sensed"]
         n = self.slope_noise(tuple(s.shape[:2]), self.slope_noise_nm(plant.wfs_noise_nm), generator)

@@ -80,17 +80,24 @@ class LoopOperators:
         self.slopes_t = geometry.slope_operator.T.tocsr()
         self.influence_t = influence.T.tocsr()
 
-    def products(self, phase: np.ndarray, with_slopes: bool = False) -> dict[str, torch.Tensor]:
+    def products(self, phase: np.ndarray, with_slopes: bool = False, with_fit: bool = True) -> dict[str, torch.Tensor]:
         """What the loop needs of ``(rows, n_fine)`` phase (nm): ``fit = P F phi``, ``sensed = R S phi`` (``(rows, K)``),
         ``z`` ``(rows, K)`` and the pupil's ``sum phi`` and ``sum phi²`` (``(rows,)``); ``with_slopes`` adds ``slopes = S phi``
-        ``(rows, 2 n_sub)`` (what recording slopes needs; the other products are the same numbers either way)."""
+        ``(rows, 2 n_sub)`` (what recording slopes needs; the other products are the same numbers either way);
+        ``with_fit=False`` leaves ``fit`` out (:meth:`fit` makes it of ``z`` later, to the same numbers)."""
         columns = transposed(torch.from_numpy(phase))  # phase.T
         inside = phase[:, self.pupil]
         z = torch.as_tensor(np.ascontiguousarray((self.influence_pupil_t @ columns[self.pupil]).T))
         slopes = torch.as_tensor(np.asarray((self.slopes_t.T @ columns).T))  # phase @ S^T, as scipy computes it
-        out = {"fit": z @ self.fit_matrix.T, "sensed": slopes @ self.reconstructor.T, "z": z,
+        out = {"sensed": slopes @ self.reconstructor.T, "z": z,
                "sum": torch.as_tensor(inside.sum(1)), "sumsq": torch.as_tensor(np.einsum("ij,ij->i", inside, inside))}
+        if with_fit:
+            out["fit"] = self.fit(z)
         return {**out, "slopes": slopes} if with_slopes else out
+
+    def fit(self, z: torch.Tensor) -> torch.Tensor:
+        """``P F phi`` ``(rows, K)`` of :meth:`products`' ``z`` ``(rows, K)``: the DM's fit of the phase."""
+        return z @ self.fit_matrix.T
 
     def pupil_rms(self, z: torch.Tensor, total: torch.Tensor, total_sq: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Piston-removed RMS over the pupil of ``phi + IF u`` from :meth:`products`' ``z, sum, sumsq`` and the applied
