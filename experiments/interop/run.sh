@@ -11,7 +11,8 @@
 #     against the integrator, the modal integrator, the LQG and PFC at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
 #     checks beside them (about 5 h of CPU, one thread per run);
 #   - map_small: the anti-aliasing study at 20 x 20 on 4 m, I = 8, 20 m/s, with every contender on the truncated
-#     least-squares reconstructor and on the MAP one (--reconstructor map), at rcond 0.15 and 0.02 (about 5 min a run);
+#     least-squares reconstructor and on the MAP one (--reconstructor map), at rcond 0.15 and 0.02, and on MAP from
+#     telemetry (map_telemetry) at 0.15 (about 5 min a run);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -93,6 +94,10 @@ if [ "$what" = all ] || [ "$what" = map_small ]; then
                 --out experiments/runs/interop/map_small/$rec$sfx
         done
     done
+    # MAP with the turbulence and the noise estimated from the loop's own telemetry (no simulator setting).
+    OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --photon-noise \
+        --anti-aliasing --wind 20 --realisations 2 --magnitude 8 --no-oracle --reconstructor map_telemetry \
+        --out experiments/runs/interop/map_small/map_telemetry
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
