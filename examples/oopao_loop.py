@@ -44,6 +44,10 @@ from OOPAO's telemetry alone (a recording of its own dithered integrator, its in
 controller and ``eof_antialias`` (the same filter trained on OOPAO's truth) it closes, in plain variance.
 ``--eofnn-trained`` (``eof_eofnn``) builds its twin from OOPAO's settings instead (r0, L0, every layer's wind):
 simulator knowledge, a labelled reference.
+``--reconstructor map`` (or ``map_telemetry``) replaces the loop's truncated least-squares reconstructor by a MAP
+one for every contender (:mod:`eofnn.interop.map_reconstructor`): the von Kármán prior and the photon noise from the
+simulator (knowledge), or both estimated from a recording of the loop's integrator; its regularisation factor is
+chosen on the scan realisation.
 ``--layers F:V:DIR,...`` sets several frozen-flow layers (Cn2 fraction, m/s, degrees) in place of ``--wind`` and
 ``--wind-direction``:
 
@@ -58,6 +62,7 @@ import time
 from dataclasses import replace
 
 from eofnn.errors import ConfigError, TelemetryError
+from eofnn.interop.map_reconstructor import RECONSTRUCTORS, apply_reconstructor
 from eofnn.interop.oopao import OopaoLoop, fitting_error, measure_sensor_gain
 from eofnn.outputs import write_text_atomic
 from eofnn.reporting.interop import antialias_psd_figure
@@ -74,7 +79,10 @@ def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
                     magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
                     wind_direction_deg=args.wind_direction, rcond=args.rcond, layers=args.layers)
     started = time.time()
+    chosen = reconstructor(sim, args, config)
     result = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
+    if chosen:
+        result["reconstructor"] = chosen
     # the pyramid's probes are read noise-free: under photon noise a 5 nm probe's read scatters by several percent
     # of the gain (docs/findings.md, "The pyramid under photon noise in OOPAO's loop")
     gain = measure_sensor_gain(sim, config.record_gain, min(config.record_frames, 1500), config.seed,
@@ -146,6 +154,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-oracle", action="store_true",
                         help="with --anti-aliasing: without the oracle (trained on OOPAO's truth, wider and longer than "
                              "the EOFs, on four times the recorded frames): no eta")
+    parser.add_argument("--reconstructor", choices=RECONSTRUCTORS, default="least_squares",
+                        help="the loop's reconstructor, every contender's: least_squares (the truncated pseudo-inverse), "
+                             "map (MAP with r0, L0 and the photon noise from the simulator: knowledge) or map_telemetry "
+                             "(MAP with the turbulence and the noise estimated from a recording of the loop); the MAP's "
+                             "regularisation factor is scanned on the scan realisation (eofnn.interop.map_reconstructor)")
     parser.add_argument("--rcond", type=float, default=0.15,
                         help="reconstructor: singular values of the interaction matrix below rcond x the largest are "
                              "dropped; the smooth modes' share of the spectrum shrinks as 1 / n-subapertures, so scale "
@@ -207,6 +220,17 @@ def main(argv: list[str] | None = None) -> dict:
     return metrics
 
 
+def reconstructor(sim, args, config) -> dict | None:
+    """``--reconstructor`` in place of the truncated least-squares one, for every contender of this loop (the MAP's
+    factor scanned on the study's scan realisation, ``config.seed + 3``, with its integrator gains); None when the
+    loop keeps least squares (its outputs then unchanged) or has no slopes (the perfect sensor)."""
+    if args.reconstructor == "least_squares" or sim.sensor == "perfect":
+        return None
+    return apply_reconstructor(sim, args.reconstructor, scan_seed=config.seed + 3, loop_frames=config.loop_frames,
+                               settle_frames=config.settle_frames, gains=config.gains,
+                               record_frames=max(args.frames, 1200), record_gain=config.record_gain)
+
+
 def layers_arg(text: str) -> list[tuple[float, float, float]]:
     """``--layers``: ``FRACTION:SPEED:DIRECTION`` separated by commas."""
     import argparse
@@ -233,6 +257,7 @@ def antialias(args, argv: list[str]) -> dict:
                     dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
                     rcond=args.rcond, layers=args.layers)
     started = time.time()
+    chosen = reconstructor(sim, args, config)
     external = {}
     if args.eofnn_trained:
         # 27 x --frames of the twin in 9 sequences (and a fifth as much held out for the ridge alpha): at 40 x 40, I = 8,
@@ -257,6 +282,8 @@ def antialias(args, argv: list[str]) -> dict:
                                                                               ("on_scored", "on the scored"))]
             print(f"{name}: share of the gap to eof_antialias closed, plain variance: {shares[0]}, {shares[1]}; "
                   f"variances {gap['variance_nm2']}")
+    if chosen:
+        metrics["reconstructor"] = chosen
     metrics["seconds"] = round(time.time() - started, 1)
     metrics["command"] = " ".join(["python examples/oopao_loop.py", *argv])
     text = antialias_markdown(metrics)

@@ -229,7 +229,9 @@ def antialias_summary(name: str) -> bool:
 
 
 #: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa).
-ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS)
+ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS, *(f"interop/map_small/{rec}{sfx}" for sfx in ("", "_rcond0.02")
+                                               for rec in ("least_squares", "map")),
+             "interop/map_small/map_telemetry")  # run.sh map_small
 
 #: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
 MAPS = ("where/sh", "where/space")  # where/space: check_space.yaml over the map's grid (the spatial split)

@@ -10,6 +10,9 @@
 #   - oopao_aa: the EOF from telemetry, the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin) and the oracle
 #     against the integrator, the modal integrator, the LQG and PFC at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
 #     checks beside them (about 5 h of CPU, one thread per run);
+#   - map_small: the anti-aliasing study at 20 x 20 on 4 m, I = 8, 20 m/s, with every contender on the truncated
+#     least-squares reconstructor and on the MAP one (--reconstructor map), at rcond 0.15 and 0.02, and on MAP from
+#     telemetry (map_telemetry) at 0.15 (about 5 min a run);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -78,6 +81,23 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # at I = 8 and 10 over three training sets of the twin each: reads m8's and m10's runs.
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 8 0 1 2
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 10 0 1 2
+fi
+if [ "$what" = all ] || [ "$what" = map_small ]; then
+    # Every contender (integrator, modal integrator, LQG, PFC, the EOFs) on one reconstructor, the loop's: the
+    # truncated least squares or MAP (r0, L0 and the photon noise from the simulator; its factor scanned on the scan
+    # realisation); at rcond 0.15 (the default) and 0.02 (more modes controlled: the MAP's prior regularises them).
+    for rcond in 0.15 0.02; do
+        for rec in least_squares map; do
+            sfx=$([ "$rcond" = 0.15 ] && echo "" || echo "_rcond$rcond")
+            OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --photon-noise \
+                --anti-aliasing --wind 20 --realisations 2 --magnitude 8 --no-oracle --rcond $rcond --reconstructor $rec \
+                --out experiments/runs/interop/map_small/$rec$sfx
+        done
+    done
+    # MAP with the turbulence and the noise estimated from the loop's own telemetry (no simulator setting).
+    OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --photon-noise \
+        --anti-aliasing --wind 20 --realisations 2 --magnitude 8 --no-oracle --reconstructor map_telemetry \
+        --out experiments/runs/interop/map_small/map_telemetry
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
