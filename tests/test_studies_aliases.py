@@ -50,6 +50,6 @@ def test_interop_holds_the_adapters_and_the_aliases_only():
 
     interop = Path(importlib.import_module("eofnn.interop").__file__).parent
     modules = {p.stem for p in interop.glob("*.py")} - {"__init__"}
-    adapters = {"loop", "oopao", "oopao_pyramid", "hcipy", "shift", "pfc", "controls", "native"}
+    adapters = {"loop", "oopao", "oopao_pyramid", "hcipy", "shift", "pfc", "controls", "native", "map_reconstructor"}
     aliases = {old.rpartition(".")[2] for old in MODULES}
     assert modules == adapters | aliases
