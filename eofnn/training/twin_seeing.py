@@ -115,6 +115,22 @@ def _structure(cov: np.ndarray, distance: np.ndarray, bins: np.ndarray) -> np.nd
     return np.array([pairs[which == b].mean() if (which == b).any() else np.nan for b in range(1, len(bins))])
 
 
+def _floor_share(spectrum: np.ndarray, reference: np.ndarray, raw: float, leak: float, steps: int = 60) -> float:
+    """The share ``a`` (0 to 1) of the twin's floor ``leak`` (nm², per actuator) that a record whose white floor is
+    ``raw`` (nm²) has: ``a`` solves ``a = median((spectrum - noise) / reference)`` with ``noise = raw - a leak``
+    and ``0 <= noise`` (bisection on the noise: the difference is monotone where the twin's spectrum is at least its
+    floor; the share is well determined where the twin's spectrum over the band is well above its floor)."""
+    def excess(noise: float) -> float:
+        share = float(np.clip(np.median((spectrum - noise) / reference), 0.0, 1.0))
+        return noise - raw + share * leak
+
+    low, high = max(raw - max(leak, 0.0), 0.0), max(raw, 0.0)
+    for _ in range(steps):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if excess(middle) < 0 else (low, middle)
+    return float(np.clip((raw - 0.5 * (low + high)) / leak, 0.0, 1.0)) if leak > 0 else 0.0
+
+
 def seeing_and_noise(pol: np.ndarray, references: dict, positions_m: np.ndarray, pitch_m: float,
                      iterations: int = 4) -> tuple[np.ndarray, dict]:
     """``(C_v, seeing)``: the noise covariance and :func:`fit_seeing` of ``(frames, K)`` POL values, together.
@@ -135,8 +151,8 @@ def seeing_and_noise(pol: np.ndarray, references: dict, positions_m: np.ndarray,
         if leak.shape != raw.shape or not np.allclose(where, positions_m):  # another layout: its mean, per actuator
             leak = np.eye(len(raw)) * float(np.diag(leak).mean())
         if len(reference_spectrum) == len(spectrum):  # else (a record too short for the segments) all of it
-            ratios = (spectrum[match] - float(np.diag(cv).mean())) / (scale * reference_spectrum[match])
-            share = float(np.clip(np.median(ratios), 0.0, 1.0))
+            share = _floor_share(spectrum[match], scale * reference_spectrum[match], float(np.diag(raw).mean()),
+                                 scale * float(np.diag(leak).mean()))
         cv = raw - share * scale * leak
         seeing = fit_seeing(total - cv, references, positions_m, pitch_m)
     seeing["aliasing_share"] = share
