@@ -38,15 +38,15 @@ def test_the_spectral_floor_recovers_coloured_white_noise_under_an_f_minus_11_3_
 
 def test_the_twins_high_frequency_floor_is_removed_in_the_share_the_record_shows():
     """The twin's noise-free turbulence has an aliased sensor's high-frequency excess beside a weak f^(-11/3) tail:
-    a bump at 0.19-0.25 cycles per frame (20 times the noise's level) and a floor of 5 times above. A record with the
+    a bump at 0.19-0.25 cycles per frame (20 times the noise's level) and a floor of twice above. A record with the
     same excess gets all of its floor removed, one without (another simulator's smoother turbulence) none of it:
     both give the noise within 5%, where removing the whole floor from the second would leave less than nothing and
-    removing none from the first 2.4 times the noise."""
+    removing none from the first three times the noise's variance."""
     rng = np.random.default_rng(5)
     frames, k, sigma2 = 16000, 36, 100.0
     positions = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0)), -1).reshape(-1, 2) * 0.5
     tail = _tail(0.02 * sigma2)
-    floor = lambda f: np.sqrt(sigma2 * np.where(f >= 0.25, 5.0, np.where(f > 0.18, 20.0, 0.0)))  # noqa: E731
+    floor = lambda f: np.sqrt(sigma2 * np.where(f >= 0.25, 2.0, np.where(f > 0.18, 20.0, 0.0)))  # noqa: E731
     both = lambda f: np.sqrt(tail(f) ** 2 + floor(f) ** 2)  # noqa: E731
     reference = [_shaped(rng, frames, k, both) for _ in range(2)]
     refs = {l0: (sum(np.cov(r.T) for r in reference) / 2, sum(noise_floor(r) for r in reference) / 2, positions,
