@@ -160,6 +160,8 @@ def results_md(summary: dict) -> str:
              "within 20%, the right layer count.", ""]
     if summary.get("cases"):
         lines += [f"## {summary.get('code', 'Final code')}", "", *_table(summary["cases"]), ""]
+    for earlier in summary.get("earlier", []):  # the final code's tables before a later change
+        lines += [f"## Earlier: {earlier['code']}", "", *_table(earlier["cases"]), ""]
     if summary.get("first_sight"):
         lines += [f"## First sight: {summary['first_sight']['code']}", "", *_table(summary["first_sight"]["cases"]), ""]
     return "\n".join([*lines, *summary.get("notes", []), ""])
