@@ -378,14 +378,12 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                                   f"the outer scale of {list(OUTER_SCALES_M)} whose structure function fits best "
                                   f"(rms log misfit {misfit})", l0_warning)
 
-    # WFS noise.
     per_act = np.clip(np.diag(cv), 0, None)
     e["wfs_noise_nm"] = Estimate(math.sqrt(float(per_act.mean())),
                                  standard_error([math.sqrt(max(float(np.diag(f[0]).mean()), 0)) for f in fits]), "nm",
-                                 "white floor of the POL's temporal cross-periodogram over 0.25-0.5 cycles per frame "
-                                 "(fitted beside an f^(-11/3) turbulence tail), less the share "
-                                 f"({seeing['aliasing_share']:.2f}) of the twin's own turbulence floor there that the "
-                                 "record's spectrum at 0.19-0.25 cycles per frame shows; RMS over actuators")
+                                 "white floor of the POL's cross-periodogram at 0.25-0.5 cycles/frame beside an f^(-11/3) "
+                                 f"tail, less the share ({seeing['aliasing_share']:.2f}) of the twin's own floor there that "
+                                 "the record's spectrum at 0.19-0.25 cycles/frame shows; RMS over actuators")
     e["wfs_noise_per_actuator_nm"] = Estimate(np.sqrt(per_act).round(4).tolist(), None, "nm", "diagonal of C_v")
     neighbours = layout.neighbours(1.0).numpy()
     corr = cv / np.sqrt(np.outer(per_act, per_act) + 1e-300)
