@@ -13,11 +13,9 @@ that gave it, and a quantity the record cannot tell is given with a one-line war
    when the record holds a dither; without one it is not identifiable and 1 is assumed. The delay is the file's.
 3. *The pseudo-open-loop signal* ``s_hat(n) = wfs(n) - g y(n)`` (eofnn's alignment, ``docs/telemetry.md``: ``wfs(n)``
    measures ``s(n) + g y(n)``; a fractional delay ``d + f`` averages the commands, ``(1 - f) y(n) + f y(n - 1)``).
-4. *The WFS noise* (:func:`~eofnn.training.twin_seeing.noise_covariance`): white noise ``v`` adds ``2 C_v`` to the
-   lagged structure matrix ``D(l) = E[(s_hat(n + l) - s_hat(n)) (s_hat(n + l) - s_hat(n))^T]`` at every lag ``l >=
-   1``, while turbulence that is smooth over a few frames adds ``c l^2``: ``C_v = (4 D(1) - D(2)) / 6``, per actuator
-   (its diagonal) and between actuators (its spatial colour, compared with ``sigma^2 R R^T`` when a reconstructor is
-   given).
+4. *The WFS noise* (:func:`~eofnn.training.twin_seeing.noise_floor`): the floor ``C_v`` of ``s_hat``'s temporal
+   cross-periodogram at 0.25-0.5 cycles per frame beside an ``f^(-11/3)`` tail, less the share of the twin's own
+   turbulence floor (an aliased Shack-Hartmann's) the record shows; ``sigma^2 R R^T`` fitted with a reconstructor.
 5. *r0 and L0* (:func:`~eofnn.training.twin_seeing.seeing_and_noise`,
    :func:`~eofnn.training.twin_seeing.fit_seeing`): the noise-corrected covariance of ``s_hat`` against the
    covariance of the twin's own noise-free turbulence (:func:`~eofnn.training.twin_seeing.reference_covariances`: the
@@ -380,12 +378,12 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
                                   f"the outer scale of {list(OUTER_SCALES_M)} whose structure function fits best "
                                   f"(rms log misfit {misfit})", l0_warning)
 
-    # WFS noise.
     per_act = np.clip(np.diag(cv), 0, None)
     e["wfs_noise_nm"] = Estimate(math.sqrt(float(per_act.mean())),
                                  standard_error([math.sqrt(max(float(np.diag(f[0]).mean()), 0)) for f in fits]), "nm",
-                                 "white floor of the POL's lagged structure, (4 D(1) - D(2)) / 6, less what the "
-                                 "twin's turbulence leaves in it at the identified r0 and winds; RMS over actuators")
+                                 "white floor of the POL's cross-periodogram at 0.25-0.5 cycles/frame beside an f^(-11/3) "
+                                 f"tail, less the share ({seeing['aliasing_share']:.2f}) of the twin's own floor there that "
+                                 "the record's spectrum at 0.19-0.25 cycles/frame shows; RMS over actuators")
     e["wfs_noise_per_actuator_nm"] = Estimate(np.sqrt(per_act).round(4).tolist(), None, "nm", "diagonal of C_v")
     neighbours = layout.neighbours(1.0).numpy()
     corr = cv / np.sqrt(np.outer(per_act, per_act) + 1e-300)

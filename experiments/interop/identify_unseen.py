@@ -45,6 +45,12 @@ CASES = {
     "U3": {"r0": 0.18, "layers": [(10.0, 60.0, 0.7, 0.0), (22.0, 300.0, 0.3, 8000.0)], "noise": 35.0, "seed": 103},
     "U4": {"r0": 0.09, "layers": [(25.0, 200.0, 1.0, 0.0)], "noise": 20.0, "seed": 104},
     "U5": {"r0": 0.20, "layers": [(5.0, 135.0, 1.0, 0.0)], "noise": 40.0, "seed": 105},
+    # Added for the spectral noise estimator (fixed and committed before their first run, ident46b): fast wind and
+    # low noise, where the lagged-structure estimator failed on U2 and U4.
+    "U6": {"r0": 0.13, "layers": [(7.0, 20.0, 0.55, 0.0), (19.0, 250.0, 0.45, 5000.0)], "noise": 22.0, "seed": 106},
+    "U7": {"r0": 0.08, "layers": [(30.0, 310.0, 1.0, 0.0)], "noise": 28.0, "seed": 107},
+    "U8": {"r0": 0.16, "layers": [(12.0, 170.0, 1.0, 0.0)], "noise": 12.0, "seed": 108},
+    "U9": {"r0": 0.18, "layers": [(21.0, 80.0, 1.0, 0.0)], "noise": 18.0, "seed": 109},
 }
 TARGETS = {"r0_rel": 0.10, "speed_rel": 0.10, "direction_deg": 10.0, "noise_rel": 0.20}
 
@@ -154,6 +160,8 @@ def results_md(summary: dict) -> str:
              "within 20%, the right layer count.", ""]
     if summary.get("cases"):
         lines += [f"## {summary.get('code', 'Final code')}", "", *_table(summary["cases"]), ""]
+    for earlier in summary.get("earlier", []):  # the final code's tables before a later change
+        lines += [f"## Earlier: {earlier['code']}", "", *_table(earlier["cases"]), ""]
     if summary.get("first_sight"):
         lines += [f"## First sight: {summary['first_sight']['code']}", "", *_table(summary["first_sight"]["cases"]), ""]
     return "\n".join([*lines, *summary.get("notes", []), ""])
