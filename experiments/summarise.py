@@ -228,8 +228,10 @@ def antialias_summary(name: str) -> bool:
     return True
 
 
-#: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa).
-ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS)
+#: The contest through OOPAO's pyramid (experiments/interop/run.sh pyramid_contest; experiments/pyramid/README.md).
+PYRAMID_CONTEST = ("interop/pyramid_contest/m8", "interop/pyramid_contest/m10")
+#: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa), and the pyramid's contest.
+ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS, *PYRAMID_CONTEST)
 
 #: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
 MAPS = ("where/sh", "where/space")  # where/space: check_space.yaml over the map's grid (the spatial split)

@@ -10,6 +10,8 @@
 #   - oopao_aa: the EOF from telemetry, the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin) and the oracle
 #     against the integrator, the modal integrator, the LQG and PFC at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
 #     checks beside them (about 5 h of CPU, one thread per run);
+#   - pyramid_contest: the contest through OOPAO's modulated pyramid at experiments/pyramid/contest.yaml's system,
+#     I = 8 and 10 (about 30 min);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -78,6 +80,17 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # at I = 8 and 10 over three training sets of the twin each: reads m8's and m10's runs.
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 8 0 1 2
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 10 0 1 2
+fi
+if [ "$what" = all ] || [ "$what" = pyramid_contest ]; then
+    # The contest through OOPAO's modulated pyramid (experiments/pyramid/README.md, "The contest in OOPAO's loop"):
+    # experiments/pyramid/contest.yaml's system (2 m, 10 x 10 at 0.2 m, 20 m/s, modulation 3 lambda/D) at I = 8 and
+    # 10, the anti-aliasing study's contenders (no twin: it is a Shack-Hartmann); 3 training sequences of 1000 frames,
+    # every contender scored on 3 realisations of 500 (about 15 min each on a loaded 2-core machine, 2026-12-07).
+    for mag in 8 10; do
+        OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --sensor pyramid --modulation 3 --photon-noise --anti-aliasing \
+            --wind 20 --n-subapertures 10 --diameter 2 --magnitude $mag --frames 1000 --realisations 3 \
+            --out experiments/runs/interop/pyramid_contest/m$mag
+    done
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
