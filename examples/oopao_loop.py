@@ -24,10 +24,16 @@ what it cannot (fitting error, aliasing, noise).
 
 With ``--sensor pyramid`` the same chain runs with OOPAO's modulated pyramid in place of the Shack-Hartmann
 (``--modulation`` in lambda/D, 3 by default; :mod:`eofnn.interop.oopao_pyramid`), noise-free or with
-``--photon-noise``; the DM gain identified is then 2 x the pyramid's optical gain about the loop's residual. The
-studies built on the Shack-Hartmann (``--aliasing``, ``--anti-aliasing``) are refused with it:
+``--photon-noise``; the DM gain identified is then 2 x the pyramid's optical gain about the loop's residual. What
+is built on the Shack-Hartmann alone (``--aliasing``'s split, the twins of ``--eofnn-trained`` and
+``--twin-identified``) is refused with it. ``--anti-aliasing`` runs with it as the contest through OOPAO's pyramid:
+every contender's POL histories are the closed loop's own readings (``wfs = R @ slopes maps`` plus the identified
+DM gain, 2 x the optical gain about the loop's residual, times the delayed command), recorded in the loop as eofnn's
+``open_loop_recorded`` does, never the pyramid's open-loop reading (docs/findings.md); the optical gains are not
+compensated (the best gain and the modal gains absorb them):
 
     python examples/oopao_loop.py --small --sensor pyramid --modulation 3 --out DIR
+    python examples/oopao_loop.py --small --sensor pyramid --photon-noise --anti-aliasing --out DIR
 
 With ``--anti-aliasing`` it runs instead the study of :mod:`eofnn.studies.antialias`: the open-loop EOF (5 x 5
 neighbourhood) fitted on telemetry alone and the anti-aliasing EOF fitted on the same telemetry with OOPAO's truth
@@ -166,11 +172,12 @@ def main(argv: list[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_example(parser, argv)
     if args.sensor == "pyramid":
-        for flag, on in (("--aliasing", args.aliasing), ("--anti-aliasing", args.anti_aliasing),
-                         ("--eofnn-trained", args.eofnn_trained)):
+        for flag, on, what in (("--aliasing", args.aliasing, "its aliasing split is the Shack-Hartmann's"),
+                               ("--eofnn-trained", args.eofnn_trained, "its twin is a Shack-Hartmann"),
+                               ("--twin-identified", args.twin_identified, "its twin is a Shack-Hartmann")):
             if on:
-                parser.error(f"{flag} is invalid with --sensor pyramid: that study is built on the Shack-Hartmann "
-                             "(its budget and its twin); with the pyramid, run the plain study or --photon-noise")
+                parser.error(f"{flag} is invalid with --sensor pyramid: {what}; with the pyramid, run the plain "
+                             "study, --photon-noise or the contest (--anti-aliasing)")
     elif args.modulation != 3.0:
         parser.error(f"--modulation {args.modulation:g} is invalid with --sensor shack_hartmann: only the pyramid is "
                      "modulated (give --sensor pyramid)")
@@ -253,9 +260,10 @@ def antialias(args, argv: list[str]) -> dict:
                              oracle=not args.no_oracle)
     for layer in args.layers or [(1.0, args.wind, args.wind_direction)]:
         eofnn_direction(layer[2])  # a direction eofnn cannot map is refused before anything is simulated
-    sim = OopaoLoop(args.n_subapertures, args.diameter, photon_noise=args.photon_noise, magnitude=args.magnitude,
-                    dm_gain=args.dm_gain, wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction,
-                    rcond=args.rcond, layers=args.layers)
+    sim = OopaoLoop(args.n_subapertures, args.diameter, sensor=args.sensor, modulation_lambda_over_d=args.modulation,
+                    photon_noise=args.photon_noise, magnitude=args.magnitude, dm_gain=args.dm_gain,
+                    wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction, rcond=args.rcond,
+                    layers=args.layers)
     started = time.time()
     chosen = reconstructor(sim, args, config)
     external = {}

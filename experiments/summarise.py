@@ -228,10 +228,13 @@ def antialias_summary(name: str) -> bool:
     return True
 
 
-#: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa).
-ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS, *(f"interop/map_small/{rec}{sfx}" for sfx in ("", "_rcond0.02")
-                                               for rec in ("least_squares", "map")),
-             "interop/map_small/map_telemetry")  # run.sh map_small
+#: The contest through OOPAO's pyramid (experiments/interop/run.sh pyramid_contest; experiments/pyramid/README.md).
+PYRAMID_CONTEST = ("interop/pyramid_contest/m8", "interop/pyramid_contest/m10")
+#: The noise-aware reconstructor in OOPAO's loop (experiments/interop/run.sh map_small).
+MAP_SMALL = (*(f"interop/map_small/{rec}{sfx}" for sfx in ("", "_rcond0.02") for rec in ("least_squares", "map")),
+             "interop/map_small/map_telemetry")
+#: The anti-aliasing EOF in OOPAO's loop (experiments/interop/run.sh oopao_aa), the pyramid's contest and map_small.
+ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS, *PYRAMID_CONTEST, *MAP_SMALL)
 
 #: Sweeps drawn as maps (experiments/<name> <- experiments/runs/<name>/).
 MAPS = ("where/sh", "where/space")  # where/space: check_space.yaml over the map's grid (the spatial split)

@@ -85,7 +85,8 @@ def antialias_markdown(metrics: dict) -> str:
 
     seps = [f"{s:g}" for s in metrics["config"]["separations_lod"]]
     fit = metrics["fitting_error_nm"]
-    lines = [f"# Anti-aliasing EOF inside {metrics['simulator']['simulator']}", "", f"`{metrics.get('command', '')}`", "",
+    sensor = " (modulated pyramid)" if metrics["simulator"].get("sensor") == "pyramid" else ""
+    lines = [f"# Anti-aliasing EOF inside {metrics['simulator']['simulator']}{sensor}", "", f"`{metrics.get('command', '')}`", "",
              f"Fitting error per realisation: {', '.join(f'{v:.1f}' for v in fit)} nm. Integrator gain "
              f"{metrics['integrator_scan']['gain']} (scanned); deployed by the guard: {metrics['guard']['deployed']}.",
              "", "| contender | residual per realisation (nm) | mean (nm) | "

@@ -13,6 +13,8 @@
 #   - map_small: the anti-aliasing study at 20 x 20 on 4 m, I = 8, 20 m/s, with every contender on the truncated
 #     least-squares reconstructor and on the MAP one (--reconstructor map), at rcond 0.15 and 0.02, and on MAP from
 #     telemetry (map_telemetry) at 0.15 (about 5 min a run);
+#   - pyramid_contest: the contest through OOPAO's modulated pyramid at experiments/pyramid/contest.yaml's system,
+#     I = 8 and 10 (about 30 min);
 #   - hcipy: 8 m, 40 x 40 phase-projection loop (about 16 min).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -98,6 +100,17 @@ if [ "$what" = all ] || [ "$what" = map_small ]; then
     OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --n-subapertures 20 --diameter 4 --frames 2000 --photon-noise \
         --anti-aliasing --wind 20 --realisations 2 --magnitude 8 --no-oracle --reconstructor map_telemetry \
         --out experiments/runs/interop/map_small/map_telemetry
+fi
+if [ "$what" = all ] || [ "$what" = pyramid_contest ]; then
+    # The contest through OOPAO's modulated pyramid (experiments/pyramid/README.md, "The contest in OOPAO's loop"):
+    # experiments/pyramid/contest.yaml's system (2 m, 10 x 10 at 0.2 m, 20 m/s, modulation 3 lambda/D) at I = 8 and
+    # 10, the anti-aliasing study's contenders (no twin: it is a Shack-Hartmann); 3 training sequences of 1000 frames,
+    # every contender scored on 3 realisations of 500 (about 15 min each on a loaded 2-core machine, 2026-12-07).
+    for mag in 8 10; do
+        OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --sensor pyramid --modulation 3 --photon-noise --anti-aliasing \
+            --wind 20 --n-subapertures 10 --diameter 2 --magnitude $mag --frames 1000 --realisations 3 \
+            --out experiments/runs/interop/pyramid_contest/m$mag
+    done
 fi
 if [ "$what" = all ] || [ "$what" = hcipy ]; then
     $PY examples/hcipy_interop.py --n-subapertures 40 --diameter 8 --frames 2000 --realisations 3 \
