@@ -43,6 +43,7 @@ def contest(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.cli
 def test_the_contest_runs_through_oopaos_pyramid_with_every_contender(contest):
     metrics, out = contest
     assert metrics["simulator"]["sensor"] == "pyramid" and metrics["simulator"]["modulation_lambda_over_d"] == 3.0
@@ -61,6 +62,7 @@ def test_the_contest_runs_through_oopaos_pyramid_with_every_contender(contest):
 
 
 @pytest.mark.slow
+@pytest.mark.cli
 def test_the_pol_histories_are_formed_with_the_gain_identified_from_the_loops_telemetry(contest):
     identified = contest[0]["identified"]
     # telemetry identifies the DM gain times the pyramid's optical gain about the loop's residual (at contest.yaml's
@@ -73,6 +75,7 @@ def test_the_pol_histories_are_formed_with_the_gain_identified_from_the_loops_te
 
 
 @pytest.mark.slow
+@pytest.mark.cli
 def test_the_open_loop_eof_is_rated_in_variance_rms_contrast_and_eta(contest):
     metrics = contest[0]
     best = metrics["best_classical"]
@@ -111,6 +114,7 @@ def test_what_is_built_on_the_shack_hartmann_is_refused_with_the_pyramid_in_one_
     assert said in error[-1], error
 
 
+@pytest.mark.cli
 def test_the_contest_builds_oopaos_pyramid_and_the_shack_hartmann_study_as_before(monkeypatch):
     example, built = _example(), []
 

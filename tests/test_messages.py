@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import torch
 
-from eofnn.evaluation.experiment import _describe
+from eofnn.evaluation.results import describe_run as _describe
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.evaluation.replay import _ErrorAccumulator
 from eofnn.evaluation.results import ExperimentResult

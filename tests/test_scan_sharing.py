@@ -101,7 +101,6 @@ def test_loops_on_one_stream_draw_their_noise_once(runs):
     assert alone["noise"]["drawn"] == shared["noise"]["drawn"] + shared["noise"]["reused"] + len(guard_scan) + 1
 
 
-@pytest.mark.slow
 def test_kept_noise_is_the_noise_drawn_and_leaves_the_generator_where_drawing_does():
     """A loop that finds its noise kept gets the very tensor drawn, and its generator goes on as if it had drawn."""
     scenario = Scenario.from_dict({**yaml.safe_load(TINY.read_text())["scenario"]})
