@@ -61,7 +61,11 @@ def noise_floor(pol: np.ndarray, segment: int = NOISE_SEGMENT_FRAMES) -> np.ndar
     of the periodogram and does not depend on the basis) as ``C + A f^`` :data:`TAIL_EXPONENT`, the turbulence's
     high-frequency tail beside the white noise, whose level is ``C``. Hann-windowed segments of ``segment`` frames
     (fewer if the record is short), half overlapping, each less its mean."""
-    f, spectra = _periodograms(pol, segment)
+    return _floor(*_periodograms(pol, segment))
+
+
+def _floor(f: np.ndarray, spectra: list) -> np.ndarray:
+    """:func:`noise_floor` of :func:`_periodograms`' ``(f, spectra)``."""
     band = (f >= NOISE_BAND[0]) & (f <= NOISE_BAND[1])
     design = np.column_stack([np.ones(band.sum()), (f[band] / NOISE_BAND[0]) ** TAIL_EXPONENT])
     weights = np.linalg.pinv(design)[0]  # the floor's coefficient of each frequency
@@ -71,8 +75,18 @@ def noise_floor(pol: np.ndarray, segment: int = NOISE_SEGMENT_FRAMES) -> np.ndar
 def mean_spectrum(pol: np.ndarray, segment: int = NOISE_SEGMENT_FRAMES) -> np.ndarray:
     """The periodogram (:func:`noise_floor`'s) of ``(frames, K)`` values averaged over the K of them, ``(segment // 2
     + 1,)`` nm² per unit of white noise's level."""
-    _, spectra = _periodograms(pol, segment)
+    return _mean(_periodograms(pol, segment)[1])
+
+
+def _mean(spectra: list) -> np.ndarray:
+    """:func:`mean_spectrum` of :func:`_periodograms`' spectra."""
     return sum((abs(z) ** 2).mean(1) for z in spectra) / len(spectra)
+
+
+def floor_and_spectrum(pol: np.ndarray, segment: int = NOISE_SEGMENT_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`noise_floor` and :func:`mean_spectrum` of ``pol`` together, from one set of periodograms."""
+    f, spectra = _periodograms(pol, segment)
+    return _floor(f, spectra), _mean(spectra)
 
 
 def ptt_projector(positions: np.ndarray) -> np.ndarray:
@@ -103,8 +117,9 @@ def reference_covariances(config: dict, layers: list[dict], frames: int, *, real
             cfg["sensor"]["detector"] = None
         scenario = Scenario.from_dict(cfg)
         s = scenario.turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
-        out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(noise_floor(r) for r in s) / len(s),
-                   np.asarray(scenario.grid.positions_m), sum(mean_spectrum(r) for r in s) / len(s))
+        floors, spectra = zip(*(floor_and_spectrum(r) for r in s), strict=True)
+        out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(floors) / len(s), np.asarray(scenario.grid.positions_m),
+                   sum(spectra) / len(s))
     return out
 
 
@@ -141,7 +156,7 @@ def seeing_and_noise(pol: np.ndarray, references: dict, positions_m: np.ndarray,
     :data:`TAIL_MATCH_BAND` (its :func:`mean_spectrum` less the noise found) against the twin's at the r0 found, the
     median of the ratios over the band's frequencies, within 0 and 1 (``seeing["aliasing_share"]``). That share of
     the twin's floor is removed, and r0 fitted again with the noise so corrected."""
-    raw, total, spectrum = noise_floor(pol), np.cov(pol.T), mean_spectrum(pol)
+    (raw, spectrum), total = floor_and_spectrum(pol), np.cov(pol.T)
     f = np.fft.rfftfreq(2 * (len(spectrum) - 1))
     match = (f >= TAIL_MATCH_BAND[0]) & (f < TAIL_MATCH_BAND[1])
     cv, seeing, share = raw, fit_seeing(total - raw, references, positions_m, pitch_m), 1.0
