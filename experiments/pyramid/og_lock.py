@@ -58,7 +58,7 @@ def main(argv: list[str]) -> None:
         raise SystemExit("give a VARIANT: change, change_spp3, strong, strong_spp3, strong_spp4 or compensated")
     lines: list[str] = []
 
-    def print(text: str, *values) -> None:  # noqa: A001 - the printed lines, kept for the summary
+    def say(text: str, *values) -> None:  # print the line and keep it for the summary
         line = " ".join([text, *map(str, values)])
         lines.append(line)
         sys.stdout.write(line + "\n")
@@ -73,20 +73,20 @@ def main(argv: list[str]) -> None:
     result = run_loop(turbulence, sc.plant, Integrator(gain), frames, noise_seed=1, record=(), on_chunk=probe,
                       divergence_factor=50.0)
     r = result.pupil_residual_rms_nm[0]
-    print(f"{variant}, gain {gain}: diverged at {result.diverged_frame}")
-    print("median per 100 frames (nm):", [round(float(r[i:i + 100].median())) for i in range(0, len(r), 100)])
+    say(f"{variant}, gain {gain}: diverged at {result.diverged_frame}")
+    say("median per 100 frames (nm):", [round(float(r[i:i + 100].median())) for i in range(0, len(r), 100)])
     if sc.atmosphere.changes:  # og_robustness_summary.py's split: settled frames to the change, 50 ms after its ramp
         start = round(sc.atmosphere.changes[0].at_s * 1000.0)
         after = round((sc.atmosphere.changes[0].at_s + sc.atmosphere.changes[0].ramp_s + 0.05) * 1000.0)
-        print(f"median before the change {float(r[200:start].median()):.1f} nm, after {float(r[after:].median()):.1f} "
-              f"nm, p95 {float(r[200:].quantile(0.95)):.1f} nm")
-    print("median per 10 frames over 1400-1600 (nm):",
-          [round(float(r[i:i + 10].median())) for i in range(1400, min(1600, len(r)), 10)])
+        say(f"median before the change {float(r[200:start].median()):.1f} nm, after {float(r[after:].median()):.1f} "
+            f"nm, p95 {float(r[200:].quantile(0.95)):.1f} nm")
+    say("median per 10 frames over 1400-1600 (nm):",
+        [round(float(r[i:i + 10].median())) for i in range(1400, min(1600, len(r)), 10)])
     shapes = sensor.dm_surface(torch.as_tensor(kl_modes(sensor.grid, 40).T))
     for frame, residual in zip(probe.frames, probe.residuals, strict=False):
         g = optical_gains(sensor, shapes, residual)[0]
-        print(f"frame {frame}: optical gains low {float(g[:8].mean()):.3f}, high {float(g[20:].mean()):.3f}, "
-              f"least {float(g.min()):.3f}")
+        say(f"frame {frame}: optical gains low {float(g[:8].mean()):.3f}, high {float(g[20:].mean()):.3f}, "
+            f"least {float(g.min()):.3f}")
     record = json.loads(out.read_text()) if out.exists() else {}
     record[f"{variant} gain {gain} frames {frames}" if (gain, frames) != (0.65, 2000) else variant] = lines
     out.parent.mkdir(parents=True, exist_ok=True)
