@@ -80,10 +80,7 @@ from eofnn.studies.twin_transfer import gap_closed, identified_trained
 
 
 def study(sensor: str, photon_noise: bool, args, config: StudyConfig) -> dict:
-    sim = OopaoLoop(args.n_subapertures, args.diameter, sensor=sensor, photon_noise=photon_noise,
-                    modulation_lambda_over_d=args.modulation,
-                    magnitude=args.magnitude, dm_gain=args.dm_gain, wind_speed_mps=args.wind,
-                    wind_direction_deg=args.wind_direction, rcond=args.rcond, layers=args.layers)
+    sim = oopao_loop(args, sensor, photon_noise)
     started = time.time()
     chosen = reconstructor(sim, args, config)
     result = run_study(sim, config, dm_gain_true=args.dm_gain).summary()
@@ -227,6 +224,14 @@ def main(argv: list[str] | None = None) -> dict:
     return metrics
 
 
+def oopao_loop(args, sensor: str, photon_noise: bool) -> OopaoLoop:
+    """OOPAO's loop of the command line's system, with ``sensor`` and ``photon_noise`` (a study may run several)."""
+    return OopaoLoop(args.n_subapertures, args.diameter, sensor=sensor, modulation_lambda_over_d=args.modulation,
+                     photon_noise=photon_noise, magnitude=args.magnitude, dm_gain=args.dm_gain,
+                     wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction, rcond=args.rcond,
+                     layers=args.layers)
+
+
 def reconstructor(sim, args, config) -> dict | None:
     """``--reconstructor`` in place of the truncated least-squares one, for every contender of this loop (the MAP's
     factor scanned on the study's scan realisation, ``config.seed + 3``, with its integrator gains); None when the
@@ -260,10 +265,7 @@ def antialias(args, argv: list[str]) -> dict:
                              oracle=not args.no_oracle)
     for layer in args.layers or [(1.0, args.wind, args.wind_direction)]:
         eofnn_direction(layer[2])  # a direction eofnn cannot map is refused before anything is simulated
-    sim = OopaoLoop(args.n_subapertures, args.diameter, sensor=args.sensor, modulation_lambda_over_d=args.modulation,
-                    photon_noise=args.photon_noise, magnitude=args.magnitude, dm_gain=args.dm_gain,
-                    wind_speed_mps=args.wind, wind_direction_deg=args.wind_direction, rcond=args.rcond,
-                    layers=args.layers)
+    sim = oopao_loop(args, args.sensor, args.photon_noise)
     started = time.time()
     chosen = reconstructor(sim, args, config)
     external = {}
