@@ -6,10 +6,9 @@ from types import SimpleNamespace
 
 import torch
 
-from eofnn.evaluation.results import describe_run as _describe
 from eofnn.evaluation.metrics import WelchPSD
 from eofnn.evaluation.replay import _ErrorAccumulator
-from eofnn.evaluation.results import ExperimentResult
+from eofnn.evaluation.results import ExperimentResult, describe_run
 from eofnn.reporting.report import markdown_table
 
 
@@ -31,7 +30,7 @@ def test_a_noise_corrected_error_within_the_noise_is_not_reported_as_zero():
 
 def test_the_stability_of_a_progress_line_says_it_is_linear():
     diverged = SimpleNamespace(diverged=True, diverged_frame=120, median_rms_nm=None)
-    line = _describe(diverged, {"stable": True, "dm_gain_interval": [0.4, 1.6]})
+    line = describe_run(diverged, {"stable": True, "dm_gain_interval": [0.4, 1.6]})
     assert "diverged at frame 120" in line and "linear analysis: stable" in line
 
 
