@@ -157,6 +157,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-oracle", action="store_true",
                         help="with --anti-aliasing: without the oracle (trained on OOPAO's truth, wider and longer than "
                              "the EOFs, on four times the recorded frames): no eta")
+    parser.add_argument("--scored-frames", type=int,
+                        help="with --anti-aliasing: frames scored on each scored realisation after its settling "
+                             "(default: --frames / 2 less the settling, as long as a tuning run's)")
     parser.add_argument("--reconstructor", choices=RECONSTRUCTORS, default="least_squares",
                         help="the loop's reconstructor, every contender's: least_squares (the truncated pseudo-inverse), "
                              "map (MAP with r0, L0 and the photon noise from the simulator: knowledge) or map_telemetry "
@@ -192,6 +195,11 @@ def main(argv: list[str] | None = None) -> dict:
                                     ("--twin-pupil", args.twin_pupil != "grid")) if on]
     if tweaks and not args.eofnn_trained:
         parser.error(f"{' and '.join(tweaks)} set the eofnn-trained predictor: give --eofnn-trained too")
+    if args.scored_frames is not None and not args.anti_aliasing:
+        parser.error("--scored-frames sets the anti-aliasing study's scored runs: give --anti-aliasing too")
+    if args.scored_frames is not None and args.scored_frames < 128:
+        parser.error(f"--scored-frames={args.scored_frames} is invalid: at least 128 (one segment of the residual's "
+                     "temporal PSD)")
     if args.no_oracle and not args.anti_aliasing:
         parser.error("--no-oracle leaves the oracle out of the anti-aliasing study: give --anti-aliasing too")
     if args.anti_aliasing and args.aliasing:
@@ -262,6 +270,7 @@ def antialias(args, argv: list[str]) -> dict:
     f = args.frames
     config = AntiAliasConfig(train_frames=f, val_frames=f // 5, loop_frames=f // 2, settle_frames=f // 10,
                              warmup_frames=f // 20, scored_realisations=args.realisations, radius=args.radius,
+                             scored_frames=args.scored_frames,
                              oracle=not args.no_oracle)
     for layer in args.layers or [(1.0, args.wind, args.wind_direction)]:
         eofnn_direction(layer[2])  # a direction eofnn cannot map is refused before anything is simulated

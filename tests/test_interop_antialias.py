@@ -278,3 +278,36 @@ def test_the_oracle_is_scored_beside_the_others_and_no_predictor_beats_it_beyond
     assert "oracle" in study["gains_over_best_classical"] and "oracle" not in study["eta"]
     text = antialias_markdown(study)
     assert "| oracle |" in text and "η (per realisation)" in text and "1 (the ceiling)" in text
+
+
+def test_scored_frames_lengthen_the_scored_runs_only_and_bad_values_are_refused(monkeypatch):
+    import types
+
+    import eofnn.studies.antialias as aa
+
+    config = AntiAliasConfig(loop_frames=1000, settle_frames=200, scored_frames=2000)
+    assert config.scored_run_frames == 2200 and AntiAliasConfig().scored_run_frames == 1000
+    for bad in (0, 2.5, True):
+        with pytest.raises(ConfigError, match=rf"^scored_frames={bad!r} is invalid"):
+            AntiAliasConfig(scored_frames=bad)
+    lengths = []
+
+    class Record:
+        shift, diverged_frame = None, None
+        wfs = np.zeros((2200, 3))
+
+        def metrics(self, settle):
+            return types.SimpleNamespace(median_rms_nm=10.0)
+
+    def fake_loop(sim, control, frames, seed, observers=()):
+        lengths.append(frames)
+        return Record()
+
+    class Contrast:
+        def __init__(self, *args):
+            self.contrast = types.SimpleNamespace(at=lambda seps: dict.fromkeys(seps, 1e-4))
+
+    monkeypatch.setattr(aa, "run_closed_loop", fake_loop)
+    monkeypatch.setattr(aa, "PupilContrast", Contrast)
+    out = aa.score(types.SimpleNamespace(frame_rate_hz=1000.0), lambda name: None, "integrator", [2, 20], config)
+    assert lengths == [2200, 2200] and out["realisations_median_rms_nm"] == [10.0, 10.0]

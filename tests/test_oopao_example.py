@@ -30,6 +30,8 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "oopao_loop.py"
     (["--small", "--anti-aliasing", "--layers", "0.7:20"], ("'0.7:20' is invalid", "FRACTION:SPEED:DIRECTION")),
     (["--small", "--anti-aliasing", "--layers", "0.7:20:30,0.7:10:0"], ("layers=", "sum to 1")),
     (["--small", "--no-oracle"], ("--no-oracle", "give --anti-aliasing too")),
+    (["--small", "--scored-frames", "2000"], ("--scored-frames", "give --anti-aliasing too")),
+    (["--small", "--anti-aliasing", "--scored-frames", "100"], ("--scored-frames=100 is invalid", "at least 128")),
     (["--small", "--sensor", "pyramid", "--aliasing"], ("--aliasing is invalid with --sensor pyramid",)),
     (["--small", "--sensor", "pyramid", "--anti-aliasing", "--eofnn-trained"],
      ("--eofnn-trained is invalid with --sensor pyramid",)),

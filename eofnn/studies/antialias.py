@@ -82,7 +82,9 @@ class AntiAliasConfig:
     """Frames, seeds and the filters of :func:`run_antialias` (frames at the loop rate).
 
     ``train_sequences`` recordings of ``train_frames`` (each its own realisation, the first ``settle_frames``
-    dropped), the last ``val_frames`` of each held out to choose the ridge alpha; ``radius``: the EOFs'
+    dropped), the last ``val_frames`` of each held out to choose the ridge alpha; ``loop_frames``: each tuning run's
+    length (the scans and the guard); ``scored_frames``: the frames scored on each scored realisation after its
+    ``settle_frames`` (None: ``loop_frames - settle_frames``, as long as a tuning run's); ``radius``: the EOFs'
     neighbourhood (pitches; 2.5: 5 x 5); ``gains``: the integrator's scan; ``oracle``: also train and score the
     oracle (:func:`fit_oracle`), the ceiling each predictor's ``eta`` is a share of.
     """
@@ -91,6 +93,7 @@ class AntiAliasConfig:
     train_frames: int = 2000
     val_frames: int = 400
     loop_frames: int = 1000
+    scored_frames: int | None = None
     settle_frames: int = 200
     warmup_frames: int = 100
     record_gain: float = 0.25
@@ -123,10 +126,19 @@ class AntiAliasConfig:
         if self.settle_frames + self.val_frames >= self.train_frames or self.settle_frames >= self.loop_frames:
             raise ConfigError(f"settle_frames={self.settle_frames}, val_frames={self.val_frames} leave nothing of "
                               f"train_frames={self.train_frames} or loop_frames={self.loop_frames} to train or score")
-        settled = self.loop_frames - self.settle_frames
+        if self.scored_frames is not None and (isinstance(self.scored_frames, bool)
+                                               or not isinstance(self.scored_frames, int) or self.scored_frames < 1):
+            raise ConfigError(f"scored_frames={self.scored_frames!r} is invalid: a whole number of frames, at least 1, "
+                              "or None (as long as a tuning run after settling)")
+        settled = self.scored_run_frames - self.settle_frames
         if self.psd_segment_frames > settled:
             raise ConfigError(f"psd_segment_frames={self.psd_segment_frames} is longer than the {settled} settled "
-                              "frames of a scored run (loop_frames - settle_frames): at most that")
+                              "frames of a scored run (scored_frames, or loop_frames - settle_frames): at most that")
+
+    @property
+    def scored_run_frames(self) -> int:
+        """A scored realisation's whole run: ``settle_frames`` then ``scored_frames``."""
+        return self.loop_frames if self.scored_frames is None else self.settle_frames + self.scored_frames
 
 
 class PupilContrast:
@@ -234,7 +246,7 @@ def run_antialias(sim, config: AntiAliasConfig | None = None, external: dict | N
         results[name] = score(sim, control, name, scored, c)
         say(f"{name} scored: {results[name]['mean_of_realisations_nm']} nm")
     results["guarded"] = {**results[deployed], "deployed": deployed}
-    fitting = [fitting_error(sim, c.loop_frames, seed, start=c.settle_frames)["median_rms_nm"] for seed in scored]
+    fitting = [fitting_error(sim, c.scored_run_frames, seed, start=c.settle_frames)["median_rms_nm"] for seed in scored]
     # The best classical controller is chosen on the scan realisation, as each was tuned: not on the scored ones.
     on_scan = {"integrator": scan["median_rms_nm"], "modal": modal["median_rms_nm"], "lqg": lqg["median_rms_nm"],
                "pfc": pfc["median_rms_nm"]}
@@ -346,10 +358,10 @@ def score(sim, control, name: str, seeds: list[int], c: AntiAliasConfig) -> dict
     medians, contrasts, shift = [], [], []
     psd = WelchPSD(c.psd_segment_frames, sim.frame_rate_hz, c.settle_frames)
     # Whole segments of each run: what is left over would be joined to the next realisation's frames.
-    end = c.settle_frames + (c.loop_frames - c.settle_frames) // c.psd_segment_frames * c.psd_segment_frames
+    end = c.settle_frames + (c.scored_run_frames - c.settle_frames) // c.psd_segment_frames * c.psd_segment_frames
     for seed in seeds:
         observer = PupilContrast(sim, c.wavelength_m, c.settle_frames, c.contrast_every)
-        record = run_closed_loop(sim, control(name), c.loop_frames, seed, observers=[observer])
+        record = run_closed_loop(sim, control(name), c.scored_run_frames, seed, observers=[observer])
         shift = shift or record.shift
         medians.append(record.metrics(c.settle_frames).median_rms_nm)
         contrasts.append(observer.contrast.at(c.separations_lod) if record.diverged_frame is None else None)
