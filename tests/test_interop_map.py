@@ -146,6 +146,7 @@ def test_in_oopaos_loop_no_weight_is_its_reconstructor_and_its_noise_is_read():
     assert mr.apply_reconstructor(sim, "least_squares", scan_seed=3, loop_frames=10, settle_frames=1,
                                   gains=(0.3,)) == {"kind": "least_squares"}
     assert np.array_equal(sim.reconstructor, before)  # the default leaves the loop bit for bit as it was
+    assert "truncated pseudo-inverse" in sim.describe()["measurement"]
     prior = mr.sim_prior_nm2(sim, 0.15, 25.0)
     assert prior.shape == (sim.n_actuators,) * 2 and np.all(np.linalg.eigvalsh(prior) > -1e-9 * prior.max())
     r = mr.map_reconstructor(sim.interaction_matrix, sim.controlled_modes, prior, 1.0, weight=0.0)
@@ -154,3 +155,8 @@ def test_in_oopaos_loop_no_weight_is_its_reconstructor_and_its_noise_is_read():
     assert noise.shape == (sim.interaction_matrix.shape[0],) and noise.min() > 0
     sim.photon_noise = False
     assert not mr.simulator_slope_noise(sim, n_frames=1, reads=2).any()
+    info = mr.apply_reconstructor(sim, "map", scan_seed=3, loop_frames=10, settle_frames=1, gains=(0.3,),
+                                  weights=(1.0,))
+    said = sim.describe()["measurement"]  # what the outputs say the loop measured through
+    assert "MAP reconstructor (the simulator's r0 and L0, weight 1)" in said and "pseudo-inverse" not in said, said
+    assert info["weight"] == 1.0

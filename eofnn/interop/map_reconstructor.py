@@ -246,6 +246,8 @@ def apply_reconstructor(sim, kind: str, *, scan_seed: int, loop_frames: int, set
                  f"(gain {scan[float(w)]['gain']}) on the scan realisation")
     best = min(scan, key=lambda w: scan[w]["median_rms_nm"])
     sim.reconstructor = map_reconstructor(d, v, prior, noise, best)
+    source = "the simulator's r0 and L0" if kind == "map" else "turbulence and noise estimated from the loop's recording"
+    sim.reconstructor_name = f"the MAP reconstructor ({source}, weight {best:g})"
     noise_gain = float(np.linalg.norm(sim.reconstructor) / np.linalg.norm(least_squares))
     info.update(weight=best, weight_scan={f"{w:g}": s["median_rms_nm"] for w, s in scan.items()},
                 scan_seed=scan_seed, frobenius_vs_least_squares=noise_gain)

@@ -182,6 +182,7 @@ class OopaoLoop:
         self.reconstructor = (vt[:kept].T / singular[:kept]) @ u[:, :kept].T  # (K, S): nm per slope unit
         self._seen = vt[:kept].T
         self.n_seen = kept
+        self.reconstructor_name = "the truncated pseudo-inverse"
         if self.sensor == "perfect":
             self._projection = self._fit_operator()[1]
 
@@ -224,7 +225,7 @@ class OopaoLoop:
     def describe(self) -> dict:
         kind = {"geometric": "geometric Shack-Hartmann", "pyramid": "modulated pyramid"}.get(self.sensor,
                                                                                                "Shack-Hartmann")
-        measured = (f"wfs = R @ slopes: OOPAO {kind} slopes through the truncated pseudo-inverse of OOPAO's "
+        measured = (f"wfs = R @ slopes: OOPAO {kind} slopes through {self.reconstructor_name} of OOPAO's "
                     f"interaction matrix ({self.n_seen} of {self.n_actuators} modes)" if self.sensor != "perfect"
                     else "wfs = least-squares projection of the residual OPD on the DM (no aliasing)")
         return {"simulator": "oopao", **self.settings, "n_actuators": self.n_actuators, "n_seen_modes": self.n_seen,
