@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from report_common import NAMES, fmt, load, variance_less_fitting
+from report_eta import eta_map_text
 from report_oopao import antialias_text, oopao_map_text, oopao_reading, transfer_text
 
 from eofnn.evaluation.budget import temporal_bound as library_temporal_bound
@@ -179,6 +180,8 @@ untuned: 67 min); R = 6 and R = 12 were cut for time.
 {_check_pfc_text()}
 
 {_check_space_text()}
+
+{eta_map_text()}
 
 **The issue's goal conditions in OOPAO's loop** (`bash experiments/interop/run.sh oopao_aa`, `eofnn/studies/antialias.py`:
 OOPAO's 8 m, 40 x 40 Shack-Hartmann with photon noise, one frozen-flow layer at 20 m/s, a DM applying 2x the

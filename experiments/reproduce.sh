@@ -62,6 +62,8 @@ $eofnn compare --config $x/where/check_space.yaml --out $r/where/check_space --o
 $eofnn compare --config $x/where/check_space.yaml --evaluation.strehl_wavelength_m 1.0e-5 \
   --out $r/where/check_space_10um --overwrite true
 $eofnn sweep --config $x/where/check_space.yaml --grid $x/where/grid.yaml --out $r/where/space --workers 2 --overwrite true
+# The oracle's share (eta) over wind speed x seeing (r0 6 and 15 cm at 500 nm), R = 8, the oracle in the contest.
+$eofnn sweep --config $x/where/eta_sh.yaml --grid $x/where/eta_grid.yaml --out $r/where/eta --workers 1 --overwrite true
 # 3. The study's open question in the realistic scenario: closed-loop EOF against history x training x alpha.
 for kind in cl ol; do
   $eofnn sweep --config $x/sweeps/base_realistic_${kind}_eof.yaml --grid $x/sweeps/grid_realistic_${kind}_eof.yaml \

@@ -240,6 +240,44 @@ ANTIALIAS = (*ANTIALIAS_RUNS, *TWIN_RUNS, *PYRAMID_CONTEST, *MAP_SMALL)
 MAPS = ("where/sh", "where/space")  # where/space: check_space.yaml over the map's grid (the spatial split)
 
 
+#: Sweeps whose points' verdicts carry the oracle: each point's ratios and eta kept (experiments/where/eta_sh.yaml).
+ETA_MAPS = ("where/eta",)
+#: What is kept of a predictor's (or the oracle's) verdict ratios on an eta map.
+ETA_KEPT = ("median_rms_nm", "variance_ratio", "variance_ratio_spread", "rms_ratio", "after_fitting_variance_ratio",
+            "after_fitting_variance_ratio_spread", "raw_contrast", "eta", "eta_spread")
+
+
+def eta_map_summary(name: str) -> bool:
+    """A sweep with the oracle in its contest (experiments/runs/<name>/): per point its swept values, each
+    contender's median RMS and realisations, and the verdict's ratios over the best classical controller (plain
+    variance, RMS, after fitting, raw contrast against the best in contrast, eta; each with its spread)."""
+    table = RUNS / name / "sweep.csv"
+    if not table.is_file():
+        return False
+    with table.open() as f:
+        reader = csv.DictReader(f)
+        keys = reader.fieldnames[1:reader.fieldnames.index("status")]
+        done = {row["point"]: {k: json.loads(row[k]) for k in keys} for row in reader if row["status"] == "done"}
+    points = []
+    for point, values in sorted(done.items()):
+        metrics = _read(RUNS / name / "points" / point / "run" / "metrics.json")
+        if metrics is None:
+            continue
+        scenario = next(iter(metrics["scenarios"]))
+        verdict = metrics["verdict"]["scenarios"][scenario]
+        ratios = verdict["ratios"]
+        kept = {who: {k: r.get(k) for k in ETA_KEPT} for who, r in ratios["predictors"].items()}
+        if ratios.get("oracle"):
+            kept["oracle"] = {k: ratios["oracle"].get(k) for k in ETA_KEPT}
+        points.append({"point": point, "values": values, "best_classical": verdict["best_classical"]["name"],
+                       "fitting_nm": ratios.get("fitting_nm"), "after_fitting_how": ratios.get("after_fitting_how"),
+                       "median_rms_nm": {c: m["median_rms_nm"] for c, m in metrics["scenarios"][scenario].items()},
+                       "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario),
+                       "ratios": kept})
+    _write(name, "points/*/run/metrics.json", {"points": points})
+    return True
+
+
 #: Scripts' JSON results the pages read whole (experiments/<name> <- experiments/runs/<name>/<file>).
 JSONS = {"coupled_margins": "realistic_10.json", "interop/twin_seeds": "twin_seeds.json", "interop/rim": "rim.json",
          "interop/twin_pupil/m8": "twin_pupil.json", "interop/twin_pupil/m10": "twin_pupil.json"}
@@ -252,5 +290,6 @@ def collect() -> list[str]:
     missing += [f"interop/{r}" for r in INTEROP if not interop_summary(r)]
     missing += [name for name, file in JSONS.items() if not json_summary(name, file)]
     missing += [name for name in MAPS if not map_summary(name)]
+    missing += [name for name in ETA_MAPS if not eta_map_summary(name)]
     missing += [name for name in ANTIALIAS if not antialias_summary(name)]
     return missing
