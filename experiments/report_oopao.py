@@ -86,7 +86,10 @@ predictor of the measurement run at the integrator's noise transfer, not on a pr
 
 #: The anti-aliasing study's runs (experiments/interop/run.sh oopao_aa), all at 20 m/s: the issue's two points at
 #: 40 x 40 on 8 m (wind along the actuator rows), the I = 8 point with the wind at 30 degrees, and 20 x 20 on 4 m.
+#: The I = 8 headline rerun longer and with the noise-aware reconstructor (experiments/interop/run.sh oopao_long).
+LONG_SYSTEM = "40 x 40, 8 m, MAP from telemetry, 5 x 2000 frames"
 ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_aa/m10": ("40 x 40, 8 m", 10, 0),
+                  "interop/oopao_aa/m8_long": (LONG_SYSTEM, 8, 0),
                   "interop/oopao_aa/m8_dir30": ("40 x 40, 8 m", 8, 30),
                   "interop/oopao_aa/small_m8_dir0": ("20 x 20, 4 m", 8, 0),
                   "interop/oopao_aa/small_m8_dir30": ("20 x 20, 4 m", 8, 30),
@@ -152,6 +155,11 @@ def ratios(r: dict, name: str) -> dict | None:
             "contrast": (g.get("contrast") or {}).get("3"),
             "contrast_against": (g.get("contrast_against") or {}).get("3", base), "eta": eta,
             "eta_per_realisation": None if not etas else (etas.get(name) or {}).get("per_realisation")}
+
+
+def goal_label(system: str, magnitude: int) -> str:
+    """``I = 8`` for the 40 x 40 system's first runs, ``I = 8 (MAP from telemetry, 5 x 2000 frames)`` for another."""
+    return f"I = {magnitude}" + ("" if system == "40 x 40, 8 m" else f" ({system.removeprefix('40 x 40, 8 m, ')})")
 
 
 def _aa_row(point: tuple, r: dict) -> str:
@@ -264,19 +272,22 @@ def antialias_text() -> str:
 
     def met(name: str, key: str, target: float | None) -> str:
         out = []
-        for (_, mag, _), r in goal:
+        for (system, mag, _), r in goal:
             g = ratios(r, name) if name in r["contenders"] else None
+            label = goal_label(system, mag)
             if g is None or g[key] is None:
-                out.append(f"I = {mag}: not run")
+                out.append(f"{label}: not run")
                 continue
             text = f"{g[key]:.2f}" if key == "eta" else f"{g[key]:.2f}x"
-            out.append(f"I = {mag}: {text}" + ("" if target is None else _verdict(g[key], g["spread"].get(key), target)))
+            out.append(f"{label}: {text}" + ("" if target is None else _verdict(g[key], g["spread"].get(key), target)))
         return ", ".join(out)
 
-    bases = ", ".join(f"I = {mag}: the {AA_LABELS[strongest(r)[0]]} ({strongest(r)[3]})" for (_, mag, _), r in goal)
+    bases = ", ".join(f"{goal_label(system, mag)}: the {AA_LABELS[strongest(r)[0]]} ({strongest(r)[3]})"
+                      for (system, mag, _), r in goal)
     contrast_bases = ", ".join(
-        f"I = {mag}: the {AA_LABELS[(ratios(r, 'eof_measured') or {}).get('contrast_against', 'integrator')]}"
-        for (_, mag, _), r in goal)
+        f"{goal_label(system, mag)}: the "
+        f"{AA_LABELS[(ratios(r, 'eof_measured') or {}).get('contrast_against', 'integrator')]}"
+        for (system, mag, _), r in goal)
     oracle = ""
     if any("oracle" in r["contenders"] for _, r in goal):
         oracle = (f" The oracle (trained on OOPAO's truth, {goal[0][1]['fits']['oracle']['history_length']} taps, "

@@ -10,6 +10,8 @@
 #   - oopao_aa: the EOF from telemetry, the anti-aliasing EOF (trained on OOPAO's truth, and in eofnn's twin) and the oracle
 #     against the integrator, the modal integrator, the LQG and PFC at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
 #     checks beside them (about 5 h of CPU, one thread per run);
+#   - oopao_long: oopao_aa's I = 8 point on 5 realisations of 2000 scored frames, with the MAP reconstructor from
+#     telemetry for every contender (about 2 h on one core);
 #   - map_small: the anti-aliasing study at 20 x 20 on 4 m, I = 8, 20 m/s, with every contender on the truncated
 #     least-squares reconstructor and on the MAP one (--reconstructor map), at rcond 0.15 and 0.02, and on MAP from
 #     telemetry (map_telemetry) at 0.15 (about 5 min a run);
@@ -83,6 +85,15 @@ if [ "$what" = all ] || [ "$what" = oopao_aa ]; then
     # at I = 8 and 10 over three training sets of the twin each: reads m8's and m10's runs.
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 8 0 1 2
     OMP_NUM_THREADS=1 $PY experiments/interop/twin_pupil.py 10 0 1 2
+fi
+if [ "$what" = all ] || [ "$what" = oopao_long ]; then
+    # The I = 8 headline again on 5 realisations of 2000 scored frames (--scored-frames; the tuning runs stay 1000
+    # frames), every contender on the MAP reconstructor built from the loop's own recording (map_telemetry, its weight
+    # scanned on the scan realisation), the LQG's model and noise scale scanned, the oracle beside them. Scored
+    # realisations 2, 20, 21, 22, 23 (the first three longer runs of the realisations m8 scored on 1000 frames).
+    OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 5 \
+        --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --scored-frames 2000 --reconstructor map_telemetry \
+        --out experiments/runs/interop/oopao_aa/m8_long
 fi
 if [ "$what" = all ] || [ "$what" = map_small ]; then
     # Every contender (integrator, modal integrator, LQG, PFC, the EOFs) on one reconstructor, the loop's: the
