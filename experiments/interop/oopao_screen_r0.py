@@ -13,7 +13,7 @@ method; and for OOPAO's freshly generated screens alone (frame 0 of many seeds: 
 before any extrusion), to tell the generation from the extrusion.
 
     OMP_NUM_THREADS=1 nice -n 5 .venv/bin/python experiments/interop/oopao_screen_r0.py          # all parts
-    OMP_NUM_THREADS=1 nice -n 5 .venv/bin/python experiments/interop/oopao_screen_r0.py U5 U9    # some cases
+    OMP_NUM_THREADS=1 nice -n 5 .venv/bin/python experiments/interop/oopao_screen_r0.py U5 O1    # some cases
 
 Writes experiments/interop/oopao_screen_r0/summary.json (kept parts of an earlier run stay).
 """
@@ -37,6 +37,10 @@ WAVELENGTH_NM = 500.0
 RESOLUTION, DIAMETER_M = 80, 4.0
 STEP = 2  # every STEP-th pupil pixel (10 cm): 1256 points
 BINS_M = np.arange(0.3, 2.0 + 0.1, 0.2)
+#: examples/twin_accuracy.py's OOPAO development cases (one ground layer: speed, OOPAO direction, Cn2, altitude).
+DEV_CASES = {"O1": {"r0": 0.12, "layers": [(12.0, 0.0, 1.0, 0.0)], "seed": 21},
+             "O2": {"r0": 0.16, "layers": [(18.0, 30.0, 1.0, 0.0)], "seed": 22},
+             "O3": {"r0": 0.10, "layers": [(8.0, 45.0, 1.0, 0.0)], "seed": 23}}
 
 
 def von_karman_cov(r: np.ndarray, r0: float, l0: float) -> np.ndarray:
@@ -108,6 +112,28 @@ def oopao_record(r0: float, layers: list, seed: int, frames: int) -> dict:
     return {"frames": frames, **realised(x.T @ x / frames, points, r0, OOPAO_L0_M)}
 
 
+def oopao_extrusion(r0: float, speeds: tuple, seeds: range, frames: int, blocks: int) -> dict:
+    """The realised r0 (PTT removed) of OOPAO's frozen flow per wind speed, averaged over seeds, and per block of
+    ``frames // blocks`` frames in order (does the extruded screen drift away from von Karman as it grows?)."""
+    out = {}
+    for v in speeds:
+        per_block = []
+        for s in seeds:
+            atm, mask, points = _oopao(r0, [(v, 0.0, 1.0, 0.0)], s)
+            x = np.empty((frames, mask.sum()))
+            for n in range(frames):
+                atm.update()
+                x[n] = np.asarray(atm.OPD)[mask] * 1e9
+            size = frames // blocks
+            per_block.append([realised(b.T @ b / size, points, r0, OOPAO_L0_M)["ptt_removed"]["r0_rel"]
+                              for b in (x[i * size:(i + 1) * size] for i in range(blocks))])
+        per_block = np.asarray(per_block)
+        out[f"{v:g} m/s"] = {"seeds": len(seeds), "frames": frames, "r0_rel_mean": float(per_block.mean()),
+                             "r0_rel_per_block_mean_over_seeds": [round(float(b), 4) for b in per_block.mean(0)],
+                             "r0_rel_per_seed": [round(float(b), 4) for b in per_block.mean(1)]}
+    return out
+
+
 def oopao_fresh(r0: float, seeds: range) -> dict:
     """The realised r0 of OOPAO's freshly generated screens (frame 0 of each seed, one layer, no extrusion)."""
     atm, mask, points = _oopao(r0, [(10.0, 0.0, 1.0, 0.0)], seeds[0])
@@ -140,9 +166,10 @@ def main(args: list[str]) -> None:
     summary["method"] = __doc__.split("\n\n")[1]
     summary["bins_m"] = [round(float(b), 2) for b in BINS_M]
     summary.setdefault("cases", {})
-    names = [a for a in args if a in CASES] or (list(CASES) if not args else [])
+    every = {**CASES, **DEV_CASES}
+    names = [a for a in args if a in every] or (list(every) if not args else [])
     for name in names:
-        case = CASES[name]
+        case = every[name]
         row = oopao_record(case["r0"], case["layers"], case["seed"], 4000)
         summary["cases"][name] = {"r0_nominal_m": case["r0"], "seed": case["seed"], **row}
         print(name, json.dumps({k: row[k]["r0_rel"] for k in ("raw", "ptt_removed")}), flush=True)
@@ -150,6 +177,9 @@ def main(args: list[str]) -> None:
     if "fresh" in args or not args:
         summary["fresh_screens"] = oopao_fresh(0.15, range(1, 301))
         print("fresh", json.dumps({k: summary["fresh_screens"][k]["r0_rel"] for k in ("raw", "ptt_removed")}))
+    if "extrusion" in args or not args:
+        summary["extrusion"] = oopao_extrusion(0.15, (5.0, 15.0, 30.0), range(1, 5), 8000, 4)
+        print("extrusion", json.dumps({k: v["r0_rel_mean"] for k, v in summary["extrusion"].items()}))
     if "eofnn" in args or not args:
         summary["eofnn"] = {f"{v:g} m/s": eofnn_record(0.15, v, 4000, 4) for v in (5.0, 20.0)}
         print("eofnn", json.dumps({k: {q: v[q]["r0_rel"] for q in ("raw", "ptt_removed")}
