@@ -358,7 +358,7 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     # r0, L0 and the noise together, against the twin's own sensor at a reference r0.
     config = result.scenario_config(noise_magnitude=8.0, r0_m=R0_REFERENCE_M, outer_scale_m=OUTER_SCALES_M[0])
     config["plant"]["wfs_noise_nm"] = 0.0
-    references = reference_covariances(config, layers, min(frames, REFERENCE_FRAMES), seed=seed)
+    references = reference_covariances(config, layers, min(frames, REFERENCE_FRAMES), seed=seed, record=(rec, positions))
     cv, seeing = seeing_and_noise(pol, references, positions, pitch)
     fits = [seeing_and_noise(pol[s], references, positions, pitch) for s in parts]
     sensing = ("eofnn's Shack-Hartmann (Fried, Gaussian influence functions of coupling "

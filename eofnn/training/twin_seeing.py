@@ -96,16 +96,42 @@ def ptt_projector(positions: np.ndarray) -> np.ndarray:
     return np.eye(len(positions)) - q @ q.T
 
 
+def record_range(reconstructor: np.ndarray | None, positions_m: np.ndarray, grid_positions_m: np.ndarray,
+                 tolerance: float = 1e-8) -> np.ndarray | None:
+    """``(K', K')``: the projector, on the twin's actuators at ``grid_positions_m``, on the range of the record's
+    ``(K, S)`` reconstructor (the actuator-space values ``wfs = R @ slopes`` can take: the modes it reconstructs;
+    singular values below ``tolerance`` of the largest are its null space), the record's actuators at ``positions_m``
+    matched to the twin's; ``None`` without a reconstructor, where it reconstructs every mode, or where the twin's
+    actuators are not the record's."""
+    if reconstructor is None or len(grid_positions_m) != len(positions_m):
+        return None
+    u, singular, _ = np.linalg.svd(np.asarray(reconstructor, dtype=np.float64), full_matrices=False)
+    rank = int((singular > tolerance * singular[0]).sum())
+    gap = np.linalg.norm(np.asarray(grid_positions_m)[:, None] - np.asarray(positions_m)[None], axis=-1)
+    match = gap.argmin(1)
+    if rank >= len(positions_m) or len(set(match.tolist())) != len(match) or gap.min(1).max() > 1e-6:
+        return None
+    basis = u[match, :rank]
+    return basis @ basis.T
+
+
 def reference_covariances(config: dict, layers: list[dict], frames: int, *, realisations: int = 2,
-                          seed: int = 0) -> dict[float, tuple]:
+                          seed: int = 0, record: tuple | None = None) -> dict[float, tuple]:
     """``{L0: (cov, leak, positions, spectrum)}``: the ``(K', K')`` covariance (nm²) and :func:`noise_floor` of the
     noise-free turbulence, the ``(K', 2)`` positions (m) of the twin's actuators and the turbulence's
     :func:`mean_spectrum`, as the twin's sensor sees it, at ``r0 =`` :data:`R0_REFERENCE_M` (at
     :data:`R0_WAVELENGTH_M`) and each outer scale of :data:`OUTER_SCALES_M`, the identified winds, over
-    ``realisations`` streams of ``frames`` frames (``config``: the twin's scenario fields)."""
+    ``realisations`` streams of ``frames`` frames (``config``: the twin's scenario fields).
+
+    ``record``: ``(reconstructor, positions_m)`` of the record, ``(K, S)`` and ``(K, 2)`` (``reconstructor`` may be
+    ``None``). Where the record's reconstructor outputs fewer modes than the twin's does (another singular-value cut:
+    OOPAO's loop drops below 0.15 of the largest, eofnn's below 0.1 at 20 across), the streams are projected on its
+    range (:func:`record_range`) before their statistics: the modes it drops are the worst-seen, most amplified
+    ones, and left in the reference they add to its structure function what the record's cannot have (r0 then came
+    out ~10% high on OOPAO's records). Streams already in that range are left as they are (bit for bit)."""
     from eofnn.sim.scenario import Scenario
 
-    out = {}
+    out, projector = {}, None
     for l0 in OUTER_SCALES_M:
         cfg = json.loads(json.dumps(config))
         cfg["atmosphere"].update(r0_m=R0_REFERENCE_M, r0_wavelength_m=R0_WAVELENGTH_M, outer_scale_m=l0,
@@ -117,6 +143,11 @@ def reference_covariances(config: dict, layers: list[dict], frames: int, *, real
             cfg["sensor"]["detector"] = None
         scenario = Scenario.from_dict(cfg)
         s = scenario.turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
+        if record is not None and projector is None:
+            projector = record_range(record[0], record[1], np.asarray(scenario.grid.positions_m))
+            record = None if projector is None else record
+        if projector is not None and np.linalg.norm(s - s @ projector) > 1e-10 * np.linalg.norm(s):
+            s = s @ projector
         floors, spectra = zip(*(floor_and_spectrum(r) for r in s), strict=True)
         out[l0] = (sum(np.cov(r.T) for r in s) / len(s), sum(floors) / len(s), np.asarray(scenario.grid.positions_m),
                    sum(spectra) / len(s))
