@@ -51,7 +51,17 @@ CASES = {
     "U7": {"r0": 0.08, "layers": [(30.0, 310.0, 1.0, 0.0)], "noise": 28.0, "seed": 107},
     "U8": {"r0": 0.16, "layers": [(12.0, 170.0, 1.0, 0.0)], "noise": 12.0, "seed": 108},
     "U9": {"r0": 0.18, "layers": [(21.0, 80.0, 1.0, 0.0)], "noise": 18.0, "seed": 109},
+    # Added for the references projected on the record's reconstructor's modes (r0bias46, found on U9's conditions
+    # and O1-O3): fixed and committed before their first run; U1-U9 are no longer unseen for r0.
+    "U10": {"r0": 0.12, "layers": [(15.0, 45.0, 1.0, 0.0)], "noise": 30.0, "seed": 110},
+    "U11": {"r0": 0.17, "layers": [(9.0, 200.0, 0.6, 0.0), (24.0, 340.0, 0.4, 7000.0)], "noise": 20.0, "seed": 111},
+    "U12": {"r0": 0.10, "layers": [(8.0, 260.0, 1.0, 0.0)], "noise": 10.0, "seed": 112},
+    "U13": {"r0": 0.15, "layers": [(12.0, 100.0, 0.5, 0.0), (27.0, 10.0, 0.5, 9000.0)], "noise": 25.0, "seed": 113},
+    "U14": {"r0": 0.22, "layers": [(18.0, 170.0, 1.0, 0.0)], "noise": 35.0, "seed": 114},
 }
+#: The code the summary's current table is of; a run under another moves the table to ``earlier`` first.
+CODE = ("r0bias46: the twin's reference turbulence projected on the modes the record's reconstructor outputs "
+        "(U10-U14 unseen; U1-U9 seen while finding the change)")
 TARGETS = {"r0_rel": 0.10, "speed_rel": 0.10, "direction_deg": 10.0, "noise_rel": 0.20}
 
 
@@ -173,6 +183,11 @@ def main(names: list[str]) -> None:
     summary_path = SUMMARY / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     summary.setdefault("cases", {})
+    if summary["cases"] and summary.get("code") != CODE:  # the table of earlier code kept as it was
+        summary.setdefault("earlier", []).insert(0, {"code": summary.get("code", "earlier code"),
+                                                      "cases": summary["cases"]})
+        summary["cases"] = {}
+    summary["code"] = CODE
     summary.update({"conditions": {n: CASES[n] for n in CASES}, "targets": TARGETS, "frames": FRAMES,
                     "command": "OMP_NUM_THREADS=1 .venv/bin/python experiments/interop/identify_unseen.py"})
     eofnn = str(Path(sys.executable).with_name("eofnn"))
