@@ -12,7 +12,7 @@ screen's realised r0 (oopao_screen_r0.realised, PTT removed, the same frames) is
 
     OMP_NUM_THREADS=1 nice -n 5 .venv/bin/python experiments/interop/oopao_twin_truth.py U2 U5 U9
 
-Writes experiments/interop/oopao_screen_r0/twin_truth.json.
+Writes experiments/interop/oopao_twin_truth/summary.json.
 """
 
 from __future__ import annotations
@@ -25,7 +25,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from identify_unseen import CASES, OOPAO_L0_M, _multilayer_loop  # noqa: E402
-from oopao_screen_r0 import DIAMETER_M, OUT, RESOLUTION, realised, von_karman_cov  # noqa: E402
+from oopao_screen_r0 import DIAMETER_M, RESOLUTION, ROOT, realised, von_karman_cov  # noqa: E402
+
+OUT = ROOT / "experiments" / "interop" / "oopao_twin_truth"
 
 FRAMES = 4000
 REFERENCE_R0 = 0.1
@@ -126,7 +128,8 @@ def twin_on(name: str, run: dict) -> dict:
 
 
 def main(names: list[str]) -> None:
-    path = OUT / "twin_truth.json"
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / "summary.json"
     summary = json.loads(path.read_text()) if path.exists() else {}
     summary["method"] = __doc__.split("\n\n")[1]
     for name in names:
