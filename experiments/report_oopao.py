@@ -350,7 +350,8 @@ def oopao_reading() -> str:
             + ("" if not modal else f"; the modal integrator with optimised gains (Gendron & Léna, one gain per KL mode "
                f"from the telemetry's PSDs), where run, {min(modal):+.1f} to {max(modal):+.1f} nm") + ". "
             + _pfc_reading(found) + _psd_reading(found)
-            + " *Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames; the error budget of each "
+            + " *Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames (the I = 8 rerun: 5 of 2000 "
+            "scored frames); the error budget of each "
             "contender in OOPAO's loop (aliasing, noise, temporal, each from its own run) was not run: the PSDs split "
             "the measured residual by frequency, not by cause.")
 

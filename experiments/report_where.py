@@ -8,7 +8,9 @@ from pathlib import Path
 
 from report_common import NAMES, fmt, load, variance_less_fitting
 from report_eta import eta_map_text
+from report_headline import long_run_text
 from report_oopao import antialias_text, oopao_map_text, oopao_reading, transfer_text
+from report_twin_identified import twin_identified_text
 
 from eofnn.evaluation.budget import temporal_bound as library_temporal_bound
 from eofnn.evaluation.contrast import HALO_FROM_LOD
@@ -202,9 +204,13 @@ raw contrast behind a perfect coronagraph at 1.65 µm from OOPAO's residual OPD 
 
 {antialias_text()}
 
+{long_run_text()}
+
 {oopao_reading()}
 
 {transfer_text()}
+
+{twin_identified_text()}
 
 **The smaller map in OOPAO's loop** (`bash experiments/interop/run.sh oopao_map`: section 6's chain at 20 x 20 on
 4 m, one layer at 10 or 20 m/s, photon noise from an I = 8 or 10 guide star, a DM applying 2x the command; the
