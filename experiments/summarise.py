@@ -176,23 +176,29 @@ def json_summary(name: str, file: str) -> bool:
     return True
 
 
-def map_summary(name: str) -> bool:
-    """A sweep drawn as a map (experiments/runs/<name>/): per point its swept values and, per contender, the median
-    RMS, its realisations, the error budget and the raw contrast (at 3 lambda/D, at every separation reported, and
-    its radial profile); the fallbacks' decisions."""
+def _sweep_points(name: str) -> list[tuple[str, dict, dict]] | None:
+    """``[(point, swept values, metrics, its scenario)]`` of the points of the sweep experiments/runs/<name>/ that finished, in
+    order of their names; None where it has no sweep.csv."""
     table = RUNS / name / "sweep.csv"
     if not table.is_file():
-        return False
+        return None
     with table.open() as f:
         reader = csv.DictReader(f)
         keys = reader.fieldnames[1:reader.fieldnames.index("status")]  # the swept keys (short names)
         done = {row["point"]: {k: json.loads(row[k]) for k in keys} for row in reader if row["status"] == "done"}
+    runs = [(point, values, _read(RUNS / name / "points" / point / "run" / "metrics.json"))
+            for point, values in sorted(done.items())]
+    return [(point, values, metrics, next(iter(metrics["scenarios"]))) for point, values, metrics in runs if metrics]
+
+
+def map_summary(name: str) -> bool:
+    """A sweep drawn as a map (experiments/runs/<name>/): per point its swept values and, per contender, the median
+    RMS, its realisations, the error budget and the raw contrast (at 3 lambda/D, at every separation reported, and
+    its radial profile); the fallbacks' decisions."""
+    if (done := _sweep_points(name)) is None:
+        return False
     points = []
-    for point, values in sorted(done.items()):
-        metrics = _read(RUNS / name / "points" / point / "run" / "metrics.json")
-        if metrics is None:
-            continue
-        scenario = next(iter(metrics["scenarios"]))
+    for point, values, metrics, scenario in done:
         profiles = _contrast_profiles(RUNS / name / "points" / point / "run" / "timeseries.npz", scenario)
         contenders = {}
         for contender, m in metrics["scenarios"][scenario].items():
@@ -251,30 +257,20 @@ def eta_map_summary(name: str) -> bool:
     """A sweep with the oracle in its contest (experiments/runs/<name>/): per point its swept values, each
     contender's median RMS and realisations, and the verdict's ratios over the best classical controller (plain
     variance, RMS, after fitting, raw contrast against the best in contrast, eta; each with its spread)."""
-    table = RUNS / name / "sweep.csv"
-    if not table.is_file():
+    if (done := _sweep_points(name)) is None:
         return False
-    with table.open() as f:
-        reader = csv.DictReader(f)
-        keys = reader.fieldnames[1:reader.fieldnames.index("status")]
-        done = {row["point"]: {k: json.loads(row[k]) for k in keys} for row in reader if row["status"] == "done"}
-    points = []
-    for point, values in sorted(done.items()):
-        metrics = _read(RUNS / name / "points" / point / "run" / "metrics.json")
-        if metrics is None:
-            continue
-        scenario = next(iter(metrics["scenarios"]))
-        verdict = metrics["verdict"]["scenarios"][scenario]
-        ratios = verdict["ratios"]
+    rows = []
+    for point, values, metrics, scenario in done:
+        ratios = (verdict := metrics["verdict"]["scenarios"][scenario])["ratios"]
         kept = {who: {k: r.get(k) for k in ETA_KEPT} for who, r in ratios["predictors"].items()}
         if ratios.get("oracle"):
             kept["oracle"] = {k: ratios["oracle"].get(k) for k in ETA_KEPT}
-        points.append({"point": point, "values": values, "best_classical": verdict["best_classical"]["name"],
-                       "fitting_nm": ratios.get("fitting_nm"), "after_fitting_how": ratios.get("after_fitting_how"),
-                       "median_rms_nm": {c: m["median_rms_nm"] for c, m in metrics["scenarios"][scenario].items()},
-                       "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario),
-                       "ratios": kept})
-    _write(name, "points/*/run/metrics.json", {"points": points})
+        rows.append({"point": point, "values": values, "best_classical": verdict["best_classical"]["name"],
+                     "fitting_nm": ratios.get("fitting_nm"), "after_fitting_how": ratios.get("after_fitting_how"),
+                     "median_rms_nm": {c: m["median_rms_nm"] for c, m in metrics["scenarios"][scenario].items()},
+                     "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario),
+                     "ratios": kept})
+    _write(name, "points/*/run/metrics.json", {"points": rows})
     return True
 
 
