@@ -65,7 +65,7 @@ from eofnn.studies.study import ALPHA_PATH
 from eofnn.training.from_telemetry import TelemetryDataConfig, fit_from_telemetry
 from eofnn.training.identify import identify_plant
 from eofnn.training.task import OptimizationConfig
-from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, check_value, validated
+from eofnn.validation import COUNT, POSITIVE, Constraint, Interval, IsBool, OrNone, check_value, validated
 
 #: What the adapter must offer beyond a SimulatorAdapter.
 NEEDED = ("turbulence_fit_nm", "residual_opd_nm", "pupil_mask", "dm_gain", "settings")
@@ -118,6 +118,7 @@ class AntiAliasConfig:
         "radius": Interval(0.5, 10, unit="pitches"),
         "wavelength_m": Interval(0, 1e-3, closed="right", unit="m"),
         "dither_nm": Interval(0, 1e5, closed="neither", unit="nm"),
+        "scored_frames": OrNone(COUNT),
         "oracle": IsBool(),
     }
 
@@ -126,10 +127,6 @@ class AntiAliasConfig:
         if self.settle_frames + self.val_frames >= self.train_frames or self.settle_frames >= self.loop_frames:
             raise ConfigError(f"settle_frames={self.settle_frames}, val_frames={self.val_frames} leave nothing of "
                               f"train_frames={self.train_frames} or loop_frames={self.loop_frames} to train or score")
-        if self.scored_frames is not None and (isinstance(self.scored_frames, bool)
-                                               or not isinstance(self.scored_frames, int) or self.scored_frames < 1):
-            raise ConfigError(f"scored_frames={self.scored_frames!r} is invalid: a whole number of frames, at least 1, "
-                              "or None (as long as a tuning run after settling)")
         settled = self.scored_run_frames - self.settle_frames
         if self.psd_segment_frames > settled:
             raise ConfigError(f"psd_segment_frames={self.psd_segment_frames} is longer than the {settled} settled "
