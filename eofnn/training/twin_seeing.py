@@ -132,7 +132,7 @@ def reference_covariances(config: dict, layers: list[dict], frames: int, *, real
     from eofnn.sim.scenario import Scenario
 
     out, projector = {}, None
-    for l0 in OUTER_SCALES_M:
+    for i, l0 in enumerate(OUTER_SCALES_M):
         cfg = json.loads(json.dumps(config))
         cfg["atmosphere"].update(r0_m=R0_REFERENCE_M, r0_wavelength_m=R0_WAVELENGTH_M, outer_scale_m=l0,
                                  screen_frames=frames,
@@ -143,9 +143,8 @@ def reference_covariances(config: dict, layers: list[dict], frames: int, *, real
             cfg["sensor"]["detector"] = None
         scenario = Scenario.from_dict(cfg)
         s = scenario.turbulence(seed, "twin_reference", realisations).frames(0, frames).numpy()
-        if record is not None and projector is None:
+        if i == 0 and record is not None:  # every outer scale's twin has the same actuators
             projector = record_range(record[0], record[1], np.asarray(scenario.grid.positions_m))
-            record = None if projector is None else record
         if projector is not None and np.linalg.norm(s - s @ projector) > 1e-10 * np.linalg.norm(s):
             s = s @ projector
         floors, spectra = zip(*(floor_and_spectrum(r) for r in s), strict=True)
