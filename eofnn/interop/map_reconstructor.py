@@ -112,15 +112,21 @@ def sim_prior_nm2(sim, r0_m: float, outer_scale_m: float) -> np.ndarray:
     return fitted_prior_nm2(fit, pupil, sim.settings["diameter_m"] / pupil.shape[0], r0_m, outer_scale_m)
 
 
-def pseudo_open_loop_slopes(slopes, commands, interaction_matrix, dm_gain: float = 1.0) -> np.ndarray:
-    """``p(n) = s(n) - g D c(n)`` ``(T, S)``: the slopes of frame ``n`` less what the command applied at that frame
-    (``c(n)``, the DM set before the sensor read) put on them (OOPAO's slopes are of the turbulence plus the DM)."""
+def _slopes_and_commanded(slopes, commands, interaction_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """``(s, D c)`` ``(T, S)`` each: the slopes and what the commands put on them, their shapes checked."""
     s, c = np.asarray(slopes, dtype=np.float64), np.asarray(commands, dtype=np.float64)
     d = np.asarray(interaction_matrix, dtype=np.float64)
     require(s.ndim == 2 and c.ndim == 2 and len(s) == len(c) and s.shape[1] == d.shape[0] and c.shape[1] == d.shape[1],
             f"slopes {s.shape} and commands {c.shape} are invalid for a {d.shape} interaction matrix: (T, "
             f"{d.shape[0]}) and (T, {d.shape[1]})")
-    return s - dm_gain * c @ d.T
+    return s, c @ d.T
+
+
+def pseudo_open_loop_slopes(slopes, commands, interaction_matrix, dm_gain: float = 1.0) -> np.ndarray:
+    """``p(n) = s(n) - g D c(n)`` ``(T, S)``: the slopes of frame ``n`` less what the command applied at that frame
+    (``c(n)``, the DM set before the sensor read) put on them (OOPAO's slopes are of the turbulence plus the DM)."""
+    s, dc = _slopes_and_commanded(slopes, commands, interaction_matrix)
+    return s - dm_gain * dc
 
 
 def dm_gain_from_slopes(slopes, commands, interaction_matrix) -> float:
@@ -128,8 +134,7 @@ def dm_gain_from_slopes(slopes, commands, interaction_matrix) -> float:
     gain), by least squares on second temporal differences: ``D2 s = g D2 (D c) + ...``; the dither and the loop's
     noise make ``D2 c`` rich, while the turbulence's slopes barely change and the slope noise of a frame is not in
     that frame's command (the loop's delay)."""
-    s, c = np.asarray(slopes, dtype=np.float64), np.asarray(commands, dtype=np.float64)
-    dc = pseudo_open_loop_slopes(np.zeros_like(s), -c, interaction_matrix)  # D c, shapes checked
+    s, dc = _slopes_and_commanded(slopes, commands, interaction_matrix)
     s2, dc2 = (x[2:] - 2 * x[1:-1] + x[:-2] for x in (s, dc))
     energy = float(np.sum(dc2 * dc2))
     require(energy > 0, "the commands never change: a recording with dither is needed to tell the DM's gain")
@@ -238,14 +243,14 @@ def apply_reconstructor(sim, kind: str, *, scan_seed: int, loop_frames: int, set
                 "10 nm dither) on the scan realisation", "dm_gain_seen": seen_gain, **found}
     info["slope_noise_rms"] = {"mean": float(np.sqrt(noise.mean())), "min": float(np.sqrt(noise.min())),
                                "max": float(np.sqrt(noise.max()))}
-    scan = {}
-    for w in weights:
-        sim.reconstructor = map_reconstructor(d, v, prior, noise, w)
-        scan[float(w)] = scan_integrator(sim, gains, loop_frames, scan_seed, settle_frames)
-        progress(f"[{kind}] w={w:g}: best-gain integrator {scan[float(w)]['median_rms_nm']:.2f} nm "
-                 f"(gain {scan[float(w)]['gain']}) on the scan realisation")
+    scan, built = {}, {}
+    for w in map(float, weights):
+        sim.reconstructor = built[w] = map_reconstructor(d, v, prior, noise, w)
+        scan[w] = scan_integrator(sim, gains, loop_frames, scan_seed, settle_frames)
+        progress(f"[{kind}] w={w:g}: best-gain integrator {scan[w]['median_rms_nm']:.2f} nm "
+                 f"(gain {scan[w]['gain']}) on the scan realisation")
     best = min(scan, key=lambda w: scan[w]["median_rms_nm"])
-    sim.reconstructor = map_reconstructor(d, v, prior, noise, best)
+    sim.reconstructor = built[best]
     source = "the simulator's r0 and L0" if kind == "map" else "turbulence and noise estimated from the loop's recording"
     sim.reconstructor_name = f"the MAP reconstructor ({source}, weight {best:g})"
     noise_gain = float(np.linalg.norm(sim.reconstructor) / np.linalg.norm(least_squares))
