@@ -6,16 +6,13 @@ from __future__ import annotations
 import json
 
 from report_common import HERE
+from report_oopao import _summed as _variance  # median RMS squared summed over the realisations
 
 COMMAND = "bash experiments/interop/twin_identified/run.sh full"
 #: The run the page and the findings read; the same command on earlier code is kept beside it.
 RUN = "interop/twin_identified/m8_2layers"
 BEFORE = "interop/twin_identified/m8_2layers_before_r0fix"
 NAMES = {"pfc": "PFC", "integrator": "integrator", "modal": "modal integrator", "lqg": "LQG"}
-
-
-def _variance(values: list[float]) -> float:
-    return sum(v * v for v in values) / len(values)
 
 
 def twin_identified_numbers(summary: dict) -> dict:

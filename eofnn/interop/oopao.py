@@ -180,8 +180,7 @@ class OopaoLoop:
         u, singular, vt = np.linalg.svd(self.interaction_matrix, full_matrices=False)
         kept = int((singular > rcond * singular[0]).sum())
         self.reconstructor = (vt[:kept].T / singular[:kept]) @ u[:, :kept].T  # (K, S): nm per slope unit
-        self._seen = vt[:kept].T
-        self.n_seen = kept
+        self._seen, self.n_seen = vt[:kept].T, kept  # the seen command modes and how many
         self.reconstructor_name = "the truncated pseudo-inverse"
         if self.sensor == "perfect":
             self._projection = self._fit_operator()[1]
