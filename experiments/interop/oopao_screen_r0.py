@@ -26,10 +26,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.special import gamma, kv
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from identify_unseen import CASES, OOPAO_L0_M  # noqa: E402
+
+from eofnn.sim.sensing.mmse import von_karman_covariance_nm2  # noqa: E402
+from eofnn.training.twin_seeing import ptt_projector  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "experiments" / "interop" / "oopao_screen_r0"
@@ -43,21 +45,6 @@ DEV_CASES = {"O1": {"r0": 0.12, "layers": [(12.0, 0.0, 1.0, 0.0)], "seed": 21},
              "O3": {"r0": 0.10, "layers": [(8.0, 45.0, 1.0, 0.0)], "seed": 23}}
 
 
-def von_karman_cov(r: np.ndarray, r0: float, l0: float) -> np.ndarray:
-    """The von Karman phase covariance (nm² of OPD at any wavelength) at separations ``r`` (m)."""
-    psd = (24 / 5 * gamma(6 / 5)) ** (5 / 6) * gamma(11 / 6) ** 2 / (2 * math.pi ** (11 / 3))  # 0.022896
-    sigma2 = 1.2 * math.pi * psd * (l0 / r0) ** (5 / 3)  # the PSD psd r0^-5/3 (f² + L0^-2)^-11/6 integrated
-    x = 2 * math.pi * np.maximum(r, 1e-9) / l0
-    b = sigma2 * 2 ** (1 / 6) / gamma(5 / 6) * x ** (5 / 6) * kv(5 / 6, x)
-    return np.where(r < 1e-9, sigma2, b) * (WAVELENGTH_NM / (2 * math.pi)) ** 2
-
-
-def ptt(points: np.ndarray) -> np.ndarray:
-    basis = np.column_stack([np.ones(len(points)), points - points.mean(0)])
-    q, _ = np.linalg.qr(basis)
-    return np.eye(len(points)) - q @ q.T
-
-
 def binned(second: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Mean over pairs of ``second[i,i] + second[j,j] - 2 second[i,j]`` in each bin of :data:`BINS_M`."""
     d = np.diag(second)
@@ -68,8 +55,9 @@ def binned(second: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def realised(moment: np.ndarray, points: np.ndarray, r0: float, l0: float) -> dict:
     """The realised r0 (and the per-bin ratios D / D_theory) without and with piston/tip/tilt removed."""
-    theory = von_karman_cov(np.linalg.norm(points[:, None] - points[None], axis=-1), r0, l0)
-    p = ptt(points)
+    theory = von_karman_covariance_nm2(np.linalg.norm(points[:, None] - points[None], axis=-1), r0, l0,
+                                       WAVELENGTH_NM * 1e-9)
+    p = ptt_projector(points)
     out = {}
     for name, (m, t) in {"raw": (moment, theory), "ptt_removed": (p @ moment @ p, p @ theory @ p)}.items():
         ratio = binned(m, points) / binned(t, points)

@@ -25,7 +25,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from identify_unseen import CASES, OOPAO_L0_M, _multilayer_loop  # noqa: E402
-from oopao_screen_r0 import DIAMETER_M, RESOLUTION, ROOT, realised, von_karman_cov  # noqa: E402
+from oopao_screen_r0 import DIAMETER_M, RESOLUTION, ROOT, WAVELENGTH_NM, realised  # noqa: E402
+
+from eofnn.sim.sensing.mmse import von_karman_covariance_nm2  # noqa: E402
 
 OUT = ROOT / "experiments" / "interop" / "oopao_twin_truth"
 
@@ -93,7 +95,8 @@ def twin_on(name: str, run: dict) -> dict:
     # Each against von Karman theory on the actuators (what fit_seeing finds against an exact reference): the
     # twin's references (eofnn's SH on eofnn's turbulence at r0 0.1), OOPAO's truth and wfs (x scale), the point OPD.
     distance = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-    theory = {l0: (von_karman_cov(distance, REFERENCE_R0, l0), None, positions) for l0 in (*refs, OOPAO_L0_M)}
+    theory = {l0: (von_karman_covariance_nm2(distance, REFERENCE_R0, l0, WAVELENGTH_NM * 1e-9), None, positions)
+              for l0 in (*refs, OOPAO_L0_M)}
     against = {f"twin_reference_L0_{l0:g}": fit_seeing(refs[l0][0], {l0: theory[l0]}, positions, pitch)["r0_m"]
                / REFERENCE_R0 - 1 for l0 in refs}
     for label, x in {"oopao_truth_fit": run["fit"] * scale, "oopao_wfs": run["wfs"] * scale,
