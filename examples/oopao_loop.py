@@ -197,9 +197,10 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"{' and '.join(tweaks)} set the eofnn-trained predictor: give --eofnn-trained too")
     if args.scored_frames is not None and not args.anti_aliasing:
         parser.error("--scored-frames sets the anti-aliasing study's scored runs: give --anti-aliasing too")
-    if args.scored_frames is not None and args.scored_frames < 128:
-        parser.error(f"--scored-frames={args.scored_frames} is invalid: at least 128 (one segment of the residual's "
-                     "temporal PSD)")
+    segment = AntiAliasConfig.psd_segment_frames  # the study's PSD segment: the fewest frames it scores
+    if args.scored_frames is not None and args.scored_frames < segment:
+        parser.error(f"--scored-frames={args.scored_frames} is invalid: at least {segment} (one segment of the "
+                     "residual's temporal PSD)")
     if args.no_oracle and not args.anti_aliasing:
         parser.error("--no-oracle leaves the oracle out of the anti-aliasing study: give --anti-aliasing too")
     if args.anti_aliasing and args.aliasing:
