@@ -270,7 +270,12 @@ def eta_map_summary(name: str) -> bool:
                      "median_rms_nm": {c: m["median_rms_nm"] for c, m in metrics["scenarios"][scenario].items()},
                      "realisations_nm": metrics.get("realisation_median_rms_nm", {}).get(scenario),
                      "ratios": kept})
-    _write(name, "points/*/run/metrics.json", {"points": rows})
+    # Points run in parts (experiments/where/eta_grid_10.yaml after the rest): those of the committed summary that
+    # this run has not are kept; a point run again replaces its row.
+    found = {row["point"] for row in rows}
+    earlier = _read(HERE / name / "summary.json") or {}
+    rows += [row for row in earlier.get("points", []) if row["point"] not in found]
+    _write(name, "points/*/run/metrics.json", {"points": sorted(rows, key=lambda row: row["point"])})
     return True
 
 

@@ -43,6 +43,12 @@ class TwinConfig(Output):
     mechanical_coupling : float, optional
         The DM's Gaussian influence functions' value one pitch away, for a record of slopes (default 0.35, with a
         warning).
+    optical_gain : float, optional
+        The sensor's optical gain on sky (its response to the phase under seeing over its calibration's), where known
+        (a model of the sensor, a gain-sensing camera): the dither identifies only the DM gain x the optical gain, so
+        without it r0 and the noise are of the sensor's reading of the phase (a diffractive Shack-Hartmann's r0
+        comes out optical_gain^(-6/5) high, with a warning); with it they are the phase's and the twin's DM gain is
+        the product over it.
     command_unit : str
         What one unit of y is: 'surface' (nm of smooth DM surface, eofnn's), 'nm' (the same), 'peak' (nm at the peak
         of one actuator's influence function, OOPAO's), 'um', 'm', or a positive number of nm per unit (e.g. nm per
@@ -65,6 +71,7 @@ class TwinConfig(Output):
     interaction_matrix: str | None = None
     reconstructor: str | None = None
     mechanical_coupling: float | None = None
+    optical_gain: float | None = None
     command_unit: str = "surface"
     measurement_unit: str | None = None
     max_layers: int = 3
@@ -79,6 +86,7 @@ def twin(cfg: TwinConfig, config_dump: str | None = None) -> dict:
     returns the summary line."""
     check_value("mechanical_coupling", cfg.mechanical_coupling, OrNone(Interval(0, 1, closed="neither")))
     check_units(cfg.command_unit, cfg.measurement_unit)
+    check_value("optical_gain", cfg.optical_gain, OrNone(Interval(0, 10, closed="right")))
     check_value("max_layers", cfg.max_layers, Interval(1, 3, integer=True))
     check_value("max_speed_mps", cfg.max_speed_mps, Interval(0, 200, closed="right", unit="m/s"))
     check_value("blocks", cfg.blocks, Interval(2, 100, integer=True))
@@ -116,4 +124,4 @@ def identify(cfg: TwinConfig) -> eofnn.training.twin.TwinIdentification:
                          reconstructor=matrices.get("reconstructor"), max_layers=cfg.max_layers,
                          max_speed_mps=cfg.max_speed_mps, blocks=cfg.blocks,
                          mechanical_coupling=cfg.mechanical_coupling, command_unit=cfg.command_unit,
-                         measurement_unit=cfg.measurement_unit, seed=cfg.seed)
+                         measurement_unit=cfg.measurement_unit, optical_gain=cfg.optical_gain, seed=cfg.seed)

@@ -66,6 +66,7 @@ from eofnn.training.twin_seeing import (
     reference_covariances,
     seeing_and_noise,
 )
+from eofnn.validation import Interval, OrNone, check_value
 
 torch = lazy_module("torch")
 
@@ -112,6 +113,12 @@ class TwinIdentification:
     def value(self, name: str):
         return self.estimates[name].value
 
+    @property
+    def optical_gain(self) -> float:
+        """The sensor's optical gain the user gave (1 where none was: the twin's DM gain is then the product)."""
+        given = self.estimates.get("optical_gain")
+        return 1.0 if given is None else float(given.value)
+
     def warn(self, message: str) -> None:
         self.warnings.append(message)
 
@@ -138,7 +145,8 @@ class TwinIdentification:
                            "outer_scale_m": float(outer_scale_m), "layers": layers, "model": "exact",
                            "screen_frames": int(screen_frames), "remove_ptt": self.remove_ptt},
             "frame_rate_hz": float(self.frame_rate_hz),
-            "plant": {"delay_frames": self.value("delay_frames"), "dm_gain": round(float(self.value("dm_gain")), 4)},
+            "plant": {"delay_frames": self.value("delay_frames"),
+                      "dm_gain": round(float(self.value("dm_gain")) / self.optical_gain, 4)},
         }
         if self.sensor == "shack_hartmann":
             config["sensor"] = {"kind": "shack_hartmann", "mechanical_coupling": self.mechanical_coupling,
@@ -221,7 +229,8 @@ def pupil_from_matrices(n_actuators: int, n_slopes: int | None, interaction_matr
 
 def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max_layers: int = 3,
                   max_speed_mps: float = 40.0, blocks: int = 4, mechanical_coupling: float | None = None,
-                  command_unit="surface", measurement_unit=None, seed: int = 0) -> TwinIdentification:
+                  command_unit="surface", measurement_unit=None, optical_gain: float | None = None,
+                  seed: int = 0) -> TwinIdentification:
     """Identify the twin of the system that recorded ``telemetry`` (a :class:`~eofnn.telemetry.record.Telemetry`
     with ``y``, ``wfs``, ``positions_m``, the delay and the frame rate; ``s``, ``eps`` and ``config`` are never read)
     (module docstring). ``interaction_matrix`` ``(S, K)`` and ``reconstructor`` ``(K, S)`` replace the file's;
@@ -230,9 +239,15 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     (:mod:`eofnn.telemetry.units`), e.g. ``"surface"`` (nm of smooth DM surface, eofnn's) or ``"peak"`` (nm at the
     peak of one actuator's influence function, OOPAO's and many RTCs': multiplied by the lattice sum of the influence
     functions, :func:`~eofnn.sim.sensing.least_squares.surface_per_command`); ``measurement_unit``: the same for
-    ``wfs`` (default ``command_unit``); everything identified is in eofnn's units; ``seed``: the reference streams'."""
+    ``wfs`` (default ``command_unit``); everything identified is in eofnn's units; ``optical_gain``: the sensor's
+    response to the phase on sky over its calibration's, where the user knows it (the dither identifies only the
+    product of the DM's gain and it; a diffractive Shack-Hartmann's spots broadened by the seeing make it less than
+    1): the POL is divided by it before the seeing, the layers and the noise (which are then the phase's, not the
+    sensor's reading of it: r0 otherwise comes out ``optical_gain^(-6/5)`` high), and the twin's DM gain is the product
+    over it (its sensor has none); ``seed``: the reference streams'."""
     measurement_unit = command_unit if measurement_unit is None else measurement_unit
     check_units(command_unit, measurement_unit)
+    check_value("optical_gain", optical_gain, OrNone(Interval(0, 10, closed="right")))
     from eofnn.sim.grid import ActuatorGrid, nearest_grid
     from eofnn.sim.layout import layout_from_positions
     from eofnn.training.identify import PlantNotIdentifiedWarning, identify_plant
@@ -335,6 +350,14 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     e["dm_gain"] = Estimate(gain, gain_se, "", gain_method, gain_warning)
 
     pol = pseudo_open_loop(y_all, wfs_all, gain, delay)
+    if optical_gain is not None:  # the phase's POL, not the sensor's reading of it
+        e["optical_gain"] = Estimate(float(optical_gain), None, "", "given (the user's knowledge of the sensor): "
+                                     "the POL divided by it, the twin's DM gain dm_gain over it")
+        pol = pol / optical_gain
+    else:
+        result.warn("r0 and the noise are of the sensor's reading of the phase: its optical gain on sky is not "
+                    "identifiable (the dither gives the DM gain x it); a diffractive sensor's r0 comes out "
+                    "optical_gain^(-6/5) high (give optical_gain where known)")
     pol = pol - pol.mean(0)
     parts = record_blocks(frames, blocks)
 

@@ -11,7 +11,7 @@
 #     against the integrator, the modal integrator, the LQG and PFC at 8 m, 40 x 40, 20 m/s, I = 8 and 10, and the
 #     checks beside them (about 5 h of CPU, one thread per run);
 #   - oopao_long: oopao_aa's I = 8 point on 5 realisations of 2000 scored frames, with the MAP reconstructor from
-#     telemetry for every contender (about 2 h on one core);
+#     telemetry for every contender (about 2 h on one core); oopao_long10: its I = 10 point the same way;
 #   - map_small: the anti-aliasing study at 20 x 20 on 4 m, I = 8, 20 m/s, with every contender on the truncated
 #     least-squares reconstructor and on the MAP one (--reconstructor map), at rcond 0.15 and 0.02, and on MAP from
 #     telemetry (map_telemetry) at 0.15 (about 5 min a run);
@@ -94,6 +94,12 @@ if [ "$what" = all ] || [ "$what" = oopao_long ]; then
     OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 5 \
         --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 8 --scored-frames 2000 --reconstructor map_telemetry \
         --out experiments/runs/interop/oopao_aa/m8_long
+fi
+if [ "$what" = all ] || [ "$what" = oopao_long10 ]; then
+    # The I = 10 headline the same way (5 realisations of 2000 scored frames, MAP from telemetry for all, the oracle).
+    OMP_NUM_THREADS=1 $PY examples/oopao_loop.py --frames 2000 --photon-noise --anti-aliasing --wind 20 --realisations 5 \
+        --n-subapertures 40 --diameter 8 --rcond 0.075 --magnitude 10 --scored-frames 2000 --reconstructor map_telemetry \
+        --out experiments/runs/interop/oopao_aa/m10_long
 fi
 if [ "$what" = all ] || [ "$what" = map_small ]; then
     # Every contender (integrator, modal integrator, LQG, PFC, the EOFs) on one reconstructor, the loop's: the
