@@ -53,6 +53,18 @@ def test_the_optical_gain_given_recovers_the_phases_r0_and_the_dms_gain(records)
 
 
 def test_an_optical_gain_out_of_range_is_refused_in_one_line(records):
-    with pytest.raises(ConfigError, match=r"optical_gain=-0\.5"):
-        identify_twin(records[0], optical_gain=-0.5)
+    for bad in (-0.5, "measured"):
+        with pytest.raises(ConfigError, match=f"optical_gain={bad!r}"):
+            identify_twin(records[0], optical_gain=bad)
+
+
+@pytest.mark.slow
+def test_identified_takes_the_whole_product_as_the_sensors(records):
+    """Where the DM's gain is its interaction matrix's, the dither's product is the optical gain: the phase's r0 again,
+    the twin's DM gain 1."""
+    plain, read = records
+    truth, found = identify_twin(plain), identify_twin(read, optical_gain="identified")
+    assert found.value("optical_gain") == pytest.approx(found.value("dm_gain"))
+    assert found.value("r0_m") / truth.value("r0_m") == pytest.approx(truth.value("dm_gain") ** 1.2, rel=0.03)
+    assert found.twin_config()["plant"]["dm_gain"] == 1.0
 

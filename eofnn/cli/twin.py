@@ -10,7 +10,7 @@ import yaml
 import eofnn
 from eofnn.cli.common import Output, log
 from eofnn.outputs import check_output_folder, staged_folder
-from eofnn.telemetry.units import check_units
+from eofnn.telemetry.units import OPTICAL_GAIN, check_units
 from eofnn.validation import Interval, OrNone, check_value
 
 # The identification imports torch, scipy and the simulator (seconds): imported in the function, so that the parser
@@ -43,12 +43,14 @@ class TwinConfig(Output):
     mechanical_coupling : float, optional
         The DM's Gaussian influence functions' value one pitch away, for a record of slopes (default 0.35, with a
         warning).
-    optical_gain : float, optional
+    optical_gain : float or 'identified', optional
         The sensor's optical gain on sky (its response to the phase under seeing over its calibration's), where known
         (a model of the sensor, a gain-sensing camera): the dither identifies only the DM gain x the optical gain, so
         without it r0 and the noise are of the sensor's reading of the phase (a diffractive Shack-Hartmann's r0
         comes out optical_gain^(-6/5) high, with a warning); with it they are the phase's and the twin's DM gain is
-        the product over it.
+        the product over it. 'identified': all of the identified product is the optical gain (the DM's gain is
+        its interaction matrix's: the matrix measured on this DM, as on a real system; not OOPAO's study, whose DM
+        gain is 2 on purpose).
     command_unit : str
         What one unit of y is: 'surface' (nm of smooth DM surface, eofnn's), 'nm' (the same), 'peak' (nm at the peak
         of one actuator's influence function, OOPAO's), 'um', 'm', or a positive number of nm per unit (e.g. nm per
@@ -71,7 +73,7 @@ class TwinConfig(Output):
     interaction_matrix: str | None = None
     reconstructor: str | None = None
     mechanical_coupling: float | None = None
-    optical_gain: float | None = None
+    optical_gain: float | str | None = None
     command_unit: str = "surface"
     measurement_unit: str | None = None
     max_layers: int = 3
@@ -86,7 +88,7 @@ def twin(cfg: TwinConfig, config_dump: str | None = None) -> dict:
     returns the summary line."""
     check_value("mechanical_coupling", cfg.mechanical_coupling, OrNone(Interval(0, 1, closed="neither")))
     check_units(cfg.command_unit, cfg.measurement_unit)
-    check_value("optical_gain", cfg.optical_gain, OrNone(Interval(0, 10, closed="right")))
+    check_value("optical_gain", cfg.optical_gain, OPTICAL_GAIN)
     check_value("max_layers", cfg.max_layers, Interval(1, 3, integer=True))
     check_value("max_speed_mps", cfg.max_speed_mps, Interval(0, 200, closed="right", unit="m/s"))
     check_value("blocks", cfg.blocks, Interval(2, 100, integer=True))

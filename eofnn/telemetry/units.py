@@ -9,7 +9,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from eofnn.validation import Constraint, check_value
+from eofnn.validation import Constraint, Either, Interval, OneOf, OrNone, check_value
 
 #: nm of eofnn's commands per unit: ``surface`` (eofnn's own, nm of smooth DM surface) and ``nm`` are the same.
 NM_PER_UNIT = {"surface": 1.0, "nm": 1.0, "um": 1e3, "m": 1e9}
@@ -17,6 +17,9 @@ NM_PER_UNIT = {"surface": 1.0, "nm": 1.0, "um": 1e3, "m": 1e9}
 #: sum of the influence functions (:func:`eofnn.sim.sensing.least_squares.surface_per_command`).
 PEAK = "peak"
 UNITS = ("surface", "nm", PEAK, "um", "m")
+#: A record's sensor's optical gain on sky as ``eofnn twin`` takes it: a number, or ``"identified"`` (all of the
+#: dither's DM gain x optical gain is the sensor's: the DM's gain is its interaction matrix's).
+OPTICAL_GAIN = OrNone(Either(Interval(0, 10, closed="right"), OneOf(("identified",))))
 
 
 def _number(value: Any) -> float | None:

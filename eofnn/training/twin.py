@@ -54,7 +54,7 @@ import numpy as np
 
 from eofnn.errors import TelemetryError
 from eofnn.lazy import lazy_module
-from eofnn.telemetry.units import PEAK, check_units, conversion
+from eofnn.telemetry.units import OPTICAL_GAIN, PEAK, check_units, conversion
 from eofnn.training.twin_layers import MERGE_SPEED_MPS, MIN_EXTRA_WEIGHT, Lattice, identify_layers, record_blocks, standard_error
 from eofnn.training.twin_seeing import (
     OUTER_SCALES_M,
@@ -66,7 +66,7 @@ from eofnn.training.twin_seeing import (
     reference_covariances,
     seeing_and_noise,
 )
-from eofnn.validation import Interval, OrNone, check_value
+from eofnn.validation import check_value
 
 torch = lazy_module("torch")
 
@@ -244,10 +244,11 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
     product of the DM's gain and it; a diffractive Shack-Hartmann's spots broadened by the seeing make it less than
     1): the POL is divided by it before the seeing, the layers and the noise (which are then the phase's, not the
     sensor's reading of it: r0 otherwise comes out ``optical_gain^(-6/5)`` high), and the twin's DM gain is the product
-    over it (its sensor has none); ``seed``: the reference streams'."""
+    over it (its sensor has none); ``"identified"``: all of the identified product is the optical gain (the DM's gain
+    is its interaction matrix's, as where the matrix was measured on this DM); ``seed``: the reference streams'."""
     measurement_unit = command_unit if measurement_unit is None else measurement_unit
     check_units(command_unit, measurement_unit)
-    check_value("optical_gain", optical_gain, OrNone(Interval(0, 10, closed="right")))
+    check_value("optical_gain", optical_gain, OPTICAL_GAIN)
     from eofnn.sim.grid import ActuatorGrid, nearest_grid
     from eofnn.sim.layout import layout_from_positions
     from eofnn.training.identify import PlantNotIdentifiedWarning, identify_plant
@@ -351,8 +352,11 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
 
     pol = pseudo_open_loop(y_all, wfs_all, gain, delay)
     if optical_gain is not None:  # the phase's POL, not the sensor's reading of it
-        e["optical_gain"] = Estimate(float(optical_gain), None, "", "given (the user's knowledge of the sensor): "
-                                     "the POL divided by it, the twin's DM gain dm_gain over it")
+        how = ("given (the user's knowledge of the sensor)" if optical_gain != "identified" else "identified: the "
+               "DM's gain taken as its interaction matrix's (calibrated on this DM), so all of dm_gain is the sensor's")
+        optical_gain = gain if optical_gain == "identified" else float(optical_gain)
+        e["optical_gain"] = Estimate(optical_gain, gain_se if how.startswith("identified") else None, "",
+                                     how + "; the POL divided by it, the twin's DM gain dm_gain over it")
         pol = pol / optical_gain
     else:
         result.warn("r0 and the noise are of the sensor's reading of the phase: its optical gain on sky is not "
