@@ -191,8 +191,9 @@ def _summed_variance(values: list[float], minus: list[float] | None = None) -> f
 def oopao_row() -> dict | None:
     from report_oopao import AA_LABELS, ratios, strongest
 
-    # I = 8 from its longer rerun on the noise-aware reconstructor where it was made (run.sh oopao_long).
-    runs = {mag: (mag == 8 and load("interop/oopao_aa/m8_long", "result")) or load(f"interop/oopao_aa/m{mag}", "result")
+    # Each magnitude from its longer rerun on the noise-aware reconstructor where it was made (run.sh oopao_long,
+    # oopao_long10).
+    runs = {mag: load(f"interop/oopao_aa/m{mag}_long", "result") or load(f"interop/oopao_aa/m{mag}", "result")
             for mag in (8, 10)}
     runs = {mag: r for mag, r in runs.items() if r}
     if not runs:

@@ -89,7 +89,7 @@ predictor of the measurement run at the integrator's noise transfer, not on a pr
 #: The I = 8 headline rerun longer and with the noise-aware reconstructor (experiments/interop/run.sh oopao_long).
 LONG_SYSTEM = "40 x 40, 8 m, MAP from telemetry, 5 x 2000 frames"
 ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_aa/m10": ("40 x 40, 8 m", 10, 0),
-                  "interop/oopao_aa/m8_long": (LONG_SYSTEM, 8, 0),
+                  "interop/oopao_aa/m8_long": (LONG_SYSTEM, 8, 0), "interop/oopao_aa/m10_long": (LONG_SYSTEM, 10, 0),
                   "interop/oopao_aa/m8_dir30": ("40 x 40, 8 m", 8, 30),
                   "interop/oopao_aa/small_m8_dir0": ("20 x 20, 4 m", 8, 0),
                   "interop/oopao_aa/small_m8_dir30": ("20 x 20, 4 m", 8, 30),
