@@ -9,7 +9,9 @@ LABELS = {**NAMES, "ol_eof_aa": "anti-aliasing EOF (5 x 5, DM fit)", "ol_eof_nb"
 #: The points of experiments/where/eta_grid.yaml (3 winds x 2 seeings).
 GRID_POINTS = 6
 COMMAND = ("eofnn sweep --config experiments/where/eta_sh.yaml --grid experiments/where/eta_grid.yaml "
-           "--out experiments/runs/where/eta --workers 1")
+           "--out experiments/runs/where/eta --workers 1`; its 10 m/s row was run last, alone: `eofnn sweep --config "
+           "experiments/where/eta_sh.yaml --grid experiments/where/eta_grid_10.yaml --out experiments/runs/where/eta "
+           "--workers 1")
 
 
 def _value(values: dict, key: str):
