@@ -5,33 +5,24 @@ phase (``optical_gain^(-6/5)`` high), with a one-line warning."""
 from __future__ import annotations
 
 import pytest
-import torch
+from test_twin import recorded  # noqa: F401  (the fixture: test_twin.py's dithered record)
 
-from eofnn.control import Dithered, Integrator
 from eofnn.errors import ConfigError
-from eofnn.sim import ActuatorGrid, Atmosphere, Layer, Telemetry, run_loop
-from eofnn.sim.loop.plant import Plant
-from eofnn.sim.scenario import Scenario
+from eofnn.telemetry.record import TELEMETRY_REQUIRED, Telemetry
 from eofnn.training.twin import identify_twin
 
-GRID = ActuatorGrid(2.0, 8)
 OPTICAL_GAIN = 0.8
 
 
 @pytest.fixture(scope="module")
-def records():
-    """A dithered integrator's record (8 across on 2 m, one 10 m/s layer, r0 0.12 m, 10 nm of noise), as recorded
-    and as a sensor of optical gain 0.8 would have read it (its wfs times 0.8: the loop's gain is then the product)."""
-    atmosphere = Atmosphere(r0_m=0.12, r0_wavelength_m=500e-9, outer_scale_m=20.0, layers=(Layer(1.0, 10.0, 30.0),),
-                            screen_frames=2200)
-    scenario = Scenario(GRID, atmosphere, 1000.0, Plant(delay_frames=2, wfs_noise_nm=10.0))
-    result = run_loop(scenario.turbulence(2, "og_test"), scenario.plant, Dithered(Integrator(0.4), 10.0, seed=3),
-                      2000, noise_seed=4, progress=False)
-    t = result.telemetry.realisation(0)
+def records(recorded):  # noqa: F811
+    """test_twin.py's dithered record as recorded and as a sensor of optical gain 0.8 would have read it (its wfs
+    times 0.8: the loop's gain is then the product)."""
+    t = Telemetry.load(recorded, required=TELEMETRY_REQUIRED)
 
     def record(scale: float) -> Telemetry:
-        return Telemetry(y=t.y, wfs=t.wfs * scale, delay_frames=2, frame_rate_hz=1000.0,
-                         positions_m=torch.as_tensor(GRID.positions_m))
+        return Telemetry(y=t.y, wfs=t.wfs * scale, delay_frames=t.delay_frames, frame_rate_hz=t.frame_rate_hz,
+                         positions_m=t.positions_m)
     return record(1.0), record(OPTICAL_GAIN)
 
 
