@@ -50,9 +50,11 @@ def _long_run_text(mag: int) -> str:
             f"{g['after']:.2f}x after the fitting error; "
             f"**{g['contrast']:.2f}x** in raw contrast at 3 λ/D against the {AA_LABELS[g['contrast_against']]} (goal 2x, "
             f"{_met(contrast, 2.0)[3:]}: {min(contrast):.2f}-{max(contrast):.2f}x); η "
-            f"{g['eta']:.2f}. The LQG, its model scanned, still leaves {lqg:.1f} nm against the integrator's "
-            f"{integ:.1f}" + (": at two frames of delay the integrator is not in its family (the pseudo-open-loop "
-                              "integrator is)." if lqg > integ else ".") + before)
+            f"{g['eta']:.2f}. " + (f"The LQG, its model scanned, still leaves {lqg:.1f} nm against the integrator's "
+                                    f"{integ:.1f}: at two frames of delay the integrator is not in its family (the "
+                                    "pseudo-open-loop integrator is)." if lqg > integ else
+                                    f"The LQG, its model scanned, leaves {lqg:.1f} nm, below the integrator's "
+                                    f"{integ:.1f}.") + before)
 
 
 def _met(values: list[float], goal: float) -> str:
