@@ -59,3 +59,12 @@ def test_identified_takes_the_whole_product_as_the_sensors(records):
     assert found.value("r0_m") / truth.value("r0_m") == pytest.approx(truth.value("dm_gain") ** 1.2, rel=0.03)
     assert found.twin_config()["plant"]["dm_gain"] == 1.0
 
+
+
+@pytest.mark.cli
+def test_the_cli_refuses_a_bad_optical_gain_in_one_line_before_importing_anything_heavy():
+    from test_help_speed import imported
+
+    answer = imported(["twin", "--telemetry", "x.npz", "--optical_gain", "abc", "--out", "o"])
+    assert answer["heavy"] == [] and answer["code"] == 2, answer
+    assert "optical_gain='abc' is invalid" in answer["stderr"] and "identified" in answer["stderr"]

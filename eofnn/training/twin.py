@@ -229,7 +229,7 @@ def pupil_from_matrices(n_actuators: int, n_slopes: int | None, interaction_matr
 
 def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max_layers: int = 3,
                   max_speed_mps: float = 40.0, blocks: int = 4, mechanical_coupling: float | None = None,
-                  command_unit="surface", measurement_unit=None, optical_gain: float | None = None,
+                  command_unit="surface", measurement_unit=None, optical_gain: float | str | None = None,
                   seed: int = 0) -> TwinIdentification:
     """Identify the twin of the system that recorded ``telemetry`` (a :class:`~eofnn.telemetry.record.Telemetry`
     with ``y``, ``wfs``, ``positions_m``, the delay and the frame rate; ``s``, ``eps`` and ``config`` are never read)
