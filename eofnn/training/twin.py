@@ -5,10 +5,10 @@ reconstructor), the dither if one was added, the actuator positions, the delay a
 the simulator's truth (``s``, ``eps``) or its configuration; every quantity comes with an uncertainty and the method
 that gave it, and a quantity the record cannot tell is given with a one-line warning and the value assumed.
 
-1. *The pupil* (:func:`pupil_from_matrices`): the actuators are the columns of ``y`` at their positions; an
-   interaction matrix says which of them move the slopes (a column of almost zero is an actuator outside the lit
-   pupil: refused, since the telemetry controls it) and which slopes respond (the valid subapertures); a
-   reconstructor must be ``(K, S)``.
+1. *The pupil* (:func:`~eofnn.training.twin_pupil.pupil_from_matrices`): the actuators are the columns of ``y`` at
+   their positions; an interaction matrix says which of them move the slopes (a column of almost zero is an actuator
+   outside the lit pupil: refused, since the telemetry controls it) and which slopes respond (the valid
+   subapertures); a reconstructor must be ``(K, S)``.
 2. *The plant*: the DM gain times the optical gain and the WFS lag by :func:`eofnn.training.identify.identify_plant`
    when the record holds a dither; without one it is not identifiable and 1 is assumed. The delay is the file's.
 3. *The pseudo-open-loop signal* ``s_hat(n) = wfs(n) - g y(n)`` (eofnn's alignment, ``docs/telemetry.md``: ``wfs(n)``
@@ -56,6 +56,7 @@ from eofnn.errors import TelemetryError
 from eofnn.lazy import lazy_module
 from eofnn.telemetry.units import OPTICAL_GAIN, PEAK, check_units, conversion
 from eofnn.training.twin_layers import MERGE_SPEED_MPS, MIN_EXTRA_WEIGHT, Lattice, identify_layers, record_blocks, standard_error
+from eofnn.training.twin_pupil import pupil_from_matrices
 from eofnn.training.twin_seeing import (
     OUTER_SCALES_M,
     R0_REFERENCE_M,
@@ -73,8 +74,6 @@ torch = lazy_module("torch")
 #: The DM's influence functions when the record has slopes and no coupling is given: Gaussian, this value one pitch
 #: away (OOPAO's and eofnn's default).
 DEFAULT_COUPLING = 0.35
-#: An interaction-matrix column (row) below this fraction of the median column (row) norm moves (answers) nothing.
-DEAD_FRACTION = 1e-3
 #: Fewest frames from which a layer is identified.
 MIN_LAYER_FRAMES = 1000
 
@@ -178,51 +177,6 @@ def twin_magnitude(config: dict, noise_nm: float, start: float = 8.0) -> float:
     cfg["sensor"]["detector"]["magnitude"] = start
     own = scenario_conditions(Scenario.from_dict(cfg)).wfs_noise_nm
     return start + 5 * math.log10(noise_nm / own)
-
-
-# ----------------------------------------------------------------------------------------------------------- pupil
-
-def pupil_from_matrices(n_actuators: int, n_slopes: int | None, interaction_matrix=None, reconstructor=None,
-                        positions_m=None) -> dict:
-    """The actuators the interaction matrix sees and the slopes that respond, the reconstructor's shape checked.
-
-    Returns ``{"valid_slopes": int or None, "valid_subapertures": int or None, "dead_slopes": list}``.
-
-    Raises
-    ------
-    TelemetryError
-        A reconstructor that is not ``(K, S)``; an interaction matrix that is not ``(S, K)``; an actuator of the
-        telemetry (a column of ``y``) whose interaction-matrix column is about zero (the telemetry's mask and the
-        matrix disagree).
-    """
-    out: dict = {"valid_slopes": None, "valid_subapertures": None, "dead_slopes": []}
-    im = None if interaction_matrix is None else np.asarray(interaction_matrix, dtype=np.float64)
-    if im is not None and n_slopes is None:
-        n_slopes = im.shape[0]
-    if reconstructor is not None:
-        r = np.asarray(reconstructor)
-        s = n_slopes if n_slopes is not None else (r.shape[1] if r.ndim == 2 else None)
-        if r.ndim != 2 or r.shape[0] != n_actuators or s is None or r.shape[1] != s or s % 2:
-            expected = f"({n_actuators}, 2 n_sub) = ({n_actuators}, {s})" if s else f"({n_actuators}, 2 n_sub)"
-            raise TelemetryError(f"reconstructor has shape {r.shape}: expected {expected}, wfs = R @ slopes for "
-                                 f"{n_actuators} actuators and x then y slopes of n_sub subapertures")
-    if im is None:
-        return out
-    if im.ndim != 2 or im.shape != (n_slopes, n_actuators):
-        raise TelemetryError(f"interaction_matrix has shape {im.shape}: expected ({n_slopes}, {n_actuators}) "
-                             "(slopes = IM @ y)")
-    columns = np.linalg.norm(im, axis=0)
-    dead = np.flatnonzero(columns < DEAD_FRACTION * np.median(columns))
-    if dead.size:
-        where = "" if positions_m is None else f" at ({positions_m[dead[0]][0]:.3g}, {positions_m[dead[0]][1]:.3g}) m"
-        raise TelemetryError(f"the telemetry's actuators and its interaction matrix disagree: {dead.size} actuator(s) "
-                             f"(first: column {int(dead[0])}{where}) move no slope (IM column about 0): drop them from "
-                             "y, wfs and positions, or give the interaction matrix of this loop")
-    rows = np.linalg.norm(im, axis=1)
-    valid = rows >= DEAD_FRACTION * np.median(rows)
-    out.update(valid_slopes=int(valid.sum()), valid_subapertures=int(valid.sum()) // 2,
-               dead_slopes=np.flatnonzero(~valid).tolist())
-    return out
 
 
 # ----------------------------------------------------------------------------------------------------------- whole
@@ -352,12 +306,12 @@ def identify_twin(telemetry, *, interaction_matrix=None, reconstructor=None, max
 
     pol = pseudo_open_loop(y_all, wfs_all, gain, delay)
     if optical_gain is not None:  # the phase's POL, not the sensor's reading of it
-        how = ("given (the user's knowledge of the sensor)" if optical_gain != "identified" else "identified: the "
-               "DM's gain taken as its interaction matrix's (calibrated on this DM), so all of dm_gain is the sensor's")
-        optical_gain = gain if optical_gain == "identified" else float(optical_gain)
-        e["optical_gain"] = Estimate(optical_gain, gain_se if how.startswith("identified") else None, "",
+        identified = optical_gain == "identified"
+        how = ("identified: the DM's gain taken as its interaction matrix's (calibrated on this DM), so all of "
+               "dm_gain is the sensor's" if identified else "given (the user's knowledge of the sensor)")
+        e["optical_gain"] = Estimate(gain if identified else float(optical_gain), gain_se if identified else None, "",
                                      how + "; the POL divided by it, the twin's DM gain dm_gain over it")
-        pol = pol / optical_gain
+        pol = pol / e["optical_gain"].value
     else:
         result.warn("r0 and the noise are of the sensor's reading of the phase: its optical gain on sky is not "
                     "identifiable (the dither gives the DM gain x it); a diffractive sensor's r0 comes out "
