@@ -86,7 +86,8 @@ predictor of the measurement run at the integrator's noise transfer, not on a pr
 
 #: The anti-aliasing study's runs (experiments/interop/run.sh oopao_aa), all at 20 m/s: the issue's two points at
 #: 40 x 40 on 8 m (wind along the actuator rows), the I = 8 point with the wind at 30 degrees, and 20 x 20 on 4 m.
-#: The I = 8 headline rerun longer and with the noise-aware reconstructor (experiments/interop/run.sh oopao_long).
+#: The I = 8 and 10 headlines rerun longer and with the noise-aware reconstructor (experiments/interop/run.sh
+#: oopao_long, oopao_long10).
 LONG_SYSTEM = "40 x 40, 8 m, MAP from telemetry, 5 x 2000 frames"
 ANTIALIAS_RUNS = {"interop/oopao_aa/m8": ("40 x 40, 8 m", 8, 0), "interop/oopao_aa/m10": ("40 x 40, 8 m", 10, 0),
                   "interop/oopao_aa/m8_long": (LONG_SYSTEM, 8, 0), "interop/oopao_aa/m10_long": (LONG_SYSTEM, 10, 0),
@@ -350,7 +351,7 @@ def oopao_reading() -> str:
             + ("" if not modal else f"; the modal integrator with optimised gains (Gendron & Léna, one gain per KL mode "
                f"from the telemetry's PSDs), where run, {min(modal):+.1f} to {max(modal):+.1f} nm") + ". "
             + _pfc_reading(found) + _psd_reading(found)
-            + " *Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames (the I = 8 rerun: 5 of 2000 "
+            + " *Limits*: one frozen-flow layer; 3 scored realisations of 1000 frames (the I = 8 and 10 reruns: 5 of 2000 "
             "scored frames); the error budget of each "
             "contender in OOPAO's loop (aliasing, noise, temporal, each from its own run) was not run: the PSDs split "
             "the measured residual by frequency, not by cause.")

@@ -108,6 +108,17 @@ def record(name: str) -> tuple[Path, dict, list[str]]:
     return path, truth, ["--interaction_matrix", str(im), "--reconstructor", str(r), "--command_unit", "peak"]
 
 
+def twin_of(name: str, path: Path, options: list[str], out: Path) -> tuple[dict, list[str]]:
+    """``eofnn twin`` on the record at ``path`` (``options``: its matrices and units), into ``out``: its
+    identified.json and its stderr lines."""
+    eofnn = str(Path(sys.executable).with_name("eofnn"))
+    done = subprocess.run([eofnn, "twin", "--telemetry", str(path), *options, "--out", str(out), "--overwrite", "true"],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{name}: eofnn twin failed: {done.stderr}")
+    return json.loads((out / "identified.json").read_text()), done.stderr.splitlines()
+
+
 def _angle(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
 
@@ -190,22 +201,16 @@ def main(names: list[str]) -> None:
     summary["code"] = CODE
     summary.update({"conditions": {n: CASES[n] for n in CASES}, "targets": TARGETS, "frames": FRAMES,
                     "command": "OMP_NUM_THREADS=1 .venv/bin/python experiments/interop/identify_unseen.py"})
-    eofnn = str(Path(sys.executable).with_name("eofnn"))
     for name in names:
         path, truth, options = record(name)
-        out = RUNS / f"twin_{name}"
-        done = subprocess.run([eofnn, "twin", "--telemetry", str(path), *options, "--out", str(out),
-                               "--overwrite", "true"], capture_output=True, text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f"{name}: eofnn twin failed: {done.stderr}")
-        found = json.loads((out / "identified.json").read_text())
+        found, stderr = twin_of(name, path, options, RUNS / f"twin_{name}")
         q = found["quantities"]
         row = {"truth": truth, "r0_m": [q["r0_m"]["value"], q["r0_m"]["uncertainty"]],
                "wfs_noise_nm": [q["wfs_noise_nm"]["value"], q["wfs_noise_nm"]["uncertainty"]],
                "dm_gain": q["dm_gain"]["value"], "outer_scale_m": q["outer_scale_m"]["value"],
                "found_layers": [{k: lay[k] for k in ("speed_mps", "speed_mps_se", "direction_deg", "direction_deg_se",
                                                       "weight")} for lay in found["layers"]],
-               "warnings": [line for line in done.stderr.splitlines() if "warning" in line or "twin:" in line],
+               "warnings": [line for line in stderr if "warning" in line or "twin:" in line],
                **score(truth, found)}
         summary["cases"][name] = row
         print(json.dumps({"case": name, **{k: row[k] for k in ("r0_m", "wfs_noise_nm", "layer_count", "pass")},

@@ -31,14 +31,13 @@ experiments/interop/identify_unseen_40/.
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from identify_unseen import FRAMES, OOPAO_L0_M, TARGETS, score  # noqa: E402
+from identify_unseen import FRAMES, OOPAO_L0_M, TARGETS, score, twin_of  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RUNS = ROOT / "experiments" / "runs" / "interop" / "identify_unseen_40"
@@ -87,17 +86,6 @@ def record(name: str) -> tuple[Path, dict, list[str]]:
     return path, truth, ["--interaction_matrix", str(im), "--reconstructor", str(r), "--command_unit", "peak"]
 
 
-def twin(name: str, variant: str, path: Path, options: list[str]) -> tuple[dict, list[str]]:
-    out = RUNS / f"twin_{name}_{variant}"
-    eofnn = str(Path(sys.executable).with_name("eofnn"))
-    done = subprocess.run([eofnn, "twin", "--telemetry", str(path), *options, *VARIANTS[variant], "--out", str(out),
-                           "--overwrite", "true"], capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"{name}: eofnn twin failed: {done.stderr}")
-    return json.loads((out / "identified.json").read_text()), [line for line in done.stderr.splitlines()
-                                                                if "twin:" in line]
-
-
 def results_md(summary: dict) -> str:
     lines = ["# eofnn twin on OOPAO's 40 x 40 diffractive Shack-Hartmann at unseen conditions", "",
              f"Script, cause and conditions (seeds fixed before the first run): `{summary['command']}`. Targets: r0 "
@@ -131,7 +119,8 @@ def main(names: list[str]) -> None:
     for name in names:
         path, truth, options = record(name)
         for variant in VARIANTS:
-            found, warnings = twin(name, variant, path, options)
+            found, stderr = twin_of(name, path, [*options, *VARIANTS[variant]], RUNS / f"twin_{name}_{variant}")
+            warnings = [line for line in stderr if "twin:" in line]
             gain = found["quantities"].get("optical_gain", {"value": 1.0})["value"]
             sensed = {**found, "quantities": {**found["quantities"], "wfs_noise_nm": {
                 "value": found["quantities"]["wfs_noise_nm"]["value"] * gain}}}
